@@ -1,0 +1,16 @@
+"""perchpose: the pose of a nested-marker perching target from one camera."""
+
+from perchpose.camera import CameraModel
+from perchpose.errors import PerchposeError
+from perchpose.estimator import Estimate, PerchingEstimator
+from perchpose.target import MarkerSpec, TargetSpec
+
+__all__ = [
+    "CameraModel",
+    "Estimate",
+    "MarkerSpec",
+    "PerchingEstimator",
+    "PerchposeError",
+    "TargetSpec",
+]
+__version__ = "0.1.0"

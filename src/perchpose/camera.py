@@ -1,0 +1,381 @@
+"""Camera models: intrinsics, lens distortion, projection, and calibration file I/O.
+
+Pixel convention is OpenCV's: the centre of the top-left pixel is (0, 0).
+Two distortion models are supported:
+
+- ``plumb_bob``: OpenCV's standard model with 4, 5, 8, 12 or 14 coefficients
+  (ROS calls the 8-coefficient form ``rational_polynomial``);
+- ``equidistant``: OpenCV's fisheye model, 4 coefficients (k1..k4), for wide FPV lenses.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from perchpose.errors import CameraFileError, ImageError
+
+Array = NDArray[np.float64]
+DistortionModel = Literal["plumb_bob", "equidistant"]
+
+_PLUMB_BOB_LENGTHS = (4, 5, 8, 12, 14)
+_MODEL_ALIASES: dict[str, DistortionModel] = {
+    "plumb_bob": "plumb_bob",
+    "rational_polynomial": "plumb_bob",
+    "radtan": "plumb_bob",
+    "pinhole": "plumb_bob",
+    "equidistant": "equidistant",
+    "fisheye": "equidistant",
+    "kannala_brandt": "equidistant",
+}
+
+
+@dataclass(frozen=True, eq=False)
+class CameraModel:
+    """A calibrated camera.
+
+    K : (3, 3) float64 intrinsic matrix, pixels.
+    dist : (N,) float64 distortion coefficients of ``model``.
+    width_px, height_px : image size the calibration belongs to.
+    """
+
+    K: Array
+    dist: Array
+    width_px: int
+    height_px: int
+    model: DistortionModel = "plumb_bob"
+    name: str = "camera"
+    _cache: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=np.float64)
+        dist = np.asarray(self.dist, dtype=np.float64).reshape(-1)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            raise CameraFileError(f"camera {self.name!r}: K must be a finite 3x3 matrix")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
+            raise CameraFileError(f"camera {self.name!r}: K needs fx > 0, fy > 0 and K[2,2] = 1")
+        if self.model not in ("plumb_bob", "equidistant"):
+            raise CameraFileError(f"camera {self.name!r}: unknown distortion model {self.model!r}")
+        if self.model == "equidistant" and dist.size != 4:
+            raise CameraFileError(
+                f"camera {self.name!r}: equidistant needs 4 coefficients, got {dist.size}"
+            )
+        if self.model == "plumb_bob":
+            if dist.size == 0:
+                dist = np.zeros(5)
+            if dist.size not in _PLUMB_BOB_LENGTHS:
+                raise CameraFileError(
+                    f"camera {self.name!r}: plumb_bob needs 4, 5, 8, 12 or 14 coefficients, "
+                    f"got {dist.size}"
+                )
+        if not np.all(np.isfinite(dist)):
+            raise CameraFileError(f"camera {self.name!r}: distortion coefficients are not finite")
+        if self.width_px <= 0 or self.height_px <= 0:
+            raise CameraFileError(f"camera {self.name!r}: image size must be positive")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels, OpenCV's order."""
+        return (self.width_px, self.height_px)
+
+    @property
+    def focal_px(self) -> float:
+        """Mean focal length in pixels."""
+        return 0.5 * float(self.K[0, 0] + self.K[1, 1])
+
+    # ------------------------------------------------------------------ projection
+    def project(self, points_camera_m: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """Project 3-D points of the camera frame to pixels.
+
+        points_camera_m : (N, 3) float, metres, camera frame.
+        Returns uv_px : (N, 2) float64 and in_front : (N,) bool. Points behind an ordinary
+        camera (z <= 0) or beyond 180 deg field of view of a fisheye get ``in_front`` False.
+        """
+        p = np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3)
+        if self.model == "equidistant":
+            return self._project_equidistant(p)
+        in_front = p[:, 2] > 1e-9
+        uv = np.full((p.shape[0], 2), np.nan)
+        if np.any(in_front):
+            projected, _ = cv2.projectPoints(
+                p[in_front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist
+            )
+            uv[in_front] = projected.reshape(-1, 2)
+        return uv, in_front
+
+    def _project_equidistant(self, p: Array) -> tuple[Array, NDArray[np.bool_]]:
+        k1, k2, k3, k4 = self.dist
+        r_xy = np.hypot(p[:, 0], p[:, 1])
+        theta = np.arctan2(r_xy, p[:, 2])
+        t2 = theta * theta
+        theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        scale = np.divide(theta_d, r_xy, out=np.ones_like(r_xy), where=r_xy > 1e-15)
+        x = p[:, 0] * scale
+        y = p[:, 1] * scale
+        uv = np.stack([self.K[0, 0] * x + self.K[0, 1] * y + self.K[0, 2],
+                       self.K[1, 1] * y + self.K[1, 2]], axis=1)
+        # the polynomial must stay monotonic up to theta for the projection to be one-to-one
+        in_front = (theta < math.radians(100.0)) & self._equidistant_monotonic(theta)
+        return uv, in_front
+
+    def _equidistant_monotonic(self, theta: Array) -> NDArray[np.bool_]:
+        k1, k2, k3, k4 = self.dist
+        t2 = theta * theta
+        derivative = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+        return np.asarray(derivative > 0.0)
+
+    def normalize(self, uv_px: Array) -> Array:
+        """Undistort pixels to normalised image coordinates (x/z, y/z).
+
+        uv_px : (N, 2) float pixels. Returns (N, 2) float64.
+        """
+        rays = self.pixel_rays(uv_px)
+        z = np.where(np.abs(rays[:, 2]) < 1e-12, 1e-12, rays[:, 2])
+        return rays[:, :2] / z[:, None]
+
+    def pixel_rays(self, uv_px: Array) -> Array:
+        """Unit viewing rays (N, 3) in the camera frame for pixels (N, 2).
+
+        For the equidistant model this also covers rays beyond 90 deg from the axis.
+        """
+        uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+        if self.model == "equidistant":
+            return self._rays_equidistant(uv)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+        xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, criteria=criteria)
+        xy = xy.reshape(-1, 2)
+        rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
+        return np.asarray(rays / np.linalg.norm(rays, axis=1, keepdims=True))
+
+    def _rays_equidistant(self, uv: Array) -> Array:
+        k1, k2, k3, k4 = self.dist
+        fx, fy, cx, cy, skew = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2], self.K[0, 1]
+        y = (uv[:, 1] - cy) / fy
+        x = (uv[:, 0] - cx - skew * y) / fx
+        theta_d = np.hypot(x, y)
+        theta = theta_d.copy()
+        for _ in range(20):  # Newton on theta * (1 + k1 t^2 + ...) = theta_d
+            t2 = theta * theta
+            f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
+            df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+            theta = theta - f / np.where(np.abs(df) < 1e-9, 1e-9, df)
+        phi = np.arctan2(y, x)
+        s = np.sin(theta)
+        return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(theta)], axis=1)
+
+    def max_distortion_px(self) -> float:
+        """Largest distance between a pixel and its pinhole position, over the image border."""
+        cached = self._cache.get("max_distortion_px")
+        if cached is not None:
+            return float(cached)
+        w, h = self.width_px, self.height_px
+        edge = np.linspace(0.0, 1.0, 33)
+        border = np.concatenate([
+            np.stack([edge * (w - 1), np.zeros_like(edge)], 1),
+            np.stack([edge * (w - 1), np.full_like(edge, h - 1)], 1),
+            np.stack([np.zeros_like(edge), edge * (h - 1)], 1),
+            np.stack([np.full_like(edge, w - 1), edge * (h - 1)], 1),
+        ])
+        rays = self.pixel_rays(border)
+        ok = rays[:, 2] > 0.05
+        pin = (self.K @ (rays[ok] / rays[ok, 2:3]).T).T[:, :2]
+        value = float(np.max(np.linalg.norm(pin - border[ok], axis=1))) if np.any(ok) else math.inf
+        if np.count_nonzero(ok) < border.shape[0]:
+            value = math.inf
+        self._cache["max_distortion_px"] = value
+        return value
+
+    # ------------------------------------------------------------------ checks
+    def check_image(self, image: object, name: str = "image") -> NDArray[np.uint8]:
+        """Return ``image`` as a grey uint8 (H, W) array, or raise ImageError naming ``name``.
+
+        Accepts grey (H, W) or BGR (H, W, 3) / BGRA (H, W, 4) uint8 arrays whose size is the
+        calibration's.
+        """
+        if not isinstance(image, np.ndarray):
+            raise ImageError(f"{name}: expected a numpy array, got {type(image).__name__}")
+        if image.dtype != np.uint8:
+            raise ImageError(f"{name}: expected uint8 pixels, got {image.dtype}")
+        if image.ndim == 3 and image.shape[2] in (3, 4):
+            code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+            grey = cv2.cvtColor(image, code)
+        elif image.ndim == 2:
+            grey = image
+        else:
+            raise ImageError(f"{name}: expected a grey or BGR image, got shape {image.shape}")
+        h, w = grey.shape
+        if (w, h) != self.size:
+            raise ImageError(
+                f"{name}: image is {w}x{h} but camera {self.name!r} is calibrated for "
+                f"{self.width_px}x{self.height_px}"
+            )
+        return np.asarray(grey, dtype=np.uint8)
+
+    # ------------------------------------------------------------------ presets
+    @staticmethod
+    def preset(name: str) -> CameraModel:
+        """Synthetic cameras for tests and simulation.
+
+        ``webcam``: 640x480 pinhole-like webcam, f = 554 px (60 deg horizontal), mild barrel.
+        ``fpv``: 640x480 wide FPV lens like the paper's, equidistant, about 150 deg diagonal.
+        ``fpv_wide``: 640x480 very wide FPV fisheye, equidistant, about 190 deg diagonal.
+        """
+        if name == "webcam":
+            return CameraModel(
+                K=np.array([[554.0, 0.0, 320.0], [0.0, 554.0, 240.0], [0.0, 0.0, 1.0]]),
+                dist=np.array([-0.05, 0.08, 0.0, 0.0, 0.0]),
+                width_px=640, height_px=480, model="plumb_bob", name="webcam",
+            )
+        if name == "fpv":
+            return CameraModel(
+                K=np.array([[300.0, 0.0, 322.0], [0.0, 300.0, 238.0], [0.0, 0.0, 1.0]]),
+                dist=np.array([0.02, -0.01, 0.003, -0.0005]),
+                width_px=640, height_px=480, model="equidistant", name="fpv",
+            )
+        if name == "fpv_wide":
+            return CameraModel(
+                K=np.array([[215.0, 0.0, 318.0], [0.0, 215.0, 243.0], [0.0, 0.0, 1.0]]),
+                dist=np.array([0.03, -0.008, 0.002, -0.0003]),
+                width_px=640, height_px=480, model="equidistant", name="fpv_wide",
+            )
+        raise CameraFileError(f"unknown camera preset {name!r} (choose webcam, fpv or fpv_wide)")
+
+    # ------------------------------------------------------------------ file I/O
+    @staticmethod
+    def load(path: str | Path) -> CameraModel:
+        """Read a ROS camera_info YAML or an OpenCV FileStorage YAML/XML calibration."""
+        p = Path(path)
+        if not p.is_file():
+            raise CameraFileError(f"{p}: camera file not found")
+        try:
+            text = p.read_text(encoding="utf-8", errors="replace")
+        except OSError as exc:
+            raise CameraFileError(f"{p}: cannot read camera file ({exc.strerror})") from exc
+        if text.lstrip().startswith(("%YAML", "<?xml", "<opencv_storage")):
+            return _load_opencv_storage(p)
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise CameraFileError(f"{p}: not valid YAML ({_first_line(exc)})") from exc
+        if not isinstance(data, dict):
+            raise CameraFileError(f"{p}: expected a mapping of camera_info fields")
+        return _from_ros_mapping(data, p)
+
+    def to_ros_dict(self) -> dict[str, Any]:
+        """The ROS camera_info YAML mapping of this camera."""
+        P = np.zeros((3, 4))
+        P[:3, :3] = self.K
+        ros_model = "equidistant" if self.model == "equidistant" else (
+            "plumb_bob" if self.dist.size <= 5 else "rational_polynomial"
+        )
+        return {
+            "image_width": self.width_px,
+            "image_height": self.height_px,
+            "camera_name": self.name,
+            "camera_matrix": {"rows": 3, "cols": 3, "data": _floats(self.K)},
+            "distortion_model": ros_model,
+            "distortion_coefficients": {"rows": 1, "cols": int(self.dist.size),
+                                        "data": _floats(self.dist)},
+            "rectification_matrix": {"rows": 3, "cols": 3, "data": _floats(np.eye(3))},
+            "projection_matrix": {"rows": 3, "cols": 4, "data": _floats(P)},
+        }
+
+    def save(self, path: str | Path) -> None:
+        """Write this camera as ROS camera_info YAML."""
+        Path(path).write_text(yaml.safe_dump(self.to_ros_dict(), sort_keys=False), encoding="utf-8")
+
+
+def _floats(a: Array) -> list[float]:
+    return [float(v) for v in np.asarray(a).reshape(-1)]
+
+
+def _first_line(exc: Exception) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
+def _matrix_field(data: dict[str, Any], keys: tuple[str, ...], path: Path) -> Array:
+    for key in keys:
+        if key in data:
+            value = data[key]
+            raw = value.get("data") if isinstance(value, dict) else value
+            try:
+                return np.asarray(raw, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError) as exc:
+                raise CameraFileError(f"{path}: field {key!r} is not a list of numbers") from exc
+    raise CameraFileError(f"{path}: missing field {keys[0]!r}")
+
+
+def _int_field(data: dict[str, Any], keys: tuple[str, ...], path: Path) -> int:
+    for key in keys:
+        if key in data:
+            try:
+                return int(data[key])
+            except (TypeError, ValueError) as exc:
+                raise CameraFileError(f"{path}: field {key!r} is not an integer") from exc
+    raise CameraFileError(f"{path}: missing field {keys[0]!r}")
+
+
+def _model_name(raw: object, path: Path) -> DistortionModel:
+    name = str(raw).strip().lower()
+    if name not in _MODEL_ALIASES:
+        raise CameraFileError(f"{path}: unknown distortion_model {raw!r}")
+    return _MODEL_ALIASES[name]
+
+
+def _from_ros_mapping(data: dict[str, Any], path: Path) -> CameraModel:
+    K = _matrix_field(data, ("camera_matrix", "K", "k"), path)
+    if K.size != 9:
+        raise CameraFileError(f"{path}: camera_matrix must have 9 numbers, got {K.size}")
+    dist = _matrix_field(data, ("distortion_coefficients", "D", "d"), path)
+    model = _model_name(data.get("distortion_model", "plumb_bob"), path)
+    width = _int_field(data, ("image_width", "width"), path)
+    height = _int_field(data, ("image_height", "height"), path)
+    try:
+        return CameraModel(K.reshape(3, 3), dist, width, height, model,
+                           str(data.get("camera_name", path.stem)))
+    except CameraFileError as exc:
+        raise CameraFileError(f"{path}: {exc}") from exc
+
+
+def _load_opencv_storage(path: Path) -> CameraModel:
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file") from exc
+    try:
+        if not fs.isOpened():
+            raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file")
+
+        def node(*names: str) -> Any:
+            for n in names:
+                nd = fs.getNode(n)
+                if not nd.empty():
+                    return nd
+            raise CameraFileError(f"{path}: missing field {names[0]!r}")
+
+        K = node("camera_matrix", "cameraMatrix", "K").mat()
+        dist = node("distortion_coefficients", "dist_coeffs", "distCoeffs", "D").mat()
+        if K is None or dist is None:
+            raise CameraFileError(f"{path}: camera_matrix or distortion_coefficients is not a matrix")
+        width = int(node("image_width", "width").real())
+        height = int(node("image_height", "height").real())
+        model_node = fs.getNode("distortion_model")
+        model = _model_name(model_node.string() if not model_node.empty() else "plumb_bob", path)
+        try:
+            return CameraModel(np.asarray(K, np.float64).reshape(3, 3),
+                               np.asarray(dist, np.float64).reshape(-1), width, height, model,
+                               path.stem)
+        except CameraFileError as exc:
+            raise CameraFileError(f"{path}: {exc}") from exc
+    finally:
+        fs.release()

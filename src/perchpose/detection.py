@@ -1,0 +1,128 @@
+"""Detection of a target's markers: one detector pass over all its dictionaries.
+
+Corners come back in the pixels of the original (distorted) image. For a lens whose distortion
+bends a large marker's edges enough that OpenCV's quad finder misses it, a second pass runs on a
+pinhole rectification of the image and maps the corners it finds back through the lens model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.target import TargetSpec, aruco_dictionary
+
+Array = NDArray[np.float64]
+
+# A lens that moves the image border this far from its pinhole position gets the rectified pass.
+RECTIFY_ABOVE_PX = 6.0
+
+
+@dataclass(frozen=True)
+class MarkerDetection:
+    """One target marker found in an image.
+
+    marker_index : index into ``TargetSpec.markers``.
+    corners_px : (4, 2) float64, pixels of the original image, ArUco order.
+    image_pass : ``raw`` (found on the image itself) or ``rectified``.
+    """
+
+    marker_index: int
+    corners_px: Array
+    image_pass: Literal["raw", "rectified"]
+
+    @property
+    def side_px(self) -> float:
+        """Mean side length in pixels."""
+        d = np.roll(self.corners_px, -1, axis=0) - self.corners_px
+        return float(np.mean(np.linalg.norm(d, axis=1)))
+
+
+def _detector_parameters() -> cv2.aruco.DetectorParameters:
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementWinSize = 5
+    params.cornerRefinementMaxIterations = 50
+    params.cornerRefinementMinAccuracy = 0.01
+    return params
+
+
+class MarkerDetector:
+    """Finds the markers of ``target`` in grey images of ``camera``.
+
+    All dictionaries of the target are searched in one ``detectMarkersMultiDict`` pass; ids that
+    are not the target's (dictionary, id) pairs are ignored.
+    """
+
+    def __init__(self, camera: CameraModel, target: TargetSpec) -> None:
+        self.camera = camera
+        self.target = target
+        self._dict_names = target.dictionaries
+        dicts = [aruco_dictionary(n) for n in self._dict_names]
+        self._detector = cv2.aruco.ArucoDetector(dicts[0], _detector_parameters())
+        self._detector.setDictionaries(dicts)
+        self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
+        self._maps: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None
+        self._K_rect: Array | None = None
+
+    def detect(self, grey: NDArray[np.uint8]) -> tuple[MarkerDetection, ...]:
+        """Detect the target's markers in a grey (H, W) uint8 image of the camera's size."""
+        found = self._detect_pass(grey, "raw")
+        if self.rectify and len(found) < len(self.target.markers):
+            rect = cv2.remap(grey, *self._rectify_maps(), interpolation=cv2.INTER_LINEAR)
+            for det in self._detect_pass(rect, "rectified").values():
+                if det.marker_index not in found:
+                    mapped = self._unrectify(det.corners_px)
+                    if mapped is not None:
+                        found[det.marker_index] = MarkerDetection(
+                            det.marker_index, mapped, "rectified"
+                        )
+        return tuple(found[i] for i in sorted(found))
+
+    def _detect_pass(
+        self, grey: NDArray[np.uint8], image_pass: Literal["raw", "rectified"]
+    ) -> dict[int, MarkerDetection]:
+        corners, ids, _rejected, dict_indices = self._detector.detectMarkersMultiDict(grey)
+        found: dict[int, MarkerDetection] = {}
+        if ids is None or len(ids) == 0:
+            return found
+        for quad, marker_id, dict_index in zip(
+            corners, np.asarray(ids).reshape(-1), np.asarray(dict_indices).reshape(-1),
+            strict=True,
+        ):
+            index = self.target.index_of(self._dict_names[int(dict_index)], int(marker_id))
+            if index is None:
+                continue
+            det = MarkerDetection(index, np.asarray(quad, np.float64).reshape(4, 2), image_pass)
+            previous = found.get(index)
+            if previous is None or det.side_px > previous.side_px:
+                found[index] = det
+        return found
+
+    def _rectify_maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        if self._maps is None:
+            w, h = self.camera.size
+            f = self.camera.focal_px
+            K_rect = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+            u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+            rays = np.stack([(u - K_rect[0, 2]) / f, (v - K_rect[1, 2]) / f, np.ones_like(u)], -1)
+            uv, ok = self.camera.project(rays.reshape(-1, 3))
+            uv[~ok] = -1.0
+            map_xy = uv.reshape(h, w, 2).astype(np.float32)
+            self._maps = (np.ascontiguousarray(map_xy[..., 0]), np.ascontiguousarray(map_xy[..., 1]))
+            self._K_rect = K_rect
+        return self._maps
+
+    def _unrectify(self, corners_rect_px: Array) -> Array | None:
+        assert self._K_rect is not None  # set together with the maps
+        K = self._K_rect
+        rays = np.concatenate(
+            [(corners_rect_px - K[:2, 2]) / K[0, 0], np.ones((corners_rect_px.shape[0], 1))], 1
+        )
+        uv, ok = self.camera.project(rays)
+        return uv if bool(np.all(ok)) else None

@@ -1,0 +1,34 @@
+"""The package's exception hierarchy.
+
+The library raises these; only the command line turns them into one-line messages and exit codes.
+"""
+
+from __future__ import annotations
+
+
+class PerchposeError(Exception):
+    """Base class of every error perchpose raises for a user's input or configuration."""
+
+
+class CameraFileError(PerchposeError):
+    """A camera calibration file is missing, unparsable or lacks a field."""
+
+
+class TargetSpecError(PerchposeError):
+    """A target specification is missing, unparsable or geometrically invalid."""
+
+
+class ImageError(PerchposeError):
+    """An image cannot be read, or does not match the camera it is used with."""
+
+
+class SourceError(PerchposeError):
+    """A frame source (folder, glob, video, camera) cannot be opened or is empty."""
+
+
+class TimestampError(PerchposeError):
+    """A frame timestamp is not finite or goes backwards."""
+
+
+class ScenarioError(PerchposeError):
+    """A simulation scenario name or setting is unknown or invalid."""

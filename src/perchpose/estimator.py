@@ -1,0 +1,207 @@
+"""PerchingEstimator: image + time in, filtered and fused target pose out."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.detection import MarkerDetection, MarkerDetector
+from perchpose.errors import TimestampError
+from perchpose.fusion import STAGE_NONE, FusionSigmas, fuse_paper
+from perchpose.kalman import KalmanSettings, MarkerTrack
+from perchpose.pose import MarkerPose, PoseFailure, solve_marker_pose
+from perchpose.target import TargetSpec
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MarkerState:
+    """What one marker contributed to a frame.
+
+    label : ``DICTIONARY:id``.
+    detection : the detected corners, or None.
+    measurement : the raw per-frame pose, or None (not detected, or rejected).
+    rejected : why a detected marker gave no measurement ('' if it did).
+    filtered_pose : (4,) [yaw_rad, x_m, y_m, z_m] of the marker's filter after this frame, or None.
+    missed_frames : consecutive frames without a measurement.
+    contributing : the marker's filtered pose went into the fused estimate.
+    """
+
+    label: str
+    detection: MarkerDetection | None
+    measurement: MarkerPose | None
+    rejected: str
+    filtered_pose: Array | None
+    missed_frames: int
+    contributing: bool
+
+
+@dataclass(frozen=True)
+class Timings:
+    """Wall-clock milliseconds spent in each step of one update."""
+
+    detect_ms: float
+    pose_ms: float
+    filter_ms: float
+    total_ms: float
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The target's pose in the camera frame for one frame (DESIGN section 2).
+
+    x_cm, y_cm, z_cm : target centre in the camera frame, centimetres (NaN when not valid).
+    yaw_deg : atan2(R[1,0], R[0,0]) of R_camera_target, degrees in (-180, 180] (NaN if not valid).
+    stage : 0 no estimate, 1 outer marker only, 2 both, 3 inner only.
+    """
+
+    t_s: float
+    valid: bool
+    stage: int
+    x_cm: float
+    y_cm: float
+    z_cm: float
+    yaw_deg: float
+    markers: tuple[MarkerState, ...]
+    timings: Timings
+
+    @property
+    def detected(self) -> tuple[int, ...]:
+        """Indices of the markers measured in this frame."""
+        return tuple(i for i, m in enumerate(self.markers) if m.measurement is not None)
+
+
+class PerchingEstimator:
+    """The paper's pipeline: detect, per-marker PnP, per-marker Kalman filter, staged fusion.
+
+    Keyword options:
+    kalman : KalmanSettings (k1, k2, alpha, n_max).
+    sigmas : FusionSigmas (paper's LMS values by default).
+    max_reproj_px : a marker pose whose corner reprojection RMS exceeds this is rejected.
+    """
+
+    def __init__(
+        self,
+        camera: CameraModel,
+        target: TargetSpec,
+        *,
+        kalman: KalmanSettings | None = None,
+        sigmas: FusionSigmas | None = None,
+        max_reproj_px: float = 3.0,
+    ) -> None:
+        self.camera = camera
+        self.target = target
+        self.kalman = kalman or KalmanSettings()
+        self.sigmas = sigmas or FusionSigmas()
+        self.max_reproj_px = max_reproj_px
+        self.detector = MarkerDetector(camera, target)
+        self._tracks = [MarkerTrack(self.kalman) for _ in target.markers]
+        self._last_R: list[Array | None] = [None] * len(target.markers)
+        self._last_t_s: float | None = None
+
+    def reset(self) -> None:
+        """Forget all tracks (a new sequence)."""
+        self._tracks = [MarkerTrack(self.kalman) for _ in self.target.markers]
+        self._last_R = [None] * len(self.target.markers)
+        self._last_t_s = None
+
+    def _check_time(self, t_s: float) -> float:
+        t = float(t_s)
+        if not math.isfinite(t):
+            raise TimestampError(f"timestamp {t_s!r} is not finite")
+        if self._last_t_s is not None and t < self._last_t_s:
+            raise TimestampError(f"timestamp {t:.6f} s goes backwards (previous {self._last_t_s:.6f} s)")
+        return t
+
+    def update(self, image: NDArray[np.uint8], t_s: float) -> Estimate:
+        """Process one frame taken at ``t_s`` seconds; ``image`` is grey or BGR uint8."""
+        t = self._check_time(t_s)
+        grey = self.camera.check_image(image)
+        t0 = time.perf_counter()
+        detections = self.detector.detect(grey)
+        t1 = time.perf_counter()
+        measurements, rejected = self._measure(detections)
+        t2 = time.perf_counter()
+        return self._filter_and_fuse(t, detections, measurements, rejected, (t0, t1, t2))
+
+    def _measure(
+        self, detections: tuple[MarkerDetection, ...]
+    ) -> tuple[dict[int, MarkerPose], dict[int, str]]:
+        measurements: dict[int, MarkerPose] = {}
+        rejected: dict[int, str] = {}
+        for det in detections:
+            result = solve_marker_pose(
+                self.camera, self.target.markers[det.marker_index], det.marker_index,
+                det.corners_px, self._last_R[det.marker_index],
+            )
+            if isinstance(result, PoseFailure):
+                rejected[det.marker_index] = result.reason
+            elif result.reproj_rms_px > self.max_reproj_px:
+                rejected[det.marker_index] = f"reprojection {result.reproj_rms_px:.1f} px"
+            else:
+                measurements[det.marker_index] = result
+        return measurements, rejected
+
+    def _filter_and_fuse(
+        self,
+        t: float,
+        detections: tuple[MarkerDetection, ...],
+        measurements: dict[int, MarkerPose],
+        rejected: dict[int, str],
+        clocks: tuple[float, float, float],
+    ) -> Estimate:
+        t0, t1, t2 = clocks
+        for i, track in enumerate(self._tracks):
+            m = measurements.get(i)
+            if m is not None:
+                track.measured(np.array([m.yaw_rad, *m.t_m]), t)
+                self._last_R[i] = m.T_camera_target[:3, :3].copy()
+            else:
+                track.missed_frame(t)
+                if not track.alive:
+                    self._last_R[i] = None
+        self._last_t_s = t
+        if measurements:
+            contributing = set(measurements)
+        else:
+            contributing = {i for i, tr in enumerate(self._tracks) if tr.alive}
+        poses = {
+            i: tr.filter.pose for i, tr in enumerate(self._tracks)
+            if i in contributing and tr.filter is not None
+        }
+        fused, stage = fuse_paper(poses, self.sigmas)
+        t3 = time.perf_counter()
+        by_index = {d.marker_index: d for d in detections}
+        states = tuple(
+            MarkerState(
+                label=spec.label,
+                detection=by_index.get(i),
+                measurement=measurements.get(i),
+                rejected=rejected.get(i, ""),
+                filtered_pose=None if tr.filter is None else tr.filter.pose,
+                missed_frames=tr.missed,
+                contributing=i in poses,
+            )
+            for i, (spec, tr) in enumerate(zip(self.target.markers, self._tracks, strict=True))
+        )
+        valid = stage != STAGE_NONE
+        return Estimate(
+            t_s=t,
+            valid=valid,
+            stage=stage,
+            x_cm=float(fused[1] * 100.0),
+            y_cm=float(fused[2] * 100.0),
+            z_cm=float(fused[3] * 100.0),
+            yaw_deg=float(math.degrees(fused[0])) if valid else math.nan,
+            markers=states,
+            timings=Timings(
+                detect_ms=(t1 - t0) * 1e3, pose_ms=(t2 - t1) * 1e3,
+                filter_ms=(t3 - t2) * 1e3, total_ms=(t3 - t0) * 1e3,
+            ),
+        )

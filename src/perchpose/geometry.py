@@ -1,0 +1,130 @@
+"""Rigid transforms, yaw and angle wrapping.
+
+Naming rule, used everywhere in perchpose: ``T_a_b`` is a 4x4 homogeneous transform that maps
+points from frame b into frame a, ``p_a = T_a_b @ p_b``, so that ``T_a_c = T_a_b @ T_b_c``.
+``R_a_b`` is its 3x3 rotation and ``t_a_b_m`` its translation in metres.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+def wrap_angle_rad(angle_rad: float) -> float:
+    """Wrap an angle to (-pi, pi]."""
+    wrapped = math.remainder(angle_rad, 2.0 * math.pi)
+    return math.pi if wrapped == -math.pi else wrapped
+
+
+def wrap_angle_deg(angle_deg: float) -> float:
+    """Wrap an angle to (-180, 180]."""
+    return math.degrees(wrap_angle_rad(math.radians(angle_deg)))
+
+
+def angle_diff_rad(a_rad: float, b_rad: float) -> float:
+    """The signed difference ``a - b`` on the circle, in (-pi, pi]."""
+    return wrap_angle_rad(a_rad - b_rad)
+
+
+def weighted_circular_mean_rad(angles_rad: Array, weights: Array) -> float:
+    """Weighted mean of angles on the circle.
+
+    angles_rad : (N,) float, radians.
+    weights : (N,) float, non-negative, not all zero.
+    """
+    s = float(np.sum(weights * np.sin(angles_rad)))
+    c = float(np.sum(weights * np.cos(angles_rad)))
+    return wrap_angle_rad(math.atan2(s, c))
+
+
+def check_transform(T: object, name: str = "T") -> Array:
+    """Return ``T`` as a (4, 4) float64 rigid transform or raise ValueError naming ``name``."""
+    arr = np.asarray(T, dtype=np.float64)
+    if arr.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 transform, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} has non-finite entries")
+    R = arr[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError(f"{name} rotation is not orthonormal with determinant +1")
+    if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"{name} last row must be [0, 0, 0, 1]")
+    return arr
+
+
+def make_transform(R: Array, t_m: Array) -> Array:
+    """Build a 4x4 transform from a (3, 3) rotation and a (3,) translation in metres."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t_m, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert_transform(T_a_b: Array) -> Array:
+    """Return ``T_b_a`` for a rigid ``T_a_b``."""
+    R = T_a_b[:3, :3]
+    t = T_a_b[:3, 3]
+    return make_transform(R.T, -R.T @ t)
+
+
+def transform_from_rvec_tvec(rvec: Array, tvec_m: Array) -> Array:
+    """Build ``T_camera_object`` from OpenCV's Rodrigues vector and translation (metres)."""
+    R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
+    return make_transform(np.asarray(R, dtype=np.float64), np.asarray(tvec_m).reshape(3))
+
+
+def rvec_tvec_from_transform(T: Array) -> tuple[Array, Array]:
+    """Return OpenCV's (Rodrigues vector (3, 1), translation (3, 1)) for a 4x4 transform."""
+    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))
+    return np.asarray(rvec, dtype=np.float64).reshape(3, 1), T[:3, 3].reshape(3, 1).copy()
+
+
+def yaw_rad(R_camera_target: Array) -> float:
+    """The target's yaw in the camera frame: ``atan2(R[1,0], R[0,0])`` in (-pi, pi]."""
+    return wrap_angle_rad(math.atan2(float(R_camera_target[1, 0]), float(R_camera_target[0, 0])))
+
+
+def rot_x(angle_rad: float) -> Array:
+    """Rotation about x by ``angle_rad``."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> Array:
+    """Rotation about y by ``angle_rad``."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_rad: float) -> Array:
+    """Rotation about z by ``angle_rad``."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+# A target facing the camera, upright in the image: target x = camera x, target y = -camera y
+# (up in the image), target z = -camera z (its printed face looks back at the camera).
+R_CAMERA_TARGET_FACING = np.diag([1.0, -1.0, -1.0])
+
+
+def facing_pose(
+    x_m: float,
+    y_m: float,
+    z_m: float,
+    yaw_rad_: float = 0.0,
+    tilt_x_rad: float = 0.0,
+    tilt_y_rad: float = 0.0,
+) -> Array:
+    """``T_camera_target`` of a target facing the camera at (x, y, z) metres in the camera frame.
+
+    ``yaw_rad_`` turns the target about the optical axis (it is then the estimate's yaw);
+    ``tilt_x_rad`` and ``tilt_y_rad`` tilt the target plane about the camera's x and y axes.
+    """
+    R = rot_x(tilt_x_rad) @ rot_y(tilt_y_rad) @ rot_z(yaw_rad_) @ R_CAMERA_TARGET_FACING
+    return make_transform(R, np.array([x_m, y_m, z_m]))

@@ -1,0 +1,130 @@
+"""Per-marker pose: IPPE square PnP with both solutions considered and LM refinement."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.geometry import invert_transform, transform_from_rvec_tvec, yaw_rad
+from perchpose.target import MarkerSpec
+
+Array = NDArray[np.float64]
+
+# Two IPPE solutions whose reprojection errors are within this factor are called ambiguous,
+# and the one closer to the previous rotation is kept.
+AMBIGUITY_RATIO = 2.0
+
+
+@dataclass(frozen=True)
+class MarkerPose:
+    """The pose of the target measured from one marker.
+
+    T_camera_target : (4, 4) float64, metres.
+    reproj_rms_px : RMS distance between detected and reprojected corners, pixels.
+    alt_reproj_rms_px : the same for the other IPPE solution (inf if there was none).
+    ambiguous : the two solutions were too close to tell apart by reprojection alone.
+    """
+
+    marker_index: int
+    T_camera_target: Array
+    reproj_rms_px: float
+    alt_reproj_rms_px: float
+    ambiguous: bool
+
+    @property
+    def yaw_rad(self) -> float:
+        """Yaw of the target in the camera frame, radians."""
+        return yaw_rad(self.T_camera_target[:3, :3])
+
+    @property
+    def t_m(self) -> Array:
+        """Target centre in the camera frame, (3,) metres."""
+        return self.T_camera_target[:3, 3]
+
+
+@dataclass(frozen=True)
+class PoseFailure:
+    """A marker whose pose could not be computed, and why. Falsy."""
+
+    marker_index: int
+    reason: str
+
+    def __bool__(self) -> bool:
+        return False
+
+
+def rotation_angle_rad(R_a: Array, R_b: Array) -> float:
+    """Angle of the rotation taking ``R_b`` to ``R_a``, radians in [0, pi]."""
+    c = (float(np.trace(R_a.T @ R_b)) - 1.0) / 2.0
+    return math.acos(max(-1.0, min(1.0, c)))
+
+
+def reprojection_rms_px(
+    camera: CameraModel, T_camera_target: Array, points_target_m: Array, uv_px: Array
+) -> float:
+    """RMS pixel distance between ``uv_px`` (N, 2) and the projection of points (N, 3)."""
+    p = (T_camera_target[:3, :3] @ points_target_m.T).T + T_camera_target[:3, 3]
+    uv, ok = camera.project(p)
+    if not np.all(ok):
+        return math.inf
+    return float(np.sqrt(np.mean(np.sum((uv - uv_px) ** 2, axis=1))))
+
+
+def solve_marker_pose(
+    camera: CameraModel,
+    marker: MarkerSpec,
+    marker_index: int,
+    corners_px: Array,
+    R_previous: Array | None = None,
+) -> MarkerPose | PoseFailure:
+    """Pose of the target from one marker's four corners.
+
+    corners_px : (4, 2) float, pixels of the original image, ArUco order.
+    R_previous : (3, 3) rotation ``R_camera_target`` of the last accepted pose, used to choose
+        between the two IPPE solutions when reprojection cannot tell them apart.
+    """
+    xy = camera.normalize(corners_px)
+    if not np.all(np.isfinite(xy)):
+        return PoseFailure(marker_index, "corner outside the lens model")
+    obj = marker.corners_marker_m.reshape(4, 1, 3)
+    img = xy.reshape(4, 1, 2)
+    eye = np.eye(3)
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            obj, img, eye, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
+    except cv2.error:
+        return PoseFailure(marker_index, "degenerate corners")
+    if n == 0:
+        return PoseFailure(marker_index, "no PnP solution")
+    T_target_marker = marker.T_target_marker
+    T_marker_target = invert_transform(T_target_marker)
+    candidates: list[tuple[float, Array]] = []
+    for rvec, tvec in zip(rvecs, tvecs, strict=True):
+        rvec_r, tvec_r = cv2.solvePnPRefineLM(obj, img, eye, None, rvec.copy(), tvec.copy())
+        T_camera_marker = transform_from_rvec_tvec(rvec_r, tvec_r)
+        if T_camera_marker[2, 3] <= 0:
+            continue
+        T_camera_target = T_camera_marker @ T_marker_target
+        err = reprojection_rms_px(camera, T_camera_target, marker.corners_target_m, corners_px)
+        candidates.append((err, T_camera_target))
+    if not candidates:
+        return PoseFailure(marker_index, "marker behind the camera")
+    candidates.sort(key=lambda c: c[0])
+    best_err, best_T = candidates[0]
+    alt_err = candidates[1][0] if len(candidates) > 1 else math.inf
+    ambiguous = alt_err < AMBIGUITY_RATIO * max(best_err, 1e-3)
+    if ambiguous and R_previous is not None:
+        alt_T = candidates[1][1]
+        if rotation_angle_rad(alt_T[:3, :3], R_previous) < rotation_angle_rad(
+            best_T[:3, :3], R_previous
+        ):
+            best_err, best_T, alt_err = alt_err, alt_T, best_err
+    if not math.isfinite(best_err):
+        return PoseFailure(marker_index, "reprojection failed")
+    return MarkerPose(marker_index, best_T, best_err, alt_err, ambiguous)

@@ -1,0 +1,181 @@
+"""Render the target as a camera sees it, with known pose.
+
+Each output pixel is the mean of ``supersample**2`` rays through the lens model, intersected with
+the target plane, so edges are antialiased and corners sit where the geometry puts them, for both
+distortion models and at any distance. Image effects (exposure, contrast, blur, motion blur,
+noise, JPEG, occluders) are applied after.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.geometry import check_transform
+from perchpose.target import TargetSpec
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ImageQuality:
+    """Photometric settings of a rendered frame.
+
+    black_level, white_level : grey level of printed black and white at exposure 1.
+    surround : reflectance of everything that is not the printed sheet (plate, ceiling).
+    exposure : gain on the light reaching the sensor.
+    blur_sigma_px : Gaussian optical blur, pixels.
+    motion_blur_px, motion_angle_deg : length and direction of a linear motion blur, pixels.
+    noise_sigma : standard deviation of additive Gaussian sensor noise, grey levels.
+    jpeg_quality : JPEG compression quality 1-100, or None for none.
+    vignetting : relative darkening at the image corners (0 none, 0.4 strong).
+    """
+
+    black_level: float = 25.0
+    white_level: float = 225.0
+    surround: float = 0.45
+    exposure: float = 1.0
+    blur_sigma_px: float = 0.6
+    motion_blur_px: float = 0.0
+    motion_angle_deg: float = 0.0
+    noise_sigma: float = 2.0
+    jpeg_quality: int | None = None
+    vignetting: float = 0.0
+
+    @staticmethod
+    def preset(name: str) -> ImageQuality:
+        """``clean``, ``default`` or ``analog_fpv`` (noise, blur, low contrast, JPEG)."""
+        if name == "clean":
+            return ImageQuality(blur_sigma_px=0.0, noise_sigma=0.0)
+        if name == "default":
+            return ImageQuality()
+        if name == "analog_fpv":
+            return ImageQuality(black_level=55.0, white_level=190.0, blur_sigma_px=1.1,
+                                noise_sigma=6.0, jpeg_quality=70, vignetting=0.3)
+        raise ValueError(f"unknown image quality preset {name!r}")
+
+
+@dataclass(frozen=True)
+class Occluder:
+    """A dark polygon drawn over the image (pixels), e.g. a hand or a wire."""
+
+    polygon_px: Array
+    grey: int = 30
+
+
+@dataclass
+class Renderer:
+    """Draws ``target`` through ``camera``; ray directions are computed once and cached."""
+
+    camera: CameraModel
+    target: TargetSpec
+    supersample: int = 3
+    _rays: NDArray[np.float32] | None = field(default=None, repr=False)
+    _vignette: NDArray[np.float32] | None = field(default=None, repr=False)
+
+    def _camera_rays(self) -> NDArray[np.float32]:
+        if self._rays is None:
+            n = self.supersample
+            w, h = self.camera.size
+            offsets = (np.arange(n) + 0.5) / n - 0.5
+            us = (np.arange(w)[:, None] + offsets[None, :]).reshape(-1)
+            vs = (np.arange(h)[:, None] + offsets[None, :]).reshape(-1)
+            u, v = np.meshgrid(us, vs)
+            rays = self.camera.pixel_rays(np.stack([u.reshape(-1), v.reshape(-1)], 1))
+            self._rays = rays.astype(np.float32)
+        return self._rays
+
+    def reflectance(self, T_camera_target: Array) -> NDArray[np.float32]:
+        """(H, n, W, n) reflectance of each of the n x n samples of every pixel, NaN off the
+        sheet, for the target at ``T_camera_target``."""
+        T = check_transform(T_camera_target, "T_camera_target")
+        rays = self._camera_rays()
+        R = T[:3, :3]
+        t = T[:3, 3]
+        o_t = -R.T @ t  # camera centre in the target frame
+        d = rays @ R.astype(np.float32)  # rays in the target frame: (R^T d)^T = d^T R
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = np.float32(-o_t[2]) / d[:, 2]
+        lam[~(lam > 0)] = np.nan  # rays parallel to or away from the plane see the surround
+        x = np.float32(o_t[0]) + lam * d[:, 0]
+        y = np.float32(o_t[1]) + lam * d[:, 1]
+        tex, texel = self.target.texture
+        n_tex = tex.shape[0]
+        # remap's nearest lookup rounds, so texel j is [j - 0.5, j + 0.5) in map coordinates
+        map_u = x * np.float32(1.0 / texel) + np.float32(n_tex / 2 - 0.5)
+        map_v = y * np.float32(-1.0 / texel) + np.float32(n_tex / 2 - 0.5)
+        n = self.supersample
+        w, h = self.camera.size
+        shape = (h * n, w * n)
+        refl = cv2.remap(tex, map_u.reshape(shape), map_v.reshape(shape), cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
+        refl[refl < 0] = np.nan
+        n = self.supersample
+        w, h = self.camera.size
+        return refl.reshape(h, n, w, n)  # type: ignore[return-value]
+
+    def render(
+        self,
+        T_camera_target: Array,
+        quality: ImageQuality | None = None,
+        rng: np.random.Generator | None = None,
+        occluders: tuple[Occluder, ...] = (),
+    ) -> NDArray[np.uint8]:
+        """A grey (H, W) uint8 frame of the target at ``T_camera_target`` (metres)."""
+        q = quality or ImageQuality()
+        samples = self.reflectance(T_camera_target)
+        samples = np.where(np.isnan(samples), np.float32(q.surround), samples)
+        refl = samples.mean(axis=(1, 3))
+        img = q.exposure * (q.black_level + (q.white_level - q.black_level) * refl)
+        if q.vignetting > 0:
+            img = img * (1.0 - q.vignetting * self._vignette_map())
+        img = img.astype(np.float32)
+        for occ in occluders:
+            cv2.fillPoly(img, [np.round(occ.polygon_px).astype(np.int32)], float(occ.grey))
+        if q.blur_sigma_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), q.blur_sigma_px)
+        if q.motion_blur_px >= 1.0:
+            img = cv2.filter2D(img, -1, _motion_kernel(q.motion_blur_px, q.motion_angle_deg))
+        if q.noise_sigma > 0:
+            generator = rng if rng is not None else np.random.default_rng(0)
+            img = img + generator.normal(0.0, q.noise_sigma, img.shape).astype(np.float32)
+        out = np.clip(np.round(img), 0, 255).astype(np.uint8)
+        if q.jpeg_quality is not None:
+            ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(q.jpeg_quality)])
+            if ok:
+                out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        return out
+
+    def _vignette_map(self) -> NDArray[np.float32]:
+        if self._vignette is None:
+            w, h = self.camera.size
+            u, v = np.meshgrid(np.arange(w), np.arange(h))
+            r2 = ((u - w / 2) ** 2 + (v - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+            self._vignette = r2.astype(np.float32)
+        return self._vignette
+
+    def corners_px(self, T_camera_target: Array) -> list[Array | None]:
+        """True corner pixels (4, 2) of each marker, or None where a corner cannot be imaged."""
+        T = check_transform(T_camera_target, "T_camera_target")
+        out: list[Array | None] = []
+        for m in self.target.markers:
+            p = (T[:3, :3] @ m.corners_target_m.T).T + T[:3, 3]
+            uv, ok = self.camera.project(p)
+            out.append(uv if bool(np.all(ok)) else None)
+        return out
+
+
+def _motion_kernel(length_px: float, angle_deg: float) -> NDArray[np.float32]:
+    size = int(np.ceil(length_px)) | 1
+    kernel = np.zeros((size, size), np.float32)
+    c = size // 2
+    a = np.deg2rad(angle_deg)
+    for s in np.linspace(-length_px / 2, length_px / 2, 4 * size):
+        x = int(round(c + s * np.cos(a)))
+        y = int(round(c + s * np.sin(a)))
+        kernel[y, x] += 1.0
+    return kernel / kernel.sum()

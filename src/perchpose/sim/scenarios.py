@@ -1,0 +1,134 @@
+"""Scenarios: sequences of target poses with timestamps, image quality and dropouts."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.errors import ScenarioError
+from perchpose.geometry import facing_pose, wrap_angle_rad
+from perchpose.sim.render import ImageQuality
+from perchpose.target import TargetSpec
+
+Array = NDArray[np.float64]
+
+# The smallest marker side, in pixels, that counts as "in view" for the truth's stage.
+MIN_SIDE_IN_VIEW_PX = 12.0
+# Corners must lie this far inside the image border to count as in view.
+BORDER_MARGIN_PX = 3.0
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A rendered sequence's truth.
+
+    t_s : (N,) seconds. poses : (N, 4, 4) T_camera_target, metres.
+    dropout : (N,) bool, frames where the target is hidden (occluded).
+    """
+
+    name: str
+    t_s: Array
+    poses: NDArray[np.float64]
+    dropout: NDArray[np.bool_]
+    quality: ImageQuality
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+
+def markers_in_view(
+    camera: CameraModel, target: TargetSpec, T_camera_target: Array
+) -> tuple[bool, ...]:
+    """For each marker: all four corners inside the image and its side at least 12 px."""
+    out = []
+    w, h = camera.size
+    for m in target.markers:
+        p = (T_camera_target[:3, :3] @ m.corners_target_m.T).T + T_camera_target[:3, 3]
+        uv, ok = camera.project(p)
+        inside = bool(np.all(ok)) and bool(
+            np.all((uv[:, 0] >= BORDER_MARGIN_PX) & (uv[:, 0] <= w - 1 - BORDER_MARGIN_PX)
+                   & (uv[:, 1] >= BORDER_MARGIN_PX) & (uv[:, 1] <= h - 1 - BORDER_MARGIN_PX))
+        )
+        side = float(np.mean(np.linalg.norm(np.roll(uv, -1, 0) - uv, axis=1))) if inside else 0.0
+        out.append(inside and side >= MIN_SIDE_IN_VIEW_PX)
+    return tuple(out)
+
+
+def approach(
+    duration_s: float = 8.0,
+    fps: float = 30.0,
+    start_z_m: float = 1.5,
+    contact_z_m: float = 0.03,
+    dropouts: tuple[tuple[float, float], ...] = ((2.5, 0.2), (5.0, 0.5)),
+    quality: ImageQuality | None = None,
+) -> Scenario:
+    """An approach from ``start_z_m`` to ``contact_z_m`` with lateral motion and a yaw that
+    crosses +/-180 deg, and dropouts given as (start_s, length_s) windows.
+
+    The lateral offset shrinks with the distance so the target stays in view; the approach
+    slows near contact like a perching drone.
+    """
+    if duration_s <= 0 or fps <= 0:
+        raise ScenarioError("duration and fps must be positive")
+    if not 0 < contact_z_m < start_z_m:
+        raise ScenarioError("need 0 < contact_z_m < start_z_m")
+    n = max(2, int(round(duration_s * fps)))
+    t = np.arange(n) / fps
+    s = t / t[-1]
+    # smooth approach: fast far away, slow at contact
+    z = contact_z_m + (start_z_m - contact_z_m) * (1.0 - s) ** 1.6
+    lateral = 0.12 * z
+    x = lateral * np.sin(2 * math.pi * 0.31 * t + 0.4)
+    y = 0.8 * lateral * np.cos(2 * math.pi * 0.23 * t)
+    yaw = np.array([wrap_angle_rad(math.radians(150.0 + 70.0 * si)) for si in s])
+    tilt_x = np.radians(4.0) * np.sin(2 * math.pi * 0.4 * t)
+    tilt_y = np.radians(3.0) * np.cos(2 * math.pi * 0.5 * t)
+    poses = np.stack([
+        facing_pose(float(x[i]), float(y[i]), float(z[i]), float(yaw[i]),
+                    float(tilt_x[i]), float(tilt_y[i]))
+        for i in range(n)
+    ])
+    dropout = np.zeros(n, bool)
+    for start, length in dropouts:
+        dropout |= (t >= start) & (t < start + length)
+    return Scenario("approach", t, poses, dropout, quality or ImageQuality())
+
+
+def static_grid(
+    frames_per_pose: int = 5,
+    fps: float = 30.0,
+    z_m: tuple[float, ...] = (0.12, 0.2, 0.35, 0.6, 1.0, 1.5),
+    offsets: tuple[float, ...] = (-0.25, 0.0, 0.25),
+    yaws_deg: tuple[float, ...] = (0.0, 90.0, -160.0),
+    quality: ImageQuality | None = None,
+) -> Scenario:
+    """A grid of static poses: for each distance, lateral offsets as a fraction of the distance
+    and headings; each pose is held for ``frames_per_pose`` frames."""
+    if frames_per_pose < 1:
+        raise ScenarioError("frames_per_pose must be >= 1")
+    poses = []
+    for z in z_m:
+        for ox in offsets:
+            for oy in offsets:
+                for yaw in yaws_deg:
+                    T = facing_pose(ox * z, oy * z * 0.75, z, math.radians(yaw))
+                    poses.extend([T] * frames_per_pose)
+    n = len(poses)
+    return Scenario("static", np.arange(n) / fps, np.stack(poses), np.zeros(n, bool),
+                    quality or ImageQuality())
+
+
+SCENARIOS = ("approach", "static")
+
+
+def scenario_by_name(name: str, quality: ImageQuality | None = None) -> Scenario:
+    """Build a named scenario with its default settings."""
+    if name == "approach":
+        return approach(quality=quality)
+    if name == "static":
+        return static_grid(quality=quality)
+    raise ScenarioError(f"unknown scenario {name!r} (choose {', '.join(SCENARIOS)})")
