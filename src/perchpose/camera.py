@@ -122,8 +122,10 @@ class CameraModel:
         scale = np.divide(theta_d, r_xy, out=np.ones_like(r_xy), where=r_xy > 1e-15)
         x = p[:, 0] * scale
         y = p[:, 1] * scale
-        uv = np.stack([self.K[0, 0] * x + self.K[0, 1] * y + self.K[0, 2],
-                       self.K[1, 1] * y + self.K[1, 2]], axis=1)
+        uv = np.stack(
+            [self.K[0, 0] * x + self.K[0, 1] * y + self.K[0, 2], self.K[1, 1] * y + self.K[1, 2]],
+            axis=1,
+        )
         # the polynomial must stay monotonic up to theta for the projection to be one-to-one
         in_front = (theta < math.radians(100.0)) & self._equidistant_monotonic(theta)
         return uv, in_front
@@ -180,12 +182,14 @@ class CameraModel:
             return float(cached)
         w, h = self.width_px, self.height_px
         edge = np.linspace(0.0, 1.0, 33)
-        border = np.concatenate([
-            np.stack([edge * (w - 1), np.zeros_like(edge)], 1),
-            np.stack([edge * (w - 1), np.full_like(edge, h - 1)], 1),
-            np.stack([np.zeros_like(edge), edge * (h - 1)], 1),
-            np.stack([np.full_like(edge, w - 1), edge * (h - 1)], 1),
-        ])
+        border = np.concatenate(
+            [
+                np.stack([edge * (w - 1), np.zeros_like(edge)], 1),
+                np.stack([edge * (w - 1), np.full_like(edge, h - 1)], 1),
+                np.stack([np.zeros_like(edge), edge * (h - 1)], 1),
+                np.stack([np.full_like(edge, w - 1), edge * (h - 1)], 1),
+            ]
+        )
         rays = self.pixel_rays(border)
         ok = rays[:, 2] > 0.05
         pin = (self.K @ (rays[ok] / rays[ok, 2:3]).T).T[:, :2]
@@ -234,19 +238,28 @@ class CameraModel:
             return CameraModel(
                 K=np.array([[554.0, 0.0, 320.0], [0.0, 554.0, 240.0], [0.0, 0.0, 1.0]]),
                 dist=np.array([-0.05, 0.08, 0.0, 0.0, 0.0]),
-                width_px=640, height_px=480, model="plumb_bob", name="webcam",
+                width_px=640,
+                height_px=480,
+                model="plumb_bob",
+                name="webcam",
             )
         if name == "fpv":
             return CameraModel(
                 K=np.array([[300.0, 0.0, 322.0], [0.0, 300.0, 238.0], [0.0, 0.0, 1.0]]),
                 dist=np.array([0.02, -0.01, 0.003, -0.0005]),
-                width_px=640, height_px=480, model="equidistant", name="fpv",
+                width_px=640,
+                height_px=480,
+                model="equidistant",
+                name="fpv",
             )
         if name == "fpv_wide":
             return CameraModel(
                 K=np.array([[215.0, 0.0, 318.0], [0.0, 215.0, 243.0], [0.0, 0.0, 1.0]]),
                 dist=np.array([0.03, -0.008, 0.002, -0.0003]),
-                width_px=640, height_px=480, model="equidistant", name="fpv_wide",
+                width_px=640,
+                height_px=480,
+                model="equidistant",
+                name="fpv_wide",
             )
         raise CameraFileError(f"unknown camera preset {name!r} (choose webcam, fpv or fpv_wide)")
 
@@ -275,8 +288,10 @@ class CameraModel:
         """The ROS camera_info YAML mapping of this camera."""
         P = np.zeros((3, 4))
         P[:3, :3] = self.K
-        ros_model = "equidistant" if self.model == "equidistant" else (
-            "plumb_bob" if self.dist.size <= 5 else "rational_polynomial"
+        ros_model = (
+            "equidistant"
+            if self.model == "equidistant"
+            else ("plumb_bob" if self.dist.size <= 5 else "rational_polynomial")
         )
         return {
             "image_width": self.width_px,
@@ -284,8 +299,11 @@ class CameraModel:
             "camera_name": self.name,
             "camera_matrix": {"rows": 3, "cols": 3, "data": _floats(self.K)},
             "distortion_model": ros_model,
-            "distortion_coefficients": {"rows": 1, "cols": int(self.dist.size),
-                                        "data": _floats(self.dist)},
+            "distortion_coefficients": {
+                "rows": 1,
+                "cols": int(self.dist.size),
+                "data": _floats(self.dist),
+            },
             "rectification_matrix": {"rows": 3, "cols": 3, "data": _floats(np.eye(3))},
             "projection_matrix": {"rows": 3, "cols": 4, "data": _floats(P)},
         }
@@ -341,8 +359,9 @@ def _from_ros_mapping(data: dict[str, Any], path: Path) -> CameraModel:
     width = _int_field(data, ("image_width", "width"), path)
     height = _int_field(data, ("image_height", "height"), path)
     try:
-        return CameraModel(K.reshape(3, 3), dist, width, height, model,
-                           str(data.get("camera_name", path.stem)))
+        return CameraModel(
+            K.reshape(3, 3), dist, width, height, model, str(data.get("camera_name", path.stem))
+        )
     except CameraFileError as exc:
         raise CameraFileError(f"{path}: {exc}") from exc
 
@@ -366,15 +385,22 @@ def _load_opencv_storage(path: Path) -> CameraModel:
         K = node("camera_matrix", "cameraMatrix", "K").mat()
         dist = node("distortion_coefficients", "dist_coeffs", "distCoeffs", "D").mat()
         if K is None or dist is None:
-            raise CameraFileError(f"{path}: camera_matrix or distortion_coefficients is not a matrix")
+            raise CameraFileError(
+                f"{path}: camera_matrix or distortion_coefficients is not a matrix"
+            )
         width = int(node("image_width", "width").real())
         height = int(node("image_height", "height").real())
         model_node = fs.getNode("distortion_model")
         model = _model_name(model_node.string() if not model_node.empty() else "plumb_bob", path)
         try:
-            return CameraModel(np.asarray(K, np.float64).reshape(3, 3),
-                               np.asarray(dist, np.float64).reshape(-1), width, height, model,
-                               path.stem)
+            return CameraModel(
+                np.asarray(K, np.float64).reshape(3, 3),
+                np.asarray(dist, np.float64).reshape(-1),
+                width,
+                height,
+                model,
+                path.stem,
+            )
         except CameraFileError as exc:
             raise CameraFileError(f"{path}: {exc}") from exc
     finally:

@@ -74,7 +74,9 @@ class MarkerDetector:
         """Detect the target's markers in a grey (H, W) uint8 image of the camera's size."""
         found = self._detect_pass(grey, "raw")
         if self.rectify and len(found) < len(self.target.markers):
-            rect = cv2.remap(grey, *self._rectify_maps(), interpolation=cv2.INTER_LINEAR)
+            rect = np.asarray(
+                cv2.remap(grey, *self._rectify_maps(), interpolation=cv2.INTER_LINEAR), np.uint8
+            )
             for det in self._detect_pass(rect, "rectified").values():
                 if det.marker_index not in found:
                     mapped = self._unrectify(det.corners_px)
@@ -92,7 +94,9 @@ class MarkerDetector:
         if ids is None or len(ids) == 0:
             return found
         for quad, marker_id, dict_index in zip(
-            corners, np.asarray(ids).reshape(-1), np.asarray(dict_indices).reshape(-1),
+            corners,
+            np.asarray(ids).reshape(-1),
+            np.asarray(dict_indices).reshape(-1),
             strict=True,
         ):
             index = self.target.index_of(self._dict_names[int(dict_index)], int(marker_id))
@@ -114,7 +118,10 @@ class MarkerDetector:
             uv, ok = self.camera.project(rays.reshape(-1, 3))
             uv[~ok] = -1.0
             map_xy = uv.reshape(h, w, 2).astype(np.float32)
-            self._maps = (np.ascontiguousarray(map_xy[..., 0]), np.ascontiguousarray(map_xy[..., 1]))
+            self._maps = (
+                np.ascontiguousarray(map_xy[..., 0]),
+                np.ascontiguousarray(map_xy[..., 1]),
+            )
             self._K_rect = K_rect
         return self._maps
 

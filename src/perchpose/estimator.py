@@ -116,7 +116,9 @@ class PerchingEstimator:
         if not math.isfinite(t):
             raise TimestampError(f"timestamp {t_s!r} is not finite")
         if self._last_t_s is not None and t < self._last_t_s:
-            raise TimestampError(f"timestamp {t:.6f} s goes backwards (previous {self._last_t_s:.6f} s)")
+            raise TimestampError(
+                f"timestamp {t:.6f} s goes backwards (previous {self._last_t_s:.6f} s)"
+            )
         return t
 
     def update(self, image: NDArray[np.uint8], t_s: float) -> Estimate:
@@ -137,8 +139,11 @@ class PerchingEstimator:
         rejected: dict[int, str] = {}
         for det in detections:
             result = solve_marker_pose(
-                self.camera, self.target.markers[det.marker_index], det.marker_index,
-                det.corners_px, self._last_R[det.marker_index],
+                self.camera,
+                self.target.markers[det.marker_index],
+                det.marker_index,
+                det.corners_px,
+                self._last_R[det.marker_index],
             )
             if isinstance(result, PoseFailure):
                 rejected[det.marker_index] = result.reason
@@ -172,7 +177,8 @@ class PerchingEstimator:
         else:
             contributing = {i for i, tr in enumerate(self._tracks) if tr.alive}
         poses = {
-            i: tr.filter.pose for i, tr in enumerate(self._tracks)
+            i: tr.filter.pose
+            for i, tr in enumerate(self._tracks)
             if i in contributing and tr.filter is not None
         }
         fused, stage = fuse_paper(poses, self.sigmas)
@@ -201,7 +207,9 @@ class PerchingEstimator:
             yaw_deg=float(math.degrees(fused[0])) if valid else math.nan,
             markers=states,
             timings=Timings(
-                detect_ms=(t1 - t0) * 1e3, pose_ms=(t2 - t1) * 1e3,
-                filter_ms=(t3 - t2) * 1e3, total_ms=(t3 - t0) * 1e3,
+                detect_ms=(t1 - t0) * 1e3,
+                pose_ms=(t2 - t1) * 1e3,
+                filter_ms=(t3 - t2) * 1e3,
+                total_ms=(t3 - t0) * 1e3,
             ),
         )

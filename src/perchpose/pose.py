@@ -107,7 +107,9 @@ def solve_marker_pose(
     candidates: list[tuple[float, Array]] = []
     for rvec, tvec in zip(rvecs, tvecs, strict=True):
         rvec_r, tvec_r = cv2.solvePnPRefineLM(obj, img, eye, None, rvec.copy(), tvec.copy())
-        T_camera_marker = transform_from_rvec_tvec(rvec_r, tvec_r)
+        T_camera_marker = transform_from_rvec_tvec(
+            np.asarray(rvec_r, np.float64), np.asarray(tvec_r, np.float64)
+        )
         if T_camera_marker[2, 3] <= 0:
             continue
         T_camera_target = T_camera_marker @ T_marker_target

@@ -174,9 +174,7 @@ class TargetSpec:
     @property
     def sheet_half_extent_m(self) -> float:
         """Half side of the printed square (largest marker plus quiet zone), metres."""
-        extent = max(
-            float(np.max(np.abs(m.corners_target_m[:, :2]))) for m in self.markers
-        )
+        extent = max(float(np.max(np.abs(m.corners_target_m[:, :2]))) for m in self.markers)
         return extent + self.quiet_zone_mm / 1000.0
 
     def albedo(self, x_m: Array, y_m: Array) -> NDArray[np.float32]:

@@ -54,8 +54,14 @@ class ImageQuality:
         if name == "default":
             return ImageQuality()
         if name == "analog_fpv":
-            return ImageQuality(black_level=55.0, white_level=190.0, blur_sigma_px=1.1,
-                                noise_sigma=6.0, jpeg_quality=70, vignetting=0.3)
+            return ImageQuality(
+                black_level=55.0,
+                white_level=190.0,
+                blur_sigma_px=1.1,
+                noise_sigma=6.0,
+                jpeg_quality=70,
+                vignetting=0.3,
+            )
         raise ValueError(f"unknown image quality preset {name!r}")
 
 
@@ -111,8 +117,14 @@ class Renderer:
         n = self.supersample
         w, h = self.camera.size
         shape = (h * n, w * n)
-        refl = cv2.remap(tex, map_u.reshape(shape), map_v.reshape(shape), cv2.INTER_NEAREST,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
+        refl = cv2.remap(
+            tex,
+            map_u.reshape(shape),
+            map_v.reshape(shape),
+            cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=-1.0,
+        )
         refl[refl < 0] = np.nan
         n = self.supersample
         w, h = self.camera.size
@@ -148,7 +160,7 @@ class Renderer:
             ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(q.jpeg_quality)])
             if ok:
                 out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
-        return out
+        return np.asarray(out, dtype=np.uint8)
 
     def _vignette_map(self) -> NDArray[np.float32]:
         if self._vignette is None:
@@ -178,4 +190,4 @@ def _motion_kernel(length_px: float, angle_deg: float) -> NDArray[np.float32]:
         x = int(round(c + s * np.cos(a)))
         y = int(round(c + s * np.sin(a)))
         kernel[y, x] += 1.0
-    return kernel / kernel.sum()
+    return np.asarray(kernel / kernel.sum(), dtype=np.float32)

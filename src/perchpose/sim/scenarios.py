@@ -50,8 +50,12 @@ def markers_in_view(
         p = (T_camera_target[:3, :3] @ m.corners_target_m.T).T + T_camera_target[:3, 3]
         uv, ok = camera.project(p)
         inside = bool(np.all(ok)) and bool(
-            np.all((uv[:, 0] >= BORDER_MARGIN_PX) & (uv[:, 0] <= w - 1 - BORDER_MARGIN_PX)
-                   & (uv[:, 1] >= BORDER_MARGIN_PX) & (uv[:, 1] <= h - 1 - BORDER_MARGIN_PX))
+            np.all(
+                (uv[:, 0] >= BORDER_MARGIN_PX)
+                & (uv[:, 0] <= w - 1 - BORDER_MARGIN_PX)
+                & (uv[:, 1] >= BORDER_MARGIN_PX)
+                & (uv[:, 1] <= h - 1 - BORDER_MARGIN_PX)
+            )
         )
         side = float(np.mean(np.linalg.norm(np.roll(uv, -1, 0) - uv, axis=1))) if inside else 0.0
         out.append(inside and side >= MIN_SIDE_IN_VIEW_PX)
@@ -87,11 +91,19 @@ def approach(
     yaw = np.array([wrap_angle_rad(math.radians(150.0 + 70.0 * si)) for si in s])
     tilt_x = np.radians(4.0) * np.sin(2 * math.pi * 0.4 * t)
     tilt_y = np.radians(3.0) * np.cos(2 * math.pi * 0.5 * t)
-    poses = np.stack([
-        facing_pose(float(x[i]), float(y[i]), float(z[i]), float(yaw[i]),
-                    float(tilt_x[i]), float(tilt_y[i]))
-        for i in range(n)
-    ])
+    poses = np.stack(
+        [
+            facing_pose(
+                float(x[i]),
+                float(y[i]),
+                float(z[i]),
+                float(yaw[i]),
+                float(tilt_x[i]),
+                float(tilt_y[i]),
+            )
+            for i in range(n)
+        ]
+    )
     dropout = np.zeros(n, bool)
     for start, length in dropouts:
         dropout |= (t >= start) & (t < start + length)
@@ -118,8 +130,9 @@ def static_grid(
                     T = facing_pose(ox * z, oy * z * 0.75, z, math.radians(yaw))
                     poses.extend([T] * frames_per_pose)
     n = len(poses)
-    return Scenario("static", np.arange(n) / fps, np.stack(poses), np.zeros(n, bool),
-                    quality or ImageQuality())
+    return Scenario(
+        "static", np.arange(n) / fps, np.stack(poses), np.zeros(n, bool), quality or ImageQuality()
+    )
 
 
 SCENARIOS = ("approach", "static")
@@ -132,3 +145,13 @@ def scenario_by_name(name: str, quality: ImageQuality | None = None) -> Scenario
     if name == "static":
         return static_grid(quality=quality)
     raise ScenarioError(f"unknown scenario {name!r} (choose {', '.join(SCENARIOS)})")
+
+
+def truncated(scenario: Scenario, max_frames: int) -> Scenario:
+    """The first ``max_frames`` frames of ``scenario``."""
+    if max_frames < 1:
+        raise ScenarioError(f"--frames must be >= 1, got {max_frames}")
+    k = min(max_frames, len(scenario))
+    return Scenario(
+        scenario.name, scenario.t_s[:k], scenario.poses[:k], scenario.dropout[:k], scenario.quality
+    )

@@ -1,0 +1,7 @@
+"""``python -m perchpose``."""
+
+import sys
+
+from perchpose.cli import main
+
+sys.exit(main())

@@ -1,0 +1,215 @@
+"""The ``perchpose`` command line. Each command parses, calls one library function, prints.
+
+Errors in a user's input come back from the library as PerchposeError; they are printed as one
+line on stderr and the command exits with code 2.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from perchpose.camera import CameraModel
+from perchpose.errors import PerchposeError
+from perchpose.target import TargetSpec
+
+
+def _load_camera(value: str) -> CameraModel:
+    if value.startswith("preset:"):
+        return CameraModel.preset(value.split(":", 1)[1])
+    return CameraModel.load(value)
+
+
+def _load_target(value: str | None) -> TargetSpec:
+    return TargetSpec.paper() if value is None else TargetSpec.load(value)
+
+
+CAMERA_HELP = "ROS camera_info or OpenCV YAML; or preset:webcam, preset:fpv, preset:fpv_wide"
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="perchpose")
+def cli() -> None:
+    """Pose of a nested-marker perching target from one camera."""
+
+
+@cli.command()
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Output file: .svg, .pdf or .png.",
+)
+@click.option("--target", "target_file", default=None, help="Target YAML (default: the paper's).")
+@click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
+@click.option(
+    "--save-spec",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Also write the target's YAML specification here.",
+)
+def target(out: str, target_file: str | None, dpi: int, save_spec: str | None) -> None:
+    """Write the printable target at true scale, with a 100 mm scale bar."""
+    from perchpose.printable import write_target_sheet
+
+    spec = _load_target(target_file)
+    path = write_target_sheet(spec, out, dpi=dpi)
+    if save_spec:
+        spec.save(save_spec)
+    click.echo(f"wrote {path}: print at 100 % and check that the scale bar measures 100 mm")
+
+
+@cli.command()
+@click.argument("scenario")
+@click.option("--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP)
+@click.option("--target", "target_file", default=None, help="Target YAML (default: the paper's).")
+@click.option(
+    "--out", "out", required=True, type=click.Path(file_okay=False), help="Output folder."
+)
+@click.option(
+    "--quality",
+    default="default",
+    show_default=True,
+    type=click.Choice(["clean", "default", "analog_fpv"]),
+    help="Image degradation.",
+)
+@click.option("--seed", default=0, show_default=True, help="Noise seed.")
+@click.option(
+    "--frames", "max_frames", default=None, type=int, help="Keep only the first N frames."
+)
+def simulate(
+    scenario: str,
+    camera_file: str,
+    target_file: str | None,
+    out: str,
+    quality: str,
+    seed: int,
+    max_frames: int | None,
+) -> None:
+    """Render SCENARIO (approach or static) to frames, camera.yaml and truth.csv."""
+    from perchpose.sim.render import ImageQuality
+    from perchpose.sim.scenarios import scenario_by_name, truncated
+    from perchpose.sim.sequence import write_sequence
+
+    cam = _load_camera(camera_file)
+    spec = _load_target(target_file)
+    scen = scenario_by_name(scenario, ImageQuality.preset(quality))
+    if max_frames is not None:
+        scen = truncated(scen, max_frames)
+    path = write_sequence(scen, cam, spec, out, seed=seed, progress=sys.stderr.isatty())
+    click.echo(f"wrote {len(scen)} frames, camera.yaml and truth.csv to {path}")
+
+
+@cli.command()
+@click.argument("source")
+@click.option("--camera", "camera_file", required=True, help=CAMERA_HELP)
+@click.option("--target", "target_file", default=None, help="Target YAML (default: the paper's).")
+@click.option(
+    "--fps",
+    default=None,
+    type=float,
+    help="Frame rate for t_s = frame / fps (default 30; a video's own rate).",
+)
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Pose file: .csv or .jsonl.",
+)
+@click.option(
+    "--overlay",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Also write an overlay video (.mp4 or .avi).",
+)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def track(
+    source: str,
+    camera_file: str,
+    target_file: str | None,
+    fps: float | None,
+    out: str,
+    overlay: str | None,
+    quiet: bool,
+) -> None:
+    """Track the target in SOURCE: a folder of images, a glob, a video file or a camera index."""
+    from perchpose.track import track as run_track
+
+    cam = _load_camera(camera_file)
+    spec = _load_target(target_file)
+    summary = run_track(
+        source, cam, spec, out, fps=fps, overlay=overlay, progress=not quiet and sys.stderr.isatty()
+    )
+    stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
+    click.echo(
+        f"{summary.frames} frames, {summary.valid} valid ({stages}), "
+        f"{summary.bad_frames} unreadable; {summary.mean_ms:.1f} ms per frame; "
+        f"wrote {summary.out}"
+    )
+
+
+@cli.command()
+@click.option(
+    "--out",
+    "out",
+    default="perchpose-demo",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="Output folder.",
+)
+@click.option("--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP)
+@click.option("--seconds", default=8.0, show_default=True, help="Length of the approach.")
+@click.option("--seed", default=0, show_default=True, help="Noise seed.")
+def demo(out: str, camera_file: str, seconds: float, seed: int) -> None:
+    """Render an approach with dropouts, track it and compare with the truth."""
+    from perchpose.demo import run_demo
+    from perchpose.evaluation.metrics import format_stage_table
+
+    result = run_demo(
+        out,
+        _load_camera(camera_file),
+        duration_s=seconds,
+        seed=seed,
+        progress=sys.stderr.isatty(),
+        say=click.echo,
+    )
+    click.echo("")
+    click.echo(format_stage_table(result.table))
+    click.echo("")
+    dropouts = int(result.errors.dropout.sum())
+    click.echo(
+        f"dropout frames: {dropouts}, of which {result.coasted_valid_frames} were bridged "
+        f"by the filter (at most 8 in a row stay valid)"
+    )
+    click.echo(f"wrote {result.out_dir / 'poses.csv'}, {result.overlay}, {result.figure}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: run the command, turn library errors into one line and exit code 2."""
+    try:
+        cli.main(args=argv, prog_name="perchpose", standalone_mode=False)
+    except PerchposeError as exc:
+        click.echo(f"perchpose: error: {exc}", err=True)
+        return 2
+    except click.exceptions.Abort:
+        click.echo("perchpose: interrupted", err=True)
+        return 130
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except KeyboardInterrupt:
+        click.echo("perchpose: interrupted", err=True)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+
+def run() -> None:
+    """Console-script entry point."""
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Inputs and outputs at the edge of the library: frame sources, pose sinks, overlay video."""

@@ -1,0 +1,104 @@
+"""Overlay video: marker outlines, target axes and the pose text on each frame."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.errors import PerchposeError
+from perchpose.estimator import Estimate
+
+GREEN = (0, 200, 0)
+RED = (0, 0, 255)
+BLUE = (255, 80, 0)
+YELLOW = (0, 220, 255)
+STAGE_NAMES = {0: "no target", 1: "stage 1 outer", 2: "stage 2 both", 3: "stage 3 inner"}
+
+
+def draw_overlay(
+    image: NDArray[np.uint8],
+    estimate: Estimate | None,
+    camera: CameraModel,
+    axis_m: float = 0.03,
+    note: str = "",
+) -> NDArray[np.uint8]:
+    """A BGR copy of ``image`` with detected marker outlines (green), each measured marker's
+    axes (x red, y green, z blue, as OpenCV draws them) and the pose text at the bottom left."""
+    if image.ndim == 2:
+        out = np.asarray(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+    else:
+        out = np.ascontiguousarray(image[:, :, :3]).copy()
+    if estimate is not None:
+        for m in estimate.markers:
+            if m.detection is not None:
+                quad = np.round(m.detection.corners_px).astype(np.int32)
+                cv2.polylines(out, [quad], True, GREEN, 2, cv2.LINE_AA)
+                cv2.circle(out, tuple(int(v) for v in quad[0]), 4, YELLOW, -1, cv2.LINE_AA)
+            if m.measurement is not None:
+                _draw_axes(out, camera, m.measurement.T_camera_target, axis_m)
+    _draw_text(out, estimate, note)
+    return out
+
+
+def _draw_axes(
+    out: NDArray[np.uint8], camera: CameraModel, T: NDArray[np.float64], axis_m: float
+) -> None:
+    pts = np.array([[0, 0, 0], [axis_m, 0, 0], [0, axis_m, 0], [0, 0, axis_m]], np.float64)
+    p = (T[:3, :3] @ pts.T).T + T[:3, 3]
+    uv, ok = camera.project(p)
+    if not np.all(ok) or not np.all(np.isfinite(uv)):
+        return
+    o = (int(round(uv[0, 0])), int(round(uv[0, 1])))
+    for k, colour in ((1, RED), (2, GREEN), (3, BLUE)):
+        end = (int(round(uv[k, 0])), int(round(uv[k, 1])))
+        cv2.line(out, o, end, colour, 2, cv2.LINE_AA)
+
+
+def _draw_text(out: NDArray[np.uint8], estimate: Estimate | None, note: str) -> None:
+    if estimate is None or not estimate.valid:
+        lines = [note or "no estimate"]
+    else:
+        lines = [
+            f"x {estimate.x_cm:6.1f} cm  y {estimate.y_cm:6.1f} cm",
+            f"z {estimate.z_cm:6.1f} cm  yaw {estimate.yaw_deg:6.1f} deg",
+            STAGE_NAMES.get(estimate.stage, "") + (f"  {note}" if note else ""),
+        ]
+    h = out.shape[0]
+    for i, text in enumerate(reversed(lines)):
+        y = h - 10 - 20 * i
+        cv2.putText(out, text, (10, y), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(
+            out, text, (10, y), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA
+        )
+
+
+class OverlayWriter:
+    """Writes BGR frames to an MP4 (``mp4v``) or AVI (``MJPG``) file."""
+
+    def __init__(self, path: str | Path, fps: float, size: tuple[int, int]) -> None:
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        codecs = {".mp4": "mp4v", ".m4v": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
+        if suffix not in codecs:
+            raise PerchposeError(f"{self.path}: overlay must end in .mp4, .m4v, .avi or .mkv")
+        fourcc = cv2.VideoWriter.fourcc(*codecs[suffix])
+        rate = fps if math.isfinite(fps) and fps > 0 else 30.0
+        self._writer = cv2.VideoWriter(str(self.path), fourcc, rate, size)
+        if not self._writer.isOpened():
+            raise PerchposeError(f"{self.path}: cannot open a video writer")
+        self.size = size
+
+    def write(self, frame_bgr: NDArray[np.uint8]) -> None:
+        """Append one frame; a frame of another size is scaled to the video's size."""
+        if (frame_bgr.shape[1], frame_bgr.shape[0]) != self.size:
+            frame_bgr = np.asarray(cv2.resize(frame_bgr, self.size), dtype=np.uint8)
+        self._writer.write(frame_bgr)
+
+    def close(self) -> None:
+        """Finish the file."""
+        self._writer.release()

@@ -1,0 +1,122 @@
+"""Pose sinks: CSV and JSON Lines, one row per input frame, in input order."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import IO, Any
+
+from perchpose.errors import PerchposeError
+from perchpose.estimator import Estimate
+from perchpose.target import TargetSpec
+
+BASE_COLUMNS = ("frame", "t_s", "valid", "stage", "x_cm", "y_cm", "z_cm", "yaw_deg")
+
+
+def raw_columns(target: TargetSpec) -> tuple[str, ...]:
+    """Per-marker raw measurement columns: ``m{i}_x_cm`` ... ``m{i}_yaw_deg``, i = marker index
+    (0 is the largest marker)."""
+    return tuple(
+        f"m{i}_{field}"
+        for i in range(len(target.markers))
+        for field in ("x_cm", "y_cm", "z_cm", "yaw_deg", "reproj_px")
+    )
+
+
+def columns(target: TargetSpec) -> tuple[str, ...]:
+    """All columns of a track file."""
+    return (*BASE_COLUMNS, *raw_columns(target), "total_ms", "error")
+
+
+def _num(value: float, digits: int) -> str:
+    return "" if not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def estimate_row(
+    frame: int, t_s: float, estimate: Estimate | None, target: TargetSpec, error: str = ""
+) -> dict[str, Any]:
+    """The row of one frame; ``estimate`` None for a frame that could not be processed."""
+    row: dict[str, Any] = dict.fromkeys(columns(target), "")
+    row.update(frame=frame, t_s=f"{t_s:.6f}", valid=0, stage=0, error=error)
+    if estimate is None:
+        return row
+    row.update(
+        valid=int(estimate.valid), stage=estimate.stage, total_ms=f"{estimate.timings.total_ms:.2f}"
+    )
+    if estimate.valid:
+        row.update(
+            x_cm=_num(estimate.x_cm, 4),
+            y_cm=_num(estimate.y_cm, 4),
+            z_cm=_num(estimate.z_cm, 4),
+            yaw_deg=_num(estimate.yaw_deg, 3),
+        )
+    for i, m in enumerate(estimate.markers):
+        if m.measurement is None:
+            continue
+        t = m.measurement.t_m * 100.0
+        row[f"m{i}_x_cm"] = _num(float(t[0]), 4)
+        row[f"m{i}_y_cm"] = _num(float(t[1]), 4)
+        row[f"m{i}_z_cm"] = _num(float(t[2]), 4)
+        row[f"m{i}_yaw_deg"] = _num(math.degrees(m.measurement.yaw_rad), 3)
+        row[f"m{i}_reproj_px"] = _num(m.measurement.reproj_rms_px, 3)
+    return row
+
+
+class PoseWriter:
+    """Writes rows to ``path``: CSV (``.csv``) or JSON Lines (``.jsonl``)."""
+
+    def __init__(self, path: str | Path, target: TargetSpec) -> None:
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        if suffix not in (".csv", ".jsonl"):
+            raise PerchposeError(f"{self.path}: output must end in .csv or .jsonl")
+        self.target = target
+        self._jsonl = suffix == ".jsonl"
+        try:
+            self._file: IO[str] = self.path.open("w", newline="", encoding="utf-8")
+        except OSError as exc:
+            raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
+        self._csv = None
+        if not self._jsonl:
+            self._csv = csv.DictWriter(self._file, fieldnames=list(columns(target)))
+            self._csv.writeheader()
+
+    def write(self, row: dict[str, Any]) -> None:
+        """Append one row."""
+        if self._csv is not None:
+            self._csv.writerow(row)
+        else:
+            self._file.write(json.dumps({k: _json_value(v) for k, v in row.items()}) + "\n")
+
+    def close(self) -> None:
+        """Flush and close the file."""
+        self._file.close()
+
+    def __enter__(self) -> PoseWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _json_value(value: Any) -> Any:
+    if value == "":
+        return None
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
+def read_track_csv(path: str | Path) -> list[dict[str, str]]:
+    """Read a track or truth CSV as a list of rows (strings, empty for missing values)."""
+    p = Path(path)
+    try:
+        with p.open(newline="", encoding="utf-8") as f:
+            return list(csv.DictReader(f))
+    except OSError as exc:
+        raise PerchposeError(f"{p}: cannot read ({exc.strerror})") from exc

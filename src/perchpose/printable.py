@@ -1,0 +1,140 @@
+"""Printable sheets at true scale: the target (SVG, PDF or PNG) with a 100 mm scale bar."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Polygon, Rectangle
+
+from perchpose.errors import PerchposeError
+from perchpose.target import TargetSpec
+
+MM_PER_INCH = 25.4
+SHEET_MARGIN_MM = 10.0
+SCALE_BAR_MM = 100.0
+FORMATS = (".svg", ".pdf", ".png")
+
+
+def check_output_format(path: Path) -> str:
+    """The output suffix, or PerchposeError if it is not SVG, PDF or PNG."""
+    suffix = path.suffix.lower()
+    if suffix not in FORMATS:
+        raise PerchposeError(f"{path}: output must end in .svg, .pdf or .png")
+    return suffix
+
+
+def draw_scale_bar(ax: Axes, x0_mm: float, y0_mm: float) -> None:
+    """A 100 mm bar with 10 mm ticks at (x0, y0) of a millimetre, y-down axes."""
+    ax.add_patch(Rectangle((x0_mm, y0_mm), SCALE_BAR_MM, 2.0, color="black", lw=0))
+    for k in range(11):
+        x = x0_mm + 10.0 * k
+        tick = 4.0 if k % 5 == 0 else 2.5
+        ax.plot([x, x], [y0_mm, y0_mm - tick], color="black", lw=0.5)
+    ax.text(x0_mm + SCALE_BAR_MM + 3.0, y0_mm + 1.0, "100 mm", fontsize=7, va="center")
+
+
+def new_sheet(width_mm: float, height_mm: float) -> tuple[Figure, Axes]:
+    """A figure exactly ``width_mm`` x ``height_mm`` with one full-size axes in millimetres
+    (origin top-left, y down)."""
+    fig = plt.figure(figsize=(width_mm / MM_PER_INCH, height_mm / MM_PER_INCH))
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.set_xlim(0.0, width_mm)
+    ax.set_ylim(height_mm, 0.0)
+    ax.set_axis_off()
+    return fig, ax
+
+
+def save_sheet(fig: Figure, path: Path, dpi: int) -> None:
+    """Save at true scale; PNG at ``dpi``."""
+    try:
+        fig.savefig(path, dpi=dpi, facecolor="white")
+    except OSError as exc:
+        raise PerchposeError(f"{path}: cannot write ({exc.strerror})") from exc
+    finally:
+        plt.close(fig)
+
+
+def write_target_sheet(target: TargetSpec, path: str | Path, dpi: int = 600) -> Path:
+    """Write ``target`` as a printable sheet; the format follows the suffix (.svg .pdf .png)."""
+    out = Path(path)
+    check_output_format(out)
+    if not 72 <= dpi <= 2400:
+        raise PerchposeError(f"--dpi must be between 72 and 2400, got {dpi}")
+    side_mm = 2000.0 * target.sheet_half_extent_m
+    width = max(side_mm, SCALE_BAR_MM + 20.0) + 2 * SHEET_MARGIN_MM
+    height = side_mm + 2 * SHEET_MARGIN_MM + 30.0
+    fig, ax = new_sheet(width, height)
+    cx = width / 2.0
+    cy = SHEET_MARGIN_MM + side_mm / 2.0
+    ax.add_patch(
+        Rectangle(
+            (cx - side_mm / 2, cy - side_mm / 2),
+            side_mm,
+            side_mm,
+            fill=False,
+            edgecolor="#bbbbbb",
+            lw=0.3,
+        )
+    )
+    for m in target.markers:
+        n = m.cells.shape[0]
+        cell = m.side_mm / n
+        T = m.T_target_marker
+        # white background of the marker, then its black cells, so markers printed over others
+        # keep their own white cells
+        for r in range(n):
+            for c in range(n):
+                x0 = -m.side_mm / 2 + c * cell
+                y0 = m.side_mm / 2 - r * cell
+                corners = np.array(
+                    [[x0, y0], [x0 + cell, y0], [x0 + cell, y0 - cell], [x0, y0 - cell]]
+                )
+                pts = (T[:2, :2] @ corners.T).T + 1000.0 * T[:2, 3]
+                sheet = np.stack([cx + pts[:, 0], cy - pts[:, 1]], axis=1)
+                colour = "white" if m.cells[r, c] else "black"
+                ax.add_patch(
+                    Polygon(
+                        sheet,
+                        closed=True,
+                        facecolor=colour,
+                        edgecolor=colour,
+                        lw=0.05,
+                        antialiased=False,
+                    )
+                )
+    bar_y = cy + side_mm / 2 + 12.0
+    draw_scale_bar(ax, cx - SCALE_BAR_MM / 2 - 10.0, bar_y)
+    markers = "; ".join(f"{m.dictionary} id {m.marker_id} {m.side_mm:g} mm" for m in target.markers)
+    ax.text(
+        SHEET_MARGIN_MM,
+        bar_y + 10.0,
+        f"perchpose target '{target.name}': {markers}. Print at 100 %: the bar is 100 mm.",
+        fontsize=5.5,
+        va="center",
+    )
+    save_sheet(fig, out, dpi)
+    return out
+
+
+def sheet_size_mm(target: TargetSpec) -> tuple[float, float]:
+    """(width, height) of the sheet ``write_target_sheet`` draws, millimetres."""
+    side_mm = 2000.0 * target.sheet_half_extent_m
+    return (
+        max(side_mm, SCALE_BAR_MM + 20.0) + 2 * SHEET_MARGIN_MM,
+        side_mm + 2 * SHEET_MARGIN_MM + 30.0,
+    )
+
+
+def pixels_per_mm(dpi: int) -> float:
+    """Raster resolution of a PNG sheet."""
+    return dpi / MM_PER_INCH
+
+
+__all__ = ["pixels_per_mm", "sheet_size_mm", "write_target_sheet"]

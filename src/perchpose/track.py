@@ -1,0 +1,109 @@
+"""Tracking a frame source into a pose file (the ``perchpose track`` command)."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from perchpose.camera import CameraModel
+from perchpose.errors import ImageError, PerchposeError
+from perchpose.estimator import Estimate, PerchingEstimator
+from perchpose.io.overlay import OverlayWriter, draw_overlay
+from perchpose.io.sinks import PoseWriter, estimate_row
+from perchpose.io.sources import open_source
+from perchpose.target import TargetSpec
+
+
+@dataclass(frozen=True)
+class TrackSummary:
+    """What a tracking run did."""
+
+    frames: int
+    valid: int
+    bad_frames: int
+    stage_counts: dict[int, int]
+    mean_ms: float
+    out: Path
+
+
+def track(
+    source: str,
+    camera: CameraModel,
+    target: TargetSpec,
+    out: str | Path,
+    *,
+    fps: float | None = None,
+    overlay: str | Path | None = None,
+    progress: bool = True,
+    warn: Callable[[str], None] | None = None,
+    on_estimate: Callable[[Estimate], None] | None = None,
+    estimator: PerchingEstimator | None = None,
+) -> TrackSummary:
+    """Run the estimator over every frame of ``source`` and write one row per frame to ``out``.
+
+    A frame that cannot be read or has the wrong size gets an invalid row and a warning; the run
+    goes on. The first frame having a size other than the calibration's is an error, since then
+    every frame would be.
+    """
+    frames = open_source(source, fps)
+    est = estimator or PerchingEstimator(camera, target)
+    say = warn or (lambda msg: print(f"warning: {msg}", file=sys.stderr))
+    writer = PoseWriter(out, target)
+    video: OverlayWriter | None = None
+    n = valid = bad = 0
+    stage_counts = {0: 0, 1: 0, 2: 0, 3: 0}
+    total_ms = 0.0
+    first_good = True
+    try:
+        bar = tqdm(
+            frames,
+            total=frames.count,
+            desc="track",
+            unit="frame",
+            disable=not progress,
+            file=sys.stderr,
+            leave=False,
+        )
+        for frame in bar:
+            n += 1
+            estimate: Estimate | None = None
+            error = frame.error
+            if frame.image is not None:
+                try:
+                    estimate = est.update(frame.image, frame.t_s)
+                except ImageError as exc:
+                    if first_good:
+                        raise ImageError(f"{frames.description}, {frame.name}: {exc}") from exc
+                    error = f"{frame.name}: {exc}"
+                first_good = False
+            if error:
+                bad += 1
+                say(error if frame.name in error else f"{frame.name}: {error}")
+            writer.write(estimate_row(frame.index, frame.t_s, estimate, target, error))
+            if estimate is not None:
+                valid += int(estimate.valid)
+                stage_counts[estimate.stage] += 1
+                total_ms += estimate.timings.total_ms
+                if on_estimate is not None:
+                    on_estimate(estimate)
+            else:
+                stage_counts[0] += 1
+            if overlay is not None and frame.image is not None:
+                if video is None:
+                    h, w = frame.image.shape[:2]
+                    video = OverlayWriter(overlay, frames.fps, (w, h))
+                video.write(
+                    draw_overlay(frame.image, estimate, camera, note=f"t {frame.t_s:.2f} s")
+                )
+    finally:
+        writer.close()
+        if video is not None:
+            video.close()
+    if n == 0:
+        raise PerchposeError(f"{frames.description}: the source gave no frames")
+    processed = max(1, n - bad)
+    return TrackSummary(n, valid, bad, stage_counts, total_ms / processed, Path(out))
