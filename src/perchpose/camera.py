@@ -127,7 +127,7 @@ class CameraModel:
             axis=1,
         )
         # the polynomial must stay monotonic up to theta for the projection to be one-to-one
-        in_front = (theta < math.radians(100.0)) & self._equidistant_monotonic(theta)
+        in_front = (theta < math.radians(110.0)) & self._equidistant_monotonic(theta)
         return uv, in_front
 
     def _equidistant_monotonic(self, theta: Array) -> NDArray[np.bool_]:
@@ -232,7 +232,7 @@ class CameraModel:
 
         ``webcam``: 640x480 pinhole-like webcam, f = 554 px (60 deg horizontal), mild barrel.
         ``fpv``: 640x480 wide FPV lens like the paper's, equidistant, about 150 deg diagonal.
-        ``fpv_wide``: 640x480 very wide FPV fisheye, equidistant, about 190 deg diagonal.
+        ``fpv_wide``: 640x480 very wide FPV fisheye, equidistant, about 200 deg diagonal.
         """
         if name == "webcam":
             return CameraModel(

@@ -7,6 +7,7 @@ pinhole rectification of the image and maps the corners it finds back through th
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -21,6 +22,13 @@ Array = NDArray[np.float64]
 
 # A lens that moves the image border this far from its pinhole position gets the rectified pass.
 RECTIFY_ABOVE_PX = 6.0
+# Half the horizontal field of view the rectified image covers, and its largest size relative to
+# the original image.
+RECTIFIED_HALF_FOV_DEG = 60.0
+RECTIFIED_MAX_SCALE = 1.5
+# Found in both passes, a marker this large in the original image is taken from the rectified
+# pass (its edges are curved in the original); a smaller one from the original image.
+CURVED_SIDE_PX = 40.0
 
 
 @dataclass(frozen=True)
@@ -73,17 +81,17 @@ class MarkerDetector:
     def detect(self, grey: NDArray[np.uint8]) -> tuple[MarkerDetection, ...]:
         """Detect the target's markers in a grey (H, W) uint8 image of the camera's size."""
         found = self._detect_pass(grey, "raw")
-        if self.rectify and len(found) < len(self.target.markers):
+        if self.rectify:
             rect = np.asarray(
                 cv2.remap(grey, *self._rectify_maps(), interpolation=cv2.INTER_LINEAR), np.uint8
             )
             for det in self._detect_pass(rect, "rectified").values():
-                if det.marker_index not in found:
-                    mapped = self._unrectify(det.corners_px)
-                    if mapped is not None:
-                        found[det.marker_index] = MarkerDetection(
-                            det.marker_index, mapped, "rectified"
-                        )
+                raw = found.get(det.marker_index)
+                if raw is not None and raw.side_px < CURVED_SIDE_PX:
+                    continue
+                mapped = self._unrectify(det.corners_px)
+                if mapped is not None:
+                    found[det.marker_index] = MarkerDetection(det.marker_index, mapped, "rectified")
         return tuple(found[i] for i in sorted(found))
 
     def _detect_pass(
@@ -110,13 +118,21 @@ class MarkerDetector:
 
     def _rectify_maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         if self._maps is None:
-            w, h = self.camera.size
-            f = self.camera.focal_px
+            w0, h0 = self.camera.size
+            w = int(round(w0 * RECTIFIED_MAX_SCALE))
+            h = int(round(h0 * RECTIFIED_MAX_SCALE))
+            f = min(self.camera.focal_px, (w / 2.0) / math.tan(math.radians(RECTIFIED_HALF_FOV_DEG)))
             K_rect = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
             u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
             rays = np.stack([(u - K_rect[0, 2]) / f, (v - K_rect[1, 2]) / f, np.ones_like(u)], -1)
-            uv, ok = self.camera.project(rays.reshape(-1, 3))
-            uv[~ok] = -1.0
+            rays = rays.reshape(-1, 3) / np.linalg.norm(rays.reshape(-1, 3), axis=1, keepdims=True)
+            uv, ok = self.camera.project(rays)
+            inside = ok & (uv[:, 0] > -1) & (uv[:, 0] < w0) & (uv[:, 1] > -1) & (uv[:, 1] < h0)
+            # a lens polynomial can fold rays from outside its field back into the image:
+            # keep only pixels whose ray comes back unchanged
+            back = self.camera.pixel_rays(uv[inside])
+            inside[np.flatnonzero(inside)] = np.sum(back * rays[inside], axis=1) > np.cos(1e-3)
+            uv[~inside] = -10.0
             map_xy = uv.reshape(h, w, 2).astype(np.float32)
             self._maps = (
                 np.ascontiguousarray(map_xy[..., 0]),

@@ -1,0 +1,76 @@
+"""Shared fixtures: the paper's target, preset cameras, cached renderers, rendered sequences."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+from perchpose import CameraModel, TargetSpec
+from perchpose.sim.render import Renderer
+from perchpose.sim.scenarios import approach
+from perchpose.sim.sequence import write_sequence
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv_charuco"
+
+
+@pytest.fixture(scope="session")
+def paper_target() -> TargetSpec:
+    return TargetSpec.paper()
+
+
+@pytest.fixture(scope="session")
+def webcam() -> CameraModel:
+    return CameraModel.preset("webcam")
+
+
+@pytest.fixture(scope="session")
+def fpv() -> CameraModel:
+    return CameraModel.preset("fpv")
+
+
+@pytest.fixture(scope="session")
+def fpv_wide() -> CameraModel:
+    return CameraModel.preset("fpv_wide")
+
+
+@pytest.fixture(scope="session")
+def renderers(paper_target: TargetSpec) -> dict[str, Renderer]:
+    """One renderer per preset camera, built on first use (their ray tables are cached)."""
+
+    class Lazy(dict[str, Renderer]):
+        def __missing__(self, name: str) -> Renderer:
+            r = Renderer(CameraModel.preset(name), paper_target)
+            self[name] = r
+            return r
+
+    return Lazy()
+
+
+@pytest.fixture(scope="session")
+def charuco_dir() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real photos not found at {SHARED_DATA}")
+    return SHARED_DATA
+
+
+def _short_approach_dir(tmp_path_factory: pytest.TempPathFactory, camera_name: str) -> Path:
+    out = tmp_path_factory.mktemp(f"approach_{camera_name}")
+    scenario = approach(duration_s=3.0, start_z_m=0.9, dropouts=((1.0, 0.4),))
+    camera = CameraModel.preset(camera_name)
+    return write_sequence(scenario, camera, TargetSpec.paper(), out, seed=1, progress=False)
+
+
+@pytest.fixture(scope="session")
+def approach_webcam_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A rendered 3 s approach (90 frames, a 12-frame dropout at 1.0 s) through the webcam."""
+    return _short_approach_dir(tmp_path_factory, "webcam")
+
+
+@pytest.fixture(scope="session")
+def approach_fpv_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The same approach through the equidistant FPV camera."""
+    return _short_approach_dir(tmp_path_factory, "fpv")

@@ -1,0 +1,115 @@
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from perchpose import CameraModel
+from perchpose.errors import CameraFileError, ImageError
+
+
+def test_loads_the_opencv_filestorage_calibration(charuco_dir: Path) -> None:
+    cam = CameraModel.load(charuco_dir / "tutorial_camera_charuco.yml")
+    assert cam.size == (640, 480)
+    assert cam.model == "plumb_bob"
+    assert cam.K[0, 0] == pytest.approx(452.51, abs=0.01)
+    assert cam.K[1, 1] == pytest.approx(456.77, abs=0.01)
+    assert cam.K[0, 2] == pytest.approx(317.70, abs=0.01)
+    assert cam.dist.shape == (5,)
+    assert cam.dist[4] == pytest.approx(2.9543, abs=1e-4)
+
+
+@pytest.mark.parametrize("name", ["webcam", "fpv", "fpv_wide"])
+def test_ros_yaml_round_trip(tmp_path: Path, name: str) -> None:
+    cam = CameraModel.preset(name)
+    path = tmp_path / "camera.yaml"
+    cam.save(path)
+    data = yaml.safe_load(path.read_text())
+    assert data["distortion_model"] == cam.model
+    loaded = CameraModel.load(path)
+    np.testing.assert_array_equal(loaded.K, cam.K)
+    np.testing.assert_array_equal(loaded.dist, cam.dist)
+    assert (loaded.size, loaded.model) == (cam.size, cam.model)
+
+
+@pytest.mark.parametrize("name", ["webcam", "fpv", "fpv_wide"])
+def test_project_and_unproject_are_inverse(name: str) -> None:
+    cam = CameraModel.preset(name)
+    rng = np.random.default_rng(0)
+    uv = np.stack([rng.uniform(0, 639, 500), rng.uniform(0, 479, 500)], 1)
+    rays = cam.pixel_rays(uv)
+    np.testing.assert_allclose(np.linalg.norm(rays, axis=1), 1.0, atol=1e-12)
+    back, ok = cam.project(rays * 0.7)
+    assert ok.all()
+    np.testing.assert_allclose(back, uv, atol=1e-6)
+
+
+def test_equidistant_covers_rays_beyond_ninety_degrees() -> None:
+    cam = CameraModel.preset("fpv_wide")
+    corner_ray = cam.pixel_rays(np.array([[0.0, 0.0]]))[0]
+    assert math.degrees(math.acos(corner_ray[2])) > 90.0
+    uv, ok = cam.project(corner_ray[None, :])
+    assert ok[0]
+    np.testing.assert_allclose(uv[0], [0.0, 0.0], atol=1e-6)
+
+
+def test_points_behind_a_pinhole_camera_are_flagged() -> None:
+    cam = CameraModel.preset("webcam")
+    _, ok = cam.project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))
+    assert ok.tolist() == [False, True]
+
+
+def test_missing_camera_file(tmp_path: Path) -> None:
+    with pytest.raises(CameraFileError, match="camera file not found"):
+        CameraModel.load(tmp_path / "nope.yaml")
+
+
+def test_unparsable_camera_file(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("camera_matrix: [1, 2\n  - :")
+    with pytest.raises(CameraFileError, match=r"bad\.yaml: not valid YAML"):
+        CameraModel.load(path)
+
+
+@pytest.mark.parametrize(
+    "field", ["camera_matrix", "distortion_coefficients", "image_width", "image_height"]
+)
+def test_camera_file_lacking_a_field_names_it(tmp_path: Path, field: str) -> None:
+    data = CameraModel.preset("webcam").to_ros_dict()
+    del data[field]
+    path = tmp_path / "cam.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CameraFileError, match=f"cam.yaml: missing field '{field}'"):
+        CameraModel.load(path)
+
+
+def test_wrong_number_of_fisheye_coefficients(tmp_path: Path) -> None:
+    data = CameraModel.preset("fpv").to_ros_dict()
+    data["distortion_coefficients"]["data"] = [0.1, 0.2, 0.0, 0.0, 0.0]
+    path = tmp_path / "cam.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CameraFileError, match="equidistant needs 4 coefficients"):
+        CameraModel.load(path)
+
+
+def test_broken_opencv_storage(tmp_path: Path) -> None:
+    path = tmp_path / "cam.yml"
+    path.write_text("%YAML:1.0\n---\nimage_width: 640\n")
+    with pytest.raises(CameraFileError, match="missing field"):
+        CameraModel.load(path)
+
+
+def test_image_size_must_match_the_calibration() -> None:
+    cam = CameraModel.preset("webcam")
+    with pytest.raises(ImageError, match=r"image is 320x240 but camera 'webcam' is calibrated"):
+        cam.check_image(np.zeros((240, 320), np.uint8))
+    with pytest.raises(ImageError, match="uint8"):
+        cam.check_image(np.zeros((480, 640), np.float32))
+    grey = cam.check_image(np.zeros((480, 640, 3), np.uint8))
+    assert grey.shape == (480, 640)
+
+
+def test_unknown_preset() -> None:
+    with pytest.raises(CameraFileError, match="unknown camera preset"):
+        CameraModel.preset("hubble")

@@ -1,0 +1,74 @@
+import math
+
+import numpy as np
+import pytest
+
+from perchpose.geometry import (
+    angle_diff_rad,
+    check_transform,
+    facing_pose,
+    invert_transform,
+    rvec_tvec_from_transform,
+    transform_from_rvec_tvec,
+    weighted_circular_mean_rad,
+    wrap_angle_deg,
+    wrap_angle_rad,
+    yaw_rad,
+)
+
+
+@pytest.mark.parametrize(
+    ("angle", "expected"),
+    [(0.0, 0.0), (180.0, 180.0), (-180.0, 180.0), (190.0, -170.0), (-190.0, 170.0), (720.5, 0.5)],
+)
+def test_wrap_angle_deg_is_in_half_open_interval(angle: float, expected: float) -> None:
+    assert wrap_angle_deg(angle) == pytest.approx(expected)
+
+
+def test_wrap_angle_rad_never_returns_minus_pi() -> None:
+    assert wrap_angle_rad(-math.pi) == math.pi
+    assert wrap_angle_rad(3 * math.pi) == pytest.approx(math.pi)
+
+
+def test_angle_difference_takes_the_short_way_round() -> None:
+    assert math.degrees(angle_diff_rad(math.radians(-175), math.radians(175))) == pytest.approx(10)
+
+
+def test_circular_mean_across_the_wrap() -> None:
+    mean = weighted_circular_mean_rad(np.radians([175.0, -175.0]), np.array([0.5, 0.5]))
+    assert abs(wrap_angle_deg(math.degrees(mean) - 180.0)) < 1e-9
+    weighted = weighted_circular_mean_rad(np.radians([170.0, -170.0]), np.array([0.75, 0.25]))
+    assert math.degrees(weighted) == pytest.approx(175.0, abs=0.1)
+
+
+def test_inverse_and_composition_are_identities() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        T_a_b = facing_pose(*rng.uniform(-1, 1, 3), *rng.uniform(-3, 3, 3))
+        T_b_c = facing_pose(*rng.uniform(-1, 1, 3), *rng.uniform(-3, 3, 3))
+        T_a_c = T_a_b @ T_b_c
+        np.testing.assert_allclose(invert_transform(T_a_b) @ T_a_c, T_b_c, atol=1e-12)
+        np.testing.assert_allclose(T_a_b @ invert_transform(T_a_b), np.eye(4), atol=1e-12)
+
+
+def test_rvec_round_trip() -> None:
+    T = facing_pose(0.1, -0.2, 0.7, 2.0, 0.1, -0.2)
+    rvec, tvec = rvec_tvec_from_transform(T)
+    np.testing.assert_allclose(transform_from_rvec_tvec(rvec, tvec), T, atol=1e-12)
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 30.0, 90.0, 175.0, -160.0, 180.0])
+def test_facing_pose_yaw_is_the_estimate_yaw(yaw_deg: float) -> None:
+    T = facing_pose(0.0, 0.0, 0.5, math.radians(yaw_deg))
+    assert wrap_angle_deg(math.degrees(yaw_rad(T[:3, :3])) - yaw_deg) == pytest.approx(0, abs=1e-9)
+    # the printed face looks back at the camera: target z points against the optical axis
+    assert T[2, 2] == pytest.approx(-1.0)
+
+
+def test_check_transform_names_the_argument() -> None:
+    with pytest.raises(ValueError, match="T_bad must be a 4x4"):
+        check_transform(np.eye(3), "T_bad")
+    bad = np.eye(4)
+    bad[0, 0] = 2.0
+    with pytest.raises(ValueError, match="orthonormal"):
+        check_transform(bad)
