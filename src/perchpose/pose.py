@@ -28,6 +28,7 @@ class MarkerPose:
     reproj_rms_px : RMS distance between detected and reprojected corners, pixels.
     alt_reproj_rms_px : the same for the other IPPE solution (inf if there was none).
     ambiguous : the two solutions were too close to tell apart by reprojection alone.
+    alt_T_camera_target : (4, 4) the other IPPE solution, or None.
     """
 
     marker_index: int
@@ -35,6 +36,7 @@ class MarkerPose:
     reproj_rms_px: float
     alt_reproj_rms_px: float
     ambiguous: bool
+    alt_T_camera_target: Array | None = None
 
     @property
     def yaw_rad(self) -> float:
@@ -119,14 +121,13 @@ def solve_marker_pose(
         return PoseFailure(marker_index, "marker behind the camera")
     candidates.sort(key=lambda c: c[0])
     best_err, best_T = candidates[0]
-    alt_err = candidates[1][0] if len(candidates) > 1 else math.inf
+    alt_err, alt_T = candidates[1] if len(candidates) > 1 else (math.inf, None)
     ambiguous = alt_err < AMBIGUITY_RATIO * max(best_err, 1e-3)
-    if ambiguous and R_previous is not None:
-        alt_T = candidates[1][1]
+    if ambiguous and R_previous is not None and alt_T is not None:
         if rotation_angle_rad(alt_T[:3, :3], R_previous) < rotation_angle_rad(
             best_T[:3, :3], R_previous
         ):
-            best_err, best_T, alt_err = alt_err, alt_T, best_err
+            best_err, best_T, alt_err, alt_T = alt_err, alt_T, best_err, best_T
     if not math.isfinite(best_err):
         return PoseFailure(marker_index, "reprojection failed")
-    return MarkerPose(marker_index, best_T, best_err, alt_err, ambiguous)
+    return MarkerPose(marker_index, best_T, best_err, alt_err, ambiguous, alt_T)

@@ -1,0 +1,76 @@
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from perchpose import CameraModel, MarkerSpec, TargetSpec
+from perchpose.detection import MarkerDetector
+from perchpose.geometry import facing_pose
+from perchpose.sim.render import Renderer
+
+
+@pytest.mark.parametrize(
+    ("camera_name", "z_m", "expected"),
+    [("webcam", 0.5, {0, 1}), ("webcam", 0.15, {1}), ("webcam", 2.0, {0}), ("fpv", 0.3, {0, 1})],
+)
+def test_finds_the_visible_markers_with_subpixel_corners(
+    renderers: dict[str, Renderer], camera_name: str, z_m: float, expected: set[int]
+) -> None:
+    r = renderers[camera_name]
+    T = facing_pose(0.01, -0.01, z_m, math.radians(20))
+    detections = MarkerDetector(r.camera, r.target).detect(r.render(T))
+    assert {d.marker_index for d in detections} == expected
+    truth = r.corners_px(T)
+    for d in detections:
+        corners = truth[d.marker_index]
+        assert corners is not None
+        assert np.max(np.linalg.norm(d.corners_px - corners, axis=1)) < 0.6
+
+
+def test_large_marker_on_a_fisheye_comes_from_the_rectified_pass(
+    renderers: dict[str, Renderer],
+) -> None:
+    r = renderers["fpv_wide"]
+    T = facing_pose(0.06, -0.05, 0.18, 0.0)
+    detector = MarkerDetector(r.camera, r.target)
+    assert detector.rectify
+    image = r.render(T)
+    by_index = {d.marker_index: d for d in detector.detect(image)}
+    outer = by_index[0]
+    assert outer.image_pass == "rectified"
+    truth = r.corners_px(T)[0]
+    assert truth is not None
+    assert np.max(np.linalg.norm(outer.corners_px - truth, axis=1)) < 0.5
+    # the plain pass on the curved image returns a quad pulled several pixels inwards
+    corners, ids, _, _ = detector._detector.detectMarkersMultiDict(image)
+    raw = [c for c, i in zip(corners, ids.reshape(-1), strict=True) if i == 997]
+    if raw:
+        assert np.max(np.linalg.norm(raw[0].reshape(4, 2) - truth, axis=1)) > 2.0
+
+
+def test_markers_not_in_the_target_are_ignored(webcam: CameraModel) -> None:
+    # render a target holding the paper's markers plus a stranger beside them
+    stranger = MarkerSpec("DICT_4X4_1000", 42, 60.0, centre_mm=(-160.0, 0.0))
+    scene = TargetSpec((*TargetSpec.paper().markers, stranger), quiet_zone_mm=200.0)
+    image = Renderer(webcam, scene).render(facing_pose(0.05, 0.0, 0.9))
+    ids = {d.marker_index for d in MarkerDetector(webcam, TargetSpec.paper()).detect(image)}
+    assert ids == {0, 1}
+    everything = MarkerDetector(webcam, scene).detect(image)
+    assert len(everything) == 3
+
+
+def test_plumb_bob_with_little_distortion_needs_no_rectified_pass(webcam: CameraModel) -> None:
+    assert not MarkerDetector(webcam, TargetSpec.paper()).rectify
+
+
+def test_grey_and_bgr_give_the_same_corners(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    grey = r.render(facing_pose(0.0, 0.0, 0.6))
+    det = MarkerDetector(r.camera, r.target)
+    bgr = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    a = det.detect(grey)
+    b = det.detect(r.camera.check_image(bgr))
+    assert len(a) == len(b) == 2
+    for da, db in zip(a, b, strict=True):
+        np.testing.assert_allclose(da.corners_px, db.corners_px)

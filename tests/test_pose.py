@@ -1,0 +1,78 @@
+import math
+
+import numpy as np
+import pytest
+
+from perchpose import CameraModel, TargetSpec
+from perchpose.geometry import facing_pose, rot_x
+from perchpose.pose import PoseFailure, rotation_angle_rad, solve_marker_pose
+
+
+def _project(camera: CameraModel, T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    uv, ok = camera.project((T[:3, :3] @ points.T).T + T[:3, 3])
+    assert ok.all()
+    return uv
+
+
+@pytest.mark.parametrize("camera_name", ["webcam", "fpv", "fpv_wide"])
+def test_exact_corners_give_the_exact_pose(camera_name: str) -> None:
+    camera = CameraModel.preset(camera_name)
+    target = TargetSpec.paper()
+    T = facing_pose(0.04, -0.03, 0.4, math.radians(130), 0.2, -0.1)
+    for index, marker in enumerate(target.markers):
+        corners = _project(camera, T, marker.corners_target_m)
+        pose = solve_marker_pose(camera, marker, index, corners)
+        assert pose
+        assert not isinstance(pose, PoseFailure)
+        np.testing.assert_allclose(pose.T_camera_target, T, atol=1e-7)
+        assert pose.reproj_rms_px < 1e-4
+
+
+def test_offset_rotated_marker_reports_the_target_centre() -> None:
+    from perchpose import MarkerSpec
+
+    camera = CameraModel.preset("webcam")
+    marker = MarkerSpec("DICT_4X4_50", 1, 40.0, centre_mm=(30.0, -20.0), rotation_deg=35.0)
+    T = facing_pose(0.0, 0.0, 0.5, 0.4)
+    corners = _project(camera, T, marker.corners_target_m)
+    pose = solve_marker_pose(camera, marker, 0, corners)
+    assert not isinstance(pose, PoseFailure)
+    np.testing.assert_allclose(pose.t_m, [0.0, 0.0, 0.5], atol=1e-6)
+
+
+def test_ambiguous_small_marker_follows_the_previous_rotation() -> None:
+    camera = CameraModel.preset("webcam")
+    inner = TargetSpec.paper().markers[1]
+    # a small marker, tilted: with corner noise the two IPPE solutions (mirrored tilts)
+    # reproject almost equally well
+    T = facing_pose(0.0, 0.0, 0.8, 0.3)
+    T[:3, :3] = rot_x(math.radians(20)) @ T[:3, :3]
+    clean = _project(camera, T, inner.corners_target_m)
+    found = 0
+    for seed in range(20):
+        corners = clean + np.random.default_rng(seed).normal(0, 0.15, (4, 2))
+        first = solve_marker_pose(camera, inner, 1, corners)
+        assert not isinstance(first, PoseFailure)
+        if not first.ambiguous or first.alt_T_camera_target is None:
+            continue
+        found += 1
+        alt = first.alt_T_camera_target
+        assert rotation_angle_rad(alt[:3, :3], first.T_camera_target[:3, :3]) > math.radians(10)
+        follow = solve_marker_pose(camera, inner, 1, corners, R_previous=alt[:3, :3])
+        assert not isinstance(follow, PoseFailure)
+        np.testing.assert_allclose(follow.T_camera_target, alt)
+        stay = solve_marker_pose(
+            camera, inner, 1, corners, R_previous=first.T_camera_target[:3, :3]
+        )
+        assert not isinstance(stay, PoseFailure)
+        np.testing.assert_allclose(stay.T_camera_target, first.T_camera_target)
+    assert found >= 3
+
+
+def test_degenerate_corners_are_a_failure_value() -> None:
+    camera = CameraModel.preset("webcam")
+    marker = TargetSpec.paper().outer
+    result = solve_marker_pose(camera, marker, 0, np.full((4, 2), 100.0))
+    assert isinstance(result, PoseFailure)
+    assert not result
+    assert result.reason
