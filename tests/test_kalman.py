@@ -57,7 +57,7 @@ def test_track_survives_exactly_n_max_missed_frames() -> None:
     track = MarkerTrack(KalmanSettings(n_max=8))
     z = np.array([0.0, 0.0, 0.0, 1.0])
     for k in range(5):
-        track.measured(z + [0, 0, 0, -0.01 * k], k / 30)
+        track.measured(z + np.array([0, 0, 0, -0.01 * k]), k / 30)
     alive = []
     for k in range(5, 15):
         track.missed_frame(k / 30)

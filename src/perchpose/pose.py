@@ -123,11 +123,14 @@ def solve_marker_pose(
     best_err, best_T = candidates[0]
     alt_err, alt_T = candidates[1] if len(candidates) > 1 else (math.inf, None)
     ambiguous = alt_err < AMBIGUITY_RATIO * max(best_err, 1e-3)
-    if ambiguous and R_previous is not None and alt_T is not None:
-        if rotation_angle_rad(alt_T[:3, :3], R_previous) < rotation_angle_rad(
-            best_T[:3, :3], R_previous
-        ):
-            best_err, best_T, alt_err, alt_T = alt_err, alt_T, best_err, best_T
+    if (
+        ambiguous
+        and R_previous is not None
+        and alt_T is not None
+        and rotation_angle_rad(alt_T[:3, :3], R_previous)
+        < rotation_angle_rad(best_T[:3, :3], R_previous)
+    ):
+        best_err, best_T, alt_err, alt_T = alt_err, alt_T, best_err, best_T
     if not math.isfinite(best_err):
         return PoseFailure(marker_index, "reprojection failed")
     return MarkerPose(marker_index, best_T, best_err, alt_err, ambiguous, alt_T)
