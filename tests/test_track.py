@@ -26,7 +26,9 @@ def tracked(
 
 
 @pytest.mark.parametrize("camera_name", ["webcam", "fpv"])
-def test_one_row_per_frame_in_order(tracked: dict[str, tuple[Path, Path]], camera_name: str) -> None:
+def test_one_row_per_frame_in_order(
+    tracked: dict[str, tuple[Path, Path]], camera_name: str
+) -> None:
     poses, folder = tracked[camera_name]
     rows = read_track_csv(poses)
     frames = sorted(folder.glob("frame_*.png"))
@@ -77,7 +79,8 @@ def test_yaw_across_plus_minus_180(tracked: dict[str, tuple[Path, Path]], camera
     truth = read_track_csv(folder / "truth.csv")
     yaws = np.array([float(t["yaw_deg"]) for t in truth])
     valid = np.array([r["valid"] == "1" for r in rows])
-    assert np.any(valid & (yaws > 170)) and np.any(valid & (yaws < -170))
+    assert np.any(valid & (yaws > 170))
+    assert np.any(valid & (yaws < -170))
     errors = frame_errors(rows, truth)
     measured = errors.valid & ~errors.dropout & (errors.truth_stage > 0)
     assert np.nanmax(np.abs(errors.yaw_error_deg[measured])) <= 3.0

@@ -4,10 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
@@ -43,7 +39,7 @@ def draw_scale_bar(ax: Axes, x0_mm: float, y0_mm: float) -> None:
 def new_sheet(width_mm: float, height_mm: float) -> tuple[Figure, Axes]:
     """A figure exactly ``width_mm`` x ``height_mm`` with one full-size axes in millimetres
     (origin top-left, y down)."""
-    fig = plt.figure(figsize=(width_mm / MM_PER_INCH, height_mm / MM_PER_INCH))
+    fig = Figure(figsize=(width_mm / MM_PER_INCH, height_mm / MM_PER_INCH))
     ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
     ax.set_xlim(0.0, width_mm)
     ax.set_ylim(height_mm, 0.0)
@@ -57,8 +53,6 @@ def save_sheet(fig: Figure, path: Path, dpi: int) -> None:
         fig.savefig(path, dpi=dpi, facecolor="white")
     except OSError as exc:
         raise PerchposeError(f"{path}: cannot write ({exc.strerror})") from exc
-    finally:
-        plt.close(fig)
 
 
 def write_target_sheet(target: TargetSpec, path: str | Path, dpi: int = 600) -> Path:

@@ -74,15 +74,16 @@ def track(
             error = frame.error
             if frame.image is not None:
                 try:
-                    estimate = est.update(frame.image, frame.t_s)
+                    grey = camera.check_image(frame.image, f"{frames.description}: {frame.name}")
+                    estimate = est.update(grey, frame.t_s)
                 except ImageError as exc:
                     if first_good:
-                        raise ImageError(f"{frames.description}, {frame.name}: {exc}") from exc
-                    error = f"{frame.name}: {exc}"
+                        raise
+                    error = str(exc)
                 first_good = False
             if error:
                 bad += 1
-                say(error if frame.name in error else f"{frame.name}: {error}")
+                say(error)
             writer.write(estimate_row(frame.index, frame.t_s, estimate, target, error))
             if estimate is not None:
                 valid += int(estimate.valid)

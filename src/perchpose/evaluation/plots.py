@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
@@ -87,9 +84,9 @@ def kalman_figure(
     title: str,
 ) -> None:
     """Write the Kalman figure as a PNG."""
-    fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
+    fig = Figure(figsize=(9, 9))
+    axes = fig.subplots(4, 1, sharex=True)
     plot_kalman(list(axes), t_s, raw, filtered, truth, dropout)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)

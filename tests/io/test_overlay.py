@@ -1,0 +1,38 @@
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from perchpose import PerchingEstimator
+from perchpose.errors import PerchposeError
+from perchpose.geometry import facing_pose
+from perchpose.io.overlay import OverlayWriter, draw_overlay
+from perchpose.sim.render import Renderer
+
+
+def test_overlay_draws_outlines_axes_and_text(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    image = r.render(facing_pose(0.0, 0.0, 0.5))
+    e = PerchingEstimator(r.camera, r.target).update(image, 0.0)
+    out = draw_overlay(image, e, r.camera)
+    assert out.shape == (480, 640, 3)
+    green = (out[:, :, 1] > 150) & (out[:, :, 0] < 80) & (out[:, :, 2] < 80)
+    red = (out[:, :, 2] > 200) & (out[:, :, 1] < 80)
+    assert green.sum() > 500  # outlines
+    assert red.sum() > 20  # x axes
+    text_band = out[440:, :300]
+    assert np.any(np.all(text_band == 255, axis=2))
+
+
+def test_overlay_video_round_trip(tmp_path: Path) -> None:
+    path = tmp_path / "o.mp4"
+    w = OverlayWriter(path, 30.0, (64, 48))
+    for k in range(5):
+        w.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    w.close()
+    cap = cv2.VideoCapture(str(path))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 5
+    cap.release()
+    with pytest.raises(PerchposeError, match="overlay must end in"):
+        OverlayWriter(tmp_path / "o.gif", 30.0, (64, 48))

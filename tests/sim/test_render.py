@@ -1,0 +1,88 @@
+import math
+
+import numpy as np
+import pytest
+
+from perchpose.geometry import facing_pose
+from perchpose.sim.render import ImageQuality, Occluder, Renderer
+
+
+def test_same_seed_same_frame(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    T = facing_pose(0.0, 0.0, 0.5, 0.3)
+    a = r.render(T, ImageQuality(), np.random.default_rng(5))
+    b = r.render(T, ImageQuality(), np.random.default_rng(5))
+    c = r.render(T, ImageQuality(), np.random.default_rng(6))
+    np.testing.assert_array_equal(a, b)
+    assert np.any(a != c)
+
+
+def test_clean_render_levels_and_geometry(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    q = ImageQuality.preset("clean")
+    T = facing_pose(0.0, 0.0, 1.0)
+    img = r.render(T, q)
+    assert img.dtype == np.uint8
+    assert img.shape == (480, 640)
+    # far from the target: the surround; outer marker's black border; the white centre cells
+    assert img[5, 5] == round(q.black_level + (q.white_level - q.black_level) * q.surround)
+    corners = r.corners_px(T)[0]
+    assert corners is not None
+    inside_border = np.round(corners[0] + [3, 3]).astype(int)
+    assert img[inside_border[1], inside_border[0]] == q.black_level
+    centre_white = np.round(corners.mean(axis=0) + [20, 0]).astype(int)
+    assert img[centre_white[1], centre_white[0]] == q.white_level
+
+
+def test_edge_is_antialiased_where_the_geometry_puts_it(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    q = ImageQuality.preset("clean")
+    T = facing_pose(0.0, 0.0, 1.0)
+    refl = r.reflectance(T)
+    left = r.corners_px(T)[0][0, 0]  # x of the outer marker's left edge, pixels
+    col = math.floor(left + 0.5)  # the pixel the edge runs through
+    row = 240
+    mean = np.nanmean(refl[row, :, col, :])
+    # that pixel is part surround (0.45 in clean quality is applied later), part black:
+    # the fraction of samples left of the edge matches the edge position to a sample
+    fraction_outside = np.mean(np.isnan(refl[row, :, col, :]) | (refl[row, :, col, :] > 0.5))
+    expected = left - (col - 0.5)
+    assert fraction_outside == pytest.approx(expected, abs=1 / 3 + 1e-9)
+    assert 0.0 <= mean <= 1.0
+    _ = q
+
+
+def test_occluder_hides_the_target(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    box = Occluder(np.array([[0, 0], [640, 0], [640, 480], [0, 480]], float), grey=40)
+    img = r.render(facing_pose(0, 0, 0.5), ImageQuality.preset("clean"), occluders=(box,))
+    assert np.all(img == 40)
+
+
+def test_fisheye_render_shows_a_large_field_of_view(renderers: dict[str, Renderer]) -> None:
+    r = renderers["fpv_wide"]
+    # a target 60 degrees off the axis is still imaged
+    z = 0.3
+    T = facing_pose(z * math.tan(math.radians(60)), 0.0, z)
+    corners = r.corners_px(T)[0]
+    assert corners is not None
+    assert np.all((corners[:, 0] > 0) & (corners[:, 0] < 640))
+
+
+def test_quality_presets() -> None:
+    assert ImageQuality.preset("analog_fpv").jpeg_quality == 70
+    with pytest.raises(ValueError, match="unknown image quality"):
+        ImageQuality.preset("vhs")
+
+
+def test_degradations_change_the_image(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    T = facing_pose(0.0, 0.0, 0.5)
+    clean = r.render(T, ImageQuality.preset("clean")).astype(float)
+    for q in (
+        ImageQuality(blur_sigma_px=1.5, noise_sigma=0),
+        ImageQuality(motion_blur_px=7, motion_angle_deg=30, noise_sigma=0, blur_sigma_px=0),
+        ImageQuality.preset("analog_fpv"),
+    ):
+        other = r.render(T, q, np.random.default_rng(0)).astype(float)
+        assert np.mean(np.abs(other - clean)) > 0.5

@@ -1,0 +1,247 @@
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from perchpose import CameraModel
+from perchpose.cli import main
+from perchpose.io.sinks import read_track_csv
+
+
+@pytest.fixture(scope="module")
+def short_sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("cli") / "seq"
+    assert (
+        main(
+            [
+                "simulate",
+                "approach",
+                "--camera",
+                "preset:webcam",
+                "--out",
+                str(out),
+                "--frames",
+                "6",
+            ]
+        )
+        == 0
+    )
+    return out
+
+
+def _run(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(args)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _single_error_line(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def test_simulate_writes_a_sequence(short_sequence: Path) -> None:
+    assert len(list(short_sequence.glob("frame_*.png"))) == 6
+    assert (short_sequence / "truth.csv").is_file()
+
+
+def test_track_csv_jsonl_and_overlay(
+    short_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    camera = str(short_sequence / "camera.yaml")
+    code, out, _ = _run(
+        [
+            "track",
+            str(short_sequence),
+            "--camera",
+            camera,
+            "--out",
+            str(tmp_path / "p.csv"),
+            "--overlay",
+            str(tmp_path / "o.mp4"),
+        ],
+        capsys,
+    )
+    assert code == 0
+    assert "6 frames, 6 valid" in out
+    assert len(read_track_csv(tmp_path / "p.csv")) == 6
+    assert (tmp_path / "o.mp4").stat().st_size > 1000
+    code, _, _ = _run(
+        [
+            "track",
+            str(short_sequence / "frame_*.png"),
+            "--camera",
+            camera,
+            "--out",
+            str(tmp_path / "p.jsonl"),
+            "--fps",
+            "15",
+        ],
+        capsys,
+    )
+    assert code == 0
+    assert len((tmp_path / "p.jsonl").read_text().splitlines()) == 6
+
+
+def test_target_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = _run(
+        ["target", "--out", str(tmp_path / "t.svg"), "--save-spec", str(tmp_path / "t.yaml")],
+        capsys,
+    )
+    assert code == 0
+    assert "scale bar" in out
+    assert (tmp_path / "t.yaml").is_file()
+    code, _, _ = _run(
+        ["target", "--out", str(tmp_path / "t2.pdf"), "--target", str(tmp_path / "t.yaml")], capsys
+    )
+    assert code == 0
+
+
+def test_corrupt_frame_does_not_stop_the_run(
+    short_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for p in sorted(short_sequence.glob("frame_*.png")):
+        (frames / p.name).write_bytes(p.read_bytes())
+    (frames / "frame_000002.png").write_bytes(b"not a png")
+    code, _, err = _run(
+        [
+            "track",
+            str(frames),
+            "--camera",
+            str(short_sequence / "camera.yaml"),
+            "--out",
+            str(tmp_path / "p.csv"),
+        ],
+        capsys,
+    )
+    assert code == 0
+    assert "frame_000002.png: cannot read image" in _single_error_line(err)
+    rows = read_track_csv(tmp_path / "p.csv")
+    assert [r["valid"] for r in rows] == ["1", "1", "0", "1", "1", "1"]
+    assert rows[2]["frame"] == "2"
+
+
+def _bad_camera(tmp_path: Path, kind: str) -> Path:
+    path = tmp_path / "cam.yaml"
+    data = CameraModel.preset("webcam").to_ros_dict()
+    if kind == "missing":
+        return tmp_path / "nope.yaml"
+    if kind == "unparsable":
+        path.write_text("image_width: [640\n")
+        return path
+    if kind == "field":
+        del data["camera_matrix"]
+    if kind == "size":
+        data["image_width"], data["image_height"] = 320, 240
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        ("missing", "nope.yaml: camera file not found"),
+        ("unparsable", "cam.yaml: not valid YAML"),
+        ("field", "cam.yaml: missing field 'camera_matrix'"),
+        ("size", "frame_000000.png: image is 640x480 but camera"),
+    ],
+)
+def test_bad_camera_files_exit_2_with_one_line(
+    short_sequence: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    kind: str,
+    message: str,
+) -> None:
+    camera = _bad_camera(tmp_path, kind)
+    code, _, err = _run(
+        ["track", str(short_sequence), "--camera", str(camera), "--out", str(tmp_path / "p.csv")],
+        capsys,
+    )
+    assert code == 2
+    line = _single_error_line(err)
+    assert line.startswith("perchpose: error: ")
+    assert message in line
+
+
+def test_bad_sources_and_outputs_exit_2(
+    short_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    camera = str(short_sequence / "camera.yaml")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    cases = [
+        (
+            ["track", str(empty), "--camera", camera, "--out", str(tmp_path / "p.csv")],
+            "holds no image files",
+        ),
+        (
+            ["track", str(short_sequence), "--camera", camera, "--out", str(tmp_path / "p.txt")],
+            "must end in .csv or .jsonl",
+        ),
+        (
+            [
+                "track",
+                str(short_sequence),
+                "--camera",
+                camera,
+                "--out",
+                str(tmp_path / "p.csv"),
+                "--fps",
+                "0",
+            ],
+            "--fps must be a positive",
+        ),
+        (["simulate", "orbit", "--out", str(tmp_path / "s")], "unknown scenario 'orbit'"),
+        (
+            [
+                "track",
+                str(short_sequence),
+                "--camera",
+                "preset:nope",
+                "--out",
+                str(tmp_path / "p.csv"),
+            ],
+            "unknown camera preset",
+        ),
+    ]
+    for args, message in cases:
+        code, _, err = _run(args, capsys)
+        assert code == 2, args
+        assert message in _single_error_line(err)
+
+
+def test_usage_error_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(["track", "somewhere"], capsys)
+    assert code == 2
+    assert "--camera" in err
+    assert "Traceback" not in err
+
+
+def test_console_entry_point_reports_without_traceback(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "perchpose",
+            "track",
+            str(tmp_path / "none"),
+            "--camera",
+            str(tmp_path / "cam.yaml"),
+            "--out",
+            str(tmp_path / "p.csv"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0
+    assert "camera file not found" in proc.stderr
