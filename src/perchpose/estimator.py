@@ -84,6 +84,10 @@ class PerchingEstimator:
     kalman : KalmanSettings (k1, k2, alpha, n_max).
     sigmas : FusionSigmas (paper's LMS values by default).
     max_reproj_px : a marker pose whose corner reprojection RMS exceeds this is rejected.
+    markers : indices of the target's markers to use (default all); the others are ignored, for
+        ablations such as "outer marker only".
+    use_filter : False fuses each frame's raw measurements without the Kalman filter (no
+        coasting: a frame without a detection has no estimate).
     """
 
     def __init__(
@@ -94,7 +98,14 @@ class PerchingEstimator:
         kalman: KalmanSettings | None = None,
         sigmas: FusionSigmas | None = None,
         max_reproj_px: float = 3.0,
+        markers: tuple[int, ...] | None = None,
+        use_filter: bool = True,
     ) -> None:
+        n = len(target.markers)
+        self.markers = tuple(range(n)) if markers is None else tuple(sorted(set(markers)))
+        if not self.markers or not all(0 <= i < n for i in self.markers):
+            raise ValueError(f"markers must be indices 0-{n - 1} of the target, got {markers}")
+        self.use_filter = use_filter
         self.camera = camera
         self.target = target
         self.kalman = kalman or KalmanSettings()
@@ -138,6 +149,8 @@ class PerchingEstimator:
         measurements: dict[int, MarkerPose] = {}
         rejected: dict[int, str] = {}
         for det in detections:
+            if det.marker_index not in self.markers:
+                continue
             result = solve_marker_pose(
                 self.camera,
                 self.target.markers[det.marker_index],
@@ -172,15 +185,18 @@ class PerchingEstimator:
                 if not track.alive:
                     self._last_R[i] = None
         self._last_t_s = t
-        if measurements:
-            contributing = set(measurements)
+        if not self.use_filter:
+            poses = {i: np.array([m.yaw_rad, *m.t_m]) for i, m in measurements.items()}
         else:
-            contributing = {i for i, tr in enumerate(self._tracks) if tr.alive}
-        poses = {
-            i: tr.filter.pose
-            for i, tr in enumerate(self._tracks)
-            if i in contributing and tr.filter is not None
-        }
+            if measurements:
+                contributing = set(measurements)
+            else:
+                contributing = {i for i, tr in enumerate(self._tracks) if tr.alive}
+            poses = {
+                i: tr.filter.pose
+                for i, tr in enumerate(self._tracks)
+                if i in contributing and tr.filter is not None
+            }
         fused, stage = fuse_paper(poses, self.sigmas)
         t3 = time.perf_counter()
         by_index = {d.marker_index: d for d in detections}
