@@ -7,6 +7,7 @@ line on stderr and the command exits with code 2.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import click
 
@@ -185,6 +186,109 @@ def demo(out: str, camera_file: str, seconds: float, seed: int) -> None:
         f"by the filter (at most 8 in a row stay valid)"
     )
     click.echo(f"wrote {result.out_dir / 'poses.csv'}, {result.overlay}, {result.figure}")
+
+
+@cli.command()
+@click.argument("experiment", type=click.Choice(["paper"]))
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Output folder for report.md, results.json and the figures.",
+)
+@click.option("--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP)
+@click.option(
+    "--quality",
+    default="analog_fpv",
+    show_default=True,
+    type=click.Choice(["clean", "default", "analog_fpv"]),
+    help="Image degradation for the tables, the dropout, the fit and the ablations.",
+)
+@click.option("--quick", is_flag=True, help="A reduced run (under a minute) for smoke tests.")
+@click.option("--seed", default=0, show_default=True, help="Base seed of every experiment.")
+def evaluate(
+    experiment: str, out: str, camera_file: str, quality: str, quick: bool, seed: int
+) -> None:
+    """Reproduce the paper's experiments (EXPERIMENT: paper) on rendered frames."""
+    from perchpose.evaluation.report import run_paper_evaluation
+
+    del experiment  # one experiment set so far
+    result = run_paper_evaluation(
+        out,
+        _load_camera(camera_file),
+        quick=quick,
+        seed=seed,
+        quality_name=quality,
+        progress=sys.stderr.isatty(),
+        say=lambda msg: click.echo(msg, err=True),
+    )
+    r = result.results
+    ranges = r["ranges"]
+    click.echo(
+        f"ranges ({ranges['quality']} images): outer up to "
+        f"{ranges['outer']['z_max_cm']} cm, inner up to {ranges['inner']['z_max_cm']} cm"
+    )
+    if r["fusion_fit"] is not None:
+        ls = r["fusion_fit"]["least_squares"]
+        click.echo(
+            "fusion fit (least squares): " + ", ".join(f"{k} {v:.3f}" for k, v in ls.items())
+        )
+    click.echo(f"wrote {result.report}, {result.out_dir / 'results.json'} and figures")
+
+
+@cli.command(name="fit-fusion")
+@click.argument("data", type=click.Path(dir_okay=False))
+@click.option(
+    "--truth",
+    "truth_file",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="truth.csv of the frames, when DATA is a track file.",
+)
+@click.option(
+    "--json",
+    "json_out",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Also write the fitted sigmas as JSON.",
+)
+def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
+    """Fit the fusion sigmas from labelled data (least squares and the paper's LMS).
+
+    DATA has columns true_x_cm, true_y_cm, true_z_cm, true_yaw_deg and each marker's raw
+    measurement m0_* (outer) and m1_* (inner); or it is a track file and --truth gives the
+    truth.csv of the same frames."""
+    import json
+
+    from perchpose.evaluation.experiments import COMPONENT_NAMES, PAPER_SIGMAS
+    from perchpose.evaluation.experiments import fit_fusion as fit
+    from perchpose.evaluation.fusion_data import load_fusion_samples
+
+    samples = load_fusion_samples(data, truth_file)
+    try:
+        result = fit(samples)
+    except ValueError as exc:
+        raise PerchposeError(f"{data}: {exc}") from exc
+    click.echo(f"{result.samples} frames with truth and both markers")
+    click.echo(f"{'':10} {'least sq.':>10} {'LMS':>10} {'paper':>10}")
+    for name in COMPONENT_NAMES:
+        click.echo(
+            f"{name:10} {result.least_squares[name]:10.3f} {result.lms[name]:10.3f} "
+            f"{PAPER_SIGMAS[name]:10.3f}"
+        )
+    if json_out:
+        Path(json_out).write_text(
+            json.dumps(
+                {
+                    "least_squares": result.least_squares,
+                    "lms": result.lms,
+                    "samples": result.samples,
+                },
+                indent=2,
+            ),
+            encoding="utf-8",
+        )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -82,6 +82,44 @@ def refine_corners(grey: NDArray[np.uint8], corners_px: Array, cells: int) -> Ar
     return out
 
 
+@dataclass(frozen=True)
+class _Rectification:
+    maps: tuple[NDArray[np.float32], NDArray[np.float32]]
+    K_rect: Array
+
+
+def rectification(
+    camera: CameraModel,
+) -> tuple[tuple[NDArray[np.float32], NDArray[np.float32]], Array]:
+    """Remap tables from the original image to a pinhole view, and that view's K.
+
+    The view is up to 1.5 times the image's size and spans up to +/-60 deg horizontally, with
+    the camera's own focal length where that fits. Computed once per camera and cached on it.
+    """
+    cached = camera._cache.get("rectification")
+    if isinstance(cached, _Rectification):
+        return cached.maps, cached.K_rect
+    w0, h0 = camera.size
+    w = int(round(w0 * RECTIFIED_MAX_SCALE))
+    h = int(round(h0 * RECTIFIED_MAX_SCALE))
+    f = min(camera.focal_px, (w / 2.0) / math.tan(math.radians(RECTIFIED_HALF_FOV_DEG)))
+    K_rect = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = np.stack([(u - K_rect[0, 2]) / f, (v - K_rect[1, 2]) / f, np.ones_like(u)], -1)
+    rays = rays.reshape(-1, 3) / np.linalg.norm(rays.reshape(-1, 3), axis=1, keepdims=True)
+    uv, ok = camera.project(rays)
+    inside = ok & (uv[:, 0] > -1) & (uv[:, 0] < w0) & (uv[:, 1] > -1) & (uv[:, 1] < h0)
+    # a lens polynomial can fold rays from outside its field back into the image:
+    # keep only pixels whose ray comes back unchanged
+    back = camera.pixel_rays(uv[inside])
+    inside[np.flatnonzero(inside)] = np.sum(back * rays[inside], axis=1) > np.cos(1e-3)
+    uv[~inside] = -10.0
+    map_xy = uv.reshape(h, w, 2).astype(np.float32)
+    maps = (np.ascontiguousarray(map_xy[..., 0]), np.ascontiguousarray(map_xy[..., 1]))
+    camera._cache["rectification"] = _Rectification(maps, K_rect)
+    return maps, K_rect
+
+
 class MarkerDetector:
     """Finds the markers of ``target`` in grey images of ``camera``.
 
@@ -97,7 +135,6 @@ class MarkerDetector:
         self._detector = cv2.aruco.ArucoDetector(dicts[0], _detector_parameters())
         self._detector.setDictionaries(dicts)
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
-        self._maps: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None
         self._K_rect: Array | None = None
 
     def detect(self, grey: NDArray[np.uint8]) -> tuple[MarkerDetection, ...]:
@@ -141,31 +178,9 @@ class MarkerDetector:
         return found
 
     def _rectify_maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        if self._maps is None:
-            w0, h0 = self.camera.size
-            w = int(round(w0 * RECTIFIED_MAX_SCALE))
-            h = int(round(h0 * RECTIFIED_MAX_SCALE))
-            f = min(
-                self.camera.focal_px, (w / 2.0) / math.tan(math.radians(RECTIFIED_HALF_FOV_DEG))
-            )
-            K_rect = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
-            u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-            rays = np.stack([(u - K_rect[0, 2]) / f, (v - K_rect[1, 2]) / f, np.ones_like(u)], -1)
-            rays = rays.reshape(-1, 3) / np.linalg.norm(rays.reshape(-1, 3), axis=1, keepdims=True)
-            uv, ok = self.camera.project(rays)
-            inside = ok & (uv[:, 0] > -1) & (uv[:, 0] < w0) & (uv[:, 1] > -1) & (uv[:, 1] < h0)
-            # a lens polynomial can fold rays from outside its field back into the image:
-            # keep only pixels whose ray comes back unchanged
-            back = self.camera.pixel_rays(uv[inside])
-            inside[np.flatnonzero(inside)] = np.sum(back * rays[inside], axis=1) > np.cos(1e-3)
-            uv[~inside] = -10.0
-            map_xy = uv.reshape(h, w, 2).astype(np.float32)
-            self._maps = (
-                np.ascontiguousarray(map_xy[..., 0]),
-                np.ascontiguousarray(map_xy[..., 1]),
-            )
-            self._K_rect = K_rect
-        return self._maps
+        maps, K_rect = rectification(self.camera)
+        self._K_rect = K_rect
+        return maps
 
     def _unrectify(self, corners_rect_px: Array) -> Array | None:
         assert self._K_rect is not None  # set together with the maps

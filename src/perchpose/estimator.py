@@ -138,6 +138,17 @@ class PerchingEstimator:
         grey = self.camera.check_image(image)
         t0 = time.perf_counter()
         detections = self.detector.detect(grey)
+        return self._estimate(t, detections, t0)
+
+    def update_detections(self, detections: tuple[MarkerDetection, ...], t_s: float) -> Estimate:
+        """Process markers already detected (by ``self.detector`` or elsewhere) in a frame taken
+        at ``t_s``; corners are pixels of this camera's images. Several estimators can share one
+        detection pass this way."""
+        t = self._check_time(t_s)
+        t0 = time.perf_counter()
+        return self._estimate(t, detections, t0)
+
+    def _estimate(self, t: float, detections: tuple[MarkerDetection, ...], t0: float) -> Estimate:
         t1 = time.perf_counter()
         measurements, rejected = self._measure(detections)
         t2 = time.perf_counter()

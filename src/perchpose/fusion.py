@@ -81,9 +81,7 @@ def fuse_paper(poses: dict[int, Array], sigmas: FusionSigmas) -> tuple[Array, in
     return fused, stage
 
 
-def _residual_pair(
-    outer: Array, inner: Array, truth: Array, circular: bool
-) -> tuple[Array, Array]:
+def _residual_pair(outer: Array, inner: Array, truth: Array, circular: bool) -> tuple[Array, Array]:
     """d = outer - inner and r = truth - inner (wrapped to (-pi, pi] when ``circular``)."""
     d = np.asarray(outer, np.float64) - np.asarray(inner, np.float64)
     r = np.asarray(truth, np.float64) - np.asarray(inner, np.float64)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.detection import MarkerDetection, MarkerDetector
 from perchpose.estimator import Estimate, PerchingEstimator
 from perchpose.fusion import fit_sigma_least_squares, fit_sigma_lms
 from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
@@ -30,8 +31,16 @@ PAPER_TABLE1 = [
     ((10, 12, 7), (10.5, 12.6, 7.2), (0.5, 0.6, 0.2)),
     ((6, -5, 18), (6.3, -5.4, 18.5), (0.3, -0.4, 0.5)),
 ]
-PAPER_TABLE2 = [(175, 178, 3), (-160, -157, -3), (135, 137, 2), (90, 92, 2), (30, 31, 1),
-                (10, 9, 1), (5, 5, 0), (0, 1, 0)]
+PAPER_TABLE2 = [
+    (175, 178, 3),
+    (-160, -157, -3),
+    (135, 137, 2),
+    (90, 92, 2),
+    (30, 31, 1),
+    (10, 9, 1),
+    (5, 5, 0),
+    (0, 1, 0),
+]
 PAPER_SIGMAS = {"sigma_x": 0.275, "sigma_y": 0.306, "sigma_z": 0.728, "sigma_yaw": 0.469}
 TABLE2_POSITION_CM = (0.0, 0.0, 20.0)
 
@@ -67,15 +76,23 @@ def range_pose(z_m: float, rng: np.random.Generator) -> Array:
     """A pose at distance ``z_m`` near the optical axis, random heading and small tilts."""
     lateral = 0.08 * z_m
     return facing_pose(
-        float(rng.uniform(-lateral, lateral)), float(rng.uniform(-lateral, lateral)), z_m,
+        float(rng.uniform(-lateral, lateral)),
+        float(rng.uniform(-lateral, lateral)),
+        z_m,
         float(rng.uniform(-math.pi, math.pi)),
-        float(np.radians(rng.uniform(-5, 5))), float(np.radians(rng.uniform(-5, 5))),
+        float(np.radians(rng.uniform(-5, 5))),
+        float(np.radians(rng.uniform(-5, 5))),
     )
 
 
 def detection_ranges(
-    renderer: Renderer, quality_name: str, quality: ImageQuality, distances_cm: Array,
-    frames: int, rng: np.random.Generator, tick: Tick = _no_tick,
+    renderer: Renderer,
+    quality_name: str,
+    quality: ImageQuality,
+    distances_cm: Array,
+    frames: int,
+    rng: np.random.Generator,
+    tick: Tick = _no_tick,
 ) -> RangeCurve:
     """Fraction of single frames in which each marker gives a pose, per distance."""
     est = PerchingEstimator(renderer.camera, renderer.target, use_filter=False)
@@ -90,8 +107,11 @@ def detection_ranges(
             counts["inner"][d] += any(m.measurement is not None for m in e.markers[1:])
             counts["fused"][d] += e.valid
             tick(1)
-    return RangeCurve(quality_name, np.asarray(distances_cm, np.float64),
-                      {n: c / frames for n, c in counts.items()})
+    return RangeCurve(
+        quality_name,
+        np.asarray(distances_cm, np.float64),
+        {n: c / frames for n, c in counts.items()},
+    )
 
 
 # --------------------------------------------------------------------------- static tables
@@ -120,12 +140,18 @@ def _quad(values: Array) -> tuple[float, float, float, float]:
 
 
 def static_row(
-    renderer: Renderer, quality: ImageQuality, T: Array, frames: int, rng: np.random.Generator,
-    fps: float = 30.0, tick: Tick = _no_tick,
+    renderer: Renderer,
+    quality: ImageQuality,
+    T: Array,
+    frames: int,
+    rng: np.random.Generator,
+    fps: float = 30.0,
+    tick: Tick = _no_tick,
 ) -> StaticRow:
     """Hold ``T`` for ``frames`` frames through a fresh estimator and summarise."""
-    actual = np.array([T[0, 3] * 100, T[1, 3] * 100, T[2, 3] * 100,
-                       math.degrees(yaw_rad(T[:3, :3]))])
+    actual = np.array(
+        [T[0, 3] * 100, T[1, 3] * 100, T[2, 3] * 100, math.degrees(yaw_rad(T[:3, :3]))]
+    )
     est = PerchingEstimator(renderer.camera, renderer.target)
     values, stages = [], set()
     for k in range(frames):
@@ -146,32 +172,53 @@ def static_row(
     mean[3] = wrap_angle_deg(mean[3])
     mean_err = err.mean(axis=0)
     p2p = err.max(axis=0) - err.min(axis=0)
-    return StaticRow(_quad(actual), _quad(mean), _quad(mean_err), _quad(p2p),
-                     _quad(np.abs(err).max(axis=0)), len(values), frames, in_view,
-                     tuple(sorted(stages)))
+    return StaticRow(
+        _quad(actual),
+        _quad(mean),
+        _quad(mean_err),
+        _quad(p2p),
+        _quad(np.abs(err).max(axis=0)),
+        len(values),
+        frames,
+        in_view,
+        tuple(sorted(stages)),
+    )
 
 
 def table1(
-    renderer: Renderer, quality: ImageQuality, frames: int, rng: np.random.Generator,
+    renderer: Renderer,
+    quality: ImageQuality,
+    frames: int,
+    rng: np.random.Generator,
     tick: Tick = _no_tick,
 ) -> list[StaticRow]:
     """The paper's five positions, target facing the camera with heading 0."""
     return [
-        static_row(renderer, quality, facing_pose(x / 100, y / 100, z / 100, 0.0), frames, rng,
-                   tick=tick)
+        static_row(
+            renderer, quality, facing_pose(x / 100, y / 100, z / 100, 0.0), frames, rng, tick=tick
+        )
         for (x, y, z), _, _ in PAPER_TABLE1
     ]
 
 
 def table2(
-    renderer: Renderer, quality: ImageQuality, frames: int, rng: np.random.Generator,
+    renderer: Renderer,
+    quality: ImageQuality,
+    frames: int,
+    rng: np.random.Generator,
     tick: Tick = _no_tick,
 ) -> list[StaticRow]:
     """The paper's eight headings at TABLE2_POSITION_CM."""
     x, y, z = TABLE2_POSITION_CM
     return [
-        static_row(renderer, quality, facing_pose(x / 100, y / 100, z / 100,
-                                                  math.radians(heading)), frames, rng, tick=tick)
+        static_row(
+            renderer,
+            quality,
+            facing_pose(x / 100, y / 100, z / 100, math.radians(heading)),
+            frames,
+            rng,
+            tick=tick,
+        )
         for heading, _, _ in PAPER_TABLE2
     ]
 
@@ -203,12 +250,19 @@ class SequenceRun:
 
 def truth_table(scenario: Scenario) -> Array:
     """(N, 4) truth x_cm, y_cm, z_cm, yaw_deg of a scenario."""
-    return np.array([[T[0, 3] * 100, T[1, 3] * 100, T[2, 3] * 100,
-                      math.degrees(yaw_rad(T[:3, :3]))] for T in scenario.poses])
+    return np.array(
+        [
+            [T[0, 3] * 100, T[1, 3] * 100, T[2, 3] * 100, math.degrees(yaw_rad(T[:3, :3]))]
+            for T in scenario.poses
+        ]
+    )
 
 
 def render_scenario(
-    renderer: Renderer, scenario: Scenario, rng: np.random.Generator, tick: Tick = _no_tick,
+    renderer: Renderer,
+    scenario: Scenario,
+    rng: np.random.Generator,
+    tick: Tick = _no_tick,
 ) -> list[NDArray[np.uint8]]:
     """All frames of ``scenario`` in memory."""
     frames = []
@@ -218,10 +272,21 @@ def render_scenario(
     return frames
 
 
+def detect_all(
+    renderer: Renderer, frames: list[NDArray[np.uint8]]
+) -> list[tuple[MarkerDetection, ...]]:
+    """One detection pass over every frame, to share between estimator variants."""
+    detector = MarkerDetector(renderer.camera, renderer.target)
+    return [detector.detect(f) for f in frames]
+
+
 def run_sequence(
-    estimator: PerchingEstimator, scenario: Scenario, frames: list[NDArray[np.uint8]],
+    estimator: PerchingEstimator,
+    scenario: Scenario,
+    frames: list[NDArray[np.uint8]] | list[tuple[MarkerDetection, ...]],
 ) -> SequenceRun:
-    """Run ``estimator`` over pre-rendered ``frames`` of ``scenario``."""
+    """Run ``estimator`` over pre-rendered ``frames`` of ``scenario``, or over their
+    detections."""
     n = len(scenario)
     n_markers = len(estimator.target.markers)
     filtered = np.full((n, 4), np.nan)
@@ -229,7 +294,13 @@ def run_sequence(
     valid = np.zeros(n, bool)
     stage = np.zeros(n, np.int64)
     for k in range(n):
-        e: Estimate = estimator.update(frames[k], float(scenario.t_s[k]))
+        frame = frames[k]
+        t_s = float(scenario.t_s[k])
+        e: Estimate = (
+            estimator.update_detections(frame, t_s)
+            if isinstance(frame, tuple)
+            else estimator.update(frame, t_s)
+        )
         valid[k] = e.valid
         stage[k] = e.stage
         if e.valid:
@@ -238,28 +309,57 @@ def run_sequence(
             if m.measurement is not None:
                 t = m.measurement.t_m * 100
                 raw[i][k] = [t[0], t[1], t[2], math.degrees(m.measurement.yaw_rad)]
-    in_view = np.array([any(markers_in_view(estimator.camera, estimator.target, T))
-                        for T in scenario.poses]) & ~scenario.dropout
-    return SequenceRun(scenario.t_s, truth_table(scenario), filtered, raw, valid, stage,
-                       scenario.dropout.copy(), in_view)
+    in_view = (
+        np.array(
+            [any(markers_in_view(estimator.camera, estimator.target, T)) for T in scenario.poses]
+        )
+        & ~scenario.dropout
+    )
+    return SequenceRun(
+        scenario.t_s,
+        truth_table(scenario),
+        filtered,
+        raw,
+        valid,
+        stage,
+        scenario.dropout.copy(),
+        in_view,
+    )
 
 
-def moves_scenario(duration_s: float, dropout_at_s: float, dropout_s: float,
-                   quality: ImageQuality, fps: float = 30.0) -> Scenario:
-    """The Kalman figure's sequence: the camera moved between several positions 30-70 cm below
-    the target (smooth moves, pauses), with one dropout."""
+MOVE_WAYPOINTS = np.array(
+    [
+        [0.0, 0.0, 0.60, 0.0],
+        [0.06, -0.04, 0.45, 25.0],
+        [-0.05, 0.03, 0.35, -20.0],
+        [0.03, 0.05, 0.55, 40.0],
+        [-0.04, -0.03, 0.40, 5.0],
+        [0.0, 0.0, 0.50, -30.0],
+    ]
+)  # x_m, y_m, z_m, yaw_deg
+
+
+def moves_scenario(
+    duration_s: float,
+    dropout_at_s: float,
+    dropout_s: float,
+    quality: ImageQuality,
+    fps: float = 30.0,
+    segment_s: float = 3.0,
+) -> Scenario:
+    """The Kalman figure's sequence: the camera moved between positions 35-60 cm below the
+    target, ``segment_s`` per move (a smooth move over 70 % of it, then a pause), with one
+    dropout."""
     n = int(round(duration_s * fps))
     t = np.arange(n) / fps
-    waypoints = np.array([[0.0, 0.0, 0.60, 0.0], [0.06, -0.04, 0.45, 25.0],
-                          [-0.05, 0.03, 0.35, -20.0], [0.03, 0.05, 0.55, 40.0],
-                          [-0.04, -0.03, 0.40, 5.0], [0.0, 0.0, 0.50, -30.0]])
-    seg = duration_s / (len(waypoints) - 1)
     poses = []
     for ti in t:
-        k = min(int(ti // seg), len(waypoints) - 2)
-        u = (ti - k * seg) / seg
-        s = 0.5 - 0.5 * math.cos(math.pi * min(1.0, u * 1.4))  # move, then pause
-        p = waypoints[k] + s * (waypoints[k + 1] - waypoints[k])
+        k = int(ti // segment_s)
+        a = MOVE_WAYPOINTS[k % len(MOVE_WAYPOINTS)]
+        b = MOVE_WAYPOINTS[(k + 1) % len(MOVE_WAYPOINTS)]
+        u = (ti - k * segment_s) / segment_s
+        s = 0.5 - 0.5 * math.cos(math.pi * min(1.0, u / 0.7))
+        p = a + s * (b - a)
         poses.append(facing_pose(p[0], p[1], p[2], math.radians(p[3])))
     dropout = (t >= dropout_at_s) & (t < dropout_at_s + dropout_s)
     return Scenario("moves", t, np.stack(poses), dropout, quality)
@@ -283,14 +383,19 @@ def dropout_summary(run: SequenceRun) -> DropoutResult:
     inside = run.dropout & run.valid
     first = int(np.flatnonzero(run.dropout)[0]) if run.dropout.any() else len(run.t_s)
     before = np.zeros_like(run.valid)
-    before[max(0, first - 30):first] = True
+    before[max(0, first - 30) : first] = True
     before &= run.valid
 
     def peak(values: Array, mask: NDArray[np.bool_]) -> float:
         return float(np.nanmax(np.abs(values[mask]))) if mask.any() else math.nan
 
-    return DropoutResult(int(run.dropout.sum()), int(inside.sum()), peak(pos, inside),
-                         peak(err[:, 3], inside), peak(pos, before))
+    return DropoutResult(
+        int(run.dropout.sum()),
+        int(inside.sum()),
+        peak(pos, inside),
+        peak(err[:, 3], inside),
+        peak(pos, before),
+    )
 
 
 # --------------------------------------------------------------------------- fusion fit
@@ -315,8 +420,13 @@ class FusionFit:
 
 
 def fusion_samples(
-    renderer: Renderer, quality: ImageQuality, positions: int, frames: int,
-    rng: np.random.Generator, z_range_m: tuple[float, float], tick: Tick = _no_tick,
+    renderer: Renderer,
+    quality: ImageQuality,
+    positions: int,
+    frames: int,
+    rng: np.random.Generator,
+    z_range_m: tuple[float, float],
+    tick: Tick = _no_tick,
 ) -> FusionSamples:
     """The paper's protocol: random positions and headings, ``frames`` frames each, raw
     per-marker measurements where both markers give a pose."""
@@ -324,8 +434,12 @@ def fusion_samples(
     truth, outer, inner, index = [], [], [], []
     for p in range(positions):
         z = float(rng.uniform(*z_range_m))
-        T = facing_pose(float(rng.uniform(-0.1, 0.1) * z), float(rng.uniform(-0.1, 0.1) * z), z,
-                        float(rng.uniform(-math.pi, math.pi)))
+        T = facing_pose(
+            float(rng.uniform(-0.1, 0.1) * z),
+            float(rng.uniform(-0.1, 0.1) * z),
+            z,
+            float(rng.uniform(-math.pi, math.pi)),
+        )
         actual = [T[0, 3] * 100, T[1, 3] * 100, T[2, 3] * 100, math.degrees(yaw_rad(T[:3, :3]))]
         est.reset()
         for k in range(frames):
@@ -338,8 +452,12 @@ def fusion_samples(
             outer.append([*(m0.t_m * 100), math.degrees(m0.yaw_rad)])
             inner.append([*(m1.t_m * 100), math.degrees(m1.yaw_rad)])
             index.append(p)
-    return FusionSamples(np.array(truth).reshape(-1, 4), np.array(outer).reshape(-1, 4),
-                         np.array(inner).reshape(-1, 4), np.array(index, np.int64))
+    return FusionSamples(
+        np.array(truth).reshape(-1, 4),
+        np.array(outer).reshape(-1, 4),
+        np.array(inner).reshape(-1, 4),
+        np.array(index, np.int64),
+    )
 
 
 COMPONENT_NAMES = ("sigma_x", "sigma_y", "sigma_z", "sigma_yaw")
@@ -353,8 +471,11 @@ def fit_fusion(samples: FusionSamples) -> FusionFit:
     for k, name in enumerate(COMPONENT_NAMES):
         circular = k == 3
         scale = math.pi / 180 if circular else 1.0
-        a, b, t = (samples.outer[:, k] * scale, samples.inner[:, k] * scale,
-                   samples.truth[:, k] * scale)
+        a, b, t = (
+            samples.outer[:, k] * scale,
+            samples.inner[:, k] * scale,
+            samples.truth[:, k] * scale,
+        )
         ls[name] = fit_sigma_least_squares(a, b, t, circular)
         lms[name], passes[name] = fit_sigma_lms(a, b, t, circular)
     return FusionFit(ls, lms, passes, int(samples.truth.shape[0]))
@@ -384,14 +505,22 @@ class AblationRow:
     run: SequenceRun
 
 
-def ablation(renderer: Renderer, scenario: Scenario, frames: list[NDArray[np.uint8]],
-             name: str, options: dict[str, object]) -> AblationRow:
-    """Run one variant over the same pre-rendered frames."""
+def ablation(
+    renderer: Renderer,
+    scenario: Scenario,
+    detections: list[tuple[MarkerDetection, ...]],
+    name: str,
+    options: dict[str, object],
+) -> AblationRow:
+    """Run one variant over the same detections of the same rendered frames."""
     markers = options["markers"]
-    est = PerchingEstimator(renderer.camera, renderer.target,
-                            markers=markers if isinstance(markers, tuple) else None,
-                            use_filter=bool(options["use_filter"]))
-    run = run_sequence(est, scenario, frames)
+    est = PerchingEstimator(
+        renderer.camera,
+        renderer.target,
+        markers=markers if isinstance(markers, tuple) else None,
+        use_filter=bool(options["use_filter"]),
+    )
+    run = run_sequence(est, scenario, detections)
     err = run.errors()
     sel = run.truth_in_view & run.valid
     pos = np.linalg.norm(err[sel, :3], axis=1)
@@ -401,5 +530,4 @@ def ablation(renderer: Renderer, scenario: Scenario, frames: list[NDArray[np.uin
         return float(np.percentile(values, q)) if values.size else math.nan
 
     coverage = float(sel.sum() / max(1, run.truth_in_view.sum()))
-    return AblationRow(name, coverage, pct(pos, 50), pct(pos, 95), pct(yaw, 50), pct(yaw, 95),
-                       run)
+    return AblationRow(name, coverage, pct(pos, 50), pct(pos, 95), pct(yaw, 50), pct(yaw, 95), run)

@@ -90,3 +90,112 @@ def kalman_figure(
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def plot_ranges(
+    ax: Axes,
+    distances_cm: Array,
+    probability: dict[str, Array],
+    title: str,
+    paper_cm: dict[str, float] | None = None,
+) -> None:
+    """Detection probability against distance (log axis) per marker."""
+    styles = {
+        "outer": ("tab:red", "outer marker"),
+        "inner": ("tab:orange", "inner marker"),
+        "fused": ("tab:blue", "estimate"),
+    }
+    for name, values in probability.items():
+        colour, label = styles.get(name, ("0.3", name))
+        ls = "--" if name == "fused" else "-"
+        ax.plot(distances_cm, values, ls, marker="o", ms=3, color=colour, label=label)
+    if paper_cm:
+        for key, value in paper_cm.items():
+            ax.axvline(value, color="0.6", lw=0.8, ls=":")
+            ax.text(
+                value,
+                1.02,
+                key.split("_")[0],
+                fontsize=7,
+                ha="center",
+                color="0.4",
+                transform=ax.get_xaxis_transform(),
+            )
+    ax.set_xscale("log")
+    ax.set_ylim(-0.03, 1.08)
+    ax.set_xlabel("distance z (cm)")
+    ax.set_ylabel("detection probability")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", lw=0.3)
+    ax.legend(fontsize=7, loc="center left")
+
+
+def ranges_figure(
+    path: str, curves: list[tuple[str, Array, dict[str, Array]]], paper_cm: dict[str, float]
+) -> None:
+    """One panel per image quality."""
+    fig = Figure(figsize=(4.2 * len(curves), 3.8))
+    axes = fig.subplots(1, len(curves), squeeze=False)[0]
+    for ax, (title, d, p) in zip(axes, curves, strict=True):
+        plot_ranges(ax, d, p, title, paper_cm)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def plot_error_vs_distance(ax: Axes, series: dict[str, tuple[Array, Array]], unit: str) -> None:
+    """Median error in distance bins for each variant: name -> (z_cm, error)."""
+    all_z = np.concatenate([z for z, _ in series.values() if z.size]) if series else np.zeros(0)
+    if all_z.size == 0:
+        return
+    edges = np.geomspace(max(1.0, float(np.nanmin(all_z))), float(np.nanmax(all_z)) * 1.001, 12)
+    centres = np.sqrt(edges[:-1] * edges[1:])
+    for name, (z, err) in series.items():
+        med = np.full(len(centres), np.nan)
+        for b in range(len(centres)):
+            sel = (z >= edges[b]) & (z < edges[b + 1]) & np.isfinite(err)
+            if np.count_nonzero(sel) >= 2:
+                med[b] = np.median(err[sel])
+        ax.plot(centres, med, marker="o", ms=3, label=name)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("distance z (cm)")
+    ax.set_ylabel(f"median error ({unit})")
+    ax.grid(True, which="both", lw=0.3)
+
+
+def ablation_figure(
+    path: str,
+    position: dict[str, tuple[Array, Array]],
+    yaw: dict[str, tuple[Array, Array]],
+    title: str,
+) -> None:
+    """Position and yaw error against distance for each variant."""
+    fig = Figure(figsize=(11, 4.2))
+    ax_p, ax_y = fig.subplots(1, 2)
+    plot_error_vs_distance(ax_p, position, "cm")
+    ax_p.set_title("position error |estimate - truth|", fontsize=10)
+    plot_error_vs_distance(ax_y, yaw, "deg")
+    ax_y.set_title("yaw error", fontsize=10)
+    ax_y.legend(fontsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def fusion_figure(
+    path: str, names: list[str], least_squares: list[float], lms: list[float], paper: list[float]
+) -> None:
+    """Bar chart of the fitted sigmas against the paper's."""
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.subplots()
+    x = np.arange(len(names))
+    ax.bar(x - 0.27, least_squares, 0.27, label="least squares")
+    ax.bar(x, lms, 0.27, label="LMS")
+    ax.bar(x + 0.27, paper, 0.27, label="paper", color="0.6")
+    ax.set_xticks(x, names)
+    ax.set_ylabel("weight of the outer marker")
+    ax.axhline(0, color="black", lw=0.5)
+    ax.legend(fontsize=8)
+    ax.grid(True, axis="y", lw=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)

@@ -95,11 +95,49 @@ class Renderer:
             self._rays = rays.astype(np.float32)
         return self._rays
 
+    def _sheet_pixel_box(self, T: Array) -> tuple[int, int, int, int] | None:
+        """Pixel box (x0, y0, x1, y1), end exclusive, holding the printed sheet's image, or None
+        when the sheet is not wholly in front of the camera (then the whole frame is traced)."""
+        half = self.target.sheet_half_extent_m
+        edge = np.linspace(-half, half, 17)
+        ring = np.concatenate(
+            [
+                np.stack([edge, np.full_like(edge, half)], 1),
+                np.stack([edge, np.full_like(edge, -half)], 1),
+                np.stack([np.full_like(edge, half), edge], 1),
+                np.stack([np.full_like(edge, -half), edge], 1),
+            ]
+        )
+        points = np.concatenate([ring, np.zeros((ring.shape[0], 1))], 1)
+        uv, ok = self.camera.project((T[:3, :3] @ points.T).T + T[:3, 3])
+        if not np.all(ok) or not np.all(np.isfinite(uv)):
+            return None
+        w, h = self.camera.size
+        margin = 3.0  # a sheet edge bows between the sampled points; blur needs room too
+        x0 = int(np.clip(np.floor(uv[:, 0].min() - margin), 0, w))
+        x1 = int(np.clip(np.ceil(uv[:, 0].max() + margin) + 1, 0, w))
+        y0 = int(np.clip(np.floor(uv[:, 1].min() - margin), 0, h))
+        y1 = int(np.clip(np.ceil(uv[:, 1].max() + margin) + 1, 0, h))
+        return (x0, y0, x1, y1)
+
     def reflectance(self, T_camera_target: Array) -> NDArray[np.float32]:
         """(H, n, W, n) reflectance of each of the n x n samples of every pixel, NaN off the
-        sheet, for the target at ``T_camera_target``."""
+        sheet, for the target at ``T_camera_target``.
+
+        Only the pixels around the sheet's image are traced when the sheet lies wholly in front
+        of the camera; a lens whose border bends the sheet's edge outside the sampled outline
+        falls back to the whole frame.
+        """
         T = check_transform(T_camera_target, "T_camera_target")
-        rays = self._camera_rays()
+        n = self.supersample
+        w, h = self.camera.size
+        out = np.full((h, n, w, n), np.nan, dtype=np.float32)
+        box = self._sheet_pixel_box(T)
+        x0, y0, x1, y1 = box if box is not None else (0, 0, w, h)
+        if x1 <= x0 or y1 <= y0:
+            return out
+        rays = self._camera_rays().reshape(h * n, w * n, 3)[y0 * n : y1 * n, x0 * n : x1 * n]
+        rays = rays.reshape(-1, 3)
         R = T[:3, :3]
         t = T[:3, 3]
         o_t = -R.T @ t  # camera centre in the target frame
@@ -114,9 +152,7 @@ class Renderer:
         # remap's nearest lookup rounds, so texel j is [j - 0.5, j + 0.5) in map coordinates
         map_u = x * np.float32(1.0 / texel) + np.float32(n_tex / 2 - 0.5)
         map_v = y * np.float32(-1.0 / texel) + np.float32(n_tex / 2 - 0.5)
-        n = self.supersample
-        w, h = self.camera.size
-        shape = (h * n, w * n)
+        shape = ((y1 - y0) * n, (x1 - x0) * n)
         refl = cv2.remap(
             tex,
             map_u.reshape(shape),
@@ -126,9 +162,8 @@ class Renderer:
             borderValue=-1.0,
         )
         refl[refl < 0] = np.nan
-        n = self.supersample
-        w, h = self.camera.size
-        return refl.reshape(h, n, w, n)  # type: ignore[return-value]
+        out[y0:y1, :, x0:x1, :] = refl.reshape(y1 - y0, n, x1 - x0, n)
+        return out
 
     def render(
         self,
