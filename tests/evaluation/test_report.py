@@ -1,0 +1,89 @@
+import json
+from pathlib import Path
+
+import pytest
+
+from perchpose.cli import main
+from perchpose.evaluation.fusion_data import load_fusion_samples
+from perchpose.evaluation.report import EvalPlan
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("evaluate")
+    assert main(["evaluate", "paper", "--quick", "--out", str(out)]) == 0
+    return out
+
+
+def test_quick_run_writes_report_figures_and_results(quick_run: Path) -> None:
+    for name in (
+        "report.md",
+        "results.json",
+        "ranges.png",
+        "kalman.png",
+        "ablation.png",
+        "fusion.png",
+        "fusion_data.csv",
+    ):
+        assert (quick_run / name).stat().st_size > 0, name
+    results = json.loads((quick_run / "results.json").read_text())
+    for key in ("ranges", "table1", "table2", "fusion_fit", "dropout", "ablations", "config"):
+        assert key in results
+    for marker in ("outer", "inner"):
+        assert set(results["ranges"][marker]) == {"z_max_cm", "z_min_cm"}
+    assert results["ranges"]["outer"]["z_max_cm"] > results["ranges"]["inner"]["z_max_cm"]
+    assert len(results["table1"]) == 5
+    assert len(results["table2"]) == 8
+    for row in results["table1"] + results["table2"]:
+        assert {"actual", "estimated", "error"} <= set(row)
+    fit = results["fusion_fit"]
+    for name in ("sigma_x", "sigma_y", "sigma_z", "sigma_yaw"):
+        assert abs(fit["least_squares"][name] - fit["lms"][name]) <= 0.01
+    assert results["dropout"]["frames_coasted"] == 8
+    assert results["config"]["renders"] == EvalPlan.make(quick=True).renders()
+    report = (quick_run / "report.md").read_text()
+    assert "Table 1" in report
+    assert "(10, 12, 7)" in report
+
+
+def test_table1_rows_in_view_meet_the_papers_bound(quick_run: Path) -> None:
+    results = json.loads((quick_run / "results.json").read_text())
+    measured = [r for r in results["table1"] if r["valid_frames"]]
+    assert len(measured) >= 3
+    for row in measured:
+        assert all(abs(v) <= 0.6 for v in row["max_abs_error"][:3])
+    for row in results["table2"]:
+        assert abs(row["max_abs_error"][3]) <= 3.0
+
+
+def test_same_seed_same_numbers(quick_run: Path, tmp_path: Path) -> None:
+    from perchpose.evaluation.report import run_paper_evaluation
+
+    again = run_paper_evaluation(tmp_path, quick=True, progress=False, say=lambda _: None)
+    first = json.loads((quick_run / "results.json").read_text())
+    for key in ("ranges", "table1", "table2", "fusion_fit", "dropout"):
+        assert again.results[key] == first[key]
+
+
+def test_fit_fusion_reads_the_evaluation_data(
+    quick_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    samples = load_fusion_samples(quick_run / "fusion_data.csv")
+    assert samples.truth.shape[1] == 4
+    out = tmp_path / "fit.json"
+    assert main(["fit-fusion", str(quick_run / "fusion_data.csv"), "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "sigma_z" in printed
+    fitted = json.loads(out.read_text())
+    expected = json.loads((quick_run / "results.json").read_text())["fusion_fit"]
+    # the CSV keeps 5 decimals of each measurement
+    assert fitted["least_squares"] == pytest.approx(expected["least_squares"], abs=1e-3)
+
+
+def test_fit_fusion_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "d.csv"
+    path.write_text("true_x_cm,m0_x_cm\n1,2\n")
+    assert main(["fit-fusion", str(path)]) == 2
+    assert "missing column" in capsys.readouterr().err
+    assert main(["fit-fusion", str(tmp_path / "none.csv")]) == 2
+    assert "file not found" in capsys.readouterr().err
