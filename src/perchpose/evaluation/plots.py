@@ -114,10 +114,12 @@ def plot_ranges(
             ax.axvline(value, color="0.6", lw=0.8, ls=":")
             ax.text(
                 value,
-                1.02,
-                key.split("_")[0],
+                0.5,
+                f"paper {key}",
+                rotation=90,
                 fontsize=7,
-                ha="center",
+                ha="right",
+                va="center",
                 color="0.4",
                 transform=ax.get_xaxis_transform(),
             )
