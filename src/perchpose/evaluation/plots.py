@@ -71,7 +71,6 @@ def plot_kalman(
         ax.set_ylabel(f"{name} ({unit})")
         ax.grid(True, lw=0.3)
     axes[-1].set_xlabel("time (s)")
-    axes[0].legend(loc="upper right", fontsize=7, ncol=3)
 
 
 def kalman_figure(
@@ -87,8 +86,10 @@ def kalman_figure(
     fig = Figure(figsize=(9, 9))
     axes = fig.subplots(4, 1, sharex=True)
     plot_kalman(list(axes), t_s, raw, filtered, truth, dropout)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.03, 1.0, 1.0))
     fig.savefig(path, dpi=120)
 
 
