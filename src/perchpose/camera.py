@@ -310,7 +310,12 @@ class CameraModel:
 
     def save(self, path: str | Path) -> None:
         """Write this camera as ROS camera_info YAML."""
-        Path(path).write_text(yaml.safe_dump(self.to_ros_dict(), sort_keys=False), encoding="utf-8")
+        try:
+            Path(path).write_text(
+                yaml.safe_dump(self.to_ros_dict(), sort_keys=False), encoding="utf-8"
+            )
+        except OSError as exc:
+            raise CameraFileError(f"{path}: cannot write ({exc.strerror})") from exc
 
 
 def _floats(a: Array) -> list[float]:

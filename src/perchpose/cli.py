@@ -7,7 +7,9 @@ line on stderr and the command exits with code 2.
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -291,12 +293,114 @@ def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
         )
 
 
+def board_options(command: Callable[..., None]) -> Callable[..., None]:
+    """The ChArUco board options shared by ``board`` and ``calibrate``."""
+    options = [
+        click.option(
+            "--squares", default="5x7", show_default=True, help="Squares across x down, e.g. 5x7."
+        ),
+        click.option(
+            "--square-mm",
+            default=40.0,
+            show_default=True,
+            help="Side of a square, mm (measure the print).",
+        ),
+        click.option("--marker-mm", default=20.0, show_default=True, help="Side of a marker, mm."),
+        click.option(
+            "--dictionary",
+            default="DICT_6X6_250",
+            show_default=True,
+            help="OpenCV ArUco dictionary of the markers.",
+        ),
+    ]
+    for option in reversed(options):
+        command = option(command)
+    return command
+
+
+def _board(squares: str, square_mm: float, marker_mm: float, dictionary: str) -> Any:
+    from perchpose.calibration import CharucoBoardSpec
+
+    return CharucoBoardSpec(
+        CharucoBoardSpec.parse_squares(squares), square_mm, marker_mm, dictionary
+    )
+
+
+@cli.command()
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Output file: .svg, .pdf or .png.",
+)
+@board_options
+@click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
+def board(
+    out: str, squares: str, square_mm: float, marker_mm: float, dictionary: str, dpi: int
+) -> None:
+    """Write a printable ChArUco calibration board at true scale."""
+    from perchpose.printable import write_board_sheet
+
+    spec = _board(squares, square_mm, marker_mm, dictionary)
+    path = write_board_sheet(spec, out, dpi=dpi)
+    click.echo(f"wrote {path} ({spec.describe()}): print at 100 % and glue it flat")
+
+
+@cli.command()
+@click.argument("source")
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Camera file to write (ROS camera_info YAML).",
+)
+@board_options
+@click.option(
+    "--model",
+    default="plumb_bob",
+    show_default=True,
+    type=click.Choice(["plumb_bob", "equidistant"]),
+    help="Lens model: equidistant for fisheye / wide FPV lenses.",
+)
+@click.option("--max-views", default=30, show_default=True, help="Views to pick from a video.")
+def calibrate(
+    source: str,
+    out: str,
+    squares: str,
+    square_mm: float,
+    marker_mm: float,
+    dictionary: str,
+    model: str,
+    max_views: int,
+) -> None:
+    """Calibrate a camera from ChArUco board images: a folder, a glob or a video."""
+    from perchpose.calibrate_run import format_report, run_calibration
+
+    spec = _board(squares, square_mm, marker_mm, dictionary)
+    run = run_calibration(
+        source,
+        out,
+        spec,
+        "equidistant" if model == "equidistant" else "plumb_bob",
+        max_video_views=max_views,
+    )
+    click.echo(format_report(run.result, spec, source, run.searched_frames), nl=False)
+    click.echo(f"wrote {run.camera_file}, {run.report} and {run.coverage_png}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: run the command, turn library errors into one line and exit code 2."""
     try:
         cli.main(args=argv, prog_name="perchpose", standalone_mode=False)
     except PerchposeError as exc:
         click.echo(f"perchpose: error: {exc}", err=True)
+        return 2
+    except OSError as exc:
+        # the library wraps the files it names; this is the net for any other file trouble
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.echo(f"perchpose: error: {where}{exc.strerror or exc}", err=True)
         return 2
     except click.exceptions.Abort:
         click.echo("perchpose: interrupted", err=True)

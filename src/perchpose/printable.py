@@ -9,6 +9,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Polygon, Rectangle
 
+from perchpose.calibration import CharucoBoardSpec
 from perchpose.errors import PerchposeError
 from perchpose.target import TargetSpec
 
@@ -98,9 +99,7 @@ def write_target_sheet(target: TargetSpec, path: str | Path, dpi: int = 600) -> 
                         sheet,
                         closed=True,
                         facecolor=colour,
-                        edgecolor=colour,
-                        lw=0.05,
-                        antialiased=False,
+                        edgecolor="none",
                     )
                 )
     bar_y = cy + side_mm / 2 + 12.0
@@ -131,4 +130,63 @@ def pixels_per_mm(dpi: int) -> float:
     return dpi / MM_PER_INCH
 
 
-__all__ = ["pixels_per_mm", "sheet_size_mm", "write_target_sheet"]
+__all__ = ["pixels_per_mm", "sheet_size_mm", "write_board_sheet", "write_target_sheet"]
+
+
+def write_board_sheet(board: CharucoBoardSpec, path: str | Path, dpi: int = 600) -> Path:
+    """Write a ChArUco board at true scale with its parameters and a 100 mm scale bar."""
+    out = Path(path)
+    check_output_format(out)
+    if not 72 <= dpi <= 2400:
+        raise PerchposeError(f"--dpi must be between 72 and 2400, got {dpi}")
+    sx, sy = board.squares
+    w_mm, h_mm = sx * board.square_mm, sy * board.square_mm
+    width = max(w_mm, SCALE_BAR_MM + 20.0) + 2 * SHEET_MARGIN_MM
+    height = h_mm + 2 * SHEET_MARGIN_MM + 30.0
+    fig, ax = new_sheet(width, height)
+    x0 = (width - w_mm) / 2.0
+    y0 = SHEET_MARGIN_MM
+    for r in range(sy):
+        for c in range(sx):
+            if (r + c) % 2 == 0:  # OpenCV's layout: the top-left square is black
+                ax.add_patch(
+                    Rectangle(
+                        (x0 + c * board.square_mm, y0 + r * board.square_mm),
+                        board.square_mm,
+                        board.square_mm,
+                        facecolor="black",
+                        edgecolor="none",
+                    )
+                )
+    dictionary = board.cv_board.getDictionary()
+    cells_n = int(dictionary.markerSize) + 2
+    cell = board.marker_mm / cells_n
+    for marker_id, corners in zip(
+        np.asarray(board.cv_board.getIds()).reshape(-1), board.cv_board.getObjPoints(), strict=True
+    ):
+        top_left = np.asarray(corners, np.float64)[0, :2] * 1000.0
+        bits = dictionary.generateImageMarker(int(marker_id), cells_n, borderBits=1) > 127
+        for r in range(cells_n):
+            for c in range(cells_n):
+                if not bits[r, c]:
+                    ax.add_patch(
+                        Rectangle(
+                            (x0 + top_left[0] + c * cell, y0 + top_left[1] + r * cell),
+                            cell,
+                            cell,
+                            facecolor="black",
+                            edgecolor="none",
+                        )
+                    )
+    bar_y = y0 + h_mm + 12.0
+    draw_scale_bar(ax, width / 2 - SCALE_BAR_MM / 2 - 10.0, bar_y)
+    ax.text(
+        SHEET_MARGIN_MM,
+        bar_y + 10.0,
+        f"perchpose calibration board: {board.describe()}. Print at 100 %: the bar is "
+        "100 mm; measure a square and pass its size as --square-mm.",
+        fontsize=5.5,
+        va="center",
+    )
+    save_sheet(fig, out, dpi)
+    return out

@@ -236,7 +236,10 @@ class TargetSpec:
 
     def save(self, path: str | Path) -> None:
         """Write the target as YAML."""
-        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False), encoding="utf-8")
+        try:
+            Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False), encoding="utf-8")
+        except OSError as exc:
+            raise TargetSpecError(f"{path}: cannot write ({exc.strerror})") from exc
 
     @staticmethod
     def load(path: str | Path) -> TargetSpec:

@@ -18,6 +18,7 @@ from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import Scenario, markers_in_view
 from perchpose.sim.sequence import render_frame
+from perchpose.target import TargetSpec
 
 Array = NDArray[np.float64]
 Tick = Callable[[int], None]
@@ -86,7 +87,7 @@ def range_pose(z_m: float, rng: np.random.Generator) -> Array:
 
 
 def detection_ranges(
-    renderer: Renderer,
+    renderer: Renderer[TargetSpec],
     quality_name: str,
     quality: ImageQuality,
     distances_cm: Array,
@@ -140,7 +141,7 @@ def _quad(values: Array) -> tuple[float, float, float, float]:
 
 
 def static_row(
-    renderer: Renderer,
+    renderer: Renderer[TargetSpec],
     quality: ImageQuality,
     T: Array,
     frames: int,
@@ -186,7 +187,7 @@ def static_row(
 
 
 def table1(
-    renderer: Renderer,
+    renderer: Renderer[TargetSpec],
     quality: ImageQuality,
     frames: int,
     rng: np.random.Generator,
@@ -202,7 +203,7 @@ def table1(
 
 
 def table2(
-    renderer: Renderer,
+    renderer: Renderer[TargetSpec],
     quality: ImageQuality,
     frames: int,
     rng: np.random.Generator,
@@ -259,7 +260,7 @@ def truth_table(scenario: Scenario) -> Array:
 
 
 def render_scenario(
-    renderer: Renderer,
+    renderer: Renderer[TargetSpec],
     scenario: Scenario,
     rng: np.random.Generator,
     tick: Tick = _no_tick,
@@ -273,7 +274,7 @@ def render_scenario(
 
 
 def detect_all(
-    renderer: Renderer, frames: list[NDArray[np.uint8]]
+    renderer: Renderer[TargetSpec], frames: list[NDArray[np.uint8]]
 ) -> list[tuple[MarkerDetection, ...]]:
     """One detection pass over every frame, to share between estimator variants."""
     detector = MarkerDetector(renderer.camera, renderer.target)
@@ -420,7 +421,7 @@ class FusionFit:
 
 
 def fusion_samples(
-    renderer: Renderer,
+    renderer: Renderer[TargetSpec],
     quality: ImageQuality,
     positions: int,
     frames: int,
@@ -506,7 +507,7 @@ class AblationRow:
 
 
 def ablation(
-    renderer: Renderer,
+    renderer: Renderer[TargetSpec],
     scenario: Scenario,
     detections: list[tuple[MarkerDetection, ...]],
     name: str,

@@ -202,3 +202,22 @@ def fusion_figure(
     ax.grid(True, axis="y", lw=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def coverage_figure(
+    path: str, corners_px: Array, size: tuple[int, int], grid: NDArray[np.int64], title: str
+) -> None:
+    """Heat map of corners per image cell, with every corner used."""
+    w, h = size
+    fig = Figure(figsize=(7, 7 * h / w + 0.8))
+    ax = fig.subplots()
+    shown = ax.imshow(grid, extent=(0, w, h, 0), cmap="viridis", interpolation="nearest")
+    ax.plot(corners_px[:, 0], corners_px[:, 1], ".", color="white", ms=2, alpha=0.7)
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    ax.set_title(title, fontsize=10)
+    fig.colorbar(shown, ax=ax, label="corners per cell", shrink=0.8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)

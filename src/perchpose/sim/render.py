@@ -9,6 +9,7 @@ noise, JPEG, occluders) are applied after.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Generic, Protocol, TypeVar
 
 import cv2
 import numpy as np
@@ -73,12 +74,31 @@ class Occluder:
     grey: int = 30
 
 
+class PlanarPattern(Protocol):
+    """Something printed on a plane: a target or a calibration board.
+
+    texture : a square float32 image centred on the pattern's origin (x right, y up as printed;
+        -1 off the sheet) and its texel size in metres.
+    sheet_half_extent_m : half side of a square, centred on the origin, that holds the sheet.
+    """
+
+    @property
+    def texture(self) -> tuple[NDArray[np.float32], float]: ...
+
+    @property
+    def sheet_half_extent_m(self) -> float: ...
+
+
+P = TypeVar("P", bound=PlanarPattern)
+
+
 @dataclass
-class Renderer:
-    """Draws ``target`` through ``camera``; ray directions are computed once and cached."""
+class Renderer(Generic[P]):
+    """Draws ``target`` (a TargetSpec, or any PlanarPattern) through ``camera``; ray directions
+    are computed once and cached."""
 
     camera: CameraModel
-    target: TargetSpec
+    target: P
     supersample: int = 3
     _rays: NDArray[np.float32] | None = field(default=None, repr=False)
     _vignette: NDArray[np.float32] | None = field(default=None, repr=False)
@@ -207,6 +227,8 @@ class Renderer:
 
     def corners_px(self, T_camera_target: Array) -> list[Array | None]:
         """True corner pixels (4, 2) of each marker, or None where a corner cannot be imaged."""
+        if not isinstance(self.target, TargetSpec):
+            raise TypeError("corners_px needs a TargetSpec")
         T = check_transform(T_camera_target, "T_camera_target")
         out: list[Array | None] = []
         for m in self.target.markers:

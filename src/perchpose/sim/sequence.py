@@ -48,7 +48,7 @@ def dropout_occluder(camera: CameraModel, target: TargetSpec, T: Array) -> Occlu
 
 
 def render_frame(
-    renderer: Renderer, scenario: Scenario, i: int, rng: np.random.Generator
+    renderer: Renderer[TargetSpec], scenario: Scenario, i: int, rng: np.random.Generator
 ) -> np.ndarray:
     """Frame ``i`` of ``scenario``: rendered at its pose, hidden if it is a dropout frame."""
     T = scenario.poses[i]

@@ -1,0 +1,394 @@
+"""Camera calibration with a ChArUco board: the board, its printable sheet, and ``calibrate``.
+
+Board frame (OpenCV's): origin at the board's top-left corner as printed, x right, y down,
+z into the board. For rendering, the board also offers a centred, y-up ``texture`` like a target.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel, DistortionModel
+from perchpose.errors import PerchposeError
+from perchpose.target import aruco_dictionary
+
+Array = NDArray[np.float64]
+
+MIN_CORNERS_PER_VIEW = 6
+MIN_VIEWS = {"plumb_bob": 3, "equidistant": 4}
+GOOD_VIEWS = 10
+GOOD_COVERAGE = 0.5
+
+
+class CalibrationError(PerchposeError):
+    """A calibration that cannot be made from the given images or board."""
+
+
+@dataclass(frozen=True)
+class CharucoBoardSpec:
+    """A ChArUco board: ``squares`` (columns, rows), square and marker sides in millimetres,
+    OpenCV dictionary name."""
+
+    squares: tuple[int, int] = (5, 7)
+    square_mm: float = 40.0
+    marker_mm: float = 20.0
+    dictionary: str = "DICT_6X6_250"
+    margin_mm: float = 10.0
+
+    def __post_init__(self) -> None:
+        sx, sy = self.squares
+        if sx < 2 or sy < 2:
+            raise CalibrationError(f"a board needs at least 2x2 squares, got {sx}x{sy}")
+        if not (self.square_mm > 0 and 0 < self.marker_mm < self.square_mm):
+            raise CalibrationError(
+                f"need 0 < marker ({self.marker_mm} mm) < square ({self.square_mm} mm)"
+            )
+        d = aruco_dictionary(self.dictionary)
+        needed = (sx * sy) // 2
+        if needed > int(d.bytesList.shape[0]):
+            raise CalibrationError(
+                f"a {sx}x{sy} board needs {needed} markers; {self.dictionary} has "
+                f"{d.bytesList.shape[0]}"
+            )
+
+    @staticmethod
+    def parse_squares(text: str) -> tuple[int, int]:
+        """``"5x7"`` -> (5, 7)."""
+        try:
+            a, b = text.lower().split("x")
+            return int(a), int(b)
+        except ValueError as exc:
+            raise CalibrationError(f"--squares must look like 5x7, got {text!r}") from exc
+
+    @cached_property
+    def cv_board(self) -> cv2.aruco.CharucoBoard:
+        """OpenCV's board object, sizes in metres."""
+        return cv2.aruco.CharucoBoard(
+            self.squares,
+            self.square_mm / 1000.0,
+            self.marker_mm / 1000.0,
+            aruco_dictionary(self.dictionary),
+        )
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        """(width, height) of the squares area in metres."""
+        return (
+            self.squares[0] * self.square_mm / 1000.0,
+            self.squares[1] * self.square_mm / 1000.0,
+        )
+
+    @property
+    def sheet_half_extent_m(self) -> float:
+        """Half side of a square centred on the board holding the board and its white margin."""
+        return max(self.size_m) / 2.0 + self.margin_mm / 1000.0
+
+    @cached_property
+    def texture(self) -> tuple[NDArray[np.float32], float]:
+        """Square float32 image centred on the board centre (x right, y up as printed),
+        1 white, 0 black, -1 off the sheet; and its texel size in metres."""
+        per_square = 128
+        texel = self.square_mm / 1000.0 / per_square
+        sx, sy = self.squares
+        board = self.cv_board.generateImage(
+            (sx * per_square, sy * per_square), marginSize=0, borderBits=1
+        )
+        n = 2 * math.ceil(self.sheet_half_extent_m / texel)
+        tex = np.full((n, n), -1.0, np.float32)
+        margin = int(round(self.margin_mm / 1000.0 / texel))
+        h, w = board.shape
+        r0 = n // 2 - h // 2
+        c0 = n // 2 - w // 2
+        tex[r0 - margin : r0 + h + margin, c0 - margin : c0 + w + margin] = 1.0
+        tex[r0 : r0 + h, c0 : c0 + w] = (board > 127).astype(np.float32)
+        return tex, texel
+
+    def T_pattern_board(self) -> Array:
+        """Maps OpenCV board points (origin top-left, y down) to the centred y-up pattern."""
+        w, h = self.size_m
+        T = np.diag([1.0, -1.0, -1.0, 1.0])
+        T[0, 3] = -w / 2.0
+        T[1, 3] = h / 2.0
+        return T
+
+    def describe(self) -> str:
+        """One line naming the board's parameters."""
+        return (
+            f"ChArUco {self.squares[0]}x{self.squares[1]} squares of {self.square_mm:g} mm, "
+            f"markers {self.marker_mm:g} mm, {self.dictionary}"
+        )
+
+
+# ------------------------------------------------------------------------- detection
+@dataclass(frozen=True)
+class BoardView:
+    """The board found in one image: ChArUco corners (N, 2) px and their ids (N,)."""
+
+    name: str
+    corners_px: Array
+    ids: NDArray[np.int32]
+    markers: int
+
+
+def detect_board(board: CharucoBoardSpec, image: NDArray[np.uint8], name: str) -> BoardView | str:
+    """The board's ChArUco corners in ``image``, or a string saying why there are none."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    detector = cv2.aruco.CharucoDetector(board.cv_board)
+    corners, ids, _marker_corners, marker_ids = detector.detectBoard(grey)
+    n_markers = 0 if marker_ids is None else len(marker_ids)
+    if n_markers == 0:
+        return "no board markers found"
+    if ids is None or len(ids) < MIN_CORNERS_PER_VIEW:
+        found = 0 if ids is None else len(ids)
+        return f"{n_markers} markers but only {found} ChArUco corners (need {MIN_CORNERS_PER_VIEW})"
+    corners = np.asarray(corners, np.float64).reshape(-1, 2)
+    ids = np.asarray(ids, np.int32).reshape(-1)
+    if board.cv_board.checkCharucoCornersCollinear(ids):
+        return "ChArUco corners are collinear"
+    return BoardView(name, corners, ids, n_markers)
+
+
+def _homography_residual_px(board: CharucoBoardSpec, view: BoardView) -> float:
+    """RMS residual of a homography from board to image (large when the board parameters do
+    not match the printed board, or the lens is strongly distorted)."""
+    obj = np.asarray(board.cv_board.getChessboardCorners(), np.float64)[view.ids][:, :2]
+    H, _ = cv2.findHomography(obj, view.corners_px, 0)
+    if H is None:
+        return math.inf
+    p = np.concatenate([obj, np.ones((obj.shape[0], 1))], 1) @ H.T
+    uv = p[:, :2] / p[:, 2:3]
+    return float(np.sqrt(np.mean(np.sum((uv - view.corners_px) ** 2, axis=1))))
+
+
+# ------------------------------------------------------------------------- calibration
+@dataclass(frozen=True)
+class CalibrationResult:
+    """A calibration and how it was made.
+
+    per_view_rms_px : view name -> RMS reprojection error of its corners.
+    rejected : view name -> why it was not used.
+    coverage : fraction of a 10x10 grid of image cells holding at least one used corner.
+    warnings : reasons not to trust the result.
+    """
+
+    camera: CameraModel
+    rms_px: float
+    per_view_rms_px: dict[str, float]
+    used: tuple[str, ...]
+    rejected: dict[str, str]
+    coverage: float
+    corners_px: Array = field(repr=False)
+    warnings: tuple[str, ...] = ()
+
+
+def coverage_grid(corners_px: Array, size: tuple[int, int], cells: int = 10) -> NDArray[np.int64]:
+    """(cells, cells) count of corners per image cell."""
+    w, h = size
+    grid = np.zeros((cells, cells), np.int64)
+    if corners_px.size == 0:
+        return grid
+    cx = np.clip((corners_px[:, 0] / w * cells).astype(int), 0, cells - 1)
+    cy = np.clip((corners_px[:, 1] / h * cells).astype(int), 0, cells - 1)
+    np.add.at(grid, (cy, cx), 1)
+    return grid
+
+
+def calibrate(
+    images: Iterable[tuple[str, NDArray[np.uint8]]],
+    board: CharucoBoardSpec,
+    model: DistortionModel = "plumb_bob",
+    name: str = "camera",
+) -> CalibrationResult:
+    """Calibrate from (name, image) pairs showing ``board``.
+
+    Views where the board is missing, has fewer than 6 corners, collinear corners, or corners
+    that no board of these parameters could give are rejected with a reason. Raises
+    CalibrationError when images differ in size, when no image shows the board, or when fewer
+    views than the model needs remain.
+    """
+    if model not in ("plumb_bob", "equidistant"):
+        raise CalibrationError(f"unknown model {model!r} (plumb_bob or equidistant)")
+    views: list[BoardView] = []
+    rejected: dict[str, str] = {}
+    size: tuple[int, int] | None = None
+    size_from = ""
+    saw_markers = False
+    for view_name, image in images:
+        h, w = image.shape[:2]
+        if size is None:
+            size, size_from = (w, h), view_name
+        elif (w, h) != size:
+            raise CalibrationError(
+                f"{view_name}: image is {w}x{h} but {size_from} is {size[0]}x{size[1]}; "
+                "all views must come from one camera mode"
+            )
+        found = detect_board(board, image, view_name)
+        if isinstance(found, str):
+            rejected[view_name] = found
+            saw_markers |= not found.startswith("no board")
+            continue
+        saw_markers = True
+        views.append(found)
+    if size is None:
+        raise CalibrationError("no images to calibrate from")
+    if not saw_markers:
+        raise CalibrationError(
+            f"no marker of {board.dictionary} found in any of the {len(rejected)} images: "
+            "check --dictionary"
+        )
+    if not views:
+        raise CalibrationError(
+            f"markers of {board.dictionary} were found but no view gave {MIN_CORNERS_PER_VIEW} "
+            f"consistent ChArUco corners: check --squares, --square-mm and --marker-mm "
+            f"(now {board.describe()})"
+        )
+    needed = MIN_VIEWS[model]
+    if len(views) < needed:
+        raise CalibrationError(
+            f"only {len(views)} usable views; the {model} model needs at least {needed} "
+            f"(rejected: {'; '.join(f'{k}: {v}' for k, v in rejected.items()) or 'none'})"
+        )
+    camera, per_view, rms = _solve(views, board, size, model, name)
+    # a second pass without views whose corners do not fit the model (wrong ids, motion blur)
+    bad = [v.name for v in views if per_view[v.name] > max(1.0, 5.0 * rms)]
+    if bad and len(views) - len(bad) >= needed:
+        for v in bad:
+            rejected[v] = f"reprojection error {per_view[v]:.2f} px, far above the others"
+        views = [v for v in views if v.name not in bad]
+        camera, per_view, rms = _solve(views, board, size, model, name)
+    all_corners = np.concatenate([v.corners_px for v in views])
+    grid = coverage_grid(all_corners, size)
+    coverage = float(np.count_nonzero(grid) / grid.size)
+    warnings = []
+    if len(views) < GOOD_VIEWS:
+        warnings.append(f"only {len(views)} views: use {GOOD_VIEWS} or more, tilted and spread")
+    if coverage < GOOD_COVERAGE:
+        warnings.append(
+            f"corners cover {coverage:.0%} of the image: move the board into the corners and "
+            "edges, or the distortion there is a guess"
+        )
+    mismatched = [v.name for v in views if _homography_residual_px(board, v) > 25.0]
+    if mismatched and model == "plumb_bob" and len(mismatched) == len(views):
+        warnings.append("no view fits a plane well: is the board flat, and the lens a fisheye?")
+    return CalibrationResult(
+        camera,
+        rms,
+        per_view,
+        tuple(v.name for v in views),
+        rejected,
+        coverage,
+        all_corners,
+        tuple(warnings),
+    )
+
+
+def _solve(
+    views: list[BoardView],
+    board: CharucoBoardSpec,
+    size: tuple[int, int],
+    model: DistortionModel,
+    name: str,
+) -> tuple[CameraModel, dict[str, float], float]:
+    obj_all = np.asarray(board.cv_board.getChessboardCorners(), np.float64)
+    obj = [obj_all[v.ids] for v in views]
+    img = [v.corners_px for v in views]
+    w, h = size
+    if model == "plumb_bob":
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+            [o.astype(np.float32) for o in obj],
+            [i.astype(np.float32) for i in img],
+            size,
+            None,
+            None,
+            flags=0,
+        )
+        dist = np.asarray(dist, np.float64).reshape(-1)[:5]
+    else:
+        flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
+        K0 = np.array([[w / 3.0, 0, w / 2.0], [0, w / 3.0, h / 2.0], [0, 0, 1.0]])
+        criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
+        try:
+            rms, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
+                [o.reshape(1, -1, 3) for o in obj],
+                [i.reshape(1, -1, 2) for i in img],
+                size,
+                K0,
+                np.zeros(4),
+                flags=flags,
+                criteria=criteria,
+            )
+        except cv2.error as exc:
+            raise CalibrationError(
+                "the fisheye solver failed (a view is ill-conditioned): add views with the "
+                "board tilted and nearer the image centre"
+            ) from exc
+        dist = np.asarray(dist, np.float64).reshape(-1)
+    camera = CameraModel(np.asarray(K, np.float64), dist, w, h, model, name)
+    per_view = {}
+    sq = []
+    for v, o, rvec, tvec in zip(views, obj, rvecs, tvecs, strict=True):
+        R, _ = cv2.Rodrigues(np.asarray(rvec, np.float64))
+        uv, ok = camera.project((R @ o.T).T + np.asarray(tvec, np.float64).reshape(3))
+        d2 = np.sum((uv - v.corners_px) ** 2, axis=1)
+        per_view[v.name] = float(np.sqrt(np.mean(d2))) if np.all(ok) else math.inf
+        sq.append(d2)
+    rms_all = float(np.sqrt(np.mean(np.concatenate(sq))))
+    del rms
+    return camera, per_view, rms_all
+
+
+MODELS: tuple[Literal["plumb_bob"], Literal["equidistant"]] = ("plumb_bob", "equidistant")
+
+
+def select_views(
+    frames: Iterable[tuple[str, NDArray[np.uint8]]],
+    board: CharucoBoardSpec,
+    max_views: int = 30,
+    stride: int = 1,
+) -> tuple[list[tuple[str, NDArray[np.uint8]]], int]:
+    """Pick sharp, well-spread views of the board from a video's frames.
+
+    Every ``stride``-th frame is searched; frames with the board whose sharpness (variance of
+    the Laplacian over the board) is at least half the median are candidates; from them, the
+    sharpest first, then repeatedly the one farthest (board centre and size in the image) from
+    those already picked. Returns the views and how many frames were searched.
+    """
+    candidates: list[tuple[str, NDArray[np.uint8], Array, float]] = []
+    searched = 0
+    for k, (name, image) in enumerate(frames):
+        if k % max(1, stride):
+            continue
+        searched += 1
+        view = detect_board(board, image, name)
+        if isinstance(view, str):
+            continue
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        h, w = grey.shape
+        x0, y0 = np.floor(view.corners_px.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(view.corners_px.max(axis=0)).astype(int)
+        patch = grey[max(0, y0) : y1 + 1, max(0, x0) : x1 + 1]
+        sharpness = float(cv2.Laplacian(patch, cv2.CV_64F).var()) if patch.size else 0.0
+        centre = view.corners_px.mean(axis=0) / np.array([w, h])
+        extent = math.sqrt(max(1.0, float((x1 - x0) * (y1 - y0)))) / math.hypot(w, h)
+        candidates.append((name, image, np.array([centre[0], centre[1], 2.0 * extent]), sharpness))
+    if not candidates:
+        return [], searched
+    floor = 0.5 * float(np.median([c[3] for c in candidates]))
+    pool = [c for c in candidates if c[3] >= floor]
+    picked = [max(pool, key=lambda c: c[3])]
+    while len(picked) < min(max_views, len(pool)):
+        chosen = np.stack([p[2] for p in picked])
+        best = max(
+            (c for c in pool if all(c is not p for p in picked)),
+            key=lambda c: float(np.min(np.linalg.norm(chosen - c[2], axis=1))),
+        )
+        picked.append(best)
+    return [(c[0], c[1]) for c in picked], searched

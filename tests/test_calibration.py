@@ -1,0 +1,170 @@
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from perchpose import CameraModel, PerchingEstimator, TargetSpec
+from perchpose.calibration import (
+    CalibrationError,
+    CharucoBoardSpec,
+    calibrate,
+    detect_board,
+    select_views,
+)
+from perchpose.cli import main
+from perchpose.geometry import facing_pose
+from perchpose.sim.render import ImageQuality, Renderer
+
+
+def _photos(charuco_dir: Path) -> list[tuple[str, np.ndarray]]:
+    return [(p.name, cv2.imread(str(p))) for p in sorted(charuco_dir.glob("img_0*.jpg"))]
+
+
+def test_real_photos_match_the_upstream_calibration(charuco_dir: Path) -> None:
+    result = calibrate(_photos(charuco_dir), CharucoBoardSpec())
+    reference = CameraModel.load(charuco_dir / "tutorial_camera_charuco.yml")
+    assert result.rms_px < 0.5
+    assert len(result.used) == 4
+    K, K_ref = result.camera.K, reference.K
+    for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)):
+        assert K[i, j] == pytest.approx(K_ref[i, j], rel=0.03)
+    assert any("views" in w for w in result.warnings)  # 4 views is few: said so
+
+
+def _board_views(
+    camera: CameraModel, board: CharucoBoardSpec, n: int, seed: int, z_m: tuple[float, float]
+) -> tuple[list[tuple[str, np.ndarray]], float]:
+    """Rendered views of the board, and the RMS error of the detected corners against the
+    corners' true projections (the noise the calibration should match)."""
+    renderer = Renderer(camera, board)
+    rng = np.random.default_rng(seed)
+    obj = np.asarray(board.cv_board.getChessboardCorners(), np.float64)
+    views, errors = [], []
+    for k in range(n):
+        z = float(rng.uniform(*z_m))
+        uv = np.array(
+            [[rng.uniform(0.2, 0.8) * camera.width_px, rng.uniform(0.2, 0.8) * camera.height_px]]
+        )
+        ray = camera.pixel_rays(uv)[0]
+        c = ray / ray[2] * z
+        T = facing_pose(
+            c[0],
+            c[1],
+            z,
+            rng.uniform(-0.5, 0.5),
+            math.radians(rng.uniform(-35, 35)),
+            math.radians(rng.uniform(-35, 35)),
+        )
+        image = renderer.render(T, ImageQuality(), rng)
+        views.append((f"view{k:02d}", image))
+        found = detect_board(board, image, "x")
+        if not isinstance(found, str):
+            T_board = T @ board.T_pattern_board()
+            true_uv, _ = camera.project((T_board[:3, :3] @ obj[found.ids].T).T + T_board[:3, 3])
+            errors.append(true_uv - found.corners_px)
+    e = np.concatenate(errors)
+    return views, float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+
+
+@pytest.mark.parametrize(
+    ("camera_name", "z_m"), [("webcam", (0.35, 0.55)), ("fpv_wide", (0.16, 0.3))]
+)
+def test_rendered_boards_recover_the_camera(camera_name: str, z_m: tuple[float, float]) -> None:
+    camera = CameraModel.preset(camera_name)
+    board = CharucoBoardSpec()
+    views, corner_noise_px = _board_views(camera, board, 15, seed=4, z_m=z_m)
+    result = calibrate(views, board, camera.model)
+    assert len(result.used) >= 8
+    K = result.camera.K
+    assert K[0, 0] == pytest.approx(camera.K[0, 0], rel=0.01)
+    assert K[1, 1] == pytest.approx(camera.K[1, 1], rel=0.01)
+    assert K[0, 2] == pytest.approx(camera.K[0, 2], rel=0.01)
+    assert K[1, 2] == pytest.approx(camera.K[1, 2], rel=0.01)
+    # the fit leaves the corner noise the renderer put there, less what the parameters absorb
+    assert 0.5 * corner_noise_px < result.rms_px < 1.2 * corner_noise_px
+
+
+def test_calibrate_command_drives_track(tmp_path: Path) -> None:
+    camera = CameraModel.preset("webcam")
+    board = CharucoBoardSpec()
+    views, _ = _board_views(camera, board, 12, seed=7, z_m=(0.35, 0.55))
+    folder = tmp_path / "views"
+    folder.mkdir()
+    for name, image in views:
+        cv2.imwrite(str(folder / f"{name}.png"), image)
+    out = tmp_path / "cam.yaml"
+    assert main(["calibrate", str(folder), "--out", str(out)]) == 0
+    assert (tmp_path / "cam_report.md").read_text().count(".png | ") == 12
+    assert (tmp_path / "cam_coverage.png").stat().st_size > 0
+    calibrated = CameraModel.load(out)
+    # the calibrated camera drives the estimator on frames of the true camera
+    target = TargetSpec.paper()
+    T = facing_pose(0.02, -0.01, 0.5, 0.3)
+    image = Renderer(camera, target).render(T, rng=np.random.default_rng(0))
+    e = PerchingEstimator(calibrated, target).update(image, 0.0)
+    assert e.valid
+    assert abs(e.z_cm - 50.0) < 0.5
+    assert abs(e.x_cm - 2.0) < 0.2
+
+
+def test_video_views_are_picked(tmp_path: Path) -> None:
+    camera = CameraModel.preset("webcam")
+    board = CharucoBoardSpec()
+    views, _ = _board_views(camera, board, 10, seed=9, z_m=(0.35, 0.55))
+    frames = [views[k // 3] for k in range(30)]  # each view held for 3 frames
+    frames[4] = ("blank", np.full_like(views[0][1], 128))
+    picked, searched = select_views(frames, board, max_views=6)
+    assert searched == 30
+    assert len(picked) == 6
+    assert "blank" not in [n for n, _ in picked]
+    video = tmp_path / "board.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 10.0, (640, 480))
+    for _, image in frames:
+        writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    assert main(["calibrate", str(video), "--out", str(tmp_path / "v.yaml")]) == 0
+    assert CameraModel.load(tmp_path / "v.yaml").K[0, 0] == pytest.approx(554.0, rel=0.03)
+
+
+def test_bad_calibration_input(charuco_dir: Path, tmp_path: Path) -> None:
+    photos = _photos(charuco_dir)
+    with pytest.raises(CalibrationError, match="check --squares"):
+        calibrate(photos, CharucoBoardSpec(squares=(6, 8)))
+    with pytest.raises(CalibrationError, match="no marker of DICT_4X4_50"):
+        calibrate(photos, CharucoBoardSpec(dictionary="DICT_4X4_50"))
+    with pytest.raises(CalibrationError, match="only 2 usable views"):
+        calibrate(photos[:2], CharucoBoardSpec())
+    small = cv2.resize(photos[1][1], (320, 240))
+    with pytest.raises(CalibrationError, match=r"img_01\.jpg: image is 320x240 but img_00\.jpg"):
+        calibrate([photos[0], ("img_01.jpg", small)], CharucoBoardSpec())
+    with pytest.raises(CalibrationError, match=r"marker .* < square"):
+        CharucoBoardSpec(square_mm=20, marker_mm=30)
+
+
+def test_calibrate_command_errors(
+    charuco_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    glob = str(charuco_dir / "img_0*.jpg")
+    assert main(["calibrate", glob, "--out", str(tmp_path / "c.yaml"), "--squares", "6x8"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "check --squares" in err
+    assert main(["calibrate", glob, "--out", str(tmp_path / "c.txt")]) == 2
+    assert "must end in .yaml" in capsys.readouterr().err
+    assert main(["calibrate", glob, "--out", str(tmp_path / "c.yaml"), "--squares", "5by7"]) == 2
+    assert "--squares must look like 5x7" in capsys.readouterr().err
+
+
+def test_board_sheet_is_detectable_and_true_scale(tmp_path: Path) -> None:
+    board = CharucoBoardSpec()
+    assert main(["board", "--out", str(tmp_path / "b.png"), "--dpi", "200"]) == 0
+    image = cv2.imread(str(tmp_path / "b.png"), cv2.IMREAD_GRAYSCALE)
+    found = detect_board(board, image, "sheet")
+    assert not isinstance(found, str)
+    assert len(found.ids) == 24
+    # neighbouring ChArUco corners are one 40 mm square apart at 200 dpi
+    spacing = np.linalg.norm(found.corners_px[1] - found.corners_px[0])
+    assert spacing == pytest.approx(40 / 25.4 * 200, abs=1.0)
+    assert main(["board", "--out", str(tmp_path / "b.pdf"), "--squares", "6x9"]) == 0
