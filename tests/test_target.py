@@ -118,3 +118,19 @@ def test_printable_svg_and_bad_suffix(tmp_path: Path, paper_target: TargetSpec) 
     assert float(width.group(1)) == pytest.approx(w_mm / 25.4 * 72, abs=0.5)
     with pytest.raises(PerchposeError, match=r"t\.gif: output must end in"):
         write_target_sheet(paper_target, tmp_path / "t.gif")
+
+
+def test_printed_target_png_is_detected(tmp_path: Path, paper_target: TargetSpec) -> None:
+    import cv2
+
+    out = write_target_sheet(paper_target, tmp_path / "t.png", dpi=300)
+    image = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
+    found = set()
+    for name, marker_id in (("DICT_4X4_1000", 997), ("DICT_ARUCO_ORIGINAL", 5)):
+        detector = cv2.aruco.ArucoDetector(
+            cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+        )
+        _, ids, _ = detector.detectMarkers(image)
+        if ids is not None and marker_id in ids.reshape(-1).tolist():
+            found.add(marker_id)
+    assert found == {997, 5}
