@@ -29,6 +29,12 @@ def _load_target(value: str | None) -> TargetSpec:
 
 
 CAMERA_HELP = "ROS camera_info or OpenCV YAML; or preset:webcam, preset:fpv, preset:fpv_wide"
+target_option = click.option(
+    "--target", "target_file", default=None, help="Target YAML (default: the paper's)."
+)
+camera_option_fpv = click.option(
+    "--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP
+)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -45,7 +51,7 @@ def cli() -> None:
     type=click.Path(dir_okay=False),
     help="Output file: .svg, .pdf or .png.",
 )
-@click.option("--target", "target_file", default=None, help="Target YAML (default: the paper's).")
+@target_option
 @click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
 @click.option(
     "--save-spec",
@@ -66,8 +72,8 @@ def target(out: str, target_file: str | None, dpi: int, save_spec: str | None) -
 
 @cli.command()
 @click.argument("scenario")
-@click.option("--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP)
-@click.option("--target", "target_file", default=None, help="Target YAML (default: the paper's).")
+@camera_option_fpv
+@target_option
 @click.option(
     "--out", "out", required=True, type=click.Path(file_okay=False), help="Output folder."
 )
@@ -108,7 +114,7 @@ def simulate(
 @cli.command()
 @click.argument("source")
 @click.option("--camera", "camera_file", required=True, help=CAMERA_HELP)
-@click.option("--target", "target_file", default=None, help="Target YAML (default: the paper's).")
+@target_option
 @click.option(
     "--fps",
     default=None,
@@ -163,7 +169,7 @@ def track(
     type=click.Path(file_okay=False),
     help="Output folder.",
 )
-@click.option("--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP)
+@camera_option_fpv
 @click.option("--seconds", default=8.0, show_default=True, help="Length of the approach.")
 @click.option("--seed", default=0, show_default=True, help="Noise seed.")
 def demo(out: str, camera_file: str, seconds: float, seed: int) -> None:
@@ -199,7 +205,7 @@ def demo(out: str, camera_file: str, seconds: float, seed: int) -> None:
     type=click.Path(file_okay=False),
     help="Output folder for report.md, results.json and the figures.",
 )
-@click.option("--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP)
+@camera_option_fpv
 @click.option(
     "--quality",
     default="analog_fpv",
