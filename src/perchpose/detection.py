@@ -138,20 +138,86 @@ class MarkerDetector:
         self._K_rect: Array | None = None
 
     def detect(self, grey: NDArray[np.uint8]) -> tuple[MarkerDetection, ...]:
-        """Detect the target's markers in a grey (H, W) uint8 image of the camera's size."""
+        """Detect the target's markers in a grey (H, W) uint8 image of the camera's size.
+
+        With a strongly distorted lens, markers found large (curved edges) and markers missing
+        but predicted by the plane through a found one are searched again in windows of the
+        rectified view; with nothing found, the whole rectified view is searched.
+        """
         found = self._detect_pass(grey, "raw")
-        if self.rectify:
-            rect = np.asarray(
-                cv2.remap(grey, *self._rectify_maps(), interpolation=cv2.INTER_LINEAR), np.uint8
-            )
-            for det in self._detect_pass(rect, "rectified").values():
-                raw = found.get(det.marker_index)
-                if raw is not None and raw.side_px < CURVED_SIDE_PX:
-                    continue
-                mapped = self._unrectify(det.corners_px)
-                if mapped is not None:
-                    found[det.marker_index] = MarkerDetection(det.marker_index, mapped, "rectified")
+        if not self.rectify:
+            return tuple(found[i] for i in sorted(found))
+        maps = self._rectify_maps()
+        if not found:
+            rect = np.asarray(cv2.remap(grey, *maps, interpolation=cv2.INTER_LINEAR), np.uint8)
+            rectified = self._detect_pass(rect, "rectified")
+        else:
+            rectified = {}
+            for x0, y0, x1, y1 in self._rectified_windows(found):
+                window = np.asarray(
+                    cv2.remap(
+                        grey,
+                        maps[0][y0:y1, x0:x1],
+                        maps[1][y0:y1, x0:x1],
+                        interpolation=cv2.INTER_LINEAR,
+                    ),
+                    np.uint8,
+                )
+                for index, det in self._detect_pass(window, "rectified").items():
+                    if index not in rectified:
+                        rectified[index] = MarkerDetection(
+                            index, det.corners_px + np.array([x0, y0]), "rectified"
+                        )
+        for det in rectified.values():
+            raw = found.get(det.marker_index)
+            if raw is not None and raw.side_px < CURVED_SIDE_PX:
+                continue
+            mapped = self._unrectify(det.corners_px)
+            if mapped is not None:
+                found[det.marker_index] = MarkerDetection(det.marker_index, mapped, "rectified")
         return tuple(found[i] for i in sorted(found))
+
+    def _to_rectified(self, corners_px: Array) -> Array:
+        """Pixels of the original image -> pixels of the rectified view."""
+        assert self._K_rect is not None  # set with the maps
+        xy = self.camera.normalize(corners_px)
+        return np.asarray(xy * self._K_rect[0, 0] + self._K_rect[:2, 2], np.float64)
+
+    def _rectified_windows(
+        self, found: dict[int, MarkerDetection]
+    ) -> list[tuple[int, int, int, int]]:
+        """Windows (x0, y0, x1, y1) of the rectified view to search: around each large found
+        marker, and around where the plane through a found marker puts each missing one."""
+        assert self._K_rect is not None
+        h, w = self._rectify_maps()[0].shape
+        reference = max(found.values(), key=lambda d: d.side_px)
+        ref_rect = self._to_rectified(reference.corners_px)
+        ref_plane = self.target.markers[reference.marker_index].corners_target_m[:, :2]
+        H, _ = cv2.findHomography(ref_plane, ref_rect)
+        windows = []
+        for index, marker in enumerate(self.target.markers):
+            det = found.get(index)
+            if det is not None and det.side_px < CURVED_SIDE_PX:
+                continue
+            if det is not None:
+                quad = self._to_rectified(det.corners_px)
+            elif H is not None:
+                quad = np.asarray(
+                    cv2.perspectiveTransform(marker.corners_target_m[:, :2].reshape(-1, 1, 2), H),
+                    np.float64,
+                ).reshape(4, 2)
+            else:
+                continue
+            if not np.all(np.isfinite(quad)):
+                continue
+            lo, hi = quad.min(axis=0), quad.max(axis=0)
+            pad = 0.3 * float(np.max(hi - lo)) + 8.0
+            x0, y0 = (int(max(0, np.floor(v - pad))) for v in lo)
+            x1 = int(min(w, np.ceil(hi[0] + pad)))
+            y1 = int(min(h, np.ceil(hi[1] + pad)))
+            if x1 - x0 >= 16 and y1 - y0 >= 16:
+                windows.append((x0, y0, x1, y1))
+        return windows
 
     def _detect_pass(
         self, grey: NDArray[np.uint8], image_pass: Literal["raw", "rectified"]
