@@ -396,6 +396,97 @@ def calibrate(
     click.echo(f"wrote {run.camera_file}, {run.report} and {run.coverage_png}")
 
 
+@cli.command()
+@click.option("--runs", default=200, show_default=True, help="Runs per estimator.")
+@click.option("--seed", default=0, show_default=True, help="Seed of the first run.")
+@click.option(
+    "--wind",
+    default="none",
+    show_default=True,
+    type=click.Choice(["none", "light", "moderate", "strong"]),
+    help="Gust level.",
+)
+@click.option(
+    "--estimator",
+    "estimators",
+    default="paper,truth",
+    show_default=True,
+    help="Comma-separated: paper, outer, inner, truth.",
+)
+@camera_option_fpv
+@click.option(
+    "--out",
+    "out",
+    default="perch",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="Folder for runs.csv, perch.json, figure.",
+)
+@click.option(
+    "--json",
+    "json_out",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Also write the summary JSON here.",
+)
+@click.option("--workers", default=2, show_default=True, help="Processes to run in parallel.")
+def perch(
+    runs: int,
+    seed: int,
+    wind: str,
+    estimators: str,
+    camera_file: str,
+    out: str,
+    json_out: str | None,
+    workers: int,
+) -> None:
+    """Closed-loop perching in simulation from random starts 60-150 cm below the target."""
+    import json
+
+    from perchpose.sim.campaign import compare, write_campaign
+    from perchpose.sim.perch import ESTIMATORS, PerchSetup
+
+    names = [e.strip() for e in estimators.split(",") if e.strip()]
+    unknown = [n for n in names if n not in ESTIMATORS]
+    if unknown or not names:
+        raise PerchposeError(
+            f"--estimator: unknown {unknown or names} (choose from {', '.join(ESTIMATORS)})"
+        )
+    if runs < 1:
+        raise PerchposeError(f"--runs must be >= 1, got {runs}")
+    setup = PerchSetup(_load_camera(camera_file), TargetSpec.paper(), estimator=names[0], wind=wind)
+    results = compare(
+        setup,
+        names,
+        runs,
+        seed,
+        max(1, workers),
+        sys.stderr.isatty(),
+        say=lambda m: click.echo(m, err=True),
+    )
+    content = write_campaign(out, results, setup)
+    click.echo(
+        f"{'estimator':10} {'success':>8} {'offset p50/p95 (mm)':>20} "
+        f"{'time p50 (s)':>13}  failures"
+    )
+    by = content["by_estimator"]
+    assert isinstance(by, dict)
+    for name, s in by.items():
+        off, tt = s["contact_offset_mm"], s["time_to_perch_s"]
+        fails = {k: v for k, v in s["reasons"].items() if k != "perched"}
+
+        def num(v: float | None) -> str:
+            return "-" if v is None else f"{v:.1f}"
+
+        click.echo(
+            f"{name:10} {s['success_rate']:8.1%} {num(off['p50']):>9}/{num(off['p95']):<10} "
+            f"{num(tt['p50']):>13}  {fails or 'none'}"
+        )
+    if json_out:
+        Path(json_out).write_text(json.dumps(content, indent=2), encoding="utf-8")
+    click.echo(f"wrote {out}/runs.csv, {out}/perch.json and {out}/trajectories.png")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point: run the command, turn library errors into one line and exit code 2."""
     try:

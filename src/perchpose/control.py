@@ -32,10 +32,10 @@ class ControllerConfigError(PerchposeError):
 
 
 def default_T_body_camera() -> Array:
-    """Camera on top of the body looking up, image top towards the body's front, 15 mm ahead of
-    and 12 mm above the body centre."""
-    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    return make_transform(R, np.array([0.015, 0.0, 0.012]))
+    """Camera on top of the body looking up, its axes parallel to the body's (image x along the
+    body's front, optical axis up), 15 mm ahead of and 12 mm above the body centre. With it, the
+    estimate's yaw is the heading error between the body and the target."""
+    return make_transform(np.eye(3), np.array([0.015, 0.0, 0.012]))
 
 
 @dataclass(frozen=True)

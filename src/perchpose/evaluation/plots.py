@@ -221,3 +221,40 @@ def coverage_figure(
     fig.colorbar(shown, ax=ax, label="corners per cell", shrink=0.8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+STAGE_COLOURS = {1: "#fde0c5", 2: "#d4ecd4", 3: "#d6e4f5"}
+
+
+def perch_figure(
+    path: str,
+    runs: list[tuple[str, Array, Array, NDArray[np.int64]]],
+    plate_z_m: float,
+    contact_radius_mm: float,
+) -> None:
+    """Height below the plate and lateral offset of the magnet against time for a few runs;
+    the first run's detection stage shaded (1 outer, 2 both, 3 inner).
+
+    runs : (label, t_s (N,), p_magnet_m (N, 3), stage (N,)).
+    """
+    fig = Figure(figsize=(10, 6.5))
+    ax_z, ax_xy = fig.subplots(2, 1, sharex=True)
+    if runs:
+        _, t0, _, stage0 = runs[0]
+        for stage, colour in STAGE_COLOURS.items():
+            for ax in (ax_z, ax_xy):
+                shade_mask(ax, t0, stage0 == stage, f"stage {stage} (first run)", colour)
+    for label, t, p, _ in runs:
+        ax_z.plot(t, (plate_z_m - p[:, 2]) * 100.0, lw=1.2, label=label)
+        ax_xy.plot(t, np.hypot(p[:, 0], p[:, 1]) * 1000.0, lw=1.2)
+    ax_xy.axhline(contact_radius_mm, color="red", lw=0.8, ls="--", label="magnet radius")
+    ax_z.set_ylabel("magnet below the plate (cm)")
+    ax_xy.set_ylabel("lateral offset (mm)")
+    ax_xy.set_yscale("symlog", linthresh=5.0)
+    ax_xy.set_xlabel("time (s)")
+    for ax in (ax_z, ax_xy):
+        ax.grid(True, lw=0.3)
+    ax_z.legend(fontsize=7, ncol=3)
+    ax_xy.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)

@@ -1,0 +1,82 @@
+import math
+
+import numpy as np
+import pytest
+
+from perchpose.control import ControllerConfigError, ControllerSettings, PerchingController
+from perchpose.estimator import Estimate, Timings
+from perchpose.geometry import invert_transform, make_transform
+
+
+def _estimate(
+    x_cm: float, y_cm: float, z_cm: float, yaw_deg: float = 0.0, valid: bool = True
+) -> Estimate:
+    return Estimate(
+        0.0, valid, 2 if valid else 0, x_cm, y_cm, z_cm, yaw_deg, (), Timings(0, 0, 0, 0)
+    )
+
+
+def _camera_view(settings: ControllerSettings, target_body_m: np.ndarray) -> Estimate:
+    """What the camera would report for a target at a body-frame point, facing down."""
+    T_camera_body = invert_transform(settings.T_body_camera)
+    p = T_camera_body[:3, :3] @ target_body_m + T_camera_body[:3, 3]
+    return _estimate(*(p * 100.0), yaw_deg=0.0)
+
+
+def test_magnet_to_target_undoes_the_mounting() -> None:
+    s = ControllerSettings()
+    c = PerchingController(s)
+    target_body = np.array([0.05, -0.02, 0.6])
+    d, _ = c.magnet_to_target(_camera_view(s, target_body), np.eye(3))
+    np.testing.assert_allclose(d, target_body - np.array(s.p_body_magnet_m), atol=1e-9)
+    yawed = make_transform(
+        np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), np.zeros(3)
+    )[:3, :3]
+    d_yawed, _ = c.magnet_to_target(_camera_view(s, target_body), yawed)
+    np.testing.assert_allclose(d_yawed, yawed @ d, atol=1e-9)
+
+
+def test_aligns_before_climbing_and_commits_at_the_end() -> None:
+    s = ControllerSettings()
+    c = PerchingController(s)
+    far_off = c.update(_camera_view(s, np.array([0.10, 0.0, 0.8])), 0.0, np.eye(3))
+    assert far_off.phase == "align"
+    assert far_off.v_mps[0] > 0
+    assert far_off.v_mps[2] == 0.0
+    centred = c.update(_camera_view(s, np.array([0.0, 0.0, 0.5])), 0.1, np.eye(3))
+    assert centred.phase == "climb"
+    assert centred.v_mps[2] == pytest.approx(s.max_z_mps)
+    close = c.update(_camera_view(s, np.array([0.001, 0.0, 0.05])), 0.2, np.eye(3))
+    assert close.phase == "commit"
+    assert close.v_mps[2] == pytest.approx(s.commit_speed_mps)
+    blind = c.update(None, 0.3, np.eye(3))
+    assert blind.phase == "commit"
+
+
+def test_lost_target_holds_then_descends() -> None:
+    s = ControllerSettings(hold_s=1.0)
+    c = PerchingController(s)
+    assert c.update(None, 0.0, np.eye(3)).phase == "search"
+    c.update(_camera_view(s, np.array([0.05, 0.0, 0.8])), 0.0, np.eye(3))
+    hold = c.update(_estimate(0, 0, 0, valid=False), 0.5, np.eye(3))
+    assert hold.phase == "lost"
+    np.testing.assert_array_equal(hold.v_mps, 0.0)
+    c.update(_estimate(0, 0, 0, valid=False), 1.0, np.eye(3))
+    later = c.update(_estimate(0, 0, 0, valid=False), 2.1, np.eye(3))
+    assert later.v_mps[2] == pytest.approx(-s.descend_mps)
+
+
+def test_heading_error_turns_towards_the_target() -> None:
+    s = ControllerSettings()
+    c = PerchingController(s)
+    est = _camera_view(s, np.array([0.0, 0.0, 0.5]))
+    turned = _estimate(est.x_cm, est.y_cm, est.z_cm, yaw_deg=20.0)
+    _, err = c.magnet_to_target(turned, np.eye(3))
+    assert abs(math.degrees(err)) == pytest.approx(20.0, abs=1e-6)
+
+
+def test_unstable_gains_are_refused() -> None:
+    with pytest.raises(ControllerConfigError, match="unstable"):
+        ControllerSettings(k_xy=10.0)
+    with pytest.raises(ControllerConfigError, match="must be positive"):
+        ControllerSettings(max_z_mps=-1.0)
