@@ -29,6 +29,8 @@ RECTIFIED_MAX_SCALE = 1.5
 # Found in both passes, a marker this large in the original image is taken from the rectified
 # pass (its edges are curved in the original); a smaller one from the original image.
 CURVED_SIDE_PX = 40.0
+DEFAULT_MIN_PERIMETER_RATE = 0.03  # OpenCV's default minMarkerPerimeterRate
+DEFAULT_MIN_PERIMETER_RATE = 0.03  # OpenCV's default minMarkerPerimeterRate
 
 
 @dataclass(frozen=True)
@@ -132,19 +134,32 @@ class MarkerDetector:
         self.target = target
         self._dict_names = target.dictionaries
         dicts = [aruco_dictionary(n) for n in self._dict_names]
-        self._detector = cv2.aruco.ArucoDetector(dicts[0], _detector_parameters())
+        self._params = _detector_parameters()
+        self._detector = cv2.aruco.ArucoDetector(dicts[0], self._params)
         self._detector.setDictionaries(dicts)
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
         self._K_rect: Array | None = None
 
-    def detect(self, grey: NDArray[np.uint8]) -> tuple[MarkerDetection, ...]:
+    def detect(
+        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
+    ) -> tuple[MarkerDetection, ...]:
         """Detect the target's markers in a grey (H, W) uint8 image of the camera's size.
+
+        hint : the previous frame's detections. The search then starts in a window around them
+            and around where the target's plane puts its other markers, and falls back to the
+            whole image only when the window holds no marker.
 
         With a strongly distorted lens, markers found large (curved edges) and markers missing
         but predicted by the plane through a found one are searched again in windows of the
         rectified view; with nothing found, the whole rectified view is searched.
         """
-        found = self._detect_pass(grey, "raw")
+        found: dict[int, MarkerDetection] = {}
+        box = self._tracking_window(grey.shape, hint) if hint else None
+        if box is not None:
+            x0, y0, x1, y1 = box
+            found = self._detect_pass(grey[y0:y1, x0:x1], "raw", (x0, y0))
+        if not found:
+            found = self._detect_pass(grey, "raw")
         if not self.rectify:
             return tuple(found[i] for i in sorted(found))
         maps = self._rectify_maps()
@@ -163,11 +178,8 @@ class MarkerDetector:
                     ),
                     np.uint8,
                 )
-                for index, det in self._detect_pass(window, "rectified").items():
-                    if index not in rectified:
-                        rectified[index] = MarkerDetection(
-                            index, det.corners_px + np.array([x0, y0]), "rectified"
-                        )
+                for index, det in self._detect_pass(window, "rectified", (x0, y0)).items():
+                    rectified.setdefault(index, det)
         for det in rectified.values():
             raw = found.get(det.marker_index)
             if raw is not None and raw.side_px < CURVED_SIDE_PX:
@@ -219,9 +231,56 @@ class MarkerDetector:
                 windows.append((x0, y0, x1, y1))
         return windows
 
+    def _tracking_window(
+        self, shape: tuple[int, ...], hint: tuple[MarkerDetection, ...]
+    ) -> tuple[int, int, int, int] | None:
+        """A window of the image around the hinted markers and the predicted others, or None
+        when it would cover most of the image anyway."""
+        h, w = shape[:2]
+        quads = [d.corners_px for d in hint]
+        reference = max(hint, key=lambda d: d.side_px)
+        plane = self.target.markers[reference.marker_index].corners_target_m[:, :2]
+        H, _ = cv2.findHomography(plane, reference.corners_px)
+        if H is not None:
+            seen = {d.marker_index for d in hint}
+            for index, marker in enumerate(self.target.markers):
+                if index not in seen:
+                    quads.append(
+                        np.asarray(
+                            cv2.perspectiveTransform(
+                                marker.corners_target_m[:, :2].reshape(-1, 1, 2), H
+                            ),
+                            np.float64,
+                        ).reshape(4, 2)
+                    )
+        points = np.concatenate(quads)
+        if not np.all(np.isfinite(points)):
+            return None
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        pad = 0.5 * float(np.max(hi - lo)) + 16.0
+        x0, y0 = int(max(0, np.floor(lo[0] - pad))), int(max(0, np.floor(lo[1] - pad)))
+        x1, y1 = int(min(w, np.ceil(hi[0] + pad))), int(min(h, np.ceil(hi[1] + pad)))
+        if x1 - x0 < 16 or y1 - y0 < 16 or (x1 - x0) * (y1 - y0) > 0.6 * w * h:
+            return None
+        return (x0, y0, x1, y1)
+
     def _detect_pass(
-        self, grey: NDArray[np.uint8], image_pass: Literal["raw", "rectified"]
+        self,
+        grey: NDArray[np.uint8],
+        image_pass: Literal["raw", "rectified"],
+        offset: tuple[int, int] = (0, 0),
     ) -> dict[int, MarkerDetection]:
+        """Markers of the target in ``grey``; corners shifted by ``offset`` (a window's origin).
+
+        OpenCV sets the smallest candidate perimeter relative to the image searched; a window
+        keeps the whole image's absolute limit, or every speck of noise in it becomes a
+        candidate to decode (a noisy 123 px window took 2 s instead of 2 ms).
+        """
+        full = float(max(self.camera.size))
+        rate = min(3.5, DEFAULT_MIN_PERIMETER_RATE * full / float(max(grey.shape[:2])))
+        if rate != self._params.minMarkerPerimeterRate:
+            self._params.minMarkerPerimeterRate = rate
+            self._detector.setDetectorParameters(self._params)
         corners, ids, _rejected, dict_indices = self._detector.detectMarkersMultiDict(grey)
         found: dict[int, MarkerDetection] = {}
         if ids is None or len(ids) == 0:
@@ -237,7 +296,7 @@ class MarkerDetector:
                 continue
             cells = int(self.target.markers[index].cells.shape[0])
             refined = refine_corners(grey, np.asarray(quad, np.float64).reshape(4, 2), cells)
-            det = MarkerDetection(index, refined, image_pass)
+            det = MarkerDetection(index, refined + np.array(offset, np.float64), image_pass)
             previous = found.get(index)
             if previous is None or det.side_px > previous.side_px:
                 found[index] = det

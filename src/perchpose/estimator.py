@@ -115,12 +115,14 @@ class PerchingEstimator:
         self._tracks = [MarkerTrack(self.kalman) for _ in target.markers]
         self._last_R: list[Array | None] = [None] * len(target.markers)
         self._last_t_s: float | None = None
+        self._hint: tuple[MarkerDetection, ...] = ()
 
     def reset(self) -> None:
         """Forget all tracks (a new sequence)."""
         self._tracks = [MarkerTrack(self.kalman) for _ in self.target.markers]
         self._last_R = [None] * len(self.target.markers)
         self._last_t_s = None
+        self._hint = ()
 
     def _check_time(self, t_s: float) -> float:
         t = float(t_s)
@@ -137,7 +139,8 @@ class PerchingEstimator:
         t = self._check_time(t_s)
         grey = self.camera.check_image(image)
         t0 = time.perf_counter()
-        detections = self.detector.detect(grey)
+        detections = self.detector.detect(grey, self._hint)
+        self._hint = detections
         return self._estimate(t, detections, t0)
 
     def update_detections(self, detections: tuple[MarkerDetection, ...], t_s: float) -> Estimate:

@@ -246,11 +246,12 @@ def perch_figure(
                 shade_mask(ax, t0, stage0 == stage, f"stage {stage} (first run)", colour)
     for label, t, p, _ in runs:
         ax_z.plot(t, (plate_z_m - p[:, 2]) * 100.0, lw=1.2, label=label)
-        ax_xy.plot(t, np.hypot(p[:, 0], p[:, 1]) * 1000.0, lw=1.2)
+        ax_xy.plot(t, np.maximum(np.hypot(p[:, 0], p[:, 1]) * 1000.0, 0.1), lw=1.2)
     ax_xy.axhline(contact_radius_mm, color="red", lw=0.8, ls="--", label="magnet radius")
     ax_z.set_ylabel("magnet below the plate (cm)")
     ax_xy.set_ylabel("lateral offset (mm)")
-    ax_xy.set_yscale("symlog", linthresh=5.0)
+    ax_xy.set_yscale("log")
+    ax_xy.set_ylim(bottom=0.1)
     ax_xy.set_xlabel("time (s)")
     for ax in (ax_z, ax_xy):
         ax.grid(True, lw=0.3)

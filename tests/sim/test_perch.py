@@ -1,0 +1,83 @@
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perchpose import CameraModel, TargetSpec
+from perchpose.cli import main
+from perchpose.sim.campaign import run_campaign, summarise
+from perchpose.sim.perch import CONTACT_RADIUS_MM, PerchSetup, run_perch
+from perchpose.sim.quadrotor import VehicleConfigError
+
+
+@pytest.fixture(scope="module")
+def setup() -> PerchSetup:
+    return PerchSetup(CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth")
+
+
+def test_perfect_estimator_perches(setup: PerchSetup) -> None:
+    results = run_campaign(setup, runs=6, seed=10)
+    summary = summarise(results)
+    assert summary.success_rate == 1.0
+    assert summary.contact_offset_mm["max"] < CONTACT_RADIUS_MM / 2
+    for r in results:
+        assert r.phase[-1] == "commit"
+        assert 0.0 < r.contact_speed_mps < 0.3
+
+
+def test_same_seed_same_run(setup: PerchSetup) -> None:
+    a = run_perch(setup, 3)
+    b = run_perch(setup, 3)
+    c = run_perch(setup, 4)
+    np.testing.assert_array_equal(a.p_magnet_m, b.p_magnet_m)
+    assert a.contact_offset_mm == b.contact_offset_mm
+    assert not np.array_equal(a.p_magnet_m[0], c.p_magnet_m[0])
+
+
+def test_closed_loop_with_rendered_frames(setup: PerchSetup) -> None:
+    # the paper's estimator on rendered camera frames, from a near start to keep it short
+    paper = replace(setup, estimator="paper", start_below_m=(0.6, 0.6))
+    r = run_perch(paper, 1)
+    assert r.success, r.reason
+    assert r.contact_offset_mm < CONTACT_RADIUS_MM
+    assert {1, 2} <= set(r.stage.tolist())  # flew on the outer marker, then on both
+
+
+def test_bad_configurations(setup: PerchSetup) -> None:
+    with pytest.raises(VehicleConfigError, match="cannot see the target"):
+        PerchSetup(CameraModel.preset("webcam"), TargetSpec.paper(), start_lateral_fraction=0.6)
+    with pytest.raises(VehicleConfigError, match="unknown wind"):
+        replace(setup, wind="hurricane")
+    with pytest.raises(VehicleConfigError, match="unknown estimator"):
+        replace(setup, estimator="oracle")
+
+
+def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "p"
+    code = main(
+        [
+            "perch",
+            "--runs",
+            "2",
+            "--estimator",
+            "truth",
+            "--out",
+            str(out),
+            "--workers",
+            "1",
+            "--json",
+            str(tmp_path / "s.json"),
+        ]
+    )
+    assert code == 0
+    assert "truth" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["runs"] == 2
+    assert summary["success_rate"] == 1.0
+    assert set(summary["contact_offset_mm"]) == {"p50", "p90", "p95", "max"}
+    assert (out / "trajectories.png").stat().st_size > 0
+    assert len((out / "runs.csv").read_text().splitlines()) == 3
+    assert main(["perch", "--estimator", "oracle", "--out", str(out)]) == 2
+    assert "unknown" in capsys.readouterr().err
