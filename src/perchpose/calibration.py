@@ -10,7 +10,6 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Literal
 
 import cv2
 import numpy as np
@@ -302,7 +301,7 @@ def _solve(
     img = [v.corners_px for v in views]
     w, h = size
     if model == "plumb_bob":
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+        _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
             [o.astype(np.float32) for o in obj],
             [i.astype(np.float32) for i in img],
             size,
@@ -316,7 +315,7 @@ def _solve(
         K0 = np.array([[w / 3.0, 0, w / 2.0], [0, w / 3.0, h / 2.0], [0, 0, 1.0]])
         criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
         try:
-            rms, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
+            _, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
                 [o.reshape(1, -1, 3) for o in obj],
                 [i.reshape(1, -1, 2) for i in img],
                 size,
@@ -341,11 +340,7 @@ def _solve(
         per_view[v.name] = float(np.sqrt(np.mean(d2))) if np.all(ok) else math.inf
         sq.append(d2)
     rms_all = float(np.sqrt(np.mean(np.concatenate(sq))))
-    del rms
     return camera, per_view, rms_all
-
-
-MODELS: tuple[Literal["plumb_bob"], Literal["equidistant"]] = ("plumb_bob", "equidistant")
 
 
 def select_views(

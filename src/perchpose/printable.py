@@ -125,12 +125,7 @@ def sheet_size_mm(target: TargetSpec) -> tuple[float, float]:
     )
 
 
-def pixels_per_mm(dpi: int) -> float:
-    """Raster resolution of a PNG sheet."""
-    return dpi / MM_PER_INCH
-
-
-__all__ = ["pixels_per_mm", "sheet_size_mm", "write_board_sheet", "write_target_sheet"]
+__all__ = ["sheet_size_mm", "write_board_sheet", "write_target_sheet"]
 
 
 def write_board_sheet(board: CharucoBoardSpec, path: str | Path, dpi: int = 600) -> Path:

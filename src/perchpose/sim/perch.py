@@ -14,7 +14,7 @@ from perchpose.camera import CameraModel
 from perchpose.control import Command, ControllerSettings, PerchingController
 from perchpose.estimator import Estimate, PerchingEstimator, Timings
 from perchpose.fusion import stage_of
-from perchpose.geometry import invert_transform, make_transform, yaw_rad
+from perchpose.geometry import invert_transform, make_transform, rot_z, yaw_rad
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams, VehicleConfigError
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
@@ -89,7 +89,7 @@ class PerchSetup:
                 for dy in (-lateral, lateral):
                     for yaw in np.linspace(-math.pi, math.pi, 8, endpoint=False):
                         p = np.array([dx, dy, self.plate_z_m - below])
-                        R = make_transform(_rz(yaw), np.zeros(3))[:3, :3]
+                        R = rot_z(float(yaw))
                         T = invert_transform(self.T_world_camera(p, R)) @ self.T_world_target
                         if not markers_in_view(self.camera, self.target, T)[0]:
                             raise VehicleConfigError(
@@ -97,11 +97,6 @@ class PerchSetup:
                                 f"start box corner ({dx:+.2f}, {dy:+.2f}) m, {below:.2f} m "
                                 "below it: shrink the box or use a wider camera"
                             )
-
-
-def _rz(yaw: float) -> Array:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)
