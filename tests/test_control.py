@@ -1,9 +1,17 @@
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
-from perchpose.control import ControllerConfigError, ControllerSettings, PerchingController
+from perchpose.control import (
+    ControllerConfigError,
+    ControllerSettings,
+    PerchingController,
+    default_T_body_camera,
+    load_T_body_camera,
+)
 from perchpose.estimator import Estimate, Timings
 from perchpose.geometry import invert_transform, make_transform
 
@@ -80,3 +88,21 @@ def test_unstable_gains_are_refused() -> None:
         ControllerSettings(k_xy=10.0)
     with pytest.raises(ControllerConfigError, match="must be positive"):
         ControllerSettings(max_z_mps=-1.0)
+
+
+def test_mount_file(tmp_path: Path) -> None:
+    T = default_T_body_camera()
+    T[:3, 3] = [0.02, -0.01, 0.03]
+    good = tmp_path / "mount.yaml"
+    good.write_text(yaml.safe_dump({"T_body_camera": T.tolist()}))
+    assert np.allclose(load_T_body_camera(good), T)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"T_body_camera": (2 * T).tolist()}))
+    with pytest.raises(ControllerConfigError, match=r"bad\.yaml"):
+        load_T_body_camera(bad)
+    other = tmp_path / "other.yaml"
+    other.write_text("a: 1")
+    with pytest.raises(ControllerConfigError, match="no T_body_camera"):
+        load_T_body_camera(other)
+    with pytest.raises(ControllerConfigError, match="cannot read"):
+        load_T_body_camera(tmp_path / "missing.yaml")

@@ -6,8 +6,10 @@ line on stderr and the command exits with code 2.
 
 from __future__ import annotations
 
+import logging
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -111,6 +113,63 @@ def simulate(
     click.echo(f"wrote {len(scen)} frames, camera.yaml and truth.csv to {path}")
 
 
+def _warn(message: str) -> None:
+    click.echo(f"perchpose: {message}", err=True)
+
+
+@contextmanager
+def _vehicle_links(
+    target: TargetSpec,
+    mavlink_url: str | None,
+    mavlink_frame: str,
+    crazyflie_uri: str | None,
+    mount_file: str | None,
+) -> Iterator[list[Callable[[Any, float], None]]]:
+    """The per-frame hooks of the requested vehicle links; lands and closes them at the end."""
+    from perchpose.control import ControllerSettings, PerchingController, load_T_body_camera
+
+    T_body_camera = load_T_body_camera(mount_file) if mount_file else None
+    hooks: list[Callable[[Any, float], None]] = []
+    closers: list[Callable[[], None]] = []
+    pilot = None
+    try:
+        if mavlink_url is not None:
+            from perchpose.io.mavlink import LandingTargetSink
+
+            sink = LandingTargetSink(
+                mavlink_url,
+                frame=mavlink_frame,
+                T_body_camera=T_body_camera,
+                target=target,
+                report=_warn,
+            )
+            closers.append(sink.close)
+            hooks.append(sink)
+        if crazyflie_uri is not None:
+            from perchpose.io.crazyflie import connect
+
+            # cflib logs its connection failures with tracebacks; the error below says it once
+            logging.getLogger("cflib").addHandler(logging.NullHandler())
+            link = connect(crazyflie_uri, report=_warn)
+            closers.append(link.close)
+            settings = (
+                ControllerSettings()
+                if T_body_camera is None
+                else ControllerSettings(T_body_camera=T_body_camera)
+            )
+            pilot = link.pilot(controller=PerchingController(settings))
+            hooks.append(pilot)
+        try:
+            yield hooks
+        finally:
+            if pilot is not None:  # source ended, an error, or Ctrl-C: land
+                pilot.abort(pilot.last_t_s, "tracking ended")
+                pilot.land()
+    finally:
+        for close in reversed(closers):
+            close()
+
+
 @cli.command()
 @click.argument("source")
 @click.option("--camera", "camera_file", required=True, help=CAMERA_HELP)
@@ -135,6 +194,36 @@ def simulate(
     help="Also write an overlay video (.mp4 or .avi).",
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option(
+    "--mavlink",
+    "mavlink_url",
+    default=None,
+    help="Send LANDING_TARGET over this pymavlink connection, e.g. udpout:127.0.0.1:14550 "
+    "or /dev/ttyUSB0,57600.",
+)
+@click.option(
+    "--mavlink-frame",
+    type=click.Choice(["body_frd", "local_ned"]),
+    default="body_frd",
+    show_default=True,
+    help="LANDING_TARGET frame: body_frd (ArduPilot) or local_ned (PX4; uses the vehicle's "
+    "ATTITUDE and LOCAL_POSITION_NED).",
+)
+@click.option(
+    "--crazyflie",
+    "crazyflie_uri",
+    default=None,
+    help="Fly a Crazyflie onto the target with the perching controller, e.g. "
+    "radio://0/80/2M/E7E7E7E7E7.",
+)
+@click.option(
+    "--mount",
+    "mount_file",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="YAML with T_body_camera (4x4, body x forward, y left, z up); default: camera on top "
+    "looking up.",
+)
 def track(
     source: str,
     camera_file: str,
@@ -143,15 +232,30 @@ def track(
     out: str,
     overlay: str | None,
     quiet: bool,
+    mavlink_url: str | None,
+    mavlink_frame: str,
+    crazyflie_uri: str | None,
+    mount_file: str | None,
 ) -> None:
-    """Track the target in SOURCE: a folder of images, a glob, a video file or a camera index."""
+    """Track the target in SOURCE: a folder of images, a glob, a video file or a camera index.
+
+    With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
+    """
     from perchpose.track import track as run_track
 
     cam = _load_camera(camera_file)
     spec = _load_target(target_file)
-    summary = run_track(
-        source, cam, spec, out, fps=fps, overlay=overlay, progress=not quiet and sys.stderr.isatty()
-    )
+    with _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks:
+        summary = run_track(
+            source,
+            cam,
+            spec,
+            out,
+            fps=fps,
+            overlay=overlay,
+            progress=not quiet and sys.stderr.isatty(),
+            on_frame=hooks,
+        )
     stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
     click.echo(
         f"{summary.frames} frames, {summary.valid} valid ({stages}), "

@@ -32,3 +32,8 @@ class TimestampError(PerchposeError):
 
 class ScenarioError(PerchposeError):
     """A simulation scenario name or setting is unknown or invalid."""
+
+
+class LinkError(PerchposeError):
+    """A vehicle link (MAVLink, Crazyflie) cannot be set up: a missing optional dependency, a
+    malformed connection string, or a frame the link cannot serve."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,14 +40,15 @@ def track(
     overlay: str | Path | None = None,
     progress: bool = True,
     warn: Callable[[str], None] | None = None,
-    on_estimate: Callable[[Estimate], None] | None = None,
+    on_frame: Sequence[Callable[[Estimate | None, float], None]] = (),
     estimator: PerchingEstimator | None = None,
 ) -> TrackSummary:
     """Run the estimator over every frame of ``source`` and write one row per frame to ``out``.
 
     A frame that cannot be read or has the wrong size gets an invalid row and a warning; the run
     goes on. The first frame having a size other than the calibration's is an error, since then
-    every frame would be.
+    every frame would be. Each of ``on_frame`` (vehicle links) is called once per frame with the
+    estimate (None for an unreadable frame) and the frame's time.
     """
     frames = open_source(source, fps)
     est = estimator or PerchingEstimator(camera, target)
@@ -89,10 +90,10 @@ def track(
                 valid += int(estimate.valid)
                 stage_counts[estimate.stage] += 1
                 total_ms += estimate.timings.total_ms
-                if on_estimate is not None:
-                    on_estimate(estimate)
             else:
                 stage_counts[0] += 1
+            for hook in on_frame:
+                hook(estimate, frame.t_s)
             if overlay is not None and frame.image is not None:
                 if video is None:
                     h, w = frame.image.shape[:2]

@@ -1,0 +1,113 @@
+"""The target as MAVLink's LANDING_TARGET message describes it, from an ``Estimate``.
+
+Frames:
+- body FLU: the body frame of ``T_body_camera`` (x forward, y left, z up), as in
+  ``perchpose.control``.
+- body FRD: x forward, y right, z down, MAVLink's ``MAV_FRAME_BODY_FRD`` (what ArduPilot takes);
+  ``p_frd = diag(1, -1, -1) @ p_flu``.
+- local NED: the body FRD vector rotated by the vehicle's attitude ``R_ned_frd`` (roll, pitch,
+  yaw from MAVLink's ATTITUDE) and, when the vehicle's position in its local frame is known,
+  shifted by it, so x, y, z are the target's position in the vehicle's local frame (what PX4
+  takes for ``MAV_FRAME_LOCAL_NED``).
+
+``angle_x``/``angle_y`` are the target centre's angular offsets from the optical axis along the
+image's x and y axes, ``size_x``/``size_y`` the angle the largest marker spans, ``q`` the
+rotation about the frame's z axis that turns the frame's x axis onto the target's x axis.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.errors import LinkError
+from perchpose.estimator import Estimate
+
+Array = NDArray[np.float64]
+
+FRAMES = ("body_frd", "local_ned")
+R_FRD_FLU = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class LandingTarget:
+    """LANDING_TARGET's fields, SI units (metres, radians, microseconds)."""
+
+    time_usec: int
+    frame: str
+    x_m: float
+    y_m: float
+    z_m: float
+    distance_m: float
+    angle_x_rad: float
+    angle_y_rad: float
+    size_x_rad: float
+    size_y_rad: float
+    q_wxyz: tuple[float, float, float, float]
+
+
+def R_ned_frd_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Array:
+    """The vehicle's attitude as MAVLink's ATTITUDE gives it (Z-Y-X Euler angles) as a matrix
+    mapping body FRD vectors into local NED."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def landing_target(
+    estimate: Estimate,
+    T_body_camera: Array,
+    target_side_m: float,
+    *,
+    frame: str = "body_frd",
+    R_ned_frd: Array | None = None,
+    p_ned_vehicle_m: Array | None = None,
+) -> LandingTarget:
+    """LANDING_TARGET for a valid estimate; ``frame`` is ``body_frd`` or ``local_ned`` (which
+    needs ``R_ned_frd``; ``p_ned_vehicle_m`` makes the position absolute)."""
+    if frame not in FRAMES:
+        raise LinkError(f"unknown LANDING_TARGET frame {frame!r} (choose {', '.join(FRAMES)})")
+    if not estimate.valid:
+        raise LinkError(f"frame at t = {estimate.t_s:.3f} s has no valid estimate to send")
+    p_camera_m = np.array([estimate.x_cm, estimate.y_cm, estimate.z_cm]) / 100.0
+    R_body_camera = T_body_camera[:3, :3]
+    p_frd_m = R_FRD_FLU @ (R_body_camera @ p_camera_m + T_body_camera[:3, 3])
+    yaw = math.radians(estimate.yaw_deg)
+    x_target_frd = R_FRD_FLU @ R_body_camera @ np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    if frame == "local_ned":
+        if R_ned_frd is None:
+            raise LinkError("local_ned needs the vehicle's attitude (no ATTITUDE message yet)")
+        p_m = R_ned_frd @ p_frd_m
+        if p_ned_vehicle_m is not None:
+            p_m = p_m + np.asarray(p_ned_vehicle_m, dtype=float)
+        x_target = R_ned_frd @ x_target_frd
+    else:
+        p_m = p_frd_m
+        x_target = x_target_frd
+    heading = math.atan2(float(x_target[1]), float(x_target[0]))
+    distance = float(np.linalg.norm(p_camera_m))
+    depth = max(float(p_camera_m[2]), 1e-9)
+    size = 2.0 * math.atan(0.5 * target_side_m / max(distance, 1e-9))
+    return LandingTarget(
+        time_usec=round(estimate.t_s * 1e6),
+        frame=frame,
+        x_m=float(p_m[0]),
+        y_m=float(p_m[1]),
+        z_m=float(p_m[2]),
+        distance_m=distance,
+        angle_x_rad=math.atan2(float(p_camera_m[0]), depth),
+        angle_y_rad=math.atan2(float(p_camera_m[1]), depth),
+        size_x_rad=size,
+        size_y_rad=size,
+        q_wxyz=(math.cos(heading / 2.0), 0.0, 0.0, math.sin(heading / 2.0)),
+    )

@@ -1,0 +1,322 @@
+"""Sending the estimate to PX4 or ArduPilot as MAVLink LANDING_TARGET messages.
+
+Needs the ``mavlink`` extra (``pip install perchpose[mavlink]``). LANDING_TARGET's position
+fields are MAVLink 2 extensions, so this module sets ``MAVLINK20=1`` before pymavlink is
+imported (and switches pymavlink's dialect to MAVLink 2 if it was imported without it).
+
+One ``LandingTargetSink`` owns one connection. A background thread sends a HEARTBEAT every
+second (an onboard computer: ``MAV_TYPE_ONBOARD_CONTROLLER``, component
+``MAV_COMP_ID_ONBOARD_COMPUTER``), reads the vehicle's ATTITUDE and LOCAL_POSITION_NED (needed
+for ``frame="local_ned"``) and reopens a link that failed. A link that cannot be opened or goes
+down is reported once through ``report``; estimates arriving meanwhile are dropped, and tracking
+goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.control import default_T_body_camera
+from perchpose.errors import LinkError
+from perchpose.estimator import Estimate
+from perchpose.geometry import check_transform
+from perchpose.io.landing_target import (
+    FRAMES,
+    LandingTarget,
+    R_ned_frd_from_euler,
+    landing_target,
+)
+from perchpose.target import TargetSpec
+
+Array = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+URL_PREFIXES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
+# MAVLink enum values (common.xml); kept here so that the module imports without pymavlink
+MAV_FRAME_IDS = {"local_ned": 1, "body_frd": 12}
+LANDING_TARGET_TYPE_VISION_FIDUCIAL = 2
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_ACTIVE = 4
+MAV_COMP_ID_ONBOARD_COMPUTER = 191
+
+
+def mavutil_module() -> Any:
+    """pymavlink's ``mavutil``, speaking MAVLink 2."""
+    os.environ.setdefault("MAVLINK20", "1")
+    try:
+        from pymavlink import mavutil
+    except ImportError as exc:
+        raise LinkError("MAVLink needs pymavlink: pip install 'perchpose[mavlink]'") from exc
+    if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
+        os.environ["MAVLINK20"] = "1"
+        mavutil.set_dialect(mavutil.current_dialect)
+    return mavutil
+
+
+def check_url(url: str) -> str:
+    """A pymavlink connection string: ``udpout:host:port`` and the other network forms, or a
+    serial device with an optional baud rate (``/dev/ttyUSB0,57600``)."""
+    if url.startswith(URL_PREFIXES):
+        rest = url.split(":", 1)[1]
+        host, _, port = rest.rpartition(":")
+        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise LinkError(f"MAVLink URL {url!r}: expected {url.split(':', 1)[0]}:HOST:PORT")
+        return url
+    device, _, baud = url.partition(",")
+    if device.startswith(("/", "COM")) and (not baud or baud.isdigit()):
+        return url
+    raise LinkError(
+        f"MAVLink URL {url!r}: expected udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT "
+        "or a serial device such as /dev/ttyUSB0,57600"
+    )
+
+
+@dataclass
+class VehicleState:
+    """What the sink has heard from the vehicle."""
+
+    R_ned_frd: Array | None = None
+    p_ned_m: Array | None = None
+    attitude_t_s: float = float("nan")
+    position_t_s: float = float("nan")
+
+
+class LandingTargetSink:
+    """Sends one LANDING_TARGET per valid estimate over a pymavlink connection.
+
+    url : pymavlink connection string. frame : ``body_frd`` (ArduPilot) or ``local_ned`` (PX4).
+    T_body_camera : the camera's mounting on the body (FLU), default
+    ``control.default_T_body_camera()``. target : sets the angular size fields.
+    time_offset_s : added to the frame times for ``time_usec``. report : receives the one-line
+    link reports (default: the ``perchpose.io.mavlink`` logger).
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        frame: str = "body_frd",
+        T_body_camera: Array | None = None,
+        target: TargetSpec | None = None,
+        source_system: int = 1,
+        source_component: int = MAV_COMP_ID_ONBOARD_COMPUTER,
+        time_offset_s: float = 0.0,
+        heartbeat_period_s: float = 1.0,
+        retry_period_s: float = 2.0,
+        position_max_age_s: float = 1.0,
+        report: Callable[[str], None] | None = None,
+    ) -> None:
+        if frame not in FRAMES:
+            raise LinkError(f"unknown MAVLink frame {frame!r} (choose {', '.join(FRAMES)})")
+        self.url = check_url(url)
+        self.frame = frame
+        try:
+            self.T_body_camera = check_transform(
+                default_T_body_camera() if T_body_camera is None else T_body_camera,
+                "T_body_camera",
+            )
+        except ValueError as exc:
+            raise LinkError(str(exc)) from exc
+        self.target_side_m = (target or TargetSpec.paper()).markers[0].side_m
+        self.source_system = source_system
+        self.source_component = source_component
+        self.time_offset_s = time_offset_s
+        self.heartbeat_period_s = heartbeat_period_s
+        self.retry_period_s = retry_period_s
+        self.position_max_age_s = position_max_age_s
+        self.report = report or log.warning
+        self.vehicle = VehicleState()
+        self.sent = 0
+        self.dropped = 0
+        self._mavutil = mavutil_module()
+        self._lock = threading.Lock()
+        self._conn: Any = None
+        self._down_reported = False
+        self._no_attitude_reported = False
+        self._next_retry = 0.0
+        self._next_heartbeat = 0.0
+        self._stop = threading.Event()
+        self._open()
+        self._thread = threading.Thread(target=self._service, name="mavlink", daemon=True)
+        self._thread.start()
+
+    # -- the link -------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self._conn is not None
+
+    def _open(self) -> None:
+        try:
+            conn = self._mavutil.mavlink_connection(
+                self.url,
+                source_system=self.source_system,
+                source_component=self.source_component,
+                autoreconnect=False,
+            )
+        except Exception as exc:  # pymavlink raises whatever the transport raises
+            self._link_down(f"cannot open {self.url}: {exc}")
+            return
+        self._conn = conn
+        self._next_heartbeat = 0.0
+        if self._down_reported:
+            self.report(f"MAVLink {self.url}: link up again")
+            self._down_reported = False
+
+    def _link_down(self, why: str) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except Exception:  # the link is already broken; closing is best effort
+                log.debug("closing %s failed", self.url, exc_info=True)
+        self._conn = None
+        self._next_retry = time.monotonic() + self.retry_period_s
+        if not self._down_reported:
+            self.report(
+                f"MAVLink {why}; retrying every {self.retry_period_s:g} s, tracking goes on"
+            )
+            self._down_reported = True
+
+    def _send(self, send: Callable[[Any], None], what: str) -> bool:
+        with self._lock:
+            if self._conn is None:
+                return False
+            try:
+                send(self._conn.mav)
+            except OSError as exc:
+                self._link_down(f"{self.url} down while sending {what}: {exc}")
+                return False
+        return True
+
+    def _service(self) -> None:
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if self._conn is None:
+                if now >= self._next_retry:
+                    with self._lock:
+                        self._open()
+            else:
+                if now >= self._next_heartbeat:
+                    self._next_heartbeat = now + self.heartbeat_period_s
+                    self._send(self._heartbeat, "HEARTBEAT")
+                self._receive()
+            self._stop.wait(0.01)
+
+    def _heartbeat(self, mav: Any) -> None:
+        mav.heartbeat_send(
+            MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
+        )
+
+    def _receive(self) -> None:
+        for _ in range(100):
+            with self._lock:
+                if self._conn is None:
+                    return
+                try:
+                    msg = self._conn.recv_match(
+                        type=["ATTITUDE", "LOCAL_POSITION_NED"], blocking=False
+                    )
+                except OSError as exc:
+                    self._link_down(f"{self.url} down while reading: {exc}")
+                    return
+            if msg is None:
+                return
+            now = time.monotonic()
+            if msg.get_type() == "ATTITUDE":
+                self.vehicle.R_ned_frd = R_ned_frd_from_euler(msg.roll, msg.pitch, msg.yaw)
+                self.vehicle.attitude_t_s = now
+            else:
+                self.vehicle.p_ned_m = np.array([msg.x, msg.y, msg.z], dtype=float)
+                self.vehicle.position_t_s = now
+
+    # -- estimates ------------------------------------------------------------------------
+
+    def message(self, estimate: Estimate) -> LandingTarget | None:
+        """The LANDING_TARGET this sink would send for ``estimate`` now (None: nothing)."""
+        if not estimate.valid:
+            return None
+        R_ned_frd = p_ned = None
+        if self.frame == "local_ned":
+            R_ned_frd = self.vehicle.R_ned_frd
+            if R_ned_frd is None:
+                if not self._no_attitude_reported:
+                    self.report(
+                        f"MAVLink {self.url}: no ATTITUDE from the vehicle yet; local_ned "
+                        "estimates are held back until it arrives"
+                    )
+                    self._no_attitude_reported = True
+                return None
+            age = time.monotonic() - self.vehicle.position_t_s
+            if self.vehicle.p_ned_m is not None and age < self.position_max_age_s:
+                p_ned = self.vehicle.p_ned_m
+        shifted = replace(estimate, t_s=estimate.t_s + self.time_offset_s)
+        return landing_target(
+            shifted,
+            self.T_body_camera,
+            self.target_side_m,
+            frame=self.frame,
+            R_ned_frd=R_ned_frd,
+            p_ned_vehicle_m=p_ned,
+        )
+
+    def send(self, estimate: Estimate | None) -> bool:
+        """Send LANDING_TARGET for a valid estimate; True if a message went out."""
+        if estimate is None:
+            return False
+        msg = self.message(estimate)
+        if msg is None:
+            return False
+        frame_id = MAV_FRAME_IDS[msg.frame]
+
+        def send(mav: Any) -> None:
+            mav.landing_target_send(
+                msg.time_usec,
+                0,
+                frame_id,
+                msg.angle_x_rad,
+                msg.angle_y_rad,
+                msg.distance_m,
+                msg.size_x_rad,
+                msg.size_y_rad,
+                msg.x_m,
+                msg.y_m,
+                msg.z_m,
+                list(msg.q_wxyz),
+                LANDING_TARGET_TYPE_VISION_FIDUCIAL,
+                1,
+            )
+
+        if self._send(send, "LANDING_TARGET"):
+            self.sent += 1
+            return True
+        self.dropped += 1
+        return False
+
+    def __call__(self, estimate: Estimate | None, t_s: float) -> None:
+        """The per-frame hook ``track`` calls."""
+        self.send(estimate)
+
+    def close(self) -> None:
+        """Stop the service thread and close the connection."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+
+    def __enter__(self) -> LandingTargetSink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,248 @@
+"""PerchingPilot against cflib's own Crazyflie and Commander over a fake radio link.
+
+The fake link stands in for the radio only: it records the CRTP packets cflib builds and answers
+the firmware's protocol-version handshake, so cflib picks today's setpoint encodings.
+"""
+
+import math
+import queue
+import struct
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from cflib.crazyflie import Crazyflie
+from cflib.crtp.crtpstack import CRTPPacket, CRTPPort
+
+from perchpose import CameraModel, PerchingEstimator, TargetSpec
+from perchpose.cli import main
+from perchpose.control import PerchingController
+from perchpose.errors import LinkError
+from perchpose.estimator import Estimate, Timings
+from perchpose.io.crazyflie import PerchingPilot, PilotSettings, connect
+
+PROTOCOL_VERSION = 10
+
+
+class FakeRadioLink:
+    """The lowest layer cflib talks to: a queue of incoming packets and a list of sent ones."""
+
+    needs_resending = False
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[int, int, bytes]] = []
+        self.incoming: queue.Queue[CRTPPacket] = queue.Queue()
+
+    def send_packet(self, pk: CRTPPacket) -> None:
+        self.sent.append((pk.port, pk.channel, bytes(pk.data)))
+        if pk.port == CRTPPort.LINKCTRL and pk.channel == 1:  # link service "source" request
+            self._reply(CRTPPort.LINKCTRL, 1, b"Bitcraze Crazyflie\x00")
+        elif pk.port == CRTPPort.PLATFORM and pk.channel == 1 and pk.data[0] == 0:
+            self._reply(CRTPPort.PLATFORM, 1, bytes([0, PROTOCOL_VERSION]))
+
+    def _reply(self, port: int, channel: int, data: bytes) -> None:
+        pk = CRTPPacket()
+        pk.set_header(port, channel)
+        pk.data = data
+        self.incoming.put(pk)
+
+    def receive_packet(self, wait: float = 0) -> CRTPPacket | None:
+        try:
+            return self.incoming.get(timeout=max(wait, 0.001))
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        pass
+
+
+def decode(packet: tuple[int, int, bytes]) -> tuple[Any, ...]:
+    """A commander packet as (kind, values...)."""
+    port, channel, data = packet
+    assert port == CRTPPort.COMMANDER_GENERIC
+    if channel == 1:
+        kind, remain_ms = struct.unpack("<BI", data)
+        assert kind == 0
+        return ("notify_stop", remain_ms)
+    if data[0] == 0:
+        return ("stop",)
+    kind, vx, vy, vz, yaw_rate = struct.unpack("<Bffff", data)
+    assert kind == 8  # TYPE_VELOCITY_WORLD
+    return ("velocity", vx, vy, vz, yaw_rate)
+
+
+@pytest.fixture
+def crazyflie() -> tuple[Crazyflie, FakeRadioLink]:
+    link = FakeRadioLink()
+    cf = Crazyflie(link=link)
+    done: queue.Queue[bool] = queue.Queue()
+    cf.platform.fetch_platform_informations(lambda: done.put(True))
+    assert done.get(timeout=5.0)
+    assert cf.platform.get_protocol_version() == PROTOCOL_VERSION
+    link.sent.clear()
+    yield cf, link
+    cf.incoming.stop()
+
+
+@pytest.fixture(scope="module")
+def estimates(approach_fpv_dir: Path) -> list[Estimate]:
+    """Five blank frames, then the rendered approach (with its 0.4 s dropout), 30 fps."""
+    camera = CameraModel.load(approach_fpv_dir / "camera.yaml")
+    estimator = PerchingEstimator(camera, TargetSpec.paper())
+    frames = sorted(approach_fpv_dir.glob("frame_*.png"))
+    blank = np.full((camera.height_px, camera.width_px), 128, np.uint8)
+    images = [blank] * 5 + [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in frames]
+    return [estimator.update(image, i / 30.0) for i, image in enumerate(images)]
+
+
+def level() -> np.ndarray:
+    return np.eye(3)
+
+
+def fly(
+    cf: Crazyflie, estimates: list[Estimate], settings: PilotSettings | None = None
+) -> tuple[PerchingPilot, list[Any]]:
+    pilot = PerchingPilot(cf.commander, level, settings=settings, report=lambda _m: None)
+    pilot.watch_link(cf)
+    steps = [pilot.update(e, e.t_s) for e in estimates]
+    return pilot, steps
+
+
+def test_setpoints_are_the_controllers(
+    crazyflie: tuple[Crazyflie, FakeRadioLink], estimates: list[Estimate]
+) -> None:
+    cf, link = crazyflie
+    pilot, steps = fly(cf, estimates)
+    packets = [decode(p) for p in link.sent]
+    assert all(p[0] == "velocity" for p in packets)
+    # nothing before the first valid estimate, then one setpoint per frame
+    first = next(i for i, e in enumerate(estimates) if e.valid)
+    assert first >= 5
+    assert all(s.v_mps is None for s in steps[:first])
+    assert len(packets) == len(estimates) - first
+    reference = PerchingController()
+    for estimate, packet in zip(estimates[first:], packets, strict=True):
+        command = reference.update(estimate, estimate.t_s, np.eye(3))
+        assert packet[1:4] == pytest.approx(command.v_mps, abs=1e-6)
+        assert packet[4] == pytest.approx(math.degrees(command.yaw_rate_rad_s), abs=1e-4)
+    # the target climbs into view: the vehicle rises towards it
+    assert max(p[3] for p in packets) > 0.05
+    # the dropout: held in place while the target is lost, then back to perching
+    lost = [s for s in steps if s.state == "lost"]
+    assert lost
+    assert all(s.v_mps == (0.0, 0.0, 0.0) for s in lost)
+    assert steps[-1].state == "perching"
+    assert [t[1:] for t in pilot.transitions] == [
+        ("waiting", "perching"),
+        ("perching", "lost"),
+        ("lost", "perching"),
+    ]
+
+
+def test_a_long_loss_lands_and_then_stays_silent(
+    crazyflie: tuple[Crazyflie, FakeRadioLink], estimates: list[Estimate]
+) -> None:
+    cf, link = crazyflie
+    settings = PilotSettings(land_after_lost_s=0.1, land_duration_s=0.1)
+    pilot, steps = fly(cf, estimates, settings)
+    packets = [decode(p) for p in link.sent]
+    states = [t[2] for t in pilot.transitions]
+    assert states == ["perching", "lost", "landing", "landed"]
+    landing = [s for s in steps if s.state == "landing"]
+    assert landing
+    assert all(s.v_mps == (0.0, 0.0, -settings.land_speed_mps) for s in landing)
+    # a stop setpoint and the priority release end the flight; the target's return is ignored
+    assert packets[-2:] == [("stop",), ("notify_stop", 0)]
+    landed_at = next(i for i, s in enumerate(steps) if s.state == "landed")
+    assert any(e.valid for e in estimates[landed_at + 1 :])
+    assert all(s.v_mps is None for s in steps[landed_at + 1 :])
+
+
+def test_link_loss_stops_all_setpoints(
+    crazyflie: tuple[Crazyflie, FakeRadioLink], estimates: list[Estimate]
+) -> None:
+    cf, link = crazyflie
+    pilot = PerchingPilot(cf.commander, level, report=lambda _m: None)
+    pilot.watch_link(cf)
+    half = len(estimates) // 2
+    for e in estimates[:half]:
+        pilot.update(e, e.t_s)
+    sent_before = len(link.sent)
+    assert sent_before > 0
+    cf.connection_lost.call("radio://0/80/2M/E7E7E7E7E7", "Too many packets lost")
+    assert pilot.state == "link_lost"
+    for e in estimates[half:]:
+        pilot.update(e, e.t_s)
+    assert len(link.sent) == sent_before
+
+
+def test_abort_lands_in_real_time(
+    crazyflie: tuple[Crazyflie, FakeRadioLink], estimates: list[Estimate]
+) -> None:
+    cf, link = crazyflie
+    heights = iter([0.5, 0.4, 0.3, 0.2, 0.1, 0.05])
+    pilot = PerchingPilot(
+        cf.commander, level, height_m=lambda: next(heights), report=lambda _m: None
+    )
+    for e in estimates[:30]:
+        pilot.update(e, e.t_s)
+    link.sent.clear()
+    now = [100.0]
+
+    def sleep(dt: float) -> None:
+        now[0] += dt
+
+    pilot.abort(estimates[29].t_s, "Ctrl-C")
+    pilot.land(clock=lambda: now[0], sleep=sleep)
+    packets = [decode(p) for p in link.sent]
+    assert packets[:5] == [("velocity", 0.0, 0.0, pytest.approx(-0.2), 0.0)] * 5
+    assert packets[5:] == [("stop",), ("notify_stop", 0)]
+    assert pilot.state == "landed"
+
+
+def test_commit_without_sight_ends_perched(crazyflie: tuple[Crazyflie, FakeRadioLink]) -> None:
+    """Close under the plate the camera sees nothing: the final climb runs, then motors stop."""
+    cf, link = crazyflie
+    settings = PilotSettings(perched_after_commit_s=0.5)
+    pilot = PerchingPilot(cf.commander, level, settings=settings, report=lambda _m: None)
+    # the magnet 3 cm under the target centre, the camera still seeing it
+    near = Estimate(0.0, True, 3, -1.5, 0.0, 1.0, 0.0, (), Timings(0, 0, 0, 0))
+    pilot.update(near, 0.0)
+    for i in range(1, 30):
+        pilot.update(None, i / 30.0)
+    packets = [decode(p) for p in link.sent]
+    climbs = [p for p in packets if p[0] == "velocity"]
+    assert all(p[3] == pytest.approx(pilot.controller.settings.commit_speed_mps) for p in climbs)
+    assert packets[-2:] == [("stop",), ("notify_stop", 0)]
+    assert pilot.state == "perched"
+
+
+def test_bad_uri_and_settings() -> None:
+    with pytest.raises(LinkError, match="radio://"):
+        connect("http://example.com")
+    with pytest.raises(LinkError, match="land_speed_mps"):
+        PilotSettings(land_speed_mps=0.0)
+
+
+def test_cli_without_a_radio_is_one_line(
+    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    uri = "radio://0/80/2M/E7E7E7E7E7"
+    code = main(
+        [
+            "track",
+            str(approach_fpv_dir),
+            "--camera",
+            "preset:fpv",
+            "--out",
+            str(tmp_path / "p.csv"),
+            "--crazyflie",
+            uri,
+        ]
+    )
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert uri in err[0]

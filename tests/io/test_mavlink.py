@@ -1,0 +1,205 @@
+"""LANDING_TARGET over a real pymavlink UDP endpoint on the loopback interface."""
+
+import math
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from perchpose.cli import main
+from perchpose.errors import LinkError
+from perchpose.estimator import Estimate, Timings
+from perchpose.io.mavlink import LandingTargetSink, mavutil_module
+from perchpose.io.sinks import read_track_csv
+
+MOUNT_M = np.array([0.015, 0.0, 0.012])  # control.default_T_body_camera's offset
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Receiver:
+    """A vehicle-side endpoint: collects what arrives, optionally streams its own state."""
+
+    def __init__(
+        self,
+        port: int,
+        attitude: tuple[float, float, float] | None = None,
+        p_ned_m: tuple[float, float, float] | None = None,
+    ) -> None:
+        self.conn = mavutil_module().mavlink_connection(f"udpin:127.0.0.1:{port}")
+        self.messages: list[Any] = []
+        self.attitude = attitude
+        self.p_ned_m = p_ned_m
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.conn.recv_match(blocking=True, timeout=0.05)
+            if msg is not None and msg.get_type() != "BAD_DATA":
+                self.messages.append(msg)
+            if self.messages and self.attitude is not None:
+                roll, pitch, yaw = self.attitude
+                self.conn.mav.attitude_send(0, roll, pitch, yaw, 0.0, 0.0, 0.0)
+                if self.p_ned_m is not None:
+                    self.conn.mav.local_position_ned_send(0, *self.p_ned_m, 0.0, 0.0, 0.0)
+
+    def of_type(self, name: str) -> list[Any]:
+        return [m for m in self.messages if m.get_type() == name]
+
+    def stop(self) -> None:
+        time.sleep(0.3)  # the last datagrams
+        self._stop.set()
+        self._thread.join()
+        self.conn.close()
+
+
+def frd_from_camera(x_cm: float, y_cm: float, z_cm: float) -> np.ndarray:
+    p_flu = np.array([x_cm, y_cm, z_cm]) / 100.0 + MOUNT_M
+    return np.array([p_flu[0], -p_flu[1], -p_flu[2]])
+
+
+def test_track_sends_one_landing_target_per_valid_row(
+    approach_fpv_dir: Path, tmp_path: Path
+) -> None:
+    port = free_udp_port()
+    receiver = Receiver(port)
+    out = tmp_path / "poses.csv"
+    try:
+        code = main(
+            [
+                "track",
+                str(approach_fpv_dir),
+                "--camera",
+                str(approach_fpv_dir / "camera.yaml"),
+                "--out",
+                str(out),
+                "--quiet",
+                "--mavlink",
+                f"udpout:127.0.0.1:{port}",
+            ]
+        )
+    finally:
+        receiver.stop()
+    assert code == 0
+    rows = [r for r in read_track_csv(out) if r["valid"] == "1"]
+    assert 0 < len(rows) < len(read_track_csv(out))  # the dropout leaves invalid rows
+    sent = receiver.of_type("LANDING_TARGET")
+    assert len(sent) == len(rows)
+    for row, msg in zip(rows, sent, strict=True):
+        assert msg.time_usec == round(float(row["t_s"]) * 1e6)
+        assert msg.frame == 12  # MAV_FRAME_BODY_FRD
+        assert msg.type == 2  # LANDING_TARGET_TYPE_VISION_FIDUCIAL
+        assert msg.position_valid == 1
+        x, y, z = (float(row[k]) for k in ("x_cm", "y_cm", "z_cm"))
+        assert [msg.x, msg.y, msg.z] == pytest.approx(frd_from_camera(x, y, z), abs=1e-3)
+        assert msg.distance == pytest.approx(math.hypot(x, y, z) / 100.0, abs=1e-3)
+        assert msg.distance > 0
+        assert msg.angle_x == pytest.approx(math.atan2(x, z), abs=1e-4)
+        assert msg.angle_y == pytest.approx(math.atan2(y, z), abs=1e-4)
+        # the target's heading in FRD is minus its yaw in the upward camera
+        heading = -math.radians(float(row["yaw_deg"]))
+        q = np.array(msg.q)
+        assert abs(float(q @ [math.cos(heading / 2), 0, 0, math.sin(heading / 2)])) == (
+            pytest.approx(1.0, abs=1e-5)
+        )
+    beats = receiver.of_type("HEARTBEAT")
+    assert beats
+    assert beats[0].type == 18  # MAV_TYPE_ONBOARD_CONTROLLER
+    assert beats[0].get_srcComponent() == 191  # MAV_COMP_ID_ONBOARD_COMPUTER
+
+
+def estimate_at(t_s: float, xyz_cm: tuple[float, float, float], yaw_deg: float) -> Estimate:
+    return Estimate(t_s, True, 1, *xyz_cm, yaw_deg, (), Timings(0, 0, 0, 0))
+
+
+def test_local_ned_uses_the_vehicles_attitude_and_position() -> None:
+    port = free_udp_port()
+    roll, pitch, yaw = 0.1, -0.05, 1.2
+    p_vehicle = (3.0, -2.0, -1.5)
+    receiver = Receiver(port, attitude=(roll, pitch, yaw), p_ned_m=p_vehicle)
+    reports: list[str] = []
+    sink = LandingTargetSink(f"udpout:127.0.0.1:{port}", frame="local_ned", report=reports.append)
+    try:
+        deadline = time.monotonic() + 5.0
+        while sink.vehicle.p_ned_m is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert sink.vehicle.R_ned_frd is not None
+        assert sink.send(estimate_at(2.5, (4.0, -3.0, 80.0), 30.0))
+    finally:
+        sink.close()
+        receiver.stop()
+    (msg,) = receiver.of_type("LANDING_TARGET")
+    R_ned_frd = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
+    expected = R_ned_frd @ frd_from_camera(4.0, -3.0, 80.0) + np.array(p_vehicle)
+    assert msg.frame == 1  # MAV_FRAME_LOCAL_NED
+    assert [msg.x, msg.y, msg.z] == pytest.approx(expected, abs=1e-4)
+    assert msg.time_usec == 2_500_000
+    assert not reports
+
+
+def test_local_ned_waits_for_attitude() -> None:
+    reports: list[str] = []
+    sink = LandingTargetSink(
+        f"udpout:127.0.0.1:{free_udp_port()}", frame="local_ned", report=reports.append
+    )
+    try:
+        assert not sink.send(estimate_at(0.0, (0.0, 0.0, 50.0), 0.0))
+        assert not sink.send(estimate_at(0.1, (0.0, 0.0, 50.0), 0.0))
+    finally:
+        sink.close()
+    assert len(reports) == 1
+    assert "ATTITUDE" in reports[0]
+
+
+def test_a_link_that_cannot_open_is_reported_once_and_tracking_goes_on() -> None:
+    reports: list[str] = []
+    sink = LandingTargetSink(
+        "/dev/perchpose-no-such-port,57600", retry_period_s=0.05, report=reports.append
+    )
+    try:
+        for i in range(5):
+            assert not sink.send(estimate_at(i / 30, (0.0, 0.0, 50.0), 0.0))
+            time.sleep(0.06)  # retries happen meanwhile
+    finally:
+        sink.close()
+    assert sink.dropped == 5
+    assert len(reports) == 1
+    assert "/dev/perchpose-no-such-port" in reports[0]
+
+
+@pytest.mark.parametrize("url", ["udpout:127.0.0.1", "udpout:host:99999", "nonsense", ""])
+def test_bad_urls_are_refused(url: str) -> None:
+    with pytest.raises(LinkError, match="MAVLink URL"):
+        LandingTargetSink(url)
+
+
+def test_cli_reports_a_bad_url(
+    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(
+        [
+            "track",
+            str(approach_fpv_dir),
+            "--camera",
+            "preset:fpv",
+            "--out",
+            str(tmp_path / "p.csv"),
+            "--mavlink",
+            "udpout:localhost",
+        ]
+    )
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "udpout:localhost" in err[0]
