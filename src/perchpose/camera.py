@@ -170,7 +170,10 @@ class CameraModel:
             t2 = theta * theta
             f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
             df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-            theta = theta - f / np.where(np.abs(df) < 1e-9, 1e-9, df)
+            step = f / np.where(np.abs(df) < 1e-9, 1e-9, df)
+            theta = theta - step
+            if not np.any(np.abs(step) > 1e-13):  # converged (NaN steps stop it too)
+                break
         phi = np.arctan2(y, x)
         s = np.sin(theta)
         return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(theta)], axis=1)

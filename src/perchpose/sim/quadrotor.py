@@ -106,6 +106,8 @@ class Quadrotor:
     def __post_init__(self) -> None:
         self._mix = mixer(self.params)
         self._unmix = np.linalg.inv(self._mix)
+        self._mix_rows = self._mix.tolist()
+        self._unmix_rows = self._unmix.tolist()
         self.thrust_n = np.full(4, self.params.weight_n / 4)  # start in hover
 
     @staticmethod
@@ -131,56 +133,124 @@ class Quadrotor:
         return float(min(1.5, 1.0 / max(1e-3, 1.0 - ratio * ratio)))
 
     def motor_commands(self, v_sp_mps: Array, yaw_rate_sp: float, v_estimate_mps: Array) -> Array:
-        """The onboard loops: world velocity setpoint and yaw rate -> motor thrust commands."""
+        """The onboard loops: world velocity setpoint and yaw rate -> motor thrust commands.
+
+        Written out in scalars: it runs at the physics rate, where numpy's per-call overhead on
+        3-vectors costs more than the arithmetic.
+        """
         p, g = self.params, self.gains
-        a_des = g.k_velocity * (np.asarray(v_sp_mps) - v_estimate_mps)
-        f_des = p.mass_kg * (a_des + np.array([0.0, 0.0, GRAVITY_MPS2]))
+        vsx, vsy, vsz = (float(c) for c in v_sp_mps)
+        vex, vey, vez = (float(c) for c in v_estimate_mps)
+        m = p.mass_kg
+        fx = m * g.k_velocity * (vsx - vex)
+        fy = m * g.k_velocity * (vsy - vey)
+        fz = m * (g.k_velocity * (vsz - vez) + GRAVITY_MPS2)
         # limit the tilt of the thrust vector
-        horizontal = math.hypot(f_des[0], f_des[1])
-        max_h = max(f_des[2], 0.1 * p.weight_n) * math.tan(g.max_tilt_rad)
+        horizontal = math.hypot(fx, fy)
+        max_h = max(fz, 0.1 * p.weight_n) * math.tan(g.max_tilt_rad)
         if horizontal > max_h:
-            f_des[:2] *= max_h / horizontal
-        z_b = f_des / np.linalg.norm(f_des)
-        x_c = np.array([math.cos(self.yaw_rad), math.sin(self.yaw_rad), 0.0])
-        y_b = np.cross(z_b, x_c)
-        y_b /= np.linalg.norm(y_b)
-        R_des = np.stack([np.cross(y_b, z_b), y_b, z_b], axis=1)
-        thrust = float(f_des @ self.R_world_body[:, 2])
-        # attitude error (vee of the skew part of R_des^T R), body frame
-        E = R_des.T @ self.R_world_body - self.R_world_body.T @ R_des
-        e_att = 0.5 * np.array([E[2, 1], E[0, 2], E[1, 0]])
-        rate_sp = np.clip(-g.k_attitude * e_att, -g.max_rate_rad_s, g.max_rate_rad_s)
-        rate_sp[2] = yaw_rate_sp
-        inertia = np.array(p.inertia_kg_m2)
-        k = np.array([g.k_rate, g.k_rate, g.k_yaw_rate]) * inertia / 1.66e-5
-        torque = k * (rate_sp - self.omega_rad_s) + np.cross(
-            self.omega_rad_s, inertia * self.omega_rad_s
+            fx *= max_h / horizontal
+            fy *= max_h / horizontal
+        norm = math.sqrt(fx * fx + fy * fy + fz * fz)
+        zx, zy, zz = fx / norm, fy / norm, fz / norm
+        R = self.R_world_body.tolist()
+        yaw = math.atan2(R[1][0], R[0][0])
+        cx, cy = math.cos(yaw), math.sin(yaw)
+        # y_b = z_b x x_c, normalised; x_b = y_b x z_b
+        yx, yy, yz = -zz * cy, zz * cx, zx * cy - zy * cx
+        n = math.sqrt(yx * yx + yy * yy + yz * yz)
+        yx, yy, yz = yx / n, yy / n, yz / n
+        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+        des = ((xx, xy, xz), (yx, yy, yz), (zx, zy, zz))  # columns of R_des
+        cols = (
+            (R[0][0], R[1][0], R[2][0]),
+            (R[0][1], R[1][1], R[2][1]),
+            (R[0][2], R[1][2], R[2][2]),
         )
-        wrench = np.array([max(thrust, 0.0), *torque])
-        return np.asarray(np.clip(self._unmix @ wrench, 0.0, p.max_thrust_n), np.float64)
+
+        def a(i: int, j: int) -> float:  # (R_des^T R)[i, j]
+            d, c = des[i], cols[j]
+            return float(d[0] * c[0] + d[1] * c[1] + d[2] * c[2])
+
+        thrust = fx * cols[2][0] + fy * cols[2][1] + fz * cols[2][2]
+        # attitude error: vee of the skew part of R_des^T R, body frame
+        e_x = 0.5 * (a(2, 1) - a(1, 2))
+        e_y = 0.5 * (a(0, 2) - a(2, 0))
+        lim = g.max_rate_rad_s
+        rate_x = min(lim, max(-lim, -g.k_attitude * e_x))
+        rate_y = min(lim, max(-lim, -g.k_attitude * e_y))
+        ix, iy, iz = p.inertia_kg_m2
+        wx, wy, wz = self.omega_rad_s.tolist()
+        hx, hy, hz = ix * wx, iy * wy, iz * wz  # angular momentum
+        tau_x = g.k_rate * ix / 1.66e-5 * (rate_x - wx) + (wy * hz - wz * hy)
+        tau_y = g.k_rate * iy / 1.66e-5 * (rate_y - wy) + (wz * hx - wx * hz)
+        tau_z = g.k_yaw_rate * iz / 1.66e-5 * (float(yaw_rate_sp) - wz) + (wx * hy - wy * hx)
+        wrench = (max(thrust, 0.0), tau_x, tau_y, tau_z)
+        top = p.max_thrust_n
+        return np.array(
+            [
+                min(top, max(0.0, sum(u * w for u, w in zip(row, wrench, strict=True))))
+                for row in self._unmix_rows
+            ]
+        )
 
     def step(self, dt_s: float, motor_cmd_n: Array, force_world_n: Array | None = None) -> None:
-        """Advance ``dt_s`` seconds (semi-implicit Euler)."""
+        """Advance ``dt_s`` seconds (semi-implicit Euler), in scalars as ``motor_commands``."""
         p = self.params
         alpha = min(1.0, dt_s / p.motor_tau_s)
-        self.thrust_n = self.thrust_n + alpha * (np.asarray(motor_cmd_n) - self.thrust_n)
-        wrench = self._mix @ self.thrust_n
-        thrust = wrench[0] * self.ceiling_factor()
-        force = self.R_world_body[:, 2] * thrust - p.drag_n_s_per_m * self.v_mps
-        force = force + np.array([0.0, 0.0, -p.weight_n])
-        if force_world_n is not None:
-            force = force + force_world_n
-        self.v_mps = self.v_mps + dt_s * force / p.mass_kg
-        self.p_m = self.p_m + dt_s * self.v_mps
-        inertia = np.array(p.inertia_kg_m2)
-        omega_dot = (wrench[1:] - np.cross(self.omega_rad_s, inertia * self.omega_rad_s)) / inertia
-        self.omega_rad_s = self.omega_rad_s + dt_s * omega_dot
-        w = self.omega_rad_s * dt_s
-        angle = float(np.linalg.norm(w))
+        f = [
+            fi + alpha * (ci - fi)
+            for fi, ci in zip(self.thrust_n.tolist(), np.asarray(motor_cmd_n).tolist(), strict=True)
+        ]
+        thrust, tau_x, tau_y, tau_z = (
+            sum(u * fi for u, fi in zip(row, f, strict=True)) for row in self._mix_rows
+        )
+        thrust *= self.ceiling_factor()
+        R = self.R_world_body.tolist()
+        vx, vy, vz = self.v_mps.tolist()
+        ex, ey, ez = (
+            (0.0, 0.0, 0.0) if force_world_n is None else np.asarray(force_world_n).tolist()
+        )
+        k = dt_s / p.mass_kg
+        drag = p.drag_n_s_per_m
+        vx += k * (R[0][2] * thrust - drag * vx + ex)
+        vy += k * (R[1][2] * thrust - drag * vy + ey)
+        vz += k * (R[2][2] * thrust - drag * vz - p.weight_n + ez)
+        px, py, pz = self.p_m.tolist()
+        self.p_m = np.array([px + dt_s * vx, py + dt_s * vy, pz + dt_s * vz])
+        self.v_mps = np.array([vx, vy, vz])
+        self.thrust_n = np.array(f)
+        ix, iy, iz = p.inertia_kg_m2
+        wx, wy, wz = self.omega_rad_s.tolist()
+        hx, hy, hz = ix * wx, iy * wy, iz * wz
+        wx, wy, wz = (
+            wx + dt_s * (tau_x - (wy * hz - wz * hy)) / ix,
+            wy + dt_s * (tau_y - (wz * hx - wx * hz)) / iy,
+            wz + dt_s * (tau_z - (wx * hy - wy * hx)) / iz,
+        )
+        self.omega_rad_s = np.array([wx, wy, wz])
+        angle = dt_s * math.sqrt(wx * wx + wy * wy + wz * wz)
         if angle > 0:
-            axis = w / angle
-            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-            dR = np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * (K @ K)
-            self.R_world_body = self.R_world_body @ dR
-            u, _, vt = np.linalg.svd(self.R_world_body)  # keep it a rotation
-            self.R_world_body = u @ vt
+            # R <- R @ exp([w dt]x) (Rodrigues), then Gram-Schmidt on the columns
+            ax, ay, az = (dt_s * c / angle for c in (wx, wy, wz))
+            sa, ca = math.sin(angle), 1.0 - math.cos(angle)
+            dR = (
+                (1 - ca * (ay * ay + az * az), -sa * az + ca * ax * ay, sa * ay + ca * ax * az),
+                (sa * az + ca * ax * ay, 1 - ca * (ax * ax + az * az), -sa * ax + ca * ay * az),
+                (-sa * ay + ca * ax * az, sa * ax + ca * ay * az, 1 - ca * (ax * ax + ay * ay)),
+            )
+            M = [[sum(R[i][k] * dR[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+            c0 = [M[0][0], M[1][0], M[2][0]]
+            n0 = math.sqrt(sum(c * c for c in c0))
+            c0 = [c / n0 for c in c0]
+            c1 = [M[0][1], M[1][1], M[2][1]]
+            d = sum(a * b for a, b in zip(c0, c1, strict=True))
+            c1 = [b - d * a for a, b in zip(c0, c1, strict=True)]
+            n1 = math.sqrt(sum(c * c for c in c1))
+            c1 = [c / n1 for c in c1]
+            c2 = [
+                c0[1] * c1[2] - c0[2] * c1[1],
+                c0[2] * c1[0] - c0[0] * c1[2],
+                c0[0] * c1[1] - c0[1] * c1[0],
+            ]
+            self.R_world_body = np.array([c0, c1, c2]).T

@@ -8,6 +8,7 @@ noise, JPEG, occluders) are applied after.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Generic, Protocol, TypeVar
 
@@ -148,40 +149,48 @@ class Renderer(Generic[P]):
         of the camera; a lens whose border bends the sheet's edge outside the sampled outline
         falls back to the whole frame.
         """
+        return self._trace(T_camera_target, math.nan)
+
+    def _trace(self, T_camera_target: Array, off_sheet: float) -> NDArray[np.float32]:
+        """``reflectance`` with ``off_sheet`` where a ray misses the sheet."""
         T = check_transform(T_camera_target, "T_camera_target")
         n = self.supersample
         w, h = self.camera.size
-        out = np.full((h, n, w, n), np.nan, dtype=np.float32)
+        out = np.full((h, n, w, n), off_sheet, dtype=np.float32)
         box = self._sheet_pixel_box(T)
         x0, y0, x1, y1 = box if box is not None else (0, 0, w, h)
         if x1 <= x0 or y1 <= y0:
             return out
         rays = self._camera_rays().reshape(h * n, w * n, 3)[y0 * n : y1 * n, x0 * n : x1 * n]
-        rays = rays.reshape(-1, 3)
         R = T[:3, :3]
-        t = T[:3, 3]
-        o_t = -R.T @ t  # camera centre in the target frame
-        d = rays @ R.astype(np.float32)  # rays in the target frame: (R^T d)^T = d^T R
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = np.float32(-o_t[2]) / d[:, 2]
-        lam[~(lam > 0)] = np.nan  # rays parallel to or away from the plane see the surround
-        x = np.float32(o_t[0]) + lam * d[:, 0]
-        y = np.float32(o_t[1]) + lam * d[:, 1]
+        o_t = -R.T @ T[:3, 3]  # camera centre in the target frame
         tex, texel = self.target.texture
-        n_tex = tex.shape[0]
-        # remap's nearest lookup rounds, so texel j is [j - 0.5, j + 0.5) in map coordinates
-        map_u = x * np.float32(1.0 / texel) + np.float32(n_tex / 2 - 0.5)
-        map_v = y * np.float32(-1.0 / texel) + np.float32(n_tex / 2 - 0.5)
-        shape = ((y1 - y0) * n, (x1 - x0) * n)
+        c = tex.shape[0] / 2 - 0.5
+        # A ray d (camera frame) meets the plane z = 0 at o + lam R^T d with lam = -o_z / d_z;
+        # in homogeneous form (o_x d_z - o_z d_x, o_y d_z - o_z d_y, d_z) with d = R^T d, and
+        # then scaled to texture coordinates: one 3x3 matrix for every pixel. remap's nearest
+        # lookup rounds, so texel j is [j - 0.5, j + 0.5) in map coordinates.
+        to_plane = np.array([[-o_t[2], 0.0, o_t[0]], [0.0, -o_t[2], o_t[1]], [0.0, 0.0, 1.0]])
+        to_texture = np.array([[1.0 / texel, 0.0, c], [0.0, -1.0 / texel, c], [0.0, 0.0, 1.0]])
+        A = (to_texture @ to_plane @ R.T).astype(np.float32)
+        uvw = cv2.transform(np.ascontiguousarray(rays), A)
+        wz = uvw[..., 2]
+        # rays parallel to or away from the plane (lam <= 0) see the surround
+        misses = ~(wz * np.float32(o_t[2]) < 0)
+        wz[misses] = np.float32(1.0)
+        map_u = np.asarray(uvw[..., 0] / wz, np.float32)
+        map_v = np.asarray(uvw[..., 1] / wz, np.float32)
+        map_u[misses] = np.float32(-1e6)
+        map_v[misses] = np.float32(-1e6)
         refl = cv2.remap(
             tex,
-            map_u.reshape(shape),
-            map_v.reshape(shape),
+            map_u,
+            map_v,
             cv2.INTER_NEAREST,
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=-1.0,
         )
-        refl[refl < 0] = np.nan
+        refl[refl < 0] = off_sheet
         out[y0:y1, :, x0:x1, :] = refl.reshape(y1 - y0, n, x1 - x0, n)
         return out
 
@@ -194,13 +203,20 @@ class Renderer(Generic[P]):
     ) -> NDArray[np.uint8]:
         """A grey (H, W) uint8 frame of the target at ``T_camera_target`` (metres)."""
         q = quality or ImageQuality()
-        samples = self.reflectance(T_camera_target)
-        samples = np.where(np.isnan(samples), np.float32(q.surround), samples)
-        refl = samples.mean(axis=(1, 3))
-        img = q.exposure * (q.black_level + (q.white_level - q.black_level) * refl)
+        samples = self._trace(T_camera_target, q.surround)
+        n = self.supersample
+        refl = (
+            samples.reshape(samples.shape[0], samples.shape[2])
+            if n == 1
+            else samples.mean(axis=(1, 3), dtype=np.float32)
+        )
+        img = (
+            np.float32(q.exposure * q.black_level)
+            + np.float32(q.exposure * (q.white_level - q.black_level)) * refl
+        )
         if q.vignetting > 0:
             img = img * (1.0 - q.vignetting * self._vignette_map())
-        img = img.astype(np.float32)
+        img = img.astype(np.float32, copy=False)
         for occ in occluders:
             cv2.fillPoly(img, [np.round(occ.polygon_px).astype(np.int32)], float(occ.grey))
         if q.blur_sigma_px > 0:
@@ -208,8 +224,12 @@ class Renderer(Generic[P]):
         if q.motion_blur_px >= 1.0:
             img = cv2.filter2D(img, -1, _motion_kernel(q.motion_blur_px, q.motion_angle_deg))
         if q.noise_sigma > 0:
+            # OpenCV's generator, seeded from ``rng``, draws the noise 4x faster than numpy's
             generator = rng if rng is not None else np.random.default_rng(0)
-            img = img + generator.normal(0.0, q.noise_sigma, img.shape).astype(np.float32)
+            noise = np.empty(img.shape, np.float32)
+            cv2.setRNGSeed(int(generator.integers(1, 2**31 - 1)))
+            cv2.randn(noise, np.zeros(1), np.full(1, float(q.noise_sigma)))
+            img = img + noise
         out = np.clip(np.round(img), 0, 255).astype(np.uint8)
         if q.jpeg_quality is not None:
             ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(q.jpeg_quality)])
