@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from perchpose import CameraModel, MarkerSpec, TargetSpec
-from perchpose.detection import MarkerDetector
+from perchpose.detection import MarkerDetector, target_dictionaries
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import Renderer
+from perchpose.target import aruco_dictionary
 
 
 @pytest.mark.parametrize(
@@ -43,8 +44,12 @@ def test_large_marker_on_a_fisheye_comes_from_the_rectified_pass(
     assert truth is not None
     assert np.max(np.linalg.norm(outer.corners_px - truth, axis=1)) < 0.5
     # the plain pass on the curved image returns a quad pulled several pixels inwards
-    corners, ids, _, _ = detector._detector.detectMarkersMultiDict(image)
-    raw = [c for c, i in zip(corners, ids.reshape(-1), strict=True) if i == 997]
+    corners, ids, _, dict_indices = detector._detector.detectMarkersMultiDict(image)
+    raw = [
+        c
+        for c, i, d in zip(corners, ids.reshape(-1), dict_indices.reshape(-1), strict=True)
+        if detector._dict_marker_index[d][i] == 0
+    ]
     if raw:
         assert np.max(np.linalg.norm(raw[0].reshape(4, 2) - truth, axis=1)) > 2.0
 
@@ -74,3 +79,44 @@ def test_grey_and_bgr_give_the_same_corners(renderers: dict[str, Renderer]) -> N
     assert len(a) == len(b) == 2
     for da, db in zip(a, b, strict=True):
         np.testing.assert_allclose(da.corners_px, db.corners_px)
+
+
+def test_target_dictionaries_hold_only_the_targets_markers() -> None:
+    target = TargetSpec.paper()
+    dictionaries, members = target_dictionaries(target)
+    assert [d.bytesList.shape[0] for d in dictionaries] == [1, 1]
+    assert members == [[0], [1]]
+    for marker, dictionary in zip(target.markers, dictionaries, strict=True):
+        full = aruco_dictionary(marker.dictionary)
+        assert np.array_equal(dictionary.bytesList[0], full.bytesList[marker.marker_id])
+        assert dictionary.maxCorrectionBits == full.maxCorrectionBits
+        # the subset reads the printed marker as its entry 0
+        image = np.full((200, 200), 255, np.uint8)
+        image[40:160, 40:160] = cv2.aruco.generateImageMarker(full, marker.marker_id, 120)
+        _, ids, _ = cv2.aruco.ArucoDetector(dictionary).detectMarkers(image)
+        assert ids is not None
+        assert ids.reshape(-1).tolist() == [0]
+
+
+@pytest.mark.parametrize("camera_name", ["webcam", "fpv", "fpv_wide"])
+def test_tracking_finds_what_the_full_search_finds(
+    renderers: dict[str, Renderer], camera_name: str
+) -> None:
+    """The tracking windows (and on a fisheye the rectified-only search of large markers) see
+    the same markers, with the same corners, as searching every frame from scratch."""
+    r = renderers[camera_name]
+    detector = MarkerDetector(r.camera, r.target)
+    rng = np.random.default_rng(5)
+    hint: tuple = ()
+    tracked = 0
+    for k, z in enumerate(np.linspace(1.0, 0.12, 16)):
+        T = facing_pose(0.05 * z * math.sin(k / 3), 0.04 * z, float(z), 0.2 * k)
+        image = r.render(T, rng=rng)
+        with_hint = detector.detect(image, hint)
+        fresh = detector.detect(image)
+        assert [d.marker_index for d in with_hint] == [d.marker_index for d in fresh]
+        for a, b in zip(with_hint, fresh, strict=True):
+            assert np.max(np.abs(a.corners_px - b.corners_px)) < 0.05
+        tracked += bool(hint)
+        hint = with_hint
+    assert tracked >= 14

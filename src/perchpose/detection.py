@@ -49,8 +49,11 @@ class MarkerDetection:
     @property
     def side_px(self) -> float:
         """Mean side length in pixels."""
-        d = np.roll(self.corners_px, -1, axis=0) - self.corners_px
-        return float(np.mean(np.linalg.norm(d, axis=1)))
+        return _quad_side_px(self.corners_px)
+
+
+def _quad_side_px(quad: Array) -> float:
+    return float(np.mean(np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)))
 
 
 def _detector_parameters() -> cv2.aruco.DetectorParameters:
@@ -180,6 +183,10 @@ class MarkerDetector:
         but predicted by the plane through a found one are searched again in windows of the
         rectified view; with nothing found, the whole rectified view is searched.
         """
+        if hint and self.rectify:
+            tracked = self._track_rectifying(grey, hint)
+            if tracked is not None:
+                return tracked
         found: dict[int, MarkerDetection] = {}
         box = self._tracking_window(grey.shape, hint) if hint else None
         if box is not None:
@@ -195,17 +202,8 @@ class MarkerDetector:
             rectified = self._detect_pass(rect, "rectified")
         else:
             rectified = {}
-            for x0, y0, x1, y1 in self._rectified_windows(found):
-                window = np.asarray(
-                    cv2.remap(
-                        grey,
-                        maps[0][y0:y1, x0:x1],
-                        maps[1][y0:y1, x0:x1],
-                        interpolation=cv2.INTER_LINEAR,
-                    ),
-                    np.uint8,
-                )
-                for index, det in self._detect_pass(window, "rectified", (x0, y0)).items():
+            for box in self._rectified_windows(found):
+                for index, det in self._rectified_pass(grey, maps, box).items():
                     rectified.setdefault(index, det)
         for det in rectified.values():
             raw = found.get(det.marker_index)
@@ -258,38 +256,110 @@ class MarkerDetector:
                 windows.append((x0, y0, x1, y1))
         return windows
 
+    def _predicted_quads(self, hint: tuple[MarkerDetection, ...]) -> dict[int, Array]:
+        """Where each marker should be: the hinted markers where they were, the others where
+        the plane through the largest hinted marker puts them."""
+        quads = {d.marker_index: d.corners_px for d in hint}
+        reference = max(hint, key=lambda d: d.side_px)
+        plane = self.target.markers[reference.marker_index].corners_target_m[:, :2]
+        H, _ = cv2.findHomography(plane, reference.corners_px)
+        if H is not None:
+            for index, marker in enumerate(self.target.markers):
+                if index not in quads:
+                    quads[index] = np.asarray(
+                        cv2.perspectiveTransform(
+                            marker.corners_target_m[:, :2].reshape(-1, 1, 2), H
+                        ),
+                        np.float64,
+                    ).reshape(4, 2)
+        return {i: q for i, q in quads.items() if np.all(np.isfinite(q))}
+
+    @staticmethod
+    def _window(
+        quads: list[Array], shape: tuple[int, ...], pad_fraction: float, pad_px: float
+    ) -> tuple[int, int, int, int] | None:
+        """The box (x0, y0, x1, y1) around ``quads`` padded by a fraction of their extent plus
+        ``pad_px``, clipped to ``shape``; None if under 16 px either way."""
+        h, w = shape[:2]
+        points = np.concatenate(quads)
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        pad = pad_fraction * float(np.max(hi - lo)) + pad_px
+        x0, y0 = int(max(0, np.floor(lo[0] - pad))), int(max(0, np.floor(lo[1] - pad)))
+        x1, y1 = int(min(w, np.ceil(hi[0] + pad))), int(min(h, np.ceil(hi[1] + pad)))
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            return None
+        return (x0, y0, x1, y1)
+
     def _tracking_window(
         self, shape: tuple[int, ...], hint: tuple[MarkerDetection, ...]
     ) -> tuple[int, int, int, int] | None:
         """A window of the image around the hinted markers and the predicted others, or None
         when it would cover most of the image anyway."""
+        quads = self._predicted_quads(hint)
+        if not quads:
+            return None
+        box = self._window(list(quads.values()), shape, 0.5, 16.0)
         h, w = shape[:2]
-        quads = [d.corners_px for d in hint]
-        reference = max(hint, key=lambda d: d.side_px)
-        plane = self.target.markers[reference.marker_index].corners_target_m[:, :2]
-        H, _ = cv2.findHomography(plane, reference.corners_px)
-        if H is not None:
-            seen = {d.marker_index for d in hint}
-            for index, marker in enumerate(self.target.markers):
-                if index not in seen:
-                    quads.append(
-                        np.asarray(
-                            cv2.perspectiveTransform(
-                                marker.corners_target_m[:, :2].reshape(-1, 1, 2), H
-                            ),
-                            np.float64,
-                        ).reshape(4, 2)
-                    )
-        points = np.concatenate(quads)
-        if not np.all(np.isfinite(points)):
+        if box is None or (box[2] - box[0]) * (box[3] - box[1]) > 0.6 * w * h:
             return None
-        lo, hi = points.min(axis=0), points.max(axis=0)
-        pad = 0.5 * float(np.max(hi - lo)) + 16.0
-        x0, y0 = int(max(0, np.floor(lo[0] - pad))), int(max(0, np.floor(lo[1] - pad)))
-        x1, y1 = int(min(w, np.ceil(hi[0] + pad))), int(min(h, np.ceil(hi[1] + pad)))
-        if x1 - x0 < 16 or y1 - y0 < 16 or (x1 - x0) * (y1 - y0) > 0.6 * w * h:
+        return box
+
+    def _track_rectifying(
+        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
+    ) -> tuple[MarkerDetection, ...] | None:
+        """Tracking through a strongly distorted lens: markers expected small are searched in a
+        window of the image, markers expected large (curved edges) only in windows of the
+        rectified view, so that no pass covers a large marker twice. None when a hinted marker
+        is not found again (the caller then runs the full search)."""
+        quads = self._predicted_quads(hint)
+        small = {i: q for i, q in quads.items() if _quad_side_px(q) < CURVED_SIDE_PX}
+        large = {i: q for i, q in quads.items() if i not in small}
+        found: dict[int, MarkerDetection] = {}
+        if small:
+            # the large markers' motion since the last frame moves the small ones too
+            allowance = max((_quad_side_px(q) for q in large.values()), default=0.0)
+            box = self._window(list(small.values()), grey.shape, 0.5, 16.0 + 0.15 * allowance)
+            if box is not None:
+                x0, y0, x1, y1 = box
+                raw = self._detect_pass(grey[y0:y1, x0:x1], "raw", (x0, y0))
+                found.update({i: d for i, d in raw.items() if d.side_px < CURVED_SIDE_PX})
+        if large:
+            maps = self._rectify_maps()
+            h, w = maps[0].shape
+            for index, quad in large.items():
+                box = self._window([self._to_rectified(quad)], (h, w), 0.3, 8.0)
+                if box is None:
+                    continue
+                for det in self._rectified_pass(grey, maps, box).values():
+                    mapped = self._unrectify(det.corners_px)
+                    if mapped is not None and (
+                        index == det.marker_index or det.marker_index not in found
+                    ):
+                        found[det.marker_index] = MarkerDetection(
+                            det.marker_index, mapped, "rectified"
+                        )
+        if any(d.marker_index not in found for d in hint):
             return None
-        return (x0, y0, x1, y1)
+        return tuple(found[i] for i in sorted(found))
+
+    def _rectified_pass(
+        self,
+        grey: NDArray[np.uint8],
+        maps: tuple[NDArray[np.float32], NDArray[np.float32]],
+        box: tuple[int, int, int, int],
+    ) -> dict[int, MarkerDetection]:
+        """Markers found in the window ``box`` of the rectified view (rectified pixels)."""
+        x0, y0, x1, y1 = box
+        window = np.asarray(
+            cv2.remap(
+                grey,
+                maps[0][y0:y1, x0:x1],
+                maps[1][y0:y1, x0:x1],
+                interpolation=cv2.INTER_LINEAR,
+            ),
+            np.uint8,
+        )
+        return self._detect_pass(window, "rectified", (x0, y0))
 
     def _detect_pass(
         self,

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -16,18 +17,40 @@ from perchpose.sim.perch import PerchResult, PerchSetup, run_perch
 from perchpose.sim.render import Renderer
 from perchpose.target import TargetSpec
 
-_RENDERERS: dict[tuple[int, int], Renderer[TargetSpec]] = {}
+_RENDERERS: dict[tuple[object, ...], Renderer[TargetSpec]] = {}
+
+
+def _camera_key(setup: PerchSetup) -> tuple[object, ...]:
+    c = setup.camera
+    return (
+        c.model,
+        c.width_px,
+        c.height_px,
+        tuple(np.asarray(c.K).ravel().tolist()),
+        tuple(np.asarray(c.dist).ravel().tolist()),
+        setup.supersample,
+        setup.target,  # frozen, compared by value
+    )
 
 
 def _run_one(job: tuple[PerchSetup, int]) -> PerchResult:
+    """One run, reusing the worker's renderer and the camera's cached tables (ray directions,
+    rectification maps) across runs: each job arrives as a fresh copy of the setup."""
     setup, seed = job
-    key = (id(setup.camera), setup.supersample)
+    key = _camera_key(setup)
     renderer = _RENDERERS.get(key)
-    if renderer is None or renderer.camera is not setup.camera:
+    if renderer is None:
         renderer = Renderer(setup.camera, setup.target, supersample=setup.supersample)
         _RENDERERS.clear()
         _RENDERERS[key] = renderer
+    if renderer.camera is not setup.camera or renderer.target is not setup.target:
+        setup = replace(setup, camera=renderer.camera, target=renderer.target)
     return run_perch(setup, seed, renderer)
+
+
+def _worker_init() -> None:
+    # the runs are spread over processes; OpenCV's own threads would only compete with them
+    cv2.setNumThreads(1)
 
 
 def run_campaign(
@@ -50,7 +73,7 @@ def run_campaign(
             results.append(_run_one(job))
             bar.update(1)
     else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        with ProcessPoolExecutor(max_workers=workers, initializer=_worker_init) as pool:
             for result in pool.map(_run_one, jobs, chunksize=1):
                 results.append(result)
                 bar.update(1)
