@@ -53,7 +53,8 @@ class MarkerDetection:
 
 
 def _quad_side_px(quad: Array) -> float:
-    return float(np.mean(np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)))
+    d = quad[[1, 2, 3, 0]] - quad
+    return float(np.sqrt((d * d).sum(axis=1)).mean())
 
 
 def _detector_parameters() -> cv2.aruco.DetectorParameters:

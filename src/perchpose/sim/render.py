@@ -230,12 +230,14 @@ class Renderer(Generic[P]):
             cv2.setRNGSeed(int(generator.integers(1, 2**31 - 1)))
             cv2.randn(noise, np.zeros(1), np.full(1, float(q.noise_sigma)))
             img = img + noise
-        out = np.clip(np.round(img), 0, 255).astype(np.uint8)
+        # round half to even and saturate, as numpy's round-and-clip would
+        np.maximum(img, np.float32(0.0), out=img)
+        out = np.asarray(cv2.convertScaleAbs(img), np.uint8)
         if q.jpeg_quality is not None:
             ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(q.jpeg_quality)])
             if ok:
-                out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
-        return np.asarray(out, dtype=np.uint8)
+                out = np.asarray(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), np.uint8)
+        return out
 
     def _vignette_map(self) -> NDArray[np.float32]:
         if self._vignette is None:

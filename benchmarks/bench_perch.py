@@ -1,0 +1,76 @@
+"""CPU cost of closed-loop perching runs, per simulated second and per part.
+
+    .venv/bin/python benchmarks/bench_perch.py [--runs 6] [--camera fpv]
+
+Runs the perching simulation single-threaded (as one campaign worker does) and reports the CPU
+time per simulated second, the cost of a 20 s run at that rate, and how the time splits between
+rendering, the estimator and the vehicle's physics. The one-off set-up of a worker (ray tables,
+rectification maps, the target's texture) is measured separately.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any
+
+import cv2
+
+from perchpose import CameraModel, PerchingEstimator, TargetSpec
+from perchpose.sim.perch import PerchSetup, run_perch
+from perchpose.sim.quadrotor import Quadrotor
+from perchpose.sim.render import Renderer
+
+
+def timed(cls: type, name: str, key: str, spent: Counter[str]) -> None:
+    """Wrap ``cls.name`` to add its CPU time to ``spent[key]``."""
+    original: Callable[..., Any] = getattr(cls, name)
+
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        t0 = time.process_time()
+        try:
+            return original(*args, **kwargs)
+        finally:
+            spent[key] += time.process_time() - t0
+
+    setattr(cls, name, wrapper)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=6)
+    parser.add_argument("--camera", default="fpv")
+    parser.add_argument("--seed", type=int, default=100)
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+
+    setup = PerchSetup(CameraModel.preset(args.camera), TargetSpec.paper())
+    t0 = time.process_time()
+    renderer = Renderer(setup.camera, setup.target, supersample=setup.supersample)
+    run_perch(setup, args.seed - 1, renderer)  # warms every cache a worker keeps
+    setup_cpu = time.process_time() - t0
+
+    spent: Counter[str] = Counter()
+    timed(Renderer, "render", "render", spent)
+    timed(PerchingEstimator, "update", "estimator", spent)
+    timed(Quadrotor, "step", "physics", spent)
+    timed(Quadrotor, "motor_commands", "physics", spent)
+    t0 = time.process_time()
+    results = [run_perch(setup, args.seed + k, renderer) for k in range(args.runs)]
+    cpu = time.process_time() - t0
+    sim_s = sum(len(r.t_s) for r in results) / setup.fps
+    per_sim_s = cpu / sim_s
+    print(f"camera {args.camera}, {args.runs} runs, {sim_s:.1f} s simulated, {cpu:.1f} s CPU")
+    print(f"  CPU per simulated second: {per_sim_s:.3f} s  (a 20 s run: {20 * per_sim_s:.1f} s)")
+    for key in ("render", "estimator", "physics"):
+        print(f"  {key:10s} {spent[key] / sim_s:.3f} s per simulated second")
+    other = cpu - sum(spent.values())
+    print(f"  {'other':10s} {other / sim_s:.3f} s per simulated second")
+    print(f"  worker set-up and a first run: {setup_cpu:.1f} s CPU (once per worker)")
+    print(f"  outcomes: {Counter(r.reason for r in results)}")
+
+
+if __name__ == "__main__":
+    main()
