@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
+from perchpose.corners import refine_corners_edges
 from perchpose.target import TargetSpec, aruco_dictionary
 
 Array = NDArray[np.float64]
@@ -29,6 +30,8 @@ RECTIFIED_MAX_SCALE = 1.5
 # Found in both passes, a marker this large in the original image is taken from the rectified
 # pass (its edges are curved in the original); a smaller one from the original image.
 CURVED_SIDE_PX = 40.0
+CornerMethod = Literal["edges", "subpix"]
+CORNER_METHODS: tuple[CornerMethod, ...] = ("edges", "subpix")
 DEFAULT_MIN_PERIMETER_RATE = 0.03  # OpenCV's default minMarkerPerimeterRate
 DEFAULT_MIN_PERIMETER_RATE = 0.03  # OpenCV's default minMarkerPerimeterRate
 
@@ -160,9 +163,14 @@ class MarkerDetector:
     are not the target's (dictionary, id) pairs are ignored.
     """
 
-    def __init__(self, camera: CameraModel, target: TargetSpec) -> None:
+    def __init__(
+        self, camera: CameraModel, target: TargetSpec, corners: CornerMethod = "edges"
+    ) -> None:
+        if corners not in CORNER_METHODS:
+            raise ValueError(f"corners must be one of {', '.join(CORNER_METHODS)}, got {corners!r}")
         self.camera = camera
         self.target = target
+        self.corners = corners
         self._dict_names = target.dictionaries
         dicts, self._dict_marker_index = target_dictionaries(target)
         self._params = _detector_parameters()
@@ -175,6 +183,28 @@ class MarkerDetector:
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
     ) -> tuple[MarkerDetection, ...]:
         """Detect the target's markers in a grey (H, W) uint8 image of the camera's size.
+
+        hint : the previous frame's detections (see ``_find``). With ``corners="edges"`` (the
+        default) each marker's corners are then refitted from its four border edges through
+        the lens model (``perchpose.corners``); ``"subpix"`` keeps the ``cornerSubPix`` corners.
+        """
+        found = self._find(grey, hint)
+        if self.corners == "subpix":
+            return found
+        refined = []
+        for det in found:
+            cells = int(self.target.markers[det.marker_index].cells.shape[0])
+            corners = refine_corners_edges(grey, det.corners_px, self.camera, cells)
+            if corners is None:
+                refined.append(det)
+            else:
+                refined.append(MarkerDetection(det.marker_index, corners, det.image_pass))
+        return tuple(refined)
+
+    def _find(
+        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
+    ) -> tuple[MarkerDetection, ...]:
+        """The target's markers with ``cornerSubPix`` corners.
 
         hint : the previous frame's detections. The search then starts in a window around them
             and around where the target's plane puts its other markers, and falls back to the

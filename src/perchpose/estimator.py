@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.detection import MarkerDetection, MarkerDetector
+from perchpose.detection import CornerMethod, MarkerDetection, MarkerDetector
 from perchpose.errors import TimestampError
 from perchpose.fusion import STAGE_NONE, FusionSigmas, fuse_paper
 from perchpose.kalman import KalmanSettings, MarkerTrack
@@ -88,6 +88,8 @@ class PerchingEstimator:
         ablations such as "outer marker only".
     use_filter : False fuses each frame's raw measurements without the Kalman filter (no
         coasting: a frame without a detection has no estimate).
+    corners : ``"edges"`` (default: corners from the four fitted border edges, unbiased) or
+        ``"subpix"`` (OpenCV's ``cornerSubPix``, about 0.2 px inside the true corners).
     """
 
     def __init__(
@@ -100,6 +102,7 @@ class PerchingEstimator:
         max_reproj_px: float = 3.0,
         markers: tuple[int, ...] | None = None,
         use_filter: bool = True,
+        corners: CornerMethod = "edges",
     ) -> None:
         n = len(target.markers)
         self.markers = tuple(range(n)) if markers is None else tuple(sorted(set(markers)))
@@ -111,7 +114,7 @@ class PerchingEstimator:
         self.kalman = kalman or KalmanSettings()
         self.sigmas = sigmas or FusionSigmas()
         self.max_reproj_px = max_reproj_px
-        self.detector = MarkerDetector(camera, target)
+        self.detector = MarkerDetector(camera, target, corners)
         self._tracks = [MarkerTrack(self.kalman) for _ in target.markers]
         self._last_R: list[Array | None] = [None] * len(target.markers)
         self._last_t_s: float | None = None

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.detection import MarkerDetection, MarkerDetector
+from perchpose.detection import CornerMethod, MarkerDetection, MarkerDetector
 from perchpose.estimator import Estimate, PerchingEstimator
 from perchpose.fusion import fit_sigma_least_squares, fit_sigma_lms
 from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
@@ -274,10 +274,12 @@ def render_scenario(
 
 
 def detect_all(
-    renderer: Renderer[TargetSpec], frames: list[NDArray[np.uint8]]
+    renderer: Renderer[TargetSpec],
+    frames: list[NDArray[np.uint8]],
+    corners: CornerMethod = "edges",
 ) -> list[tuple[MarkerDetection, ...]]:
     """One detection pass over every frame, to share between estimator variants."""
-    detector = MarkerDetector(renderer.camera, renderer.target)
+    detector = MarkerDetector(renderer.camera, renderer.target, corners)
     return [detector.detect(f) for f in frames]
 
 
@@ -490,6 +492,7 @@ ABLATIONS: dict[str, dict[str, object]] = {
     "both markers, no filter": {"markers": None, "use_filter": False},
     "outer only, no filter": {"markers": (0,), "use_filter": False},
     "inner only, no filter": {"markers": (1,), "use_filter": False},
+    "paper with cornerSubPix corners": {"markers": None, "use_filter": True, "corners": "subpix"},
 }
 
 

@@ -18,6 +18,7 @@ from tqdm import tqdm
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
 from perchpose.evaluation import experiments as ex
+from perchpose.evaluation.corner_accuracy import corner_accuracy, corners_markdown
 from perchpose.evaluation.fusion_data import write_fusion_csv
 from perchpose.evaluation.plots import (
     ablation_figure,
@@ -47,6 +48,7 @@ class EvalPlan:
     dropout_at_s: float
     dropout_s: float
     approach_s: float
+    corner_poses: int
 
     @staticmethod
     def make(quick: bool) -> EvalPlan:
@@ -63,6 +65,7 @@ class EvalPlan:
                 dropout_at_s=1.5,
                 dropout_s=1.0,
                 approach_s=2.0,
+                corner_poses=12,
             )
         return EvalPlan(
             range_distances_cm=RANGE_DISTANCES_CM,
@@ -75,6 +78,7 @@ class EvalPlan:
             dropout_at_s=17.5,
             dropout_s=1.0,
             approach_s=8.0,
+            corner_poses=60,
         )
 
     def renders(self) -> int:
@@ -83,6 +87,7 @@ class EvalPlan:
         n += self.table_frames * (len(ex.PAPER_TABLE1) + len(ex.PAPER_TABLE2))
         n += self.fusion_positions * self.fusion_frames
         n += int(round(self.moves_s * 30)) + int(round(self.approach_s * 30))
+        n += 2 * self.corner_poses
         return n
 
 
@@ -165,6 +170,7 @@ def run_paper_evaluation(
         "moves": seed + 3,
         "fusion": seed + 4,
         "approach": seed + 5,
+        "corners": seed + 6,
     }
 
     say("detection ranges")
@@ -209,11 +215,21 @@ def run_paper_evaluation(
     say("ablations on an approach")
     appr = approach(duration_s=plan.approach_s, dropouts=(), quality=quality)
     appr_frames = ex.render_scenario(renderer, appr, np.random.default_rng(seeds["approach"]), tick)
-    appr_detections = ex.detect_all(renderer, appr_frames)
+    appr_detections = {
+        method: ex.detect_all(renderer, appr_frames, method) for method in ("edges", "subpix")
+    }
     ablations = [
-        ex.ablation(renderer, appr, appr_detections, name, opts)
+        ex.ablation(renderer, appr, appr_detections[str(opts.get("corners", "edges"))], name, opts)
         for name, opts in ex.ABLATIONS.items()
     ]
+    say("corner accuracy")
+    corner_rows = corner_accuracy(
+        Renderer(cam, target, supersample=3),
+        {"default": ImageQuality.preset("default"), quality_name: quality},
+        plan.corner_poses,
+        np.random.default_rng(seeds["corners"]),
+        tick,
+    )
     bar.close()
     elapsed = time.perf_counter() - started
 
@@ -312,12 +328,14 @@ def run_paper_evaluation(
         },
         "dropout": asdict(drop),
         "ablations": [{k: v for k, v in asdict(a).items() if k != "run"} for a in ablations],
+        "corners": [asdict(r) for r in corner_rows],
     }
     results = _clean(results)
     (out / "results.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
     report = out / "report.md"
     report.write_text(
-        _markdown(results, cam, quality_name, curves, t1, t2, drop, fit, ablations, plan, elapsed),
+        _markdown(results, cam, quality_name, curves, t1, t2, drop, fit, ablations, plan, elapsed)
+        + corners_markdown(corner_rows),
         encoding="utf-8",
     )
     return EvaluationResult(out, report, results)
