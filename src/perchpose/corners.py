@@ -77,8 +77,8 @@ def _fit_side(
     Newton step for ``log sigma``. (Modelling the border's inner edge one cell further in, which
     blur mixes into the profiles of small markers, was tried and did not lower the error.)"""
     K, M = values.shape
-    lo = float(np.mean(values[:, : max(1, M // 4)]))
-    hi = float(np.mean(values[:, -max(1, M // 4) :]))
+    lo = float(values[:, : max(1, M // 4)].mean())
+    hi = float(values[:, -max(1, M // 4) :].mean())
     if not hi - lo > 4.0:
         return None
     a, b, sigma = lo, hi - lo, 0.8
@@ -90,8 +90,8 @@ def _fit_side(
         r = a + b * Phi - values
         # every d_k: dr/dd_k = -b pdf / sigma
         J_d = pdf * (-b / sigma)
-        step_d = np.sum(J_d * r, axis=1) / (np.sum(J_d * J_d, axis=1) + 1e-12)
-        d = d - np.clip(step_d, -1.0, 1.0)
+        step_d = (J_d * r).sum(axis=1) / ((J_d * J_d).sum(axis=1) + 1e-12)
+        d = d - np.minimum(np.maximum(step_d, -1.0), 1.0)
         # a and b: linear least squares (with the model as it was before the d step)
         s1, s2 = float(Phi.sum()), float((Phi * Phi).sum())
         v1, v2 = float(values.sum()), float((Phi * values).sum())
@@ -102,8 +102,8 @@ def _fit_side(
         # log sigma: dr/dlog(sigma) = -b pdf u
         r = a + b * Phi - values
         J_s = pdf * u * (-b)
-        step_s = float(np.sum(J_s * r)) / (float(np.sum(J_s * J_s)) + 1e-12)
-        sigma = float(np.clip(sigma * math.exp(-np.clip(step_s, -0.5, 0.5)), 0.2, 6.0))
+        step_s = float((J_s * r).sum()) / (float((J_s * J_s).sum()) + 1e-12)
+        sigma = min(6.0, max(0.2, sigma * math.exp(-min(0.5, max(-0.5, step_s)))))
         if float(np.max(np.abs(step_d))) < 2e-3:
             break
     if not (b > 0 and np.all(np.isfinite(d))):
@@ -118,7 +118,7 @@ def _midpoint_crossings(values: Array, offsets: Array, level: float) -> Array:
     change = above[:, 1:] != above[:, :-1]  # (K, M-1): a crossing between j and j+1
     v0, v1 = values[:, :-1], values[:, 1:]
     with np.errstate(divide="ignore", invalid="ignore"):
-        frac = np.clip((level - v0) / (v1 - v0), 0.0, 1.0)
+        frac = np.minimum(np.maximum((level - v0) / (v1 - v0), 0.0), 1.0)
     position = offsets[:-1] + frac * (offsets[1:] - offsets[:-1])
     distance = np.where(change, np.abs(position), np.inf)
     j = np.argmin(distance, axis=1)
@@ -148,7 +148,7 @@ def _lines_tls(points: Array, usable: NDArray[np.bool_]) -> tuple[Array, Array] 
         normals = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
         offsets = np.einsum("sj,sj->s", normals, centre)
         residual = np.einsum("skj,sj->sk", points, normals) - offsets[:, None]
-        rms = np.sqrt(np.sum(residual * residual * weight, axis=1) / count) + 1e-12
+        rms = np.sqrt((residual * residual * weight).sum(axis=1) / count) + 1e-12
         keep = usable & (np.abs(residual) < 3.0 * rms[:, None])
     return normals, offsets
 
@@ -166,16 +166,16 @@ def refine_corners_edges(
     cfg = settings or EdgeFitSettings()
     corners = np.asarray(corners_px, np.float64).reshape(4, 2)
     sides_px = np.linalg.norm(corners[[1, 2, 3, 0]] - corners, axis=1)
-    cell_px = float(np.mean(sides_px)) / cells
-    reach_in = float(np.clip(cfg.inside_cells * cell_px, cfg.min_window_px, cfg.max_window_px))
-    reach_out = float(np.clip(cfg.outside_cells * cell_px, cfg.min_window_px, cfg.max_window_px))
+    cell_px = float(sides_px.mean()) / cells
+    reach_in = min(cfg.max_window_px, max(cfg.min_window_px, cfg.inside_cells * cell_px))
+    reach_out = min(cfg.max_window_px, max(cfg.min_window_px, cfg.outside_cells * cell_px))
     step = max(cfg.step_px, (reach_in + reach_out) / (cfg.max_samples - 1))
     offsets = np.arange(-reach_in, reach_out + 1e-9, step)
     xy = camera.normalize(corners)
     if not np.all(np.isfinite(xy)):
         return None
     # K points along each side, all four sides at once: (4, K) -> flattened (4K,)
-    K = int(np.clip(float(np.min(sides_px)) / 2.0, 4, cfg.max_profiles))
+    K = int(min(cfg.max_profiles, max(4.0, float(sides_px.min()) / 2.0)))
     t = np.linspace(cfg.trim, 1.0 - cfg.trim, K)
     a_n = xy[:, None, :]
     b_n = xy[[1, 2, 3, 0]][:, None, :]
@@ -189,14 +189,14 @@ def refine_corners_edges(
     tangent = q_px - p_px
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
     normal = np.stack([tangent[:, 1], -tangent[:, 0]], 1)
-    outward = np.sign(np.sum(normal * (p_px - corners.mean(axis=0)), axis=1))[:, None]
+    outward = np.sign((normal * (p_px - corners.mean(axis=0))).sum(axis=1))[:, None]
     normal = normal * np.where(outward == 0, 1.0, outward)
     samples = p_px[:, None, :] + offsets[None, :, None] * normal[:, None, :]
     h, w = grey.shape[:2]
-    x0 = int(np.clip(np.floor(np.nanmin(samples[..., 0])) - 1, 0, w))
-    y0 = int(np.clip(np.floor(np.nanmin(samples[..., 1])) - 1, 0, h))
-    x1 = int(np.clip(np.ceil(np.nanmax(samples[..., 0])) + 2, 0, w))
-    y1 = int(np.clip(np.ceil(np.nanmax(samples[..., 1])) + 2, 0, h))
+    x0 = min(w, max(0, math.floor(float(samples[..., 0].min())) - 1))
+    y0 = min(h, max(0, math.floor(float(samples[..., 1].min())) - 1))
+    x1 = min(w, max(0, math.ceil(float(samples[..., 0].max())) + 2))
+    y1 = min(h, max(0, math.ceil(float(samples[..., 1].max())) + 2))
     if x1 - x0 < 2 or y1 - y0 < 2:
         return None
     values = cv2.remap(

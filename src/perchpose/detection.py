@@ -188,18 +188,54 @@ class MarkerDetector:
         default) each marker's corners are then refitted from its four border edges through
         the lens model (``perchpose.corners``); ``"subpix"`` keeps the ``cornerSubPix`` corners.
         """
-        found = self._find(grey, hint)
         if self.corners == "subpix":
-            return found
+            return self._find(grey, hint)
+        if hint:
+            tracked = self._track_edges(grey, hint)
+            if tracked is not None:
+                return tracked
         refined = []
-        for det in found:
-            cells = int(self.target.markers[det.marker_index].cells.shape[0])
-            corners = refine_corners_edges(grey, det.corners_px, self.camera, cells)
+        for det in self._find(grey, hint):
+            corners = self._edge_corners(grey, det)
             if corners is None:
                 refined.append(det)
             else:
                 refined.append(MarkerDetection(det.marker_index, corners, det.image_pass))
         return tuple(refined)
+
+    def _edge_corners(self, grey: NDArray[np.uint8], det: MarkerDetection) -> Array | None:
+        cells = int(self.target.markers[det.marker_index].cells.shape[0])
+        return refine_corners_edges(grey, det.corners_px, self.camera, cells)
+
+    def _track_edges(
+        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
+    ) -> tuple[MarkerDetection, ...] | None:
+        """Tracking with edge-fitted corners: one pass over a window of the image (the whole
+        image when the window would cover most of it), then the edge fit through the lens
+        model, which also straightens what a fisheye bends, so no rectified view is needed.
+        None when a hinted marker is not found again, or a large marker through a strongly
+        distorted lens cannot be fitted (its raw quad is then several pixels off): the caller
+        then runs the full search. A small marker whose edges cannot be fitted keeps its
+        ``cornerSubPix`` corners."""
+        box = self._tracking_window(grey.shape, hint)
+        if box is None:
+            found = self._detect_pass(grey, "raw")
+        else:
+            x0, y0, x1, y1 = box
+            found = self._detect_pass(grey[y0:y1, x0:x1], "raw", (x0, y0))
+        if any(d.marker_index not in found for d in hint):
+            return None
+        result = []
+        for index in sorted(found):
+            det = found[index]
+            corners = self._edge_corners(grey, det)
+            if corners is not None:
+                result.append(MarkerDetection(index, corners, "raw"))
+            elif self.rectify and det.side_px >= CURVED_SIDE_PX:
+                return None  # a curved quad too far off for the fit: the rectified view finds it
+            else:
+                result.append(det)
+        return tuple(result)
 
     def _find(
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
