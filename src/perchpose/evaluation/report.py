@@ -18,6 +18,7 @@ from tqdm import tqdm
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
 from perchpose.evaluation import experiments as ex
+from perchpose.evaluation.bound import bound_markdown, bound_rows
 from perchpose.evaluation.corner_accuracy import corner_accuracy, corners_markdown
 from perchpose.evaluation.fusion_data import write_fusion_csv
 from perchpose.evaluation.plots import (
@@ -49,6 +50,8 @@ class EvalPlan:
     dropout_s: float
     approach_s: float
     corner_poses: int
+    bound_distances_m: tuple[float, ...]
+    bound_frames: int
 
     @staticmethod
     def make(quick: bool) -> EvalPlan:
@@ -66,6 +69,8 @@ class EvalPlan:
                 dropout_s=1.0,
                 approach_s=2.0,
                 corner_poses=12,
+                bound_distances_m=(0.2, 0.6, 1.5),
+                bound_frames=3,
             )
         return EvalPlan(
             range_distances_cm=RANGE_DISTANCES_CM,
@@ -79,6 +84,8 @@ class EvalPlan:
             dropout_s=1.0,
             approach_s=8.0,
             corner_poses=60,
+            bound_distances_m=(0.1, 0.2, 0.35, 0.6, 1.0, 1.5, 2.0),
+            bound_frames=20,
         )
 
     def renders(self) -> int:
@@ -87,7 +94,7 @@ class EvalPlan:
         n += self.table_frames * (len(ex.PAPER_TABLE1) + len(ex.PAPER_TABLE2))
         n += self.fusion_positions * self.fusion_frames
         n += int(round(self.moves_s * 30)) + int(round(self.approach_s * 30))
-        n += 2 * self.corner_poses
+        n += 2 * self.corner_poses + 2 * len(self.bound_distances_m) * self.bound_frames
         return n
 
 
@@ -171,6 +178,7 @@ def run_paper_evaluation(
         "fusion": seed + 4,
         "approach": seed + 5,
         "corners": seed + 6,
+        "bound": seed + 7,
     }
 
     say("detection ranges")
@@ -221,6 +229,20 @@ def run_paper_evaluation(
     ablations = [
         ex.ablation(renderer, appr, appr_detections[str(opts.get("corners", "edges"))], name, opts)
         for name, opts in ex.ABLATIONS.items()
+    ]
+    say("the physical limit")
+    bound_cameras = [cam] + ([] if cam.name == "webcam" else [CameraModel.preset("webcam")])
+    bounds = [
+        row
+        for k, c in enumerate(bound_cameras)
+        for row in bound_rows(
+            Renderer(c, target, supersample=3),
+            ImageQuality.preset("default"),
+            plan.bound_distances_m,
+            plan.bound_frames,
+            np.random.default_rng(seeds["bound"] + k),
+            tick,
+        )
     ]
     say("corner accuracy")
     corner_rows = corner_accuracy(
@@ -329,13 +351,15 @@ def run_paper_evaluation(
         "dropout": asdict(drop),
         "ablations": [{k: v for k, v in asdict(a).items() if k != "run"} for a in ablations],
         "corners": [asdict(r) for r in corner_rows],
+        "bound": [{**asdict(r), "joint_over_bound": r.ratio} for r in bounds],
     }
     results = _clean(results)
     (out / "results.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
     report = out / "report.md"
     report.write_text(
         _markdown(results, cam, quality_name, curves, t1, t2, drop, fit, ablations, plan, elapsed)
-        + corners_markdown(corner_rows),
+        + corners_markdown(corner_rows)
+        + bound_markdown(bounds),
         encoding="utf-8",
     )
     return EvaluationResult(out, report, results)

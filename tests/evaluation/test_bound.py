@@ -1,0 +1,28 @@
+import math
+
+import numpy as np
+
+from perchpose import CameraModel, TargetSpec
+from perchpose.evaluation.bound import bound_markdown, bound_rows
+from perchpose.sim.render import ImageQuality, Renderer
+
+
+def test_bound_rows_put_the_achieved_error_beside_the_bound() -> None:
+    renderer = Renderer(CameraModel.preset("webcam"), TargetSpec.paper(), supersample=3)
+    rows = bound_rows(
+        renderer, ImageQuality(), (0.35, 1.6), 4, np.random.default_rng(3), lambda _n: None
+    )
+    assert [r.distance_m for r in rows] == [0.35, 1.6]
+    near, far = rows
+    assert near.markers == (0, 1)
+    assert far.markers == (0,)
+    for r in rows:
+        assert r.frames == 4
+        assert 0.0 < r.corner_sigma_px < 0.2
+        assert all(b > 0 for b in r.bound)
+        assert all(math.isfinite(v) for v in r.joint)
+    # the bound on depth grows with distance, faster than linearly
+    assert far.bound[2] > (1.6 / 0.35) * near.bound[2]
+    # the achieved error stays within a few bounds of the limit on clean renders
+    assert near.ratio < 4.0
+    assert "Cramer-Rao" in bound_markdown(rows)

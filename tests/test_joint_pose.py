@@ -1,0 +1,93 @@
+"""Joint PnP over all corners, its covariance, and the Cramer-Rao bound."""
+
+import math
+
+import numpy as np
+import pytest
+
+from perchpose import CameraModel, TargetSpec
+from perchpose.detection import MarkerDetection
+from perchpose.geometry import facing_pose
+from perchpose.joint_pose import pose_covariance, solve_joint_pose, target_points, uncertainty
+from perchpose.pose import solve_marker_pose
+
+
+def noisy_detections(
+    camera: CameraModel, target: TargetSpec, T: np.ndarray, sigma_px: float, rng
+) -> tuple[MarkerDetection, ...]:
+    out = []
+    for i, m in enumerate(target.markers):
+        uv, ok = camera.project((T[:3, :3] @ m.corners_target_m.T).T + T[:3, 3])
+        assert np.all(ok)
+        out.append(MarkerDetection(i, uv + rng.normal(0.0, sigma_px, uv.shape), "raw"))
+    return tuple(out)
+
+
+@pytest.mark.parametrize("camera_name", ["webcam", "fpv"])
+def test_spread_of_the_joint_pose_matches_its_bound(camera_name: str) -> None:
+    """Monte Carlo: with Gaussian corner noise the joint PnP's spread equals the Cramer-Rao
+    bound (an efficient estimator), and the covariance it reports is that bound."""
+    camera = CameraModel.preset(camera_name)
+    target = TargetSpec.paper()
+    T = facing_pose(0.03, -0.02, 0.3, 0.4, 0.1, -0.15)
+    sigma = 0.1
+    rng = np.random.default_rng(7)
+    bound = pose_covariance(
+        camera, T, target_points(target, noisy_detections(camera, target, T, 0.0, rng)), sigma
+    )
+    assert bound is not None
+    expected = uncertainty(T, bound)
+    samples = []
+    for _ in range(300):
+        dets = noisy_detections(camera, target, T, sigma, rng)
+        first = solve_marker_pose(camera, target.markers[0], 0, dets[0].corners_px)
+        assert first
+        joint = solve_joint_pose(camera, target, dets, first.T_camera_target, sigma)
+        assert joint is not None
+        samples.append(
+            [
+                *joint.T_camera_target[:3, 3],
+                math.atan2(joint.T_camera_target[1, 0], joint.T_camera_target[0, 0]),
+            ]
+        )
+    spread = np.std(np.array(samples), axis=0)
+    for got, want in zip(
+        spread, (expected.x_m, expected.y_m, expected.z_m, expected.yaw_rad), strict=True
+    ):
+        assert got == pytest.approx(want, rel=0.15)
+    # the reported covariance at the estimate is the bound's, to first order
+    assert uncertainty(joint.T_camera_target, joint.covariance).z_m == pytest.approx(
+        expected.z_m, rel=0.05
+    )
+
+
+def test_joint_pose_beats_the_outer_marker_alone() -> None:
+    camera = CameraModel.preset("webcam")
+    target = TargetSpec.paper()
+    T = facing_pose(0.0, 0.01, 0.22, -0.3)
+    rng = np.random.default_rng(8)
+    errors_joint, errors_outer = [], []
+    for _ in range(100):
+        dets = noisy_detections(camera, target, T, 0.1, rng)
+        outer = solve_marker_pose(camera, target.markers[0], 0, dets[0].corners_px)
+        assert outer
+        joint = solve_joint_pose(camera, target, dets, outer.T_camera_target, 0.1)
+        assert joint is not None
+        errors_outer.append(np.linalg.norm(outer.T_camera_target[:3, 3] - T[:3, 3]))
+        errors_joint.append(np.linalg.norm(joint.T_camera_target[:3, 3] - T[:3, 3]))
+    assert np.mean(errors_joint) < np.mean(errors_outer)
+
+
+def test_bound_grows_with_distance() -> None:
+    camera = CameraModel.preset("fpv")
+    target = TargetSpec.paper()
+    points = target.markers[0].corners_target_m
+    near = pose_covariance(camera, facing_pose(0, 0, 0.5), points, 0.05)
+    far = pose_covariance(camera, facing_pose(0, 0, 1.5), points, 0.05)
+    assert near is not None
+    assert far is not None
+    # depth precision falls with the square of the distance
+    ratio = (
+        uncertainty(facing_pose(0, 0, 1.5), far).z_m / uncertainty(facing_pose(0, 0, 0.5), near).z_m
+    )
+    assert 6.0 < ratio < 12.0
