@@ -117,3 +117,47 @@ def test_blank_frame_is_no_estimate(renderers: dict[str, Renderer]) -> None:
     assert e.stage == 0
     assert math.isnan(e.x_cm)
     assert math.isnan(e.yaw_deg)
+
+
+def test_covariance_fusion_keeps_the_dropout_rule(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    est = PerchingEstimator(r.camera, r.target, fusion="covariance")
+    rng = np.random.default_rng(0)
+    T = facing_pose(0.02, 0.0, 0.6, 0.2)
+    hidden = (dropout_occluder(r.camera, r.target, T),)
+    seen = [est.update(r.render(T, rng=rng), k / 30) for k in range(5)]
+    assert all(e.valid and e.stage == 2 for e in seen)
+    lost = [est.update(r.render(T, rng=rng, occluders=hidden), k / 30) for k in range(5, 15)]
+    assert [e.valid for e in lost] == [True] * 8 + [False] * 2
+    assert abs(lost[7].x_cm - 2.0) < 0.2
+    back = est.update(r.render(T, rng=rng), 15 / 30)
+    assert back.valid
+    assert abs(back.z_cm - 60.0) < 0.2
+
+
+def test_covariance_fusion_follows_an_approach_better_than_the_papers(
+    renderers: dict[str, Renderer],
+) -> None:
+    """Both fusions on the same rendered approach (1.2 m to 0.15 m, decelerating)."""
+    r = renderers["fpv"]
+    rng = np.random.default_rng(4)
+    n = 60
+    z = 0.15 + 1.05 * (1 - np.linspace(0, 1, n)) ** 2
+    poses = [
+        facing_pose(0.03 * zk, -0.02 * zk, float(zk), 0.3 + 0.01 * k) for k, zk in enumerate(z)
+    ]
+    frames = [r.render(T, rng=rng) for T in poses]
+    errors = {}
+    for fusion in ("paper", "covariance"):
+        est = PerchingEstimator(r.camera, r.target, fusion=fusion)
+        err = []
+        for k, (T, image) in enumerate(zip(poses, frames, strict=True)):
+            e = est.update(image, k / 30)
+            assert e.valid
+            err.append(
+                np.linalg.norm(np.array([e.x_cm, e.y_cm, e.z_cm]) / 100 - T[:3, 3]) / T[2, 3]
+            )
+        errors[fusion] = np.array(err)
+    # relative position error: p95 within 1 % of the distance, and no worse than the paper's
+    assert np.percentile(errors["covariance"], 95) < 0.01
+    assert np.median(errors["covariance"]) <= np.median(errors["paper"])

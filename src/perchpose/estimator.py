@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -13,9 +14,14 @@ from perchpose.camera import CameraModel
 from perchpose.detection import CornerMethod, MarkerDetection, MarkerDetector
 from perchpose.errors import TimestampError
 from perchpose.fusion import STAGE_NONE, FusionSigmas, fuse_paper
-from perchpose.kalman import KalmanSettings, MarkerTrack
+from perchpose.geometry import yaw_rad
+from perchpose.joint_pose import measurement_jacobian, solve_joint_pose
+from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, KalmanSettings, MarkerTrack
 from perchpose.pose import MarkerPose, PoseFailure, solve_marker_pose
 from perchpose.target import TargetSpec
+
+FusionMethod = Literal["paper", "covariance"]
+FUSION_METHODS: tuple[FusionMethod, ...] = ("paper", "covariance")
 
 Array = NDArray[np.float64]
 
@@ -90,6 +96,10 @@ class PerchingEstimator:
         coasting: a frame without a detection has no estimate).
     corners : ``"edges"`` (default: corners from the four fitted border edges, unbiased) or
         ``"subpix"`` (OpenCV's ``cornerSubPix``, about 0.2 px inside the true corners).
+    fusion : ``"paper"`` (default: per-marker filters fused with the fixed sigmas by stage) or
+        ``"covariance"`` (one PnP over every corner of every marker, its covariance from the
+        Jacobian, and one filter of the fused pose with a white-noise-acceleration model;
+        settings in ``covariance_filter``).
     """
 
     def __init__(
@@ -103,7 +113,14 @@ class PerchingEstimator:
         markers: tuple[int, ...] | None = None,
         use_filter: bool = True,
         corners: CornerMethod = "edges",
+        fusion: FusionMethod = "paper",
+        covariance_filter: CovarianceFilterSettings | None = None,
     ) -> None:
+        if fusion not in FUSION_METHODS:
+            raise ValueError(f"fusion must be one of {', '.join(FUSION_METHODS)}, got {fusion!r}")
+        self.fusion = fusion
+        self.covariance_filter = covariance_filter or CovarianceFilterSettings()
+        self._fused = CovarianceTrack(self.covariance_filter)
         n = len(target.markers)
         self.markers = tuple(range(n)) if markers is None else tuple(sorted(set(markers)))
         if not self.markers or not all(0 <= i < n for i in self.markers):
@@ -123,6 +140,7 @@ class PerchingEstimator:
     def reset(self) -> None:
         """Forget all tracks (a new sequence)."""
         self._tracks = [MarkerTrack(self.kalman) for _ in self.target.markers]
+        self._fused = CovarianceTrack(self.covariance_filter)
         self._last_R = [None] * len(self.target.markers)
         self._last_t_s = None
         self._hint = ()
@@ -183,6 +201,41 @@ class PerchingEstimator:
                 measurements[det.marker_index] = result
         return measurements, rejected
 
+    def _fuse_covariance(
+        self,
+        t: float,
+        detections: tuple[MarkerDetection, ...],
+        measurements: dict[int, MarkerPose],
+        paper_fused: Array,
+        stage: int,
+    ) -> Array:
+        """The joint pose of this frame's measured markers through the fused filter."""
+        track = self._fused
+        z: Array | None = None
+        if measurements:
+            used = tuple(d for d in detections if d.marker_index in measurements)
+            start = max(used, key=lambda d: d.side_px).marker_index
+            joint = solve_joint_pose(
+                self.camera,
+                self.target,
+                used,
+                measurements[start].T_camera_target,
+                self.covariance_filter.corner_sigma_px,
+            )
+            if joint is not None:
+                T = joint.T_camera_target
+                J = measurement_jacobian(T)
+                z = np.array([yaw_rad(T[:3, :3]), *T[:3, 3]])
+                track.measured(z, J @ joint.covariance @ J.T, t)
+        if z is None:
+            track.missed_frame(t)
+        if not self.use_filter:
+            return np.full(4, np.nan) if z is None else z
+        pose = track.pose
+        if pose is None or stage == STAGE_NONE:
+            return np.full(4, np.nan)
+        return pose
+
     def _filter_and_fuse(
         self,
         t: float,
@@ -215,6 +268,10 @@ class PerchingEstimator:
                 if i in contributing and tr.filter is not None
             }
         fused, stage = fuse_paper(poses, self.sigmas)
+        if self.fusion == "covariance":
+            fused = self._fuse_covariance(t, detections, measurements, fused, stage)
+            if np.isnan(fused[1]):
+                stage = STAGE_NONE
         t3 = time.perf_counter()
         by_index = {d.marker_index: d for d in detections}
         states = tuple(

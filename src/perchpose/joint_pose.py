@@ -119,6 +119,20 @@ def uncertainty(T: Array, covariance: Array) -> PoseUncertainty:
     )
 
 
+def measurement_jacobian(T: Array) -> Array:
+    """d(yaw, x, y, z) / d(w, dt): (4, 6), to carry a pose covariance to the estimate's
+    components."""
+    J = np.zeros((4, 6))
+    base = yaw_rad(T[:3, :3])
+    for k in range(3):
+        delta = np.zeros(6)
+        delta[k] = _STEP_RAD
+        J[0, k] = math.remainder(yaw_rad(_perturbed(T, delta)[:3, :3]) - base, 2 * math.pi)
+        J[0, k] /= _STEP_RAD
+    J[1:, 3:] = np.eye(3)
+    return J
+
+
 def target_points(target: TargetSpec, detections: tuple[MarkerDetection, ...]) -> Array:
     """The corners (4N, 3) in the target frame of the detected markers, detection order."""
     return np.concatenate([target.markers[d.marker_index].corners_target_m for d in detections])

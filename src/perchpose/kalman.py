@@ -157,3 +157,108 @@ class MarkerTrack:
             return None
         pose = transition(t_s - self.t_s) @ self.filter.x
         return np.asarray(H @ pose)
+
+
+@dataclass(frozen=True)
+class CovarianceFilterSettings:
+    """The filter of the fused pose when each measurement comes with its covariance.
+
+    q_position : spectral density of the white-noise acceleration of x, y, z (m^2/s^3); the
+        process noise over a step dt is q [[dt^3/3, dt^2/2], [dt^2/2, dt]] per axis. Default
+        0.05: accelerations of a few tenths of m/s^2 (a drone slowing down on its approach) are
+        followed without lag.
+    q_yaw : the same for yaw (rad^2/s^3).
+    alpha, n_max : the paper's rule for frames without a measurement (velocities times alpha
+        per frame; after n_max frames the estimate is dropped).
+    corner_sigma_px : corner noise per axis the measurement covariance is computed with.
+    """
+
+    q_position: float = 0.05
+    q_yaw: float = 0.5
+    alpha: float = 0.85
+    n_max: int = 8
+    corner_sigma_px: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not (self.q_position > 0 and self.q_yaw > 0 and self.corner_sigma_px > 0):
+            raise ValueError("q_position, q_yaw and corner_sigma_px must be positive")
+        if not 0.0 <= self.alpha <= 1.0:
+            raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
+        if self.n_max < 0:
+            raise ValueError(f"n_max must be >= 0, got {self.n_max}")
+
+
+def white_acceleration_noise(dt_s: float, q: Array) -> Array:
+    """Process noise (8, 8) of the constant-velocity model for densities q = (yaw, x, y, z)."""
+    dt = max(dt_s, 0.0)
+    block = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]])
+    Q = np.zeros((8, 8))
+    for k in range(4):
+        Q[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = q[k] * block
+    return Q
+
+
+class CovarianceTrack:
+    """One filter of the fused pose, corrected with each measurement's own covariance, with the
+    paper's dropout rule (velocities decay by alpha; dropped after n_max missed frames)."""
+
+    def __init__(self, settings: CovarianceFilterSettings) -> None:
+        self.settings = settings
+        self.x: Array | None = None
+        self.P = np.zeros((8, 8))
+        self.t_s = 0.0
+        self.missed = 0
+        self._q = np.array([settings.q_yaw, settings.q_position, settings.q_position,
+                            settings.q_position])  # fmt: skip
+
+    @property
+    def alive(self) -> bool:
+        return self.x is not None
+
+    @property
+    def pose(self) -> Array | None:
+        """(4,) [psi_rad, tx_m, ty_m, tz_m], or None."""
+        return None if self.x is None else np.asarray(H @ self.x)
+
+    def _predict(self, t_s: float) -> None:
+        assert self.x is not None
+        dt = t_s - self.t_s
+        F = transition(dt)
+        self.x = F @ self.x
+        self.x[0] = wrap_angle_rad(float(self.x[0]))
+        self.P = F @ self.P @ F.T + white_acceleration_noise(dt, self._q)
+        self.t_s = t_s
+
+    def measured(self, z: Array, R: Array, t_s: float) -> None:
+        """A measurement z = [psi, tx, ty, tz] with covariance R (4, 4) at ``t_s``."""
+        if self.x is None:
+            self.x = np.zeros(8)
+            self.x[[0, 2, 4, 6]] = z
+            self.x[0] = wrap_angle_rad(float(z[0]))
+            self.P = np.zeros((8, 8))
+            self.P[np.ix_([0, 2, 4, 6], [0, 2, 4, 6])] = R
+            self.P[_VELOCITIES, _VELOCITIES] = 1.0
+            self.t_s = t_s
+            self.missed = 0
+            return
+        self._predict(t_s)
+        y = np.asarray(z, np.float64) - H @ self.x
+        y[0] = angle_diff_rad(float(z[0]), float(self.x[0]))
+        S = H @ self.P @ H.T + R
+        K = np.linalg.solve(S, H @ self.P).T
+        self.x = self.x + K @ y
+        self.x[0] = wrap_angle_rad(float(self.x[0]))
+        I_KH = np.eye(8) - K @ H
+        self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
+        self.missed = 0
+
+    def missed_frame(self, t_s: float) -> None:
+        """A frame at ``t_s`` without a measurement: coast, or drop after n_max frames."""
+        if self.x is None:
+            return
+        self.missed += 1
+        if self.missed > self.settings.n_max:
+            self.x = None
+            return
+        self.x[_VELOCITIES] *= self.settings.alpha
+        self._predict(t_s)

@@ -493,6 +493,8 @@ ABLATIONS: dict[str, dict[str, object]] = {
     "outer only, no filter": {"markers": (0,), "use_filter": False},
     "inner only, no filter": {"markers": (1,), "use_filter": False},
     "paper with cornerSubPix corners": {"markers": None, "use_filter": True, "corners": "subpix"},
+    "covariance fusion, filter": {"markers": None, "use_filter": True, "fusion": "covariance"},
+    "covariance fusion, no filter": {"markers": None, "use_filter": False, "fusion": "covariance"},
 }
 
 
@@ -523,6 +525,7 @@ def ablation(
         renderer.target,
         markers=markers if isinstance(markers, tuple) else None,
         use_filter=bool(options["use_filter"]),
+        fusion="covariance" if options.get("fusion") == "covariance" else "paper",
     )
     run = run_sequence(est, scenario, detections)
     err = run.errors()
