@@ -515,7 +515,7 @@ def calibrate(
     "estimators",
     default="paper,truth",
     show_default=True,
-    help="Comma-separated: paper, outer, inner, truth.",
+    help="Comma-separated: paper, outer, inner, covariance (joint PnP, covariance filter), truth.",
 )
 @camera_option_fpv
 @click.option(

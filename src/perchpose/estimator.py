@@ -96,10 +96,10 @@ class PerchingEstimator:
         coasting: a frame without a detection has no estimate).
     corners : ``"edges"`` (default: corners from the four fitted border edges, unbiased) or
         ``"subpix"`` (OpenCV's ``cornerSubPix``, about 0.2 px inside the true corners).
-    fusion : ``"paper"`` (default: per-marker filters fused with the fixed sigmas by stage) or
-        ``"covariance"`` (one PnP over every corner of every marker, its covariance from the
-        Jacobian, and one filter of the fused pose with a white-noise-acceleration model;
-        settings in ``covariance_filter``).
+    fusion : ``"covariance"`` (default: one PnP over every corner of every marker, its
+        covariance from the Jacobian, and one filter of the fused pose with a
+        white-noise-acceleration model; settings in ``covariance_filter``) or ``"paper"``
+        (per-marker filters fused with the fixed sigmas by stage, as in the paper).
     """
 
     def __init__(
@@ -113,7 +113,7 @@ class PerchingEstimator:
         markers: tuple[int, ...] | None = None,
         use_filter: bool = True,
         corners: CornerMethod = "edges",
-        fusion: FusionMethod = "paper",
+        fusion: FusionMethod = "covariance",
         covariance_filter: CovarianceFilterSettings | None = None,
     ) -> None:
         if fusion not in FUSION_METHODS:

@@ -63,42 +63,80 @@ def _perturbed(T: Array, delta: Array) -> Array:
     return out
 
 
-def _project(camera: CameraModel, T: Array, points_target_m: Array) -> Array | None:
-    uv, ok = camera.project((T[:3, :3] @ points_target_m.T).T + T[:3, 3])
-    return np.asarray(uv, np.float64).reshape(-1) if bool(np.all(ok)) else None
+def _project_with_jacobian(
+    camera: CameraModel, rvec: Array, tvec: Array, points_target_m: Array
+) -> tuple[Array, Array] | None:
+    """Pixels (2N,) of the points under the pose (rvec, tvec), and their Jacobian (2N, 6)
+    with respect to (rvec, tvec), from OpenCV's own projection (the same models as
+    ``CameraModel.project``). None if a point is not in front of the camera."""
+    R, _ = cv2.Rodrigues(rvec.reshape(3, 1))
+    depth = (np.asarray(R, np.float64) @ points_target_m.T)[2] + tvec[2]
+    if not np.all(depth > 1e-6):
+        return None
+    obj = points_target_m.reshape(-1, 1, 3)
+    if camera.model == "equidistant":
+        uv, jac = cv2.fisheye.projectPoints(
+            obj,
+            rvec.reshape(3, 1),
+            tvec.reshape(3, 1),
+            camera.K,
+            camera.dist.reshape(4, 1),
+            alpha=float(camera.K[0, 1] / camera.K[0, 0]),
+        )
+        J = np.asarray(jac, np.float64)[:, 8:14]  # fx fy cx cy k1-k4 | om (3) T (3) | alpha
+    else:
+        uv, jac = cv2.projectPoints(
+            obj, rvec.reshape(3, 1), tvec.reshape(3, 1), camera.K, camera.dist
+        )
+        J = np.asarray(jac, np.float64)[:, :6]  # rvec (3) tvec (3) | f, c, distortion
+    return np.asarray(uv, np.float64).reshape(-1), J
 
 
-def corner_jacobian(camera: CameraModel, T: Array, points_target_m: Array) -> Array | None:
-    """d(pixel coordinates) / d(delta): (2N, 6), by central differences; None if a point
-    leaves the lens model's field."""
-    columns = []
-    for k in range(6):
-        step = _STEP_RAD if k < 3 else _STEP_M
-        delta = np.zeros(6)
-        delta[k] = step
-        plus = _project(camera, _perturbed(T, delta), points_target_m)
-        minus = _project(camera, _perturbed(T, -delta), points_target_m)
-        if plus is None or minus is None:
-            return None
-        columns.append((plus - minus) / (2.0 * step))
-    return np.stack(columns, axis=1)
+def _rotation_jacobian(rvec: Array) -> Array:
+    """d(w)/d(rvec) (3, 3): how a change of the rotation vector turns the rotation, as a small
+    rotation ``w`` about the camera axes (``exp([w]x) R``)."""
+    R, _ = cv2.Rodrigues(rvec.reshape(3, 1))
+    A = np.zeros((3, 3))
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = _STEP_RAD
+        Rk, _ = cv2.Rodrigues((rvec + step).reshape(3, 1))
+        M = np.asarray(Rk, np.float64) @ np.asarray(R, np.float64).T
+        # a rotation this small is I + [w]x to first order (cv2.Rodrigues rounds it to zero)
+        A[:, k] = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+        A[:, k] /= _STEP_RAD
+    return A
+
+
+def _weights(sigma_px: float | Array, n_points: int) -> Array:
+    sigma = np.broadcast_to(np.asarray(sigma_px, np.float64), (n_points,))
+    return np.repeat(1.0 / sigma**2, 2)
+
+
+def _covariance(J: Array, w: Array, rvec: Array) -> Array | None:
+    """Covariance over (w, dt) from the (rvec, tvec) Jacobian of the corners."""
+    info = J.T @ (J * w[:, None])
+    if np.linalg.cond(info) > 1e14:
+        return None
+    cov_rt = np.linalg.inv(info)
+    A = np.eye(6)
+    A[:3, :3] = _rotation_jacobian(rvec)
+    return np.asarray(A @ cov_rt @ A.T, np.float64)
 
 
 def pose_covariance(
     camera: CameraModel, T: Array, points_target_m: Array, sigma_px: float | Array
 ) -> Array | None:
     """``(J^T W J)^-1`` with ``W = 1 / sigma^2`` at ``T`` for corners ``points_target_m``
-    (N, 3) with pixel noise ``sigma_px`` per axis (one value, or one per corner): the pose's
-    covariance, and at the true pose the Cramer-Rao bound. None if degenerate."""
-    J = corner_jacobian(camera, T, points_target_m)
-    if J is None:
+    (N, 3) with pixel noise ``sigma_px`` per axis (one value, or one per corner), over
+    (w, dt): the pose's covariance, and at the true pose the Cramer-Rao bound. None if
+    degenerate or a corner is behind the camera."""
+    rvec3, tvec3 = rvec_tvec_from_transform(T)
+    rvec, tvec = rvec3.reshape(3), tvec3.reshape(3)
+    projected = _project_with_jacobian(camera, rvec, tvec, points_target_m)
+    if projected is None:
         return None
-    sigma = np.broadcast_to(np.asarray(sigma_px, np.float64), (points_target_m.shape[0],))
-    w = np.repeat(1.0 / sigma**2, 2)
-    info = J.T @ (J * w[:, None])
-    if np.linalg.cond(info) > 1e14:
-        return None
-    return np.asarray(np.linalg.inv(info), np.float64)
+    return _covariance(projected[1], _weights(sigma_px, points_target_m.shape[0]), rvec)
 
 
 def uncertainty(T: Array, covariance: Array) -> PoseUncertainty:
@@ -144,7 +182,7 @@ def solve_joint_pose(
     detections: tuple[MarkerDetection, ...],
     T_initial: Array,
     sigma_px: float | Array,
-    iterations: int = 8,
+    iterations: int = 6,
 ) -> JointPose | None:
     """Least-squares pose from every corner of ``detections`` (pixel residuals through the
     lens model weighted by ``1 / sigma_px^2``, one value or one per detection; Gauss-Newton
@@ -154,28 +192,31 @@ def solve_joint_pose(
     points = target_points(target, detections)
     uv = np.concatenate([d.corners_px for d in detections]).reshape(-1)
     sigma = np.repeat(np.broadcast_to(np.asarray(sigma_px, np.float64), (len(detections),)), 4)
-    w = np.repeat(1.0 / sigma**2, 2)
-    T = np.asarray(T_initial, np.float64).copy()
+    w = _weights(sigma, points.shape[0])
+    rvec3, tvec3 = rvec_tvec_from_transform(np.asarray(T_initial, np.float64))
+    rvec, tvec = rvec3.reshape(3), tvec3.reshape(3)
+    projected = None
     for _ in range(iterations):
-        projected = _project(camera, T, points)
-        J = corner_jacobian(camera, T, points)
-        if projected is None or J is None:
+        projected = _project_with_jacobian(camera, rvec, tvec, points)
+        if projected is None:
             return None
-        r = projected - uv
+        r = projected[0] - uv
+        J = projected[1]
         Jw = J * w[:, None]
         try:
             delta = -np.linalg.solve(J.T @ Jw + 1e-12 * np.eye(6), Jw.T @ r)
         except np.linalg.LinAlgError:
             return None
-        T = _perturbed(T, delta)
-        if np.max(np.abs(delta[:3])) < 1e-9 and np.max(np.abs(delta[3:])) < 1e-9:
+        rvec = rvec + delta[:3]
+        tvec = tvec + delta[3:]
+        if np.max(np.abs(delta)) < 1e-10:
             break
-    # keep the rotation exactly orthonormal after the updates
-    rvec, tvec = rvec_tvec_from_transform(T)
-    T = transform_from_rvec_tvec(rvec, tvec)
-    projected = _project(camera, T, points)
-    cov = pose_covariance(camera, T, points, sigma)
-    if projected is None or cov is None:
+    projected = _project_with_jacobian(camera, rvec, tvec, points)
+    if projected is None:
         return None
-    rms = float(np.sqrt(np.mean(np.sum((projected - uv).reshape(-1, 2) ** 2, axis=1))))
+    cov = _covariance(projected[1], w, rvec)
+    if cov is None:
+        return None
+    rms = float(np.sqrt(np.mean(np.sum((projected[0] - uv).reshape(-1, 2) ** 2, axis=1))))
+    T = transform_from_rvec_tvec(rvec, tvec)
     return JointPose(T, cov, rms, tuple(d.marker_index for d in detections))

@@ -500,7 +500,12 @@ ABLATIONS: dict[str, dict[str, object]] = {
 
 @dataclass(frozen=True)
 class AblationRow:
-    """One variant on the approach: coverage and errors over frames with the target in view."""
+    """One variant on the approach: coverage and errors over frames with the target in view.
+
+    p95_relative_error_pct : 95th percentile of the position error as a share of the distance.
+    max_jump_cm : largest change of the position error between consecutive frames with an
+        estimate (a step of the estimate that the target's motion does not explain).
+    """
 
     name: str
     coverage: float
@@ -508,6 +513,8 @@ class AblationRow:
     p95_position_error_cm: float
     median_yaw_error_deg: float
     p95_yaw_error_deg: float
+    p95_relative_error_pct: float
+    max_jump_cm: float
     run: SequenceRun
 
 
@@ -526,6 +533,7 @@ def ablation(
         markers=markers if isinstance(markers, tuple) else None,
         use_filter=bool(options["use_filter"]),
         fusion="covariance" if options.get("fusion") == "covariance" else "paper",
+        corners="subpix" if options.get("corners") == "subpix" else "edges",
     )
     run = run_sequence(est, scenario, detections)
     err = run.errors()
@@ -537,4 +545,17 @@ def ablation(
         return float(np.percentile(values, q)) if values.size else math.nan
 
     coverage = float(sel.sum() / max(1, run.truth_in_view.sum()))
-    return AblationRow(name, coverage, pct(pos, 50), pct(pos, 95), pct(yaw, 50), pct(yaw, 95), run)
+    relative = 100.0 * pos / np.maximum(np.abs(run.truth[sel, 2]), 1e-6)
+    steps = np.flatnonzero(sel[1:] & sel[:-1])
+    jumps = np.linalg.norm(err[steps + 1, :3] - err[steps, :3], axis=1)
+    return AblationRow(
+        name,
+        coverage,
+        pct(pos, 50),
+        pct(pos, 95),
+        pct(yaw, 50),
+        pct(yaw, 95),
+        pct(relative, 95),
+        float(jumps.max()) if jumps.size else math.nan,
+        run,
+    )

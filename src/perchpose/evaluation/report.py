@@ -511,15 +511,16 @@ def _markdown(
         f"{ablations[0].run.truth[0, 2]:.0f} cm to contact for each variant; errors over the "
         "frames where a marker is in view; coverage = share of those frames with an estimate.",
         "",
-        "| variant | coverage | position median (cm) | position p95 (cm) | yaw median "
-        "(deg) | yaw p95 (deg) |",
-        "|---|---|---|---|---|---|",
+        "| variant | coverage | position median (cm) | position p95 (cm) | position p95 "
+        "(% of distance) | yaw median (deg) | yaw p95 (deg) | largest jump (cm) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for a in ablations:
         L.append(
             f"| {a.name} | {a.coverage:.2f} | {_fmt(a.median_position_error_cm)} | "
-            f"{_fmt(a.p95_position_error_cm)} | {_fmt(a.median_yaw_error_deg)} | "
-            f"{_fmt(a.p95_yaw_error_deg)} |"
+            f"{_fmt(a.p95_position_error_cm)} | {_fmt(a.p95_relative_error_pct)} | "
+            f"{_fmt(a.median_yaw_error_deg)} | {_fmt(a.p95_yaw_error_deg)} | "
+            f"{_fmt(a.max_jump_cm)} |"
         )
     L += ["", "![error against distance](ablation.png)", ""]
     return "\n".join(L)

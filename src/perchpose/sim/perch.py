@@ -22,7 +22,7 @@ from perchpose.target import TargetSpec
 
 Array = NDArray[np.float64]
 
-ESTIMATORS = ("paper", "outer", "inner", "truth")
+ESTIMATORS = ("paper", "outer", "inner", "covariance", "truth")
 # standard deviation of the gust force, newtons (the vehicle weighs 0.38 N)
 WIND_LEVELS = {"none": 0.0, "light": 0.004, "moderate": 0.008, "strong": 0.015}
 CONTACT_RADIUS_MM = 12.5  # the paper's 25 mm magnet
@@ -140,8 +140,12 @@ def truth_estimate(
 def _estimator_for(setup: PerchSetup) -> PerchingEstimator | None:
     if setup.estimator == "truth":
         return None
+    if setup.estimator == "covariance":
+        return PerchingEstimator(setup.camera, setup.target, fusion="covariance")
     markers = {"paper": None, "outer": (0,), "inner": tuple(range(1, len(setup.target.markers)))}
-    return PerchingEstimator(setup.camera, setup.target, markers=markers[setup.estimator])
+    return PerchingEstimator(
+        setup.camera, setup.target, markers=markers[setup.estimator], fusion="paper"
+    )
 
 
 def run_perch(
