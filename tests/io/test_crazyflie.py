@@ -246,3 +246,15 @@ def test_cli_without_a_radio_is_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert uri in err[0]
+
+
+def test_nothing_imports_cflib_without_the_crazyflie_link() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, perchpose.cli, perchpose.track, perchpose.io.crazyflie, "
+        "perchpose.io.mavlink; print('cflib' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
