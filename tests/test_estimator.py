@@ -149,16 +149,24 @@ def test_covariance_fusion_follows_an_approach_better_than_the_papers(
     ]
     frames = [r.render(T, rng=rng) for T in poses]
     errors = {}
+    stages = []
     for fusion in ("paper", "covariance"):
         est = PerchingEstimator(r.camera, r.target, fusion=fusion)
-        err = []
+        err, offsets = [], []
         for k, (T, image) in enumerate(zip(poses, frames, strict=True)):
             e = est.update(image, k / 30)
             assert e.valid
-            err.append(
-                np.linalg.norm(np.array([e.x_cm, e.y_cm, e.z_cm]) / 100 - T[:3, 3]) / T[2, 3]
-            )
+            d = np.array([e.x_cm, e.y_cm, e.z_cm]) / 100 - T[:3, 3]
+            err.append(np.linalg.norm(d) / T[2, 3])
+            offsets.append(d)
+            stages.append(e.stage)
         errors[fusion] = np.array(err)
+        if fusion == "covariance":
+            # no jump of the estimate beyond the target's own motion, including where the inner
+            # marker comes into view (stage 1 -> 2)
+            jumps = np.linalg.norm(np.diff(np.array(offsets), axis=0), axis=1)
+            assert jumps.max() < 0.005
+    assert {1, 2} <= set(stages)
     # relative position error: p95 within 1 % of the distance, and no worse than the paper's
     assert np.percentile(errors["covariance"], 95) < 0.01
     assert np.median(errors["covariance"]) <= np.median(errors["paper"])
