@@ -120,3 +120,30 @@ def test_tracking_finds_what_the_full_search_finds(
         tracked += bool(hint)
         hint = with_hint
     assert tracked >= 14
+
+
+def test_a_marker_running_out_of_a_fisheye_image_gives_no_false_quad(
+    renderers: dict[str, Renderer],
+) -> None:
+    """10 cm under the target, tilted, the outer marker runs out of the bottom of the image;
+    the rectified view (black beyond the image) must not close it into a quad along the
+    image's edge (it once did, 25 px off)."""
+    r = renderers["fpv"]
+    T = np.array(
+        [
+            [-0.682031, -0.693282, 0.232795, 0.003749],
+            [-0.731115, 0.638788, -0.239625, -0.01022],
+            [0.017421, -0.333632, -0.942542, 0.104155],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+    T[:3, :3] = np.linalg.svd(T[:3, :3])[0] @ np.linalg.svd(T[:3, :3])[2]
+    truth = r.corners_px(T)
+    for seed in range(3):
+        detector = MarkerDetector(r.camera, r.target)
+        found = detector.detect(r.render(T, rng=np.random.default_rng(seed)))
+        assert 1 in {d.marker_index for d in found}
+        for d in found:
+            true = truth[d.marker_index]
+            assert true is not None
+            assert np.max(np.abs(d.corners_px - true)) < 1.0

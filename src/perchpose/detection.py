@@ -476,4 +476,13 @@ class MarkerDetector:
             [(corners_rect_px - K[:2, 2]) / K[0, 0], np.ones((corners_rect_px.shape[0], 1))], 1
         )
         uv, ok = self.camera.project(rays)
-        return uv if bool(np.all(ok)) else None
+        if not bool(np.all(ok)):
+            return None
+        # the rectified view reaches past the image, where it is black: a marker running out
+        # of the image closes there into a quad that is not the marker (OpenCV's own
+        # minDistanceToBorder keeps such quads out of the plain pass)
+        w, h = self.camera.size
+        margin = float(self._params.minDistanceToBorder)
+        inside = (uv[:, 0] >= margin) & (uv[:, 0] <= w - 1 - margin)
+        inside &= (uv[:, 1] >= margin) & (uv[:, 1] <= h - 1 - margin)
+        return uv if bool(np.all(inside)) else None
