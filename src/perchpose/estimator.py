@@ -183,15 +183,22 @@ class PerchingEstimator:
     ) -> tuple[dict[int, MarkerPose], dict[int, str]]:
         measurements: dict[int, MarkerPose] = {}
         rejected: dict[int, str] = {}
-        for det in detections:
+        # the largest marker first: its rotation (all markers measure the same target frame)
+        # then settles the IPPE ambiguity of a small marker that has no history of its own
+        for det in sorted(detections, key=lambda d: -d.side_px):
             if det.marker_index not in self.markers:
                 continue
+            reference = self._last_R[det.marker_index]
+            if reference is None and measurements:
+                reference = next(iter(measurements.values())).T_camera_target[:3, :3]
+            if reference is None:
+                reference = next((R for R in self._last_R if R is not None), None)
             result = solve_marker_pose(
                 self.camera,
                 self.target.markers[det.marker_index],
                 det.marker_index,
                 det.corners_px,
-                self._last_R[det.marker_index],
+                reference,
             )
             if isinstance(result, PoseFailure):
                 rejected[det.marker_index] = result.reason

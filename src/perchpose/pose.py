@@ -18,6 +18,10 @@ Array = NDArray[np.float64]
 # Two IPPE solutions whose reprojection errors are within this factor are called ambiguous,
 # and the one closer to the previous rotation is kept.
 AMBIGUITY_RATIO = 2.0
+# Beyond that, the solution closer to the expected rotation by more than FLIP_DEG still wins
+# while its reprojection error is under FLIP_RATIO times the other's.
+FLIP_DEG = 5.0
+FLIP_RATIO = 4.0
 
 
 @dataclass(frozen=True)
@@ -123,14 +127,18 @@ def solve_marker_pose(
     best_err, best_T = candidates[0]
     alt_err, alt_T = candidates[1] if len(candidates) > 1 else (math.inf, None)
     ambiguous = alt_err < AMBIGUITY_RATIO * max(best_err, 1e-3)
-    if (
-        ambiguous
-        and R_previous is not None
-        and alt_T is not None
-        and rotation_angle_rad(alt_T[:3, :3], R_previous)
-        < rotation_angle_rad(best_T[:3, :3], R_previous)
-    ):
-        best_err, best_T, alt_err, alt_T = alt_err, alt_T, best_err, best_T
+    if R_previous is not None and alt_T is not None:
+        # the rotation expected from before scores the two solutions too: when reprojection
+        # cannot tell them apart, the closer one wins; a solution far (over FLIP_DEG) from the
+        # expected rotation loses to one that agrees with it unless it reprojects several
+        # times better (a small marker seen head-on flips between them on noise alone)
+        d_best = rotation_angle_rad(best_T[:3, :3], R_previous)
+        d_alt = rotation_angle_rad(alt_T[:3, :3], R_previous)
+        agrees = d_alt < d_best - math.radians(FLIP_DEG)
+        if (ambiguous and d_alt < d_best) or (
+            agrees and alt_err < FLIP_RATIO * max(best_err, 1e-3)
+        ):
+            best_err, best_T, alt_err, alt_T = alt_err, alt_T, best_err, best_T
     if not math.isfinite(best_err):
         return PoseFailure(marker_index, "reprojection failed")
     return MarkerPose(marker_index, best_T, best_err, alt_err, ambiguous, alt_T)

@@ -15,6 +15,7 @@ from perchpose.detection import CornerMethod, MarkerDetection, MarkerDetector
 from perchpose.estimator import Estimate, PerchingEstimator
 from perchpose.fusion import fit_sigma_least_squares, fit_sigma_lms
 from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
+from perchpose.pose import MarkerPose, rotation_angle_rad
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import Scenario, markers_in_view
 from perchpose.sim.sequence import render_frame
@@ -231,6 +232,8 @@ class SequenceRun:
 
     truth, filtered : (N, 4) x_cm, y_cm, z_cm, yaw_deg (filtered NaN where not valid).
     raw : marker index -> (N, 4) raw per-frame measurement (NaN where none).
+    flips : per-marker measurements that took the wrong one of IPPE's two solutions (the other
+        was closer to the true rotation by over 5 deg).
     """
 
     t_s: Array
@@ -241,6 +244,7 @@ class SequenceRun:
     stage: NDArray[np.int64]
     dropout: NDArray[np.bool_]
     truth_in_view: NDArray[np.bool_]
+    flips: int = 0
 
     def errors(self) -> Array:
         """(N, 4) filtered - truth, yaw wrapped."""
@@ -296,6 +300,7 @@ def run_sequence(
     raw = {i: np.full((n, 4), np.nan) for i in range(n_markers)}
     valid = np.zeros(n, bool)
     stage = np.zeros(n, np.int64)
+    flips = 0
     for k in range(n):
         frame = frames[k]
         t_s = float(scenario.t_s[k])
@@ -312,6 +317,7 @@ def run_sequence(
             if m.measurement is not None:
                 t = m.measurement.t_m * 100
                 raw[i][k] = [t[0], t[1], t[2], math.degrees(m.measurement.yaw_rad)]
+                flips += int(_wrong_branch(m.measurement, scenario.poses[k]))
     in_view = (
         np.array(
             [any(markers_in_view(estimator.camera, estimator.target, T)) for T in scenario.poses]
@@ -327,7 +333,19 @@ def run_sequence(
         stage,
         scenario.dropout.copy(),
         in_view,
+        flips,
     )
+
+
+def _wrong_branch(measurement: MarkerPose, T_true: Array) -> bool:
+    """The measurement took the IPPE solution farther from the true rotation (by over 5 deg:
+    near head-on the two solutions lie a degree or two apart and either is right)."""
+    alt = measurement.alt_T_camera_target
+    if alt is None:
+        return False
+    chosen = rotation_angle_rad(measurement.T_camera_target[:3, :3], T_true[:3, :3])
+    other = rotation_angle_rad(alt[:3, :3], T_true[:3, :3])
+    return chosen > other + math.radians(5.0)
 
 
 MOVE_WAYPOINTS = np.array(
@@ -505,6 +523,7 @@ class AblationRow:
     p95_relative_error_pct : 95th percentile of the position error as a share of the distance.
     max_jump_cm : largest change of the position error between consecutive frames with an
         estimate (a step of the estimate that the target's motion does not explain).
+    flips : marker measurements on the wrong IPPE solution (``SequenceRun.flips``).
     """
 
     name: str
@@ -515,6 +534,7 @@ class AblationRow:
     p95_yaw_error_deg: float
     p95_relative_error_pct: float
     max_jump_cm: float
+    flips: int
     run: SequenceRun
 
 
@@ -557,5 +577,6 @@ def ablation(
         pct(yaw, 95),
         pct(relative, 95),
         float(jumps.max()) if jumps.size else math.nan,
+        run.flips,
         run,
     )
