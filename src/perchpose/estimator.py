@@ -184,13 +184,15 @@ class PerchingEstimator:
         measurements: dict[int, MarkerPose] = {}
         rejected: dict[int, str] = {}
         # the largest marker first: its rotation (all markers measure the same target frame)
-        # then settles the IPPE ambiguity of a small marker that has no history of its own
+        # then settles the IPPE ambiguity of the smaller ones, before their own history does
         for det in sorted(detections, key=lambda d: -d.side_px):
             if det.marker_index not in self.markers:
                 continue
-            reference = self._last_R[det.marker_index]
-            if reference is None and measurements:
+            reference: Array | None
+            if measurements:
                 reference = next(iter(measurements.values())).T_camera_target[:3, :3]
+            else:
+                reference = self._last_R[det.marker_index]
             if reference is None:
                 reference = next((R for R in self._last_R if R is not None), None)
             result = solve_marker_pose(
