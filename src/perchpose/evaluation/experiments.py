@@ -395,6 +395,7 @@ class DropoutResult:
     max_position_error_cm: float
     max_yaw_error_deg: float
     max_position_error_before_cm: float
+    wrong_branch: int = 0
 
 
 def dropout_summary(run: SequenceRun) -> DropoutResult:
@@ -416,6 +417,7 @@ def dropout_summary(run: SequenceRun) -> DropoutResult:
         peak(pos, inside),
         peak(err[:, 3], inside),
         peak(pos, before),
+        run.flips,
     )
 
 

@@ -467,6 +467,8 @@ def _markdown(
         f"- largest position error while bridging: {_fmt(drop.max_position_error_cm)} cm "
         f"(in the second before the dropout: {_fmt(drop.max_position_error_before_cm)} cm); "
         f"largest yaw error: {_fmt(drop.max_yaw_error_deg)} deg",
+        f"- marker measurements on the wrong IPPE solution over the whole sequence: "
+        f"{drop.wrong_branch}",
         "",
         "![Kalman filter](kalman.png)",
         "",
