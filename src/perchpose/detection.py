@@ -194,18 +194,15 @@ class MarkerDetector:
             tracked = self._track_edges(grey, hint)
             if tracked is not None:
                 return tracked
-        refined = []
-        for det in self._find(grey, hint):
-            corners = self._edge_corners(grey, det)
-            if corners is None:
-                refined.append(det)
-            else:
-                refined.append(MarkerDetection(det.marker_index, corners, det.image_pass))
-        return tuple(refined)
+        return tuple(self._edge_fitted(grey, det) or det for det in self._find(grey, hint))
 
-    def _edge_corners(self, grey: NDArray[np.uint8], det: MarkerDetection) -> Array | None:
+    def _edge_fitted(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
+        """``det`` with corners from its fitted border edges, or None if they cannot be fitted."""
         cells = int(self.target.markers[det.marker_index].cells.shape[0])
-        return refine_corners_edges(grey, det.corners_px, self.camera, cells)
+        corners = refine_corners_edges(grey, det.corners_px, self.camera, cells)
+        return (
+            None if corners is None else MarkerDetection(det.marker_index, corners, det.image_pass)
+        )
 
     def _track_edges(
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
@@ -228,13 +225,10 @@ class MarkerDetector:
         result = []
         for index in sorted(found):
             det = found[index]
-            corners = self._edge_corners(grey, det)
-            if corners is not None:
-                result.append(MarkerDetection(index, corners, "raw"))
-            elif self.rectify and det.side_px >= CURVED_SIDE_PX:
+            fitted = self._edge_fitted(grey, det)
+            if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
                 return None  # a curved quad too far off for the fit: the rectified view finds it
-            else:
-                result.append(det)
+            result.append(fitted or det)
         return tuple(result)
 
     def _find(
@@ -250,10 +244,6 @@ class MarkerDetector:
         but predicted by the plane through a found one are searched again in windows of the
         rectified view; with nothing found, the whole rectified view is searched.
         """
-        if hint and self.rectify:
-            tracked = self._track_rectifying(grey, hint)
-            if tracked is not None:
-                return tracked
         found: dict[int, MarkerDetection] = {}
         box = self._tracking_window(grey.shape, hint) if hint else None
         if box is not None:
@@ -370,44 +360,6 @@ class MarkerDetector:
         if box is None or (box[2] - box[0]) * (box[3] - box[1]) > 0.6 * w * h:
             return None
         return box
-
-    def _track_rectifying(
-        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
-    ) -> tuple[MarkerDetection, ...] | None:
-        """Tracking through a strongly distorted lens: markers expected small are searched in a
-        window of the image, markers expected large (curved edges) only in windows of the
-        rectified view, so that no pass covers a large marker twice. None when a hinted marker
-        is not found again (the caller then runs the full search)."""
-        quads = self._predicted_quads(hint)
-        small = {i: q for i, q in quads.items() if _quad_side_px(q) < CURVED_SIDE_PX}
-        large = {i: q for i, q in quads.items() if i not in small}
-        found: dict[int, MarkerDetection] = {}
-        if small:
-            # the large markers' motion since the last frame moves the small ones too
-            allowance = max((_quad_side_px(q) for q in large.values()), default=0.0)
-            box = self._window(list(small.values()), grey.shape, 0.5, 16.0 + 0.15 * allowance)
-            if box is not None:
-                x0, y0, x1, y1 = box
-                raw = self._detect_pass(grey[y0:y1, x0:x1], "raw", (x0, y0))
-                found.update({i: d for i, d in raw.items() if d.side_px < CURVED_SIDE_PX})
-        if large:
-            maps = self._rectify_maps()
-            h, w = maps[0].shape
-            for index, quad in large.items():
-                box = self._window([self._to_rectified(quad)], (h, w), 0.3, 8.0)
-                if box is None:
-                    continue
-                for det in self._rectified_pass(grey, maps, box).values():
-                    mapped = self._unrectify(det.corners_px)
-                    if mapped is not None and (
-                        index == det.marker_index or det.marker_index not in found
-                    ):
-                        found[det.marker_index] = MarkerDetection(
-                            det.marker_index, mapped, "rectified"
-                        )
-        if any(d.marker_index not in found for d in hint):
-            return None
-        return tuple(found[i] for i in sorted(found))
 
     def _rectified_pass(
         self,

@@ -215,7 +215,6 @@ class PerchingEstimator:
         t: float,
         detections: tuple[MarkerDetection, ...],
         measurements: dict[int, MarkerPose],
-        paper_fused: Array,
         stage: int,
     ) -> Array:
         """The joint pose of this frame's measured markers through the fused filter."""
@@ -278,7 +277,7 @@ class PerchingEstimator:
             }
         fused, stage = fuse_paper(poses, self.sigmas)
         if self.fusion == "covariance":
-            fused = self._fuse_covariance(t, detections, measurements, fused, stage)
+            fused = self._fuse_covariance(t, detections, measurements, stage)
             if np.isnan(fused[1]):
                 stage = STAGE_NONE
         t3 = time.perf_counter()

@@ -141,19 +141,10 @@ def pose_covariance(
 
 def uncertainty(T: Array, covariance: Array) -> PoseUncertainty:
     """Standard deviations of x, y, z (m) and yaw (rad) for a covariance over (w, dt)."""
-    grad = np.zeros(6)
-    base = yaw_rad(T[:3, :3])
-    for k in range(3):
-        delta = np.zeros(6)
-        delta[k] = _STEP_RAD
-        d = yaw_rad(_perturbed(T, delta)[:3, :3]) - base
-        grad[k] = math.remainder(d, 2.0 * math.pi) / _STEP_RAD
-    var = np.diag(covariance)
+    J = measurement_jacobian(T)
+    var = np.diag(J @ covariance @ J.T)
     return PoseUncertainty(
-        math.sqrt(max(float(var[3]), 0.0)),
-        math.sqrt(max(float(var[4]), 0.0)),
-        math.sqrt(max(float(var[5]), 0.0)),
-        math.sqrt(max(float(grad @ covariance @ grad), 0.0)),
+        *(math.sqrt(max(float(v), 0.0)) for v in (var[1], var[2], var[3], var[0]))
     )
 
 

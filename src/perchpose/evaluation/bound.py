@@ -72,7 +72,6 @@ def bound_rows(
         T = facing_pose(0.04 * z, -0.03 * z, z, float(rng.uniform(-math.pi, math.pi)))
         truth_px = renderer.corners_px(T)
         corner_err: dict[int, list[float]] = {}
-        joint_err: list[list[float]] = []
         single_err: list[list[float]] = []
         joint_frames: list[tuple[tuple[MarkerDetection, ...], np.ndarray]] = []
         seen: set[tuple[int, ...]] = set()
@@ -108,7 +107,7 @@ def bound_rows(
         points = np.concatenate([target.markers[i].corners_target_m for i in used])
         sigma = np.repeat([sigmas[i] for i in used], 4)
         # the joint pose weighted with the measured noise, frame by frame
-        joint_err = []
+        joint_err: list[list[float]] = []
         for dets, start in joint_frames:
             joint = solve_joint_pose(
                 camera, target, dets, start, np.array([sigmas[d.marker_index] for d in dets])
