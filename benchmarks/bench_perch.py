@@ -55,8 +55,7 @@ def main() -> None:
     spent: Counter[str] = Counter()
     timed(Renderer, "render", "render", spent)
     timed(PerchingEstimator, "update", "estimator", spent)
-    timed(Quadrotor, "step", "physics", spent)
-    timed(Quadrotor, "motor_commands", "physics", spent)
+    timed(Quadrotor, "fly", "physics", spent)
     t0 = time.process_time()
     results = [run_perch(setup, args.seed + k, renderer) for k in range(args.runs)]
     cpu = time.process_time() - t0

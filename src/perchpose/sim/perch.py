@@ -202,39 +202,50 @@ def run_perch(
                 stage = estimate.stage
                 command = controller.update(estimate, t, vehicle.R_world_body)
         v_estimate = vehicle.v_mps + rng.normal(0.0, setup.velocity_noise_mps, 3)
-        for _ in range(steps_per_frame):
-            if sigma_wind > 0:
+        forces = None
+        if sigma_wind > 0:
+            forces = np.empty((steps_per_frame, 3))
+            for i in range(steps_per_frame):
                 gust += -gust * dt + sigma_wind * math.sqrt(2.0 * dt) * rng.normal(size=3)
-            motors = vehicle.motor_commands(command.v_mps, command.yaw_rate_rad_s, v_estimate)
-            vehicle.step(dt, motors, gust if sigma_wind > 0 else None)
-            magnet = vehicle.p_m + vehicle.R_world_body @ p_magnet_body
-            if magnet[2] >= setup.plate_z_m:
-                offset_mm = float(np.hypot(magnet[0], magnet[1]) * 1000.0)
-                speed = float(vehicle.v_mps[2])
-                ok_offset = offset_mm <= CONTACT_RADIUS_MM
-                ok_speed = speed < MAX_CONTACT_SPEED_MPS
-                reason = (
-                    "perched"
-                    if ok_offset and ok_speed
-                    else ("off-centre" if not ok_offset else "too-fast")
-                )
-                ts.append(t)
-                magnets.append(magnet)
-                stages.append(stage)
-                phases.append(command.phase)
-                return PerchResult(
-                    seed,
-                    setup.estimator,
-                    ok_offset and ok_speed,
-                    reason,
-                    offset_mm,
-                    speed,
-                    t,
-                    np.array(ts),
-                    np.array(magnets),
-                    np.array(stages, np.int64),
-                    tuple(phases),
-                )
+                forces[i] = gust
+        contact = vehicle.fly(
+            dt,
+            steps_per_frame,
+            command.v_mps,
+            command.yaw_rate_rad_s,
+            v_estimate,
+            forces,
+            stop_z_m=setup.plate_z_m,
+            p_body_point_m=p_magnet_body,
+        )
+        if contact is not None:
+            magnet = np.array(vehicle.point_in_world(tuple(p_magnet_body)))
+            offset_mm = float(np.hypot(magnet[0], magnet[1]) * 1000.0)
+            speed = float(vehicle.v_mps[2])
+            ok_offset = offset_mm <= CONTACT_RADIUS_MM
+            ok_speed = speed < MAX_CONTACT_SPEED_MPS
+            reason = (
+                "perched"
+                if ok_offset and ok_speed
+                else ("off-centre" if not ok_offset else "too-fast")
+            )
+            ts.append(t)
+            magnets.append(magnet)
+            stages.append(stage)
+            phases.append(command.phase)
+            return PerchResult(
+                seed,
+                setup.estimator,
+                ok_offset and ok_speed,
+                reason,
+                offset_mm,
+                speed,
+                t,
+                np.array(ts),
+                np.array(magnets),
+                np.array(stages, np.int64),
+                tuple(phases),
+            )
         ts.append(t)
         magnets.append(vehicle.p_m + vehicle.R_world_body @ p_magnet_body)
         stages.append(stage)
