@@ -149,18 +149,27 @@ class Renderer(Generic[P]):
         of the camera; a lens whose border bends the sheet's edge outside the sampled outline
         falls back to the whole frame.
         """
-        return self._trace(T_camera_target, math.nan)
+        n = self.supersample
+        w, h = self.camera.size
+        out = np.full((h, n, w, n), math.nan, dtype=np.float32)
+        box, samples = self._trace(T_camera_target, math.nan)
+        x0, y0, x1, y1 = box
+        out[y0:y1, :, x0:x1, :] = samples
+        return out
 
-    def _trace(self, T_camera_target: Array, off_sheet: float) -> NDArray[np.float32]:
-        """``reflectance`` with ``off_sheet`` where a ray misses the sheet."""
+    def _trace(
+        self, T_camera_target: Array, off_sheet: float
+    ) -> tuple[tuple[int, int, int, int], NDArray[np.float32]]:
+        """The pixel box (x0, y0, x1, y1) traced and the (y1 - y0, n, x1 - x0, n) reflectance
+        samples in it, ``off_sheet`` where a ray misses the sheet; every pixel outside the box
+        misses it."""
         T = check_transform(T_camera_target, "T_camera_target")
         n = self.supersample
         w, h = self.camera.size
-        out = np.full((h, n, w, n), off_sheet, dtype=np.float32)
         box = self._sheet_pixel_box(T)
         x0, y0, x1, y1 = box if box is not None else (0, 0, w, h)
         if x1 <= x0 or y1 <= y0:
-            return out
+            return (0, 0, 0, 0), np.zeros((0, n, 0, n), np.float32)
         rays = self._camera_rays().reshape(h * n, w * n, 3)[y0 * n : y1 * n, x0 * n : x1 * n]
         R = T[:3, :3]
         o_t = -R.T @ T[:3, 3]  # camera centre in the target frame
@@ -191,8 +200,7 @@ class Renderer(Generic[P]):
             borderValue=-1.0,
         )
         refl[refl < 0] = off_sheet
-        out[y0:y1, :, x0:x1, :] = refl.reshape(y1 - y0, n, x1 - x0, n)
-        return out
+        return (x0, y0, x1, y1), np.asarray(refl, np.float32).reshape(y1 - y0, n, x1 - x0, n)
 
     def render(
         self,
@@ -201,35 +209,53 @@ class Renderer(Generic[P]):
         rng: np.random.Generator | None = None,
         occluders: tuple[Occluder, ...] = (),
     ) -> NDArray[np.uint8]:
-        """A grey (H, W) uint8 frame of the target at ``T_camera_target`` (metres)."""
+        """A grey (H, W) uint8 frame of the target at ``T_camera_target`` (metres).
+
+        Everything outside the sheet's pixel box is the uniform surround, so the light levels
+        and the optical blur are computed in the box (grown by the blur's reach) and the rest of
+        the frame is filled; occluders and motion blur, which reach anywhere, take the whole
+        frame. Noise and JPEG always cover the whole frame."""
         q = quality or ImageQuality()
-        samples = self._trace(T_camera_target, q.surround)
-        n = self.supersample
-        refl = (
-            samples.reshape(samples.shape[0], samples.shape[2])
-            if n == 1
-            else samples.mean(axis=(1, 3), dtype=np.float32)
-        )
-        img = (
-            np.float32(q.exposure * q.black_level)
-            + np.float32(q.exposure * (q.white_level - q.black_level)) * refl
-        )
+        w, h = self.camera.size
+        gain = np.float32(q.exposure * (q.white_level - q.black_level))
+        dark = np.float32(q.exposure * q.black_level)
+        (x0, y0, x1, y1), samples = self._trace(T_camera_target, q.surround)
+        img: NDArray[np.float32] = np.full((h, w), dark + gain * np.float32(q.surround), np.float32)
+        if x1 > x0 and y1 > y0:
+            refl = (
+                samples.reshape(y1 - y0, x1 - x0)
+                if self.supersample == 1
+                else samples.mean(axis=(1, 3), dtype=np.float32)
+            )
+            img[y0:y1, x0:x1] = dark + gain * refl
         if q.vignetting > 0:
-            img = img * (1.0 - q.vignetting * self._vignette_map())
-        img = img.astype(np.float32, copy=False)
+            img *= 1.0 - np.float32(q.vignetting) * self._vignette_map()
+        whole_frame = bool(occluders) or q.motion_blur_px >= 1.0
         for occ in occluders:
             cv2.fillPoly(img, [np.round(occ.polygon_px).astype(np.int32)], float(occ.grey))
         if q.blur_sigma_px > 0:
-            img = cv2.GaussianBlur(img, (0, 0), q.blur_sigma_px)
+            if whole_frame or x1 <= x0 or y1 <= y0:
+                img = np.asarray(cv2.GaussianBlur(img, (0, 0), q.blur_sigma_px), np.float32)
+            else:
+                # beyond the box the frame is uniform (up to vignetting, which varies too
+                # slowly for the blur to change it): blurring the box and a ring as wide as the
+                # kernel's reach gives the whole-frame blur there and changes nothing outside
+                reach = int(math.ceil(4.0 * q.blur_sigma_px)) + 1
+                bx0, by0 = max(0, x0 - reach), max(0, y0 - reach)
+                bx1, by1 = min(w, x1 + reach), min(h, y1 + reach)
+                img[by0:by1, bx0:bx1] = cv2.GaussianBlur(
+                    img[by0:by1, bx0:bx1], (0, 0), q.blur_sigma_px
+                )
         if q.motion_blur_px >= 1.0:
-            img = cv2.filter2D(img, -1, _motion_kernel(q.motion_blur_px, q.motion_angle_deg))
+            kernel = _motion_kernel(q.motion_blur_px, q.motion_angle_deg)
+            img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
         if q.noise_sigma > 0:
             # OpenCV's generator, seeded from ``rng``, draws the noise 4x faster than numpy's
             generator = rng if rng is not None else np.random.default_rng(0)
             noise = np.empty(img.shape, np.float32)
             cv2.setRNGSeed(int(generator.integers(1, 2**31 - 1)))
             cv2.randn(noise, np.zeros(1), np.full(1, float(q.noise_sigma)))
-            img = img + noise
+            img += noise
         # round half to even and saturate, as numpy's round-and-clip would
         np.maximum(img, np.float32(0.0), out=img)
         out = np.asarray(cv2.convertScaleAbs(img), np.uint8)
