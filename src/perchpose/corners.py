@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -126,6 +125,22 @@ def _midpoint_crossings(values: Array, offsets: Array, level: float) -> Array:
     return np.where(np.isfinite(distance[rows, j]), position[rows, j], 0.0)
 
 
+def _bilinear(grey: NDArray[np.uint8], points_px: Array) -> Array:
+    """Bilinear interpolation of ``grey`` at ``points_px`` (..., 2), NaN where a point's four
+    neighbours are not all in the image. (Exact positions: ``cv2.remap`` rounds them to 1/32
+    of a pixel.)"""
+    h, w = grey.shape[:2]
+    x, y = points_px[..., 0], points_px[..., 1]
+    ix, iy = np.floor(x), np.floor(y)
+    inside = (ix >= 0) & (iy >= 0) & (ix < w - 1) & (iy < h - 1)
+    i = np.where(inside, iy, 0).astype(np.intp) * w + np.where(inside, ix, 0).astype(np.intp)
+    flat = grey.reshape(-1)
+    fx, fy = x - ix, y - iy
+    top = flat[i] + fx * (flat[i + 1] - flat[i].astype(np.float64))
+    bottom = flat[i + w] + fx * (flat[i + w + 1] - flat[i + w].astype(np.float64))
+    return np.where(inside, top + fy * (bottom - top), np.nan)
+
+
 def _lines_tls(points: Array, usable: NDArray[np.bool_]) -> tuple[Array, Array] | None:
     """Lines n . x = c through each of S sets of 2-D points (S, K, 2) where ``usable`` (S, K):
     total least squares, then again without the points beyond 3 RMS. Returns normals (S, 2) and
@@ -195,21 +210,7 @@ def refine_corners_edges(
     outward = np.sign((normal * (p_px - corners.mean(axis=0))).sum(axis=1))[:, None]
     normal = normal * np.where(outward == 0, 1.0, outward)
     samples = p_px[:, None, :] + offsets[None, :, None] * normal[:, None, :]
-    h, w = grey.shape[:2]
-    x0 = min(w, max(0, math.floor(float(samples[..., 0].min())) - 1))
-    y0 = min(h, max(0, math.floor(float(samples[..., 1].min())) - 1))
-    x1 = min(w, max(0, math.ceil(float(samples[..., 0].max())) + 2))
-    y1 = min(h, max(0, math.ceil(float(samples[..., 1].max())) + 2))
-    if x1 - x0 < 2 or y1 - y0 < 2:
-        return None
-    values = cv2.remap(
-        grey[y0:y1, x0:x1].astype(np.float32),
-        (samples[..., 0] - x0).astype(np.float32),
-        (samples[..., 1] - y0).astype(np.float32),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=float("nan"),
-    ).astype(np.float64)
+    values = _bilinear(grey, samples)
     rows = np.all(np.isfinite(values), axis=1)
     if np.count_nonzero(rows) < 12:
         return None
