@@ -48,7 +48,7 @@ def main() -> None:
 
     setup = PerchSetup(CameraModel.preset(args.camera), TargetSpec.paper())
     t0 = time.process_time()
-    renderer = Renderer(setup.camera, setup.target, supersample=setup.supersample)
+    renderer = setup.renderer()
     run_perch(setup, args.seed - 1, renderer)  # warms every cache a worker keeps
     setup_cpu = time.process_time() - t0
 

@@ -251,12 +251,14 @@ class MarkerDetector:
     ) -> tuple[MarkerDetection, ...] | None:
         """Tracking with edge-fitted corners: one single-threshold pass over a window of the
         image (the whole image when the window would cover most of it), then the edge fit
-        through the lens model, which also straightens what a fisheye bends, so no rectified
-        view is needed.
-        None when a hinted marker is not found again, or a large marker through a strongly
-        distorted lens cannot be fitted (its raw quad is then several pixels off): the caller
-        then runs the full search. A small marker whose edges cannot be fitted keeps its
-        ``cornerSubPix`` corners."""
+        through the lens model, which also straightens what a fisheye bends.
+
+        Through a strongly distorted lens, hinted markers the pass missed, and a large marker
+        whose curved quad is too far off for the edge fit, are searched again in windows of the
+        rectified view around where they are predicted. None when a marker of 20 px or more is
+        still not found: the caller then runs the full search. A hinted marker under 20 px (at
+        the edge of detection, where markers come and go) may drop out without one. A small
+        marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners."""
         quads = self._predicted_quads(hint)
         small = any(_quad_side_px(q) < SMALL_MARKER_SIDE_PX for q in quads.values())
         detector = self._tracking_small if small else self._tracking
@@ -266,16 +268,44 @@ class MarkerDetector:
         else:
             x0, y0, x1, y1 = box
             found = self._detect_pass(grey[y0:y1, x0:x1], "raw", (x0, y0), detector)
-        if any(d.marker_index not in found for d in hint):
-            return None
-        result = []
-        for index in sorted(found):
-            det = found[index]
+        result: dict[int, MarkerDetection] = {}
+        missing = [d for d in hint if d.marker_index not in found]
+        required = [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
+        for index, det in found.items():
             fitted = self._edge_fitted(grey, det)
             if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
-                return None  # a curved quad too far off for the fit: the rectified view finds it
-            result.append(fitted or det)
-        return tuple(result)
+                required.append(index)  # a curved quad too far off for the fit
+            else:
+                result[index] = fitted or det
+        again = required + [d.marker_index for d in missing if d.side_px < SMALL_MARKER_SIDE_PX]
+        if again and self.rectify:
+            retry = [quads[i] for i in again if i in quads]
+            for det in self._rectified_tracking(grey, retry):
+                if det.marker_index in again and det.marker_index not in result:
+                    result[det.marker_index] = self._edge_fitted(grey, det) or det
+        if any(index not in result for index in required):
+            return None
+        return tuple(result[i] for i in sorted(result))
+
+    def _rectified_tracking(
+        self, grey: NDArray[np.uint8], quads: list[Array]
+    ) -> list[MarkerDetection]:
+        """Markers found by the tracking detector in windows of the rectified view around the
+        predicted ``quads`` (original pixels), with corners mapped back to the original."""
+        maps = self._rectify_maps()
+        out = []
+        for quad in quads:
+            rectified = self._to_rectified(quad)
+            box = self._rectified_box(rectified, maps[0].shape)
+            if box is None:
+                continue
+            small = _quad_side_px(rectified) < SMALL_MARKER_SIDE_PX
+            detector = self._tracking_small if small else self._tracking
+            for index, det in self._rectified_pass(grey, maps, box, detector).items():
+                mapped = self._unrectify(det.corners_px)
+                if mapped is not None:
+                    out.append(MarkerDetection(index, mapped, "rectified"))
+        return out
 
     def _find(
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
@@ -348,16 +378,24 @@ class MarkerDetector:
                 ).reshape(4, 2)
             else:
                 continue
-            if not np.all(np.isfinite(quad)):
-                continue
-            lo, hi = quad.min(axis=0), quad.max(axis=0)
-            pad = 0.3 * float(np.max(hi - lo)) + 8.0
-            x0, y0 = (int(max(0, np.floor(v - pad))) for v in lo)
-            x1 = int(min(w, np.ceil(hi[0] + pad)))
-            y1 = int(min(h, np.ceil(hi[1] + pad)))
-            if x1 - x0 >= 16 and y1 - y0 >= 16:
-                windows.append((x0, y0, x1, y1))
+            window = self._rectified_box(quad, (h, w))
+            if window is not None:
+                windows.append(window)
         return windows
+
+    @staticmethod
+    def _rectified_box(quad: Array, shape: tuple[int, ...]) -> tuple[int, int, int, int] | None:
+        """A window (x0, y0, x1, y1) of the rectified view around ``quad`` (rectified pixels),
+        padded by 0.3 of its extent plus 8 px, or None if not finite or under 16 px."""
+        if not np.all(np.isfinite(quad)):
+            return None
+        h, w = shape[:2]
+        lo, hi = quad.min(axis=0), quad.max(axis=0)
+        pad = 0.3 * float(np.max(hi - lo)) + 8.0
+        x0, y0 = (int(max(0, np.floor(v - pad))) for v in lo)
+        x1 = int(min(w, np.ceil(hi[0] + pad)))
+        y1 = int(min(h, np.ceil(hi[1] + pad)))
+        return (x0, y0, x1, y1) if x1 - x0 >= 16 and y1 - y0 >= 16 else None
 
     def _predicted_quads(self, hint: tuple[MarkerDetection, ...]) -> dict[int, Array]:
         """Where each marker should be: the hinted markers where they were, the others where
@@ -411,6 +449,7 @@ class MarkerDetector:
         grey: NDArray[np.uint8],
         maps: tuple[NDArray[np.float32], NDArray[np.float32]],
         box: tuple[int, int, int, int],
+        detector: _Pass | None = None,
     ) -> dict[int, MarkerDetection]:
         """Markers found in the window ``box`` of the rectified view (rectified pixels)."""
         x0, y0, x1, y1 = box
@@ -423,7 +462,7 @@ class MarkerDetector:
             ),
             np.uint8,
         )
-        return self._detect_pass(window, "rectified", (x0, y0))
+        return self._detect_pass(window, "rectified", (x0, y0), detector)
 
     def _detect_pass(
         self,

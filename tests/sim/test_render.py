@@ -86,3 +86,33 @@ def test_degradations_change_the_image(renderers: dict[str, Renderer]) -> None:
     ):
         other = r.render(T, q, np.random.default_rng(0)).astype(float)
         assert np.mean(np.abs(other - clean)) > 0.5
+
+
+def test_box_rendering_equals_whole_frame_blur(renderers: dict[str, Renderer]) -> None:
+    """Light levels and blur computed in the sheet's box give the frame a whole-frame blur
+    gives (an occluder forces the whole-frame path; one outside the sheet changes nothing
+    else)."""
+    r = renderers["fpv"]
+    q = ImageQuality(noise_sigma=0.0, blur_sigma_px=1.1)
+    T = facing_pose(0.03, -0.02, 0.6, 0.4, 0.2, -0.1)
+    boxed = r.render(T, q).astype(int)
+    far_corner = Occluder(np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]]), grey=90)
+    whole = r.render(T, q, occluders=(far_corner,)).astype(int)
+    assert np.max(np.abs(boxed[20:, 20:] - whole[20:, 20:])) <= 1
+
+
+def test_noise_bank_is_white_seeded_and_changes_per_frame(renderers: dict[str, Renderer]) -> None:
+    fresh = renderers["webcam"]
+    banked = Renderer(fresh.camera, fresh.target, supersample=1, noise_bank=True)
+    T = facing_pose(0.0, 0.0, 3.0)  # a small target: the frame is mostly surround
+    q = ImageQuality(blur_sigma_px=0.0, noise_sigma=4.0)
+    clean = banked.render(T, ImageQuality(blur_sigma_px=0.0, noise_sigma=0.0)).astype(float)
+    rng = np.random.default_rng(2)
+    a = banked.render(T, q, rng).astype(float) - clean
+    b = banked.render(T, q, rng).astype(float) - clean
+    again = banked.render(T, q, np.random.default_rng(2)).astype(float) - clean
+    np.testing.assert_array_equal(a, again)
+    assert abs(float(np.std(a[:100])) - 4.0) < 0.1
+    # no correlation between frames, or between neighbouring pixels
+    assert abs(float(np.corrcoef(a.ravel(), b.ravel())[0, 1])) < 0.02
+    assert abs(float(np.corrcoef(a[:, 1:].ravel(), a[:, :-1].ravel())[0, 1])) < 0.02

@@ -40,7 +40,7 @@ def _run_one(job: tuple[PerchSetup, int]) -> PerchResult:
     key = _camera_key(setup)
     renderer = _RENDERERS.get(key)
     if renderer is None:
-        renderer = Renderer(setup.camera, setup.target, supersample=setup.supersample)
+        renderer = setup.renderer()
         _RENDERERS.clear()
         _RENDERERS[key] = renderer
     if renderer.camera is not setup.camera or renderer.target is not setup.target:

@@ -72,6 +72,10 @@ class PerchSetup:
             raise VehicleConfigError("the controller's camera_period_s must be 1 / fps")
         self.check_start_box()
 
+    def renderer(self) -> Renderer[TargetSpec]:
+        """The renderer of this setup's frames (sensor noise from a bank: see ``Renderer``)."""
+        return Renderer(self.camera, self.target, supersample=self.supersample, noise_bank=True)
+
     @property
     def T_world_target(self) -> Array:
         """The target on the underside of the plate, facing down."""
@@ -162,7 +166,7 @@ def run_perch(
         setup.vehicle, start, float(rng.uniform(-math.pi, math.pi)), setup.onboard
     )
     vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
-    render = renderer or Renderer(setup.camera, setup.target, supersample=setup.supersample)
+    render = renderer or setup.renderer()
     estimator = _estimator_for(setup)
     controller = PerchingController(setup.controller)
     T_world_target = setup.T_world_target
