@@ -1,3 +1,4 @@
+import math
 import re
 from pathlib import Path
 
@@ -134,3 +135,14 @@ def test_printed_target_png_is_detected(tmp_path: Path, paper_target: TargetSpec
         if ids is not None and marker_id in ids.reshape(-1).tolist():
             found.add(marker_id)
     assert found == {997, 5}
+
+
+def test_white_margin_around_each_marker(paper_target: TargetSpec) -> None:
+    # the outer marker: the 20 mm quiet zone in 25 mm cells; the inner one sits in the outer
+    # marker's white centre, at least 12.5 mm of white around it (3.5 of its cells; more where
+    # the outer marker's next cell is white too): beyond reach of the edge profiles
+    assert paper_target.white_margin_cells(0) == pytest.approx((0.8,) * 4, abs=0.01)
+    assert paper_target.white_margin_cells(1) == (math.inf,) * 4
+    far = paper_target.white_margin_cells(1, max_cells=8.0)
+    assert min(far) == pytest.approx(3.5, abs=0.01)
+    assert all(m >= 3.49 for m in far)

@@ -9,15 +9,20 @@ intersections of neighbouring sides.
 
 Per side, intensity profiles are sampled across the edge (bilinear) at points spaced along it,
 and fitted together with ``a + b * Phi((s - d_k) / sigma)``: one edge offset ``d_k`` per profile,
-and dark level ``a``, contrast ``b`` and blur ``sigma`` shared by the marker (Gauss-Newton).
-The edge points are taken to the camera's normalised image plane, where a straight edge of the
-printed square is a straight line for any lens model, and a line is fitted to them (total least
-squares, outliers trimmed). Corners are intersected there and projected back to pixels.
+and dark level ``a``, contrast ``b`` and blur ``sigma`` shared by the marker (per side for large
+markers), by Gauss-Newton on all of them at once. What the blur mixes in from around the edge
+is modelled from the target's print: the border's inner edge where the cell inside is white,
+and the end of the white margin outside (the sheet's edge, or another marker) when it lies
+within a few pixels. The edge points are taken to the camera's normalised image plane, where a
+straight edge of the printed square is a straight line for any lens model, and a line is fitted
+to them (total least squares, outliers trimmed). Corners are intersected there and projected
+back to pixels.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,7 +45,11 @@ class EdgeFitSettings:
     widened to keep at most max_samples per profile. max_profiles : profiles per side (one per
     2 px of side below that). trim : fraction of each side left out at both ends (the corners'
     neighbourhoods). max_shift_cells : a fitted corner further than this from its start is
-    rejected (the start is kept). iterations : rounds of the step-model fit."""
+    rejected (the start is kept). iterations : rounds of the step-model fit.
+    own_levels_from_px : a marker whose sides are all at least this long fits dark and light
+    levels per side, not one pair for the marker: across a large marker vignetting and lighting
+    change them (analog renders of 160-400 px markers, webcam lens: 0.09 px RMS against 0.12); a
+    small marker's few profiles fix one pair better."""
 
     inside_cells: float = 0.45
     outside_cells: float = 0.7
@@ -50,8 +59,9 @@ class EdgeFitSettings:
     max_samples: int = 14
     max_profiles: int = 24
     trim: float = 0.1
-    max_shift_cells: float = 0.4
+    max_shift_cells: float = 0.6
     iterations: int = 4
+    own_levels_from_px: float = 80.0
 
 
 def _phi_pdf(u: Array) -> tuple[Array, Array]:
@@ -65,49 +75,173 @@ def _phi_pdf(u: Array) -> tuple[Array, Array]:
     return 0.5 + 0.5 * np.copysign(erf, u), gauss * (1.0 / math.sqrt(2.0 * math.pi))
 
 
+@dataclass(frozen=True)
+class _Surround:
+    """What lies around the edge of each of K profiles, in pixels across the edge.
+
+    white_inside : 1 where the cell just inside the border is white (the border's inner edge,
+        ``border_px`` inside the outer one, is then a second, reversed step), else 0.
+    margin_px : width of the white outside the border, up to where the print or the sheet
+        ends (a third step, to a level fitted with the rest), or inf where it reaches beyond
+        the profiles.
+    """
+
+    white_inside: Array
+    border_px: Array
+    margin_px: Array
+
+
+# a step this many pixels beyond the end of the profiles is left out of the model (its blur
+# does not reach them)
+_BEYOND_REACH_PX = 4.0
+
+
 def _fit_side(
-    values: Array, offsets: Array, iterations: int
+    values: Array,
+    offsets: Array,
+    iterations: int,
+    surround: _Surround | None = None,
+    groups: NDArray[np.intp] | None = None,
 ) -> tuple[Array, float, float, float] | None:
     """Edge offsets (K,) of K profiles (K, M) sampled at ``offsets`` (M,), dark to light, and
     the shared dark level, contrast and blur: (d, a, b, sigma), or None without an edge.
 
-    Block Gauss-Newton from the midpoint crossings: each round takes a Newton step for every
-    ``d_k`` (independent given the shared parameters), solves ``a, b`` (linear), and takes a
-    Newton step for ``log sigma``. (Modelling the border's inner edge one cell further in, which
-    blur mixes into the profiles of small markers, was tried and did not lower the error.)"""
-    K, M = values.shape
+    Model: ``a + b * Phi((s - d_k) / sigma)``, plus, with ``surround``, the border's inner edge
+    where the cell inside is white and the end of the white margin outside: blur mixes both
+    into the profiles once they are within a few sigma, and left out they pull the edge (by
+    0.1 px for a 30 px marker whose margin is under a cell, at a blur of 1.1 px). Gauss-Newton
+    from the midpoint crossings on all parameters at once: each ``d_k`` touches only its own
+    profile, so the normal equations are solved through the Schur complement of the shared
+    parameters (dark level, contrast, margin drop and log sigma)."""
+    M = values.shape[1]
     lo = float(values[:, : max(1, M // 4)].mean())
     hi = float(values[:, -max(1, M // 4) :].mean())
     if not hi - lo > 4.0:
         return None
-    a, b, sigma = lo, hi - lo, 0.8
-    d = _midpoint_crossings(values, offsets, lo + 0.5 * b)
-    n = float(K * M)
+    g_of = np.zeros(values.shape[0], np.intp) if groups is None else groups
+    n_groups = int(g_of.max()) + 1
+    member = (g_of[None, :] == np.arange(n_groups)[:, None]).astype(np.float64)  # (Q, K)
+    a_q, b_q = np.full(n_groups, lo), np.full(n_groups, hi - lo)
+    d = _midpoint_crossings(values, offsets, lo + 0.5 * (hi - lo))
+    # the blur from the steepest rise between samples h apart, which for an edge midway
+    # between them is b * erf(h / (2 sqrt(2) sigma))
+    h = float(offsets[1] - offsets[0])
+    rise = float(np.median(np.max(np.diff(values, axis=1), axis=1))) / (hi - lo)
+    sigma0 = _blur_from_rise(min(rise, 0.999), h) if rise > 0 else 1.0
+    drop, log_sigma = 0.0, math.log(min(6.0, max(0.2, sigma0)))
+    white = inner = margin = None
+    if surround is not None:
+        reach_in = surround.border_px < -float(offsets[0]) + _BEYOND_REACH_PX
+        if np.any(reach_in & (surround.white_inside > 0)):
+            white = np.where(reach_in, surround.white_inside, 0.0)[:, None]
+            inner = surround.border_px[:, None]
+        near = surround.margin_px < float(offsets[-1]) + _BEYOND_REACH_PX
+        if np.any(near):
+            margin = np.where(near, surround.margin_px, 1e6)[:, None]
     for _ in range(iterations):
+        sigma = math.exp(log_sigma)
+        a, b = a_q[g_of][:, None], b_q[g_of][:, None]
         u = (offsets[None, :] - d[:, None]) * (1.0 / sigma)
-        Phi, pdf = _phi_pdf(u)
-        r = a + b * Phi - values
-        # every d_k: dr/dd_k = -b pdf / sigma
-        J_d = pdf * (-b / sigma)
-        step_d = (J_d * r).sum(axis=1) / ((J_d * J_d).sum(axis=1) + 1e-12)
-        d = d - np.minimum(np.maximum(step_d, -1.0), 1.0)
-        # a and b: linear least squares (with the model as it was before the d step)
-        s1, s2 = float(Phi.sum()), float((Phi * Phi).sum())
-        v1, v2 = float(values.sum()), float((Phi * values).sum())
-        det = n * s2 - s1 * s1
-        if abs(det) < 1e-9:
+        G, pdf = _phi_pdf(u)
+        dG_dd = pdf * (-1.0 / sigma)  # d/d(d_k)
+        dG_ds = -pdf * u  # d/d(log sigma)
+        if white is not None and inner is not None:
+            u2 = u + inner * (1.0 / sigma)
+            Phi2, pdf2 = _phi_pdf(u2)
+            G = G + white * (1.0 - Phi2)
+            dG_dd = dG_dd + white * pdf2 * (1.0 / sigma)
+            dG_ds = dG_ds + white * pdf2 * u2
+        J_d = b * dG_dd
+        J_s = b * dG_ds
+        model = a + b * G
+        extra = []  # shared parameters besides the levels: the margin's drop, log sigma
+        if margin is not None:
+            u3 = u - margin * (1.0 / sigma)
+            Phi3, pdf3 = _phi_pdf(u3)
+            model = model - drop * Phi3
+            J_d = J_d + drop * pdf3 * (1.0 / sigma)
+            J_s = J_s + drop * pdf3 * u3
+            extra.append(-Phi3)
+        extra.append(J_s)
+        r = model - values
+        # Gauss-Newton on every d_k, the levels of each group and the extras: each d_k touches
+        # only its own profile and each level only its group's, so the normal equations are
+        # assembled from per-profile sums and solved through the shared parameters' Schur
+        # complement
+        D = (J_d * J_d).sum(axis=1) + 1e-12  # (K,)
+        g_d = (J_d * r).sum(axis=1)
+        rows_G, rows_GG = G.sum(axis=1), (G * G).sum(axis=1)
+        C = np.concatenate(
+            [
+                member.T * J_d.sum(axis=1)[:, None],
+                member.T * (J_d * G).sum(axis=1)[:, None],
+                np.stack([(J_d * x).sum(axis=1) for x in extra], axis=1),
+            ],
+            axis=1,
+        )  # (K, P)
+        x_rows = [x.sum(axis=1) for x in extra]
+        xG_rows = [(x * G).sum(axis=1) for x in extra]
+        Q, P = n_groups, 2 * n_groups + len(extra)
+        E = np.zeros((P, P))
+        E[:Q, :Q] = np.diag(M * member.sum(axis=1))
+        E[:Q, Q : 2 * Q] = E[Q : 2 * Q, :Q] = np.diag(member @ rows_G)
+        E[Q : 2 * Q, Q : 2 * Q] = np.diag(member @ rows_GG)
+        for i, (xi, ri, rgi) in enumerate(zip(extra, x_rows, xG_rows, strict=True)):
+            E[:Q, 2 * Q + i] = E[2 * Q + i, :Q] = member @ ri
+            E[Q : 2 * Q, 2 * Q + i] = E[2 * Q + i, Q : 2 * Q] = member @ rgi
+            for j in range(i, len(extra)):
+                E[2 * Q + i, 2 * Q + j] = E[2 * Q + j, 2 * Q + i] = float((xi * extra[j]).sum())
+        g = np.concatenate(
+            [
+                member @ r.sum(axis=1),
+                member @ (G * r).sum(axis=1),
+                [float((x * r).sum()) for x in extra],
+            ]
+        )
+        S = E - (C / D[:, None]).T @ C
+        try:
+            step = np.linalg.solve(S, g - C.T @ (g_d / D))
+        except np.linalg.LinAlgError:
             return None
-        a, b = (s2 * v1 - s1 * v2) / det, (n * v2 - s1 * v1) / det
-        # log sigma: dr/dlog(sigma) = -b pdf u
-        r = a + b * Phi - values
-        J_s = pdf * u * (-b)
-        step_s = float((J_s * r).sum()) / (float((J_s * J_s).sum()) + 1e-12)
-        sigma = min(6.0, max(0.2, sigma * math.exp(-min(0.5, max(-0.5, step_s)))))
-        if float(np.max(np.abs(step_d))) < 2e-3:
+        step_d = (g_d - C @ step) / D
+        d = d - np.clip(step_d, -1.0, 1.0)
+        a_q = a_q - step[:n_groups]
+        b_q = b_q - step[n_groups : 2 * n_groups]
+        if margin is not None:
+            drop -= float(step[2 * n_groups])
+        step_s = float(np.clip(step[-1], -0.5, 0.5))
+        log_sigma = min(math.log(6.0), max(math.log(0.2), log_sigma - step_s))
+        # steps shrink about tenfold a round: after these the edges would move about 1e-3 px
+        if float(np.max(np.abs(step_d))) < 8e-3 and abs(step_s) < 8e-3:
             break
-    if not (b > 0 and np.all(np.isfinite(d))):
+    if not (np.all(b_q > 0) and np.all(np.isfinite(d))):
         return None
-    return d, a, b, sigma
+    return d, float(a_q.mean()), float(b_q.mean()), math.exp(log_sigma)
+
+
+def _blur_from_rise(rise: float, h: float) -> float:
+    """The sigma at which a unit blurred step rises by ``rise`` across ``h`` centred on it."""
+    sigma = h / 2.0
+    for _ in range(8):  # Newton on erf(h / (2 sqrt(2) sigma)) = rise
+        x = h / (2.0 * _SQRT2 * sigma)
+        f = math.erf(x) - rise
+        df = -2.0 / math.sqrt(math.pi) * math.exp(-x * x) * x / sigma
+        if df == 0.0:
+            break
+        sigma = min(6.0, max(0.2, sigma - f / df))
+    return sigma
+
+
+def _inner_cells_white(cells: NDArray[np.uint8], t: Array) -> Array:
+    """(4, K): whether the cell just inside the border is white at fractions ``t`` along each
+    side, sides in ArUco corner order (top left to right, right downwards, bottom right to
+    left, left upwards; ``cells`` row 0 is the top)."""
+    n = cells.shape[0]
+    j = np.clip(np.floor(t * n).astype(np.intp), 0, n - 1)
+    back = n - 1 - j
+    return np.stack([cells[1, j], cells[j, n - 2], cells[n - 2, back], cells[back, 1]]).astype(
+        np.float64
+    )
 
 
 def _midpoint_crossings(values: Array, offsets: Array, level: float) -> Array:
@@ -172,16 +306,22 @@ def refine_corners_edges(
     grey: NDArray[np.uint8],
     corners_px: Array,
     camera: CameraModel,
-    cells: int,
+    cells: int | NDArray[np.uint8],
     settings: EdgeFitSettings | None = None,
+    margin_cells: Sequence[float] | None = None,
 ) -> Array | None:
     """Corners (4, 2) of a marker from its four fitted border edges, or None if a side cannot
     be fitted or a corner would move too far from ``corners_px`` (a good start, e.g. from
-    ``cornerSubPix``). ``cells``: cells across the marker, border included."""
+    ``cornerSubPix``). ``cells``: the marker's cells (``MarkerSpec.cells``, border included),
+    whose white cells next to the border enter the edge model; or just how many there are
+    across, to fit the outer edge alone. ``margin_cells``: per side (ArUco order), how far the
+    white around the marker reaches, in its cells (``TargetSpec.white_margin_cells``); where
+    that is within reach of the profiles its end enters the model too."""
     cfg = settings or EdgeFitSettings()
     corners = np.asarray(corners_px, np.float64).reshape(4, 2)
     sides_px = np.linalg.norm(corners[[1, 2, 3, 0]] - corners, axis=1)
-    cell_px = float(sides_px.mean()) / cells
+    n_cells = cells if isinstance(cells, int) else int(cells.shape[0])
+    cell_px = float(sides_px.mean()) / n_cells
     reach_in = min(cfg.max_window_px, max(cfg.min_window_px, cfg.inside_cells * cell_px))
     reach_out = min(cfg.max_window_px, max(cfg.min_window_px, cfg.outside_cells * cell_px))
     step = max(cfg.step_px, (reach_in + reach_out) / (cfg.max_samples - 1))
@@ -214,7 +354,15 @@ def refine_corners_edges(
     rows = np.all(np.isfinite(values), axis=1)
     if np.count_nonzero(rows) < 12:
         return None
-    fit = _fit_side(values[rows], offsets, cfg.iterations)
+    # a cell's width across side i: the perpendicular sides' lengths over n
+    across = np.repeat((sides_px[[3, 0, 1, 2]] + sides_px[[1, 2, 3, 0]]) / (2.0 * n_cells), K)
+    white = np.zeros(4 * K) if isinstance(cells, int) else _inner_cells_white(cells, t).ravel()
+    margins = np.full(4, np.inf) if margin_cells is None else np.asarray(margin_cells, float)
+    surround = _Surround(white[rows], across[rows], (np.repeat(margins, K) * across)[rows])
+    sides = None
+    if float(sides_px.min()) >= cfg.own_levels_from_px:
+        sides = np.repeat(np.arange(4), K)[rows]
+    fit = _fit_side(values[rows], offsets, cfg.iterations, surround, sides)
     if fit is None:
         return None
     d = np.full(4 * K, np.nan)
@@ -245,3 +393,5 @@ def refine_corners_edges(
     if np.max(np.linalg.norm(refined_px - corners, axis=1)) > cfg.max_shift_cells * cell_px:
         return None
     return np.asarray(refined_px, np.float64)
+
+

@@ -219,6 +219,7 @@ class MarkerDetector:
         self._tracking = _Pass(dicts, _detector_parameters(TRACKING_THRESHOLD_WINDOWS_PX))
         self._tracking_small = _Pass(dicts, _detector_parameters(SMALL_MARKER_THRESHOLD_WINDOWS_PX))
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
+        self._margins = [target.white_margin_cells(i) for i in range(len(target.markers))]
         self._K_rect: Array | None = None
 
     def detect(
@@ -240,8 +241,11 @@ class MarkerDetector:
 
     def _edge_fitted(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
         """``det`` with corners from its fitted border edges, or None if they cannot be fitted."""
-        cells = int(self.target.markers[det.marker_index].cells.shape[0])
-        corners = refine_corners_edges(grey, det.corners_px, self.camera, cells)
+        i = det.marker_index
+        cells = self.target.markers[i].cells
+        corners = refine_corners_edges(
+            grey, det.corners_px, self.camera, cells, margin_cells=self._margins[i]
+        )
         return (
             None if corners is None else MarkerDetection(det.marker_index, corners, det.image_pass)
         )

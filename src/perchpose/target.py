@@ -177,6 +177,30 @@ class TargetSpec:
         extent = max(float(np.max(np.abs(m.corners_target_m[:, :2]))) for m in self.markers)
         return extent + self.quiet_zone_mm / 1000.0
 
+    def white_margin_cells(self, index: int, max_cells: float = 2.0) -> tuple[float, ...]:
+        """How far the white around marker ``index`` reaches beyond each of its sides (ArUco
+        order: from corner i to corner i + 1), in the marker's cells: up to the first printed
+        black or the sheet's edge; inf where it is white for ``max_cells`` or more."""
+        m = self.markers[index]
+        corners = m.corners_target_m[:, :2]
+        n = m.cells.shape[0]
+        cell_m = m.side_m / n
+        centre = corners.mean(axis=0)
+        along = np.linspace(0.0, 1.0, 4 * n + 1)
+        depth = np.arange(1, int(max_cells * 100) + 1) / 100.0  # cells, in steps of 0.01
+        out = []
+        for i in range(4):
+            a, b = corners[i], corners[(i + 1) % 4]
+            normal = np.array([b[1] - a[1], a[0] - b[0]]) / np.linalg.norm(b - a)
+            if np.dot(normal, (a + b) / 2 - centre) < 0:
+                normal = -normal
+            points = a + along[:, None] * (b - a)  # (A, 2)
+            grid = points[None, :, :] + depth[:, None, None] * cell_m * normal  # (D, A, 2)
+            white = self.albedo(grid[..., 0], grid[..., 1]) > 0.5  # NaN (off the sheet): False
+            blocked = np.flatnonzero(~np.all(white, axis=1))
+            out.append(float(depth[blocked[0]] - 0.005) if blocked.size else math.inf)
+        return tuple(out)
+
     def albedo(self, x_m: Array, y_m: Array) -> NDArray[np.float32]:
         """Printed reflectance at target-frame points: 1 white, 0 black, NaN off the sheet.
 

@@ -68,8 +68,13 @@ def corner_accuracy(
                 true = truth[det.marker_index]
                 if true is None:
                     continue
-                cells = int(renderer.target.markers[det.marker_index].cells.shape[0])
-                fitted = refine_corners_edges(image, det.corners_px, renderer.camera, cells)
+                fitted = refine_corners_edges(
+                    image,
+                    det.corners_px,
+                    renderer.camera,
+                    renderer.target.markers[det.marker_index].cells,
+                    margin_cells=renderer.target.white_margin_cells(det.marker_index),
+                )
                 outward = true - true.mean(axis=0)
                 outward /= np.linalg.norm(outward, axis=1, keepdims=True)
                 sides.append(det.side_px)
