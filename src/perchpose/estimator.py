@@ -14,7 +14,7 @@ from perchpose.camera import CameraModel
 from perchpose.detection import CornerMethod, MarkerDetection, MarkerDetector
 from perchpose.errors import TimestampError
 from perchpose.fusion import STAGE_NONE, FusionSigmas, fuse_paper
-from perchpose.geometry import yaw_rad
+from perchpose.geometry import angle_diff_rad, rot_z, yaw_rad
 from perchpose.joint_pose import measurement_jacobian, solve_joint_pose
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, KalmanSettings, MarkerTrack
 from perchpose.pose import MarkerPose, PoseFailure, solve_marker_pose
@@ -174,17 +174,19 @@ class PerchingEstimator:
 
     def _estimate(self, t: float, detections: tuple[MarkerDetection, ...], t0: float) -> Estimate:
         t1 = time.perf_counter()
-        measurements, rejected = self._measure(detections)
+        measurements, rejected = self._measure(detections, t)
         t2 = time.perf_counter()
         return self._filter_and_fuse(t, detections, measurements, rejected, (t0, t1, t2))
 
     def _measure(
-        self, detections: tuple[MarkerDetection, ...]
+        self, detections: tuple[MarkerDetection, ...], t: float
     ) -> tuple[dict[int, MarkerPose], dict[int, str]]:
         measurements: dict[int, MarkerPose] = {}
         rejected: dict[int, str] = {}
-        # the largest marker first: its rotation (all markers measure the same target frame)
-        # then settles the IPPE ambiguity of the smaller ones, before their own history does
+        # Each marker's two IPPE solutions are scored by reprojection and by agreement with the
+        # rotation expected: the largest marker measured in this frame (all markers measure
+        # the same target frame) when there is one; else the marker's last rotation (or any
+        # marker's) turned to the yaw the filter predicts for this frame.
         for det in sorted(detections, key=lambda d: -d.side_px):
             if det.marker_index not in self.markers:
                 continue
@@ -193,8 +195,12 @@ class PerchingEstimator:
                 reference = next(iter(measurements.values())).T_camera_target[:3, :3]
             else:
                 reference = self._last_R[det.marker_index]
-            if reference is None:
-                reference = next((R for R in self._last_R if R is not None), None)
+                if reference is None:
+                    reference = next((R for R in self._last_R if R is not None), None)
+                yaw_predicted = self._predicted_yaw_rad(det.marker_index, t)
+                if reference is not None and yaw_predicted is not None:
+                    turn = angle_diff_rad(yaw_predicted, yaw_rad(reference))
+                    reference = rot_z(turn) @ reference
             result = solve_marker_pose(
                 self.camera,
                 self.target.markers[det.marker_index],
@@ -209,6 +215,17 @@ class PerchingEstimator:
             else:
                 measurements[det.marker_index] = result
         return measurements, rejected
+
+    def _predicted_yaw_rad(self, marker_index: int, t: float) -> float | None:
+        """The yaw the filter expects at ``t``: the fused filter's (covariance fusion), else the
+        marker's own track's, else any live track's; None without a live filter."""
+        if self.fusion == "covariance" and self._fused.alive:
+            predicted = self._fused.predicted_pose(t)
+        else:
+            tracks = [self._tracks[marker_index], *self._tracks]
+            track = next((tr for tr in tracks if tr.alive), None)
+            predicted = None if track is None else track.predicted_pose(t)
+        return None if predicted is None else float(predicted[0])
 
     def _fuse_covariance(
         self,

@@ -220,6 +220,12 @@ class CovarianceTrack:
         """(4,) [psi_rad, tx_m, ty_m, tz_m], or None."""
         return None if self.x is None else np.asarray(H @ self.x)
 
+    def predicted_pose(self, t_s: float) -> Array | None:
+        """(4,) [psi, tx, ty, tz] the filter expects at ``t_s``, without changing it."""
+        if self.x is None:
+            return None
+        return np.asarray(H @ (transition(t_s - self.t_s) @ self.x))
+
     def _predict(self, t_s: float) -> None:
         assert self.x is not None
         dt = t_s - self.t_s
