@@ -19,9 +19,13 @@ Array = NDArray[np.float64]
 # and the one closer to the previous rotation is kept.
 AMBIGUITY_RATIO = 2.0
 # Beyond that, the solution closer to the expected rotation by more than FLIP_DEG still wins
-# while its reprojection error is under FLIP_RATIO times the other's.
+# while its reprojection error is under FLIP_RATIO times the other's, or under FLIP_FLOOR_PX:
+# four corners leave two degrees of freedom to the residual, so with corner noise of a tenth of
+# a pixel (a small marker on blurred images) either solution may reproject to 0.01 px or
+# 0.1 px by chance, and a ratio of two such numbers says nothing.
 FLIP_DEG = 5.0
 FLIP_RATIO = 4.0
+FLIP_FLOOR_PX = 0.25
 
 
 @dataclass(frozen=True)
@@ -136,7 +140,7 @@ def solve_marker_pose(
         d_alt = rotation_angle_rad(alt_T[:3, :3], R_previous)
         agrees = d_alt < d_best - math.radians(FLIP_DEG)
         if (ambiguous and d_alt < d_best) or (
-            agrees and alt_err < FLIP_RATIO * max(best_err, 1e-3)
+            agrees and alt_err < max(FLIP_RATIO * best_err, FLIP_FLOOR_PX)
         ):
             best_err, best_T, alt_err, alt_T = alt_err, alt_T, best_err, best_T
     if not math.isfinite(best_err):
