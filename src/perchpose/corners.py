@@ -126,7 +126,7 @@ def _fit_side(
     # the blur from the steepest rise between samples h apart, which for an edge midway
     # between them is b * erf(h / (2 sqrt(2) sigma))
     h = float(offsets[1] - offsets[0])
-    rise = float(np.median(np.max(np.diff(values, axis=1), axis=1))) / (hi - lo)
+    rise = float(np.mean(np.max(np.diff(values, axis=1), axis=1))) / (hi - lo)
     sigma0 = _blur_from_rise(min(rise, 0.999), h) if rise > 0 else 1.0
     drop, log_sigma = 0.0, math.log(min(6.0, max(0.2, sigma0)))
     white = inner = margin = None
@@ -393,5 +393,3 @@ def refine_corners_edges(
     if np.max(np.linalg.norm(refined_px - corners, axis=1)) > cfg.max_shift_cells * cell_px:
         return None
     return np.asarray(refined_px, np.float64)
-
-
