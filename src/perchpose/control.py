@@ -22,7 +22,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from perchpose.errors import PerchposeError
+from perchpose.errors import PerchposeError, require_positive
 from perchpose.estimator import Estimate
 from perchpose.geometry import check_transform, make_transform, wrap_angle_rad
 
@@ -89,7 +89,7 @@ class ControllerSettings:
     T_body_camera: Array = field(default_factory=default_T_body_camera)
 
     def __post_init__(self) -> None:
-        for name in (
+        positive = (
             "k_xy",
             "k_z",
             "k_yaw",
@@ -100,9 +100,8 @@ class ControllerSettings:
             "commit_speed_mps",
             "descend_mps",
             "camera_period_s",
-        ):
-            if not getattr(self, name) > 0:
-                raise ControllerConfigError(f"{name} must be positive, got {getattr(self, name)}")
+        )
+        require_positive(self, positive, ControllerConfigError)
         # a proportional loop closed through a sampled, one-frame-late measurement is stable
         # only while gain * period stays well under 1
         for name in ("k_xy", "k_z", "k_yaw"):

@@ -5,6 +5,8 @@ The library raises these; only the command line turns them into one-line message
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 
 class PerchposeError(Exception):
     """Base class of every error perchpose raises for a user's input or configuration."""
@@ -37,3 +39,14 @@ class ScenarioError(PerchposeError):
 class LinkError(PerchposeError):
     """A vehicle link (MAVLink, Crazyflie) cannot be set up: a missing optional dependency, a
     malformed connection string, or a frame the link cannot serve."""
+
+
+def require_positive(
+    settings: object, names: Iterable[str], error: type[PerchposeError], prefix: str = ""
+) -> None:
+    """Raise ``error`` naming the first of the fields ``names`` of ``settings`` that is not
+    above zero (NaN included): ``"{prefix}{name} must be positive, got {value}"``."""
+    for name in names:
+        value = getattr(settings, name)
+        if not value > 0:
+            raise error(f"{prefix}{name} must be positive, got {value}")

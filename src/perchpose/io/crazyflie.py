@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.control import Command, PerchingController
-from perchpose.errors import LinkError
+from perchpose.errors import LinkError, require_positive
 from perchpose.estimator import Estimate
 
 Array = NDArray[np.float64]
@@ -74,15 +74,14 @@ class PilotSettings:
     setpoint_period_s: float = 0.05
 
     def __post_init__(self) -> None:
-        for name in (
+        positive = (
             "land_after_lost_s",
             "land_speed_mps",
             "land_duration_s",
             "perched_after_commit_s",
             "setpoint_period_s",
-        ):
-            if not getattr(self, name) > 0:
-                raise LinkError(f"pilot setting {name} must be positive, got {getattr(self, name)}")
+        )
+        require_positive(self, positive, LinkError, "pilot setting ")
 
 
 @dataclass(frozen=True)
