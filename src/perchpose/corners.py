@@ -91,9 +91,9 @@ class _Surround:
     margin_px: Array
 
 
-# a step this many pixels beyond the end of the profiles is left out of the model (its blur
-# does not reach them)
-_BEYOND_REACH_PX = 4.0
+# a step further beyond the end of the profiles than this many blur sigmas (first guess) is
+# left out of the model: its blur does not reach them, and its level could not be fitted
+_BEYOND_REACH_SIGMAS = 3.0
 
 
 def _fit_side(
@@ -131,11 +131,12 @@ def _fit_side(
     drop, log_sigma = 0.0, math.log(min(6.0, max(0.2, sigma0)))
     white = inner = margin = None
     if surround is not None:
-        reach_in = surround.border_px < -float(offsets[0]) + _BEYOND_REACH_PX
+        beyond = _BEYOND_REACH_SIGMAS * math.exp(log_sigma)
+        reach_in = surround.border_px < -float(offsets[0]) + beyond
         if np.any(reach_in & (surround.white_inside > 0)):
             white = np.where(reach_in, surround.white_inside, 0.0)[:, None]
             inner = surround.border_px[:, None]
-        near = surround.margin_px < float(offsets[-1]) + _BEYOND_REACH_PX
+        near = surround.margin_px < float(offsets[-1]) + beyond
         if np.any(near):
             margin = np.where(near, surround.margin_px, 1e6)[:, None]
     for _ in range(iterations):

@@ -52,6 +52,7 @@ class EvalPlan:
     corner_poses: int
     bound_distances_m: tuple[float, ...]
     bound_frames: int
+    bound_poses: int
 
     @staticmethod
     def make(quick: bool) -> EvalPlan:
@@ -71,6 +72,7 @@ class EvalPlan:
                 corner_poses=12,
                 bound_distances_m=(0.2, 0.6, 1.5),
                 bound_frames=3,
+                bound_poses=1,
             )
         return EvalPlan(
             range_distances_cm=RANGE_DISTANCES_CM,
@@ -85,7 +87,8 @@ class EvalPlan:
             approach_s=8.0,
             corner_poses=60,
             bound_distances_m=(0.1, 0.2, 0.35, 0.6, 1.0, 1.5, 2.0),
-            bound_frames=20,
+            bound_frames=15,
+            bound_poses=4,
         )
 
     def renders(self) -> int:
@@ -94,7 +97,8 @@ class EvalPlan:
         n += self.table_frames * (len(ex.PAPER_TABLE1) + len(ex.PAPER_TABLE2))
         n += self.fusion_positions * self.fusion_frames
         n += int(round(self.moves_s * 30)) + int(round(self.approach_s * 30))
-        n += 2 * self.corner_poses + 2 * len(self.bound_distances_m) * self.bound_frames
+        n += 2 * self.corner_poses
+        n += 2 * len(self.bound_distances_m) * self.bound_frames * self.bound_poses
         return n
 
 
@@ -242,6 +246,7 @@ def run_paper_evaluation(
             plan.bound_frames,
             np.random.default_rng(seeds["bound"] + k),
             tick,
+            plan.bound_poses,
         )
     ]
     say("corner accuracy")
