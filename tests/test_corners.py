@@ -32,13 +32,8 @@ def corner_errors(
         for det in detector.detect(image):
             true = truth[det.marker_index]
             assert true is not None
-            fitted = refine_corners_edges(
-                image,
-                det.corners_px,
-                renderer.camera,
-                renderer.target.markers[det.marker_index].cells,
-                margin_cells=renderer.target.white_margin_cells(det.marker_index),
-            )
+            edges = detector.fit_edges(image, det)
+            fitted = None if edges is None else edges.corners_px
             outward = true - true.mean(axis=0)
             outward /= np.linalg.norm(outward, axis=1, keepdims=True)
             for name, corners in (("subpix", det.corners_px), ("edges", fitted)):

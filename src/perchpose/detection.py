@@ -237,10 +237,11 @@ class MarkerDetector:
             tracked = self._track_edges(grey, hint)
             if tracked is not None:
                 return tracked
-        return tuple(self._edge_fitted(grey, det) or det for det in self._find(grey, hint))
+        return tuple(self.fit_edges(grey, det) or det for det in self._find(grey, hint))
 
-    def _edge_fitted(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
-        """``det`` with corners from its fitted border edges, or None if they cannot be fitted."""
+    def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
+        """``det`` with corners from its fitted border edges (``perchpose.corners``, with the
+        marker's cells and white margin from the target), or None if they cannot be fitted."""
         i = det.marker_index
         cells = self.target.markers[i].cells
         corners = refine_corners_edges(
@@ -276,7 +277,7 @@ class MarkerDetector:
         missing = [d for d in hint if d.marker_index not in found]
         required = [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
         for index, det in found.items():
-            fitted = self._edge_fitted(grey, det)
+            fitted = self.fit_edges(grey, det)
             if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
                 required.append(index)  # a curved quad too far off for the fit
             else:
@@ -286,7 +287,7 @@ class MarkerDetector:
             retry = [quads[i] for i in again if i in quads]
             for det in self._rectified_tracking(grey, retry):
                 if det.marker_index in again and det.marker_index not in result:
-                    result[det.marker_index] = self._edge_fitted(grey, det) or det
+                    result[det.marker_index] = self.fit_edges(grey, det) or det
         if any(index not in result for index in required):
             return None
         return tuple(result[i] for i in sorted(result))

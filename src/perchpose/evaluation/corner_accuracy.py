@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perchpose.corners import refine_corners_edges
 from perchpose.detection import MarkerDetector
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Renderer
@@ -68,13 +67,8 @@ def corner_accuracy(
                 true = truth[det.marker_index]
                 if true is None:
                     continue
-                fitted = refine_corners_edges(
-                    image,
-                    det.corners_px,
-                    renderer.camera,
-                    renderer.target.markers[det.marker_index].cells,
-                    margin_cells=renderer.target.white_margin_cells(det.marker_index),
-                )
+                edges = detector.fit_edges(image, det)
+                fitted = None if edges is None else edges.corners_px
                 outward = true - true.mean(axis=0)
                 outward /= np.linalg.norm(outward, axis=1, keepdims=True)
                 sides.append(det.side_px)
