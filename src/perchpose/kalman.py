@@ -22,6 +22,14 @@ H[0, 0] = H[1, 2] = H[2, 4] = H[3, 6] = 1.0
 _VELOCITIES = np.array([1, 3, 5, 7])
 
 
+def _check_dropout_rule(alpha: float, n_max: int) -> None:
+    """The paper's rule for frames without a measurement: 0 <= alpha <= 1, n_max >= 0."""
+    if not 0.0 <= alpha <= 1.0:
+        raise ValueError(f"alpha must be in [0, 1], got {alpha}")
+    if n_max < 0:
+        raise ValueError(f"n_max must be >= 0, got {n_max}")
+
+
 @dataclass(frozen=True)
 class KalmanSettings:
     """Settings of the paper's filter.
@@ -46,10 +54,7 @@ class KalmanSettings:
     def __post_init__(self) -> None:
         if not (self.k1 > 0 and self.k2 > 0):
             raise ValueError(f"k1 and k2 must be positive, got k1={self.k1}, k2={self.k2}")
-        if not 0.0 <= self.alpha <= 1.0:
-            raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
-        if self.n_max < 0:
-            raise ValueError(f"n_max must be >= 0, got {self.n_max}")
+        _check_dropout_rule(self.alpha, self.n_max)
 
 
 def transition(dt_s: float) -> Array:
@@ -182,10 +187,7 @@ class CovarianceFilterSettings:
     def __post_init__(self) -> None:
         if not (self.q_position > 0 and self.q_yaw > 0 and self.corner_sigma_px > 0):
             raise ValueError("q_position, q_yaw and corner_sigma_px must be positive")
-        if not 0.0 <= self.alpha <= 1.0:
-            raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
-        if self.n_max < 0:
-            raise ValueError(f"n_max must be >= 0, got {self.n_max}")
+        _check_dropout_rule(self.alpha, self.n_max)
 
 
 def white_acceleration_noise(dt_s: float, q: Array) -> Array:
