@@ -170,7 +170,8 @@ def run_perch(
     estimator = _estimator_for(setup)
     controller = PerchingController(setup.controller)
     T_world_target = setup.T_world_target
-    p_magnet_body = np.asarray(setup.controller.p_body_magnet_m)
+    mx, my, mz = (float(c) for c in setup.controller.p_body_magnet_m)
+    p_magnet_body = (mx, my, mz)
     sigma_wind = WIND_LEVELS[setup.wind]
     gust = np.zeros(3)
     dt = 1.0 / setup.physics_hz
@@ -220,10 +221,10 @@ def run_perch(
             v_estimate,
             forces,
             stop_z_m=setup.plate_z_m,
-            p_body_point_m=p_magnet_body,
+            p_body_point_m=np.array(p_magnet_body),
         )
         if contact is not None:
-            magnet = np.array(vehicle.point_in_world(tuple(p_magnet_body)))
+            magnet = np.array(vehicle.point_in_world(p_magnet_body))
             offset_mm = float(np.hypot(magnet[0], magnet[1]) * 1000.0)
             speed = float(vehicle.v_mps[2])
             ok_offset = offset_mm <= CONTACT_RADIUS_MM
@@ -251,7 +252,7 @@ def run_perch(
                 tuple(phases),
             )
         ts.append(t)
-        magnets.append(vehicle.p_m + vehicle.R_world_body @ p_magnet_body)
+        magnets.append(np.array(vehicle.point_in_world(p_magnet_body)))
         stages.append(stage)
         phases.append(command.phase)
     return PerchResult(
