@@ -102,9 +102,10 @@ def _fit_side(
     iterations: int,
     surround: _Surround | None = None,
     groups: NDArray[np.intp] | None = None,
-) -> tuple[Array, float, float, float] | None:
-    """Edge offsets (K,) of K profiles (K, M) sampled at ``offsets`` (M,), dark to light, and
-    the shared dark level, contrast and blur: (d, a, b, sigma), or None without an edge.
+) -> Array | None:
+    """Edge offsets (K,) of K profiles (K, M) sampled at ``offsets`` (M,), dark to light, or
+    None without an edge. ``groups`` (K,): which dark and light levels each profile shares
+    (default: one pair for all).
 
     Model: ``a + b * Phi((s - d_k) / sigma)``, plus, with ``surround``, the border's inner edge
     where the cell inside is white and the end of the white margin outside: blur mixes both
@@ -217,7 +218,7 @@ def _fit_side(
             break
     if not (np.all(b_q > 0) and np.all(np.isfinite(d))):
         return None
-    return d, float(a_q.mean()), float(b_q.mean()), math.exp(log_sigma)
+    return d
 
 
 def _blur_from_rise(rise: float, h: float) -> float:
@@ -367,7 +368,7 @@ def refine_corners_edges(
     if fit is None:
         return None
     d = np.full(4 * K, np.nan)
-    d[rows] = fit[0]
+    d[rows] = fit
     good = np.isfinite(d) & (d > -reach_in) & (d < reach_out)
     # the edge points in the normalised plane, through the lens model's local Jacobian at each
     # sample (the offsets are a pixel or two: the linearisation error is far below 1e-3 px)
