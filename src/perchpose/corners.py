@@ -102,10 +102,10 @@ def _fit_side(
     iterations: int,
     surround: _Surround | None = None,
     groups: NDArray[np.intp] | None = None,
-) -> Array | None:
-    """Edge offsets (K,) of K profiles (K, M) sampled at ``offsets`` (M,), dark to light, or
-    None without an edge. ``groups`` (K,): which dark and light levels each profile shares
-    (default: one pair for all).
+) -> tuple[Array, float] | None:
+    """Edge offsets (K,) of K profiles (K, M) sampled at ``offsets`` (M,), dark to light, and
+    the blur sigma (px), or None without an edge. ``groups`` (K,): which dark and light levels
+    each profile shares (default: one pair for all).
 
     Model: ``a + b * Phi((s - d_k) / sigma)``, plus, with ``surround``, the border's inner edge
     where the cell inside is white and the end of the white margin outside: blur mixes both
@@ -218,7 +218,7 @@ def _fit_side(
             break
     if not (np.all(b_q > 0) and np.all(np.isfinite(d))):
         return None
-    return d
+    return d, math.exp(log_sigma)
 
 
 def _blur_from_rise(rise: float, h: float) -> float:
@@ -304,6 +304,15 @@ def _lines_tls(points: Array, usable: NDArray[np.bool_]) -> tuple[Array, Array] 
     return normals, offsets
 
 
+@dataclass(frozen=True)
+class EdgeFit:
+    """A marker's corners (4, 2) from its fitted border edges, and the blur sigma the fit found
+    (pixels; with the pixels' own area in it)."""
+
+    corners_px: Array
+    blur_px: float
+
+
 def refine_corners_edges(
     grey: NDArray[np.uint8],
     corners_px: Array,
@@ -312,8 +321,22 @@ def refine_corners_edges(
     settings: EdgeFitSettings | None = None,
     margin_cells: Sequence[float] | None = None,
 ) -> Array | None:
-    """Corners (4, 2) of a marker from its four fitted border edges, or None if a side cannot
-    be fitted or a corner would move too far from ``corners_px`` (a good start, e.g. from
+    """Corners (4, 2) of a marker from its four fitted border edges (``fit_marker_edges``), or
+    None."""
+    fit = fit_marker_edges(grey, corners_px, camera, cells, settings, margin_cells)
+    return None if fit is None else fit.corners_px
+
+
+def fit_marker_edges(
+    grey: NDArray[np.uint8],
+    corners_px: Array,
+    camera: CameraModel,
+    cells: int | NDArray[np.uint8],
+    settings: EdgeFitSettings | None = None,
+    margin_cells: Sequence[float] | None = None,
+) -> EdgeFit | None:
+    """A marker's corners from its four fitted border edges, or None if a side cannot be
+    fitted or a corner would move too far from ``corners_px`` (a good start, e.g. from
     ``cornerSubPix``). ``cells``: the marker's cells (``MarkerSpec.cells``, border included),
     whose white cells next to the border enter the edge model; or just how many there are
     across, to fit the outer edge alone. ``margin_cells``: per side (ArUco order), how far the
@@ -368,7 +391,7 @@ def refine_corners_edges(
     if fit is None:
         return None
     d = np.full(4 * K, np.nan)
-    d[rows] = fit
+    d[rows], blur_px = fit
     good = np.isfinite(d) & (d > -reach_in) & (d < reach_out)
     # the edge points in the normalised plane, through the lens model's local Jacobian at each
     # sample (the offsets are a pixel or two: the linearisation error is far below 1e-3 px)
@@ -394,4 +417,4 @@ def refine_corners_edges(
         return None
     if np.max(np.linalg.norm(refined_px - corners, axis=1)) > cfg.max_shift_cells * cell_px:
         return None
-    return np.asarray(refined_px, np.float64)
+    return EdgeFit(np.asarray(refined_px, np.float64), blur_px)
