@@ -32,7 +32,7 @@ def corner_errors(
         for det in detector.detect(image):
             true = truth[det.marker_index]
             assert true is not None
-            edges = detector.fit_edges(image, det)
+            edges = detector.fit_corners(image, det)
             fitted = None if edges is None else edges.corners_px
             outward = true - true.mean(axis=0)
             outward /= np.linalg.norm(outward, axis=1, keepdims=True)

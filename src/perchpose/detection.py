@@ -17,7 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.corners import refine_corners_edges
+from perchpose.corners import fit_marker_edges
+from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
 from perchpose.target import TargetSpec, aruco_dictionary
 
 Array = NDArray[np.float64]
@@ -220,6 +221,8 @@ class MarkerDetector:
         self._tracking_small = _Pass(dicts, _detector_parameters(SMALL_MARKER_THRESHOLD_WINDOWS_PX))
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
         self._margins = [target.white_margin_cells(i) for i in range(len(target.markers))]
+        self._patterns = [printed_pattern(target, i) for i in range(len(target.markers))]
+        self.pattern_settings = PatternFitSettings()
         self._K_rect: Array | None = None
 
     def detect(
@@ -237,16 +240,30 @@ class MarkerDetector:
             tracked = self._track_edges(grey, hint)
             if tracked is not None:
                 return tracked
-        return tuple(self.fit_edges(grey, det) or det for det in self._find(grey, hint))
+        return tuple(self.fit_corners(grey, det) or det for det in self._find(grey, hint))
 
-    def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
-        """``det`` with corners from its fitted border edges (``perchpose.corners``, with the
-        marker's cells and white margin from the target), or None if they cannot be fitted."""
+    def fit_corners(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
+        """``det`` with corners fitted to the image, or None if no fit succeeds: from the
+        marker's four border edges (``perchpose.corners``, with its cells and white margin from
+        the target); for a marker whose cells span only a few blur widths, where the one-edge
+        model pulls corners inwards, from its whole printed pattern (``perchpose.pattern_fit``)
+        starting from the edges' corners."""
         i = det.marker_index
         cells = self.target.markers[i].cells
-        corners = refine_corners_edges(
+        edges = fit_marker_edges(
             grey, det.corners_px, self.camera, cells, margin_cells=self._margins[i]
         )
+        corners = None if edges is None else edges.corners_px
+        pattern = self._patterns[i]
+        if pattern is not None and self.pattern_settings.applies(
+            det.side_px, cells.shape[0], None if edges is None else edges.blur_px
+        ):
+            start = det.corners_px if edges is None else edges.corners_px
+            blur = 1.0 if edges is None else edges.blur_px
+            fitted = refine_corners_pattern(
+                grey, start, self.camera, pattern, self.pattern_settings, blur
+            )
+            corners = fitted if fitted is not None else corners
         return (
             None if corners is None else MarkerDetection(det.marker_index, corners, det.image_pass)
         )
@@ -277,7 +294,7 @@ class MarkerDetector:
         missing = [d for d in hint if d.marker_index not in found]
         required = [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
         for index, det in found.items():
-            fitted = self.fit_edges(grey, det)
+            fitted = self.fit_corners(grey, det)
             if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
                 required.append(index)  # a curved quad too far off for the fit
             else:
@@ -287,7 +304,7 @@ class MarkerDetector:
             retry = [quads[i] for i in again if i in quads]
             for det in self._rectified_tracking(grey, retry):
                 if det.marker_index in again and det.marker_index not in result:
-                    result[det.marker_index] = self.fit_edges(grey, det) or det
+                    result[det.marker_index] = self.fit_corners(grey, det) or det
         if any(index not in result for index in required):
             return None
         return tuple(result[i] for i in sorted(result))

@@ -1,0 +1,325 @@
+"""Corners of a small marker from a fit of its whole printed pattern to the image.
+
+Where a marker's cells are only a few blur widths across, what the blur mixes into its border
+edges comes from every side: the neighbouring side near a corner, the inner cells, the margin
+around it. A model of one edge at a time then pulls the corners inwards (0.14 px at 15-20 px
+sides with a blur of 1.1 px). So for such markers the image around the marker is fitted as a
+whole: the printed pattern (the marker's cells and whatever else is printed within reach,
+taken from the target) seen through a homography from the camera's normalised image plane,
+blurred by a Gaussian of one width in pixels, with dark, light and off-sheet grey levels.
+
+The pattern's edges are axis-aligned in the marker's own cell coordinates (u, v), so the
+blurred pattern is separable there: for a pixel at (u, v), each cell's blurred coverage is the
+product of two differences of normal CDFs, with the pixel blur taken to (u, v) through the
+local Jacobian of the pixel-to-marker map (the lens model's and the homography's). Straight
+edges of the blurred model are exact for any lens; at the corners the small correlation a
+tilted view brings between u and v is left out. Gauss-Newton on the homography's 8 entries,
+the blur and the grey levels at once.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.corners import _phi_pdf
+from perchpose.target import TargetSpec
+
+Array = NDArray[np.float64]
+
+# pattern lines further than this from the marker (in its cells) are merged into one band: a
+# blur that reaches further would hide the marker's own cells
+_PATTERN_REACH_CELLS = 5.0
+_FAR = 1e4  # the outermost bands reach this far (cells)
+# cell codes
+_OFF_SHEET, _BLACK, _WHITE = -1, 0, 1
+
+
+@dataclass(frozen=True)
+class PrintedPattern:
+    """What is printed around one marker of a target, in that marker's cell coordinates.
+
+    u runs from the marker's corner 0 towards corner 1, v from corner 0 towards corner 3; the
+    marker covers [0, n_cells] in both. lines_u (Nu + 1,), lines_v (Nv + 1,) : the edges of a
+    grid of bands, the outermost reaching far beyond; code (Nv, Nu) : each grid cell's print
+    (1 white, 0 black, -1 off the sheet). sheet_cells : per side (ArUco order: top, right,
+    bottom, left) how far the sheet reaches beyond the marker, in its cells (inf: no edge
+    within reach).
+    """
+
+    n_cells: int
+    lines_u: Array
+    lines_v: Array
+    code: NDArray[np.int8]
+    sheet_cells: tuple[float, float, float, float]
+
+
+def printed_pattern(target: TargetSpec, index: int) -> PrintedPattern | None:
+    """Marker ``index``'s printed surroundings on a grid of its own cells, or None if another
+    marker within reach is printed at an angle to it (the grid would not be separable)."""
+    marker = target.markers[index]
+    n = int(marker.cells.shape[0])
+    c0, c1, _, c3 = marker.corners_target_m[:, :2]
+    cell_m = marker.side_m / n
+    e_u = (c1 - c0) / np.linalg.norm(c1 - c0)
+    e_v = (c3 - c0) / np.linalg.norm(c3 - c0)
+
+    def to_cells(p: Array) -> Array:
+        d = np.asarray(p, np.float64) - c0
+        return np.stack([d @ e_u, d @ e_v], axis=-1) / cell_m
+
+    lines_u: list[float] = [0.0, float(n)]
+    lines_v: list[float] = [0.0, float(n)]
+    lo, hi = -_PATTERN_REACH_CELLS, n + _PATTERN_REACH_CELLS
+    for other in target.markers:
+        uv = to_cells(other.corners_target_m[:, :2])
+        n_other = int(other.cells.shape[0])
+        us, vs = np.unique(np.round(uv[:, 0], 9)), np.unique(np.round(uv[:, 1], 9))
+        if not (np.all(uv.max(axis=0) >= lo) and np.all(uv.min(axis=0) <= hi)):
+            continue  # out of reach
+        if us.size != 2 or vs.size != 2:
+            return None
+        lines_u.extend(np.linspace(us[0], us[1], n_other + 1).tolist())
+        lines_v.extend(np.linspace(vs[0], vs[1], n_other + 1).tolist())
+    half = target.sheet_half_extent_m
+    sheet = to_cells(np.array([[-half, -half], [half, half]]))
+    sheet_u, sheet_v = np.sort(sheet[:, 0]), np.sort(sheet[:, 1])
+    lines_u.extend(sheet_u.tolist())
+    lines_v.extend(sheet_v.tolist())
+
+    def grid(lines: list[float]) -> Array:
+        kept = np.unique(np.round(np.asarray(lines), 9))
+        kept = kept[(kept > lo) & (kept < hi)]
+        return np.concatenate([[-_FAR], kept, [_FAR]])
+
+    gu, gv = grid(lines_u), grid(lines_v)
+    mid_u = np.clip(0.5 * (gu[:-1] + gu[1:]), gu[1] - 0.25, gu[-2] + 0.25)
+    mid_v = np.clip(0.5 * (gv[:-1] + gv[1:]), gv[1] - 0.25, gv[-2] + 0.25)
+    mu, mv = np.meshgrid(mid_u * cell_m, mid_v * cell_m)
+    xy = c0 + mu[..., None] * e_u + mv[..., None] * e_v
+    albedo = target.albedo(xy[..., 0], xy[..., 1])
+    code = np.where(np.isnan(albedo), _OFF_SHEET, np.where(albedo > 0.5, _WHITE, _BLACK))
+    sheet_cells = (-sheet_v[0], sheet_u[1] - n, sheet_v[1] - n, -sheet_u[0])
+    far = [math.inf if s > _PATTERN_REACH_CELLS else float(s) for s in sheet_cells]
+    return PrintedPattern(n, gu, gv, code.astype(np.int8), (far[0], far[1], far[2], far[3]))
+
+
+@dataclass(frozen=True)
+class PatternFitSettings:
+    """Which markers get the pattern fit: every marker up to all_below_px, and up to
+    max_side_px those whose cells span fewer than below_cell_blurs blur sigmas (the edge
+    fit's blur: its corners are then pulled inwards, -0.03 px at 4 sigmas, -0.14 px at 2.3)
+    or whose edge fit failed. Below all_below_px the choice does not hang on the blur measured
+    in each frame: switching methods from frame to frame would add their difference to the
+    noise. The fit's cost grows with the marker's area: about 7 ms at 20 px, 25 ms at 45 px.
+
+    out_cells : how far beyond the marker's border the fitted pixels reach, in its cells
+    (never past 90 % of the way to the sheet's edge). iterations : Gauss-Newton rounds at most.
+    max_shift_cells : a corner further than this from its start fails the fit. min_blur_px,
+    max_blur_px : the blur's bounds; a fit that ends on one fails."""
+
+    all_below_px: float = 40.0
+    below_cell_blurs: float = 5.0
+    max_side_px: float = 64.0
+    out_cells: float = 0.7
+    iterations: int = 12
+    max_shift_cells: float = 0.6
+    min_blur_px: float = 0.15
+    max_blur_px: float = 6.0
+
+    def applies(self, side_px: float, n_cells: int, blur_px: float | None) -> bool:
+        """Whether a marker of ``side_px`` and ``n_cells`` across gets the pattern fit, given
+        the edge fit's blur (None: the edge fit failed)."""
+        if side_px > self.max_side_px:
+            return False
+        if side_px <= self.all_below_px or blur_px is None:
+            return True
+        return side_px / n_cells < self.below_cell_blurs * blur_px
+
+
+def _homography(src: Array, dst: Array) -> Array:
+    """The 8 entries (h33 = 1) of the homography taking 4 points ``src`` to ``dst``."""
+    A = np.zeros((8, 8))
+    rhs = np.zeros(8)
+    for k, ((x, y), (u, v)) in enumerate(zip(src, dst, strict=True)):
+        A[2 * k] = [x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]
+        A[2 * k + 1] = [0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]
+        rhs[2 * k], rhs[2 * k + 1] = u, v
+    return np.asarray(np.linalg.solve(A, rhs), np.float64)
+
+
+def _apply(g: Array, q: Array) -> tuple[Array, Array, Array]:
+    """(u, v) of points ``q`` (P, 2) under homography entries ``g``, and the denominator."""
+    w = g[6] * q[:, 0] + g[7] * q[:, 1] + 1.0
+    u = (g[0] * q[:, 0] + g[1] * q[:, 1] + g[2]) / w
+    v = (g[3] * q[:, 0] + g[4] * q[:, 1] + g[5]) / w
+    return u, v, w
+
+
+def _bands(x: Array, lines: Array, s: Array) -> tuple[Array, Array, Array]:
+    """Blurred coverage (P, N) of the N bands between ``lines`` at positions ``x`` (P,) for
+    blurs ``s`` (P,), and its derivatives in x and in log s."""
+    z = (x[:, None] - lines[None, :]) * (1.0 / s)[:, None]
+    cdf, pdf = _phi_pdf(z)
+    cover = cdf[:, :-1] - cdf[:, 1:]
+    d_x = (pdf[:, :-1] - pdf[:, 1:]) / s[:, None]
+    pz = pdf * z
+    d_log_s = pz[:, 1:] - pz[:, :-1]
+    return cover, d_x, d_log_s
+
+
+def refine_corners_pattern(
+    grey: NDArray[np.uint8],
+    corners_px: Array,
+    camera: CameraModel,
+    pattern: PrintedPattern,
+    settings: PatternFitSettings | None = None,
+    blur_px: float = 1.0,
+) -> Array | None:
+    """Corners (4, 2) of a marker from a fit of its printed pattern (``printed_pattern``) to
+    the pixels around it, or None if the fit fails or a corner would move too far from
+    ``corners_px`` (a good start: e.g. the edge fit's corners). ``blur_px``: a first guess of
+    the blur sigma (e.g. the edge fit's)."""
+    cfg = settings or PatternFitSettings()
+    corners = np.asarray(corners_px, np.float64).reshape(4, 2)
+    n = pattern.n_cells
+    xy = camera.normalize(corners)
+    if not np.all(np.isfinite(xy)):
+        return None
+    centre = xy.mean(axis=0)
+    cell_px = _px_per_cell(corners, n)
+    scale = float(np.mean(np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1))) / n
+    if not scale > 0:
+        return None
+    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
+    try:
+        g = _homography((xy - centre) / scale, square)
+    except np.linalg.LinAlgError:
+        return None
+
+    # the fitted pixels: those whose centres fall within out_cells of the marker (and on the
+    # sheet), from a box around the region's outline
+    out = np.array([min(cfg.out_cells, 0.9 * s) for s in pattern.sheet_cells])  # top right ...
+    lo_u, hi_u, lo_v, hi_v = -out[3], n + out[1], -out[0], n + out[2]
+    outline_uv = np.array(
+        [[lo_u, lo_v], [hi_u, lo_v], [hi_u, hi_v], [lo_u, hi_v]]
+        + [[(lo_u + hi_u) / 2, lo_v], [hi_u, (lo_v + hi_v) / 2]]
+        + [[(lo_u + hi_u) / 2, hi_v], [lo_u, (lo_v + hi_v) / 2]]
+    )
+    try:
+        g_inv = _homography(square, (xy - centre) / scale)
+    except np.linalg.LinAlgError:
+        return None
+    ox, oy, _ = _apply(g_inv, outline_uv)
+    outline_px, ok = camera.project(
+        np.stack([ox * scale + centre[0], oy * scale + centre[1], np.ones_like(ox)], axis=1)
+    )
+    if not np.all(ok):
+        return None
+    h_img, w_img = grey.shape[:2]
+    x0 = max(0, int(math.floor(outline_px[:, 0].min())) - 1)
+    y0 = max(0, int(math.floor(outline_px[:, 1].min())) - 1)
+    x1 = min(w_img - 1, int(math.ceil(outline_px[:, 0].max())) + 1)
+    y1 = min(h_img - 1, int(math.ceil(outline_px[:, 1].max())) + 1)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    gx, gy = np.meshgrid(
+        np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64)
+    )
+    px = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    q = (camera.normalize(px) - centre) / scale
+    u, v, _ = _apply(g, q)
+    inside = np.isfinite(u) & (u > lo_u) & (u < hi_u) & (v > lo_v) & (v < hi_v)
+    if np.count_nonzero(inside) < 4 * n * n:
+        return None
+    px, q = px[inside], q[inside]
+    values = grey[px[:, 1].astype(np.intp), px[:, 0].astype(np.intp)].astype(np.float64)
+    # the pixel-to-q Jacobian, per pixel (the lens model's), by differences of half a pixel
+    # the lens model's pixel-to-q Jacobian, taken at the marker's centre: it changes by well
+    # under 1 % across a marker this small, and only scales the blur
+    mid_px = corners.mean(axis=0)
+    ends = camera.normalize(np.array([mid_px, mid_px + [0.5, 0.0], mid_px + [0.0, 0.5]]))
+    (qx_px, qy_px), (qx_py, qy_py) = (
+        (ends[1] - ends[0]) * (2.0 / scale),
+        (ends[2] - ends[0]) * (2.0 / scale),
+    )
+
+    code = pattern.code
+    basis = [(code != _OFF_SHEET).astype(np.float64), (code == _WHITE).astype(np.float64)]
+    off = (code == _OFF_SHEET).astype(np.float64)
+    levels = [float(np.percentile(values, 10)), 0.0]
+    levels[1] = float(np.percentile(values, 90)) - levels[0]
+    log_sigma = math.log(min(cfg.max_blur_px, max(cfg.min_blur_px, blur_px)))
+    lines_u, lines_v = pattern.lines_u, pattern.lines_v
+    for it in range(cfg.iterations):
+        sigma = math.exp(log_sigma)
+        u, v, w = _apply(g, q)
+        # d(u, v)/dq, then to pixels: the blur's width along u and along v
+        a_ux, a_uy = (g[0] - u * g[6]) / w, (g[1] - u * g[7]) / w  # d(u, v)/dq
+        a_vx, a_vy = (g[3] - v * g[6]) / w, (g[4] - v * g[7]) / w
+        s_u = sigma * np.hypot(a_ux * qx_px + a_uy * qy_px, a_ux * qx_py + a_uy * qy_py)
+        s_v = sigma * np.hypot(a_vx * qx_px + a_vy * qy_px, a_vx * qx_py + a_vy * qy_py)
+        cov_u, du_u, dls_u = _bands(u, lines_u, s_u)
+        cov_v, dv_v, dls_v = _bands(v, lines_v, s_v)
+        if it == 0:
+            near_off = np.einsum("pi,pi->p", cov_v @ off, cov_u)
+            if float(near_off.max()) > 1e-3:
+                basis.append(off)
+                levels.append(levels[0])
+        # each pixel's blurred cover of each basis (all non-off-sheet, white, off-sheet)
+        by_v = np.stack([cov_v @ b for b in basis])  # (B, P, Nu)
+        cover = np.einsum("bpi,pi->bp", by_v, cov_u)
+        level = np.asarray(levels)
+        rows_v = np.tensordot(level, by_v, 1)  # (P, Nu)
+        rows_u = cov_u @ np.tensordot(level, np.stack(basis), 1).T  # (P, Nv)
+        model = level @ cover
+        dm_du = np.einsum("pi,pi->p", rows_v, du_u)
+        dm_dv = np.einsum("pj,pj->p", rows_u, dv_v)
+        dm_dls = np.einsum("pi,pi->p", rows_v, dls_u) + np.einsum("pj,pj->p", rows_u, dls_v)
+        qx, qy = q[:, 0], q[:, 1]
+        J = np.empty((q.shape[0], 9 + len(basis)))
+        J[:, 0] = dm_du * qx / w
+        J[:, 1] = dm_du * qy / w
+        J[:, 2] = dm_du / w
+        J[:, 3] = dm_dv * qx / w
+        J[:, 4] = dm_dv * qy / w
+        J[:, 5] = dm_dv / w
+        J[:, 6] = -(dm_du * u + dm_dv * v) * qx / w
+        J[:, 7] = -(dm_du * u + dm_dv * v) * qy / w
+        J[:, 8] = dm_dls
+        J[:, 9:] = cover.T
+        r = model - values
+        try:
+            step = np.linalg.solve(J.T @ J + 1e-9 * np.eye(J.shape[1]), J.T @ r)
+        except np.linalg.LinAlgError:
+            return None
+        g = g - step[:8]
+        log_sigma = log_sigma - float(np.clip(step[8], -0.5, 0.5))
+        levels = [lv - float(s) for lv, s in zip(levels, step[9:], strict=True)]
+        # how far the corners moved, in pixels (about: q units are cells)
+        moved_cells = float(np.max(np.abs(step[:8]) * np.array([n, n, 1, n, n, 1, n * n, n * n])))
+        if moved_cells * cell_px < 3e-3 and abs(step[8]) < 3e-3:
+            break
+    sigma = math.exp(log_sigma)
+    if not (cfg.min_blur_px < sigma < cfg.max_blur_px) or not levels[1] > 0:
+        return None
+    try:
+        g_inv = np.linalg.inv(np.append(g, 1.0).reshape(3, 3))
+    except np.linalg.LinAlgError:
+        return None
+    h = np.hstack([square, np.ones((4, 1))]) @ g_inv.T
+    fitted_n = h[:, :2] / h[:, 2:3] * scale + centre
+    refined, ok = camera.project(np.hstack([fitted_n, np.ones((4, 1))]))
+    if not np.all(ok) or not np.all(np.isfinite(refined)):
+        return None
+    if np.max(np.linalg.norm(refined - corners, axis=1)) > cfg.max_shift_cells * cell_px:
+        return None
+    return np.asarray(refined, np.float64)
+
+
+def _px_per_cell(corners_px: Array, n: int) -> float:
+    return float(np.mean(np.linalg.norm(corners_px[[1, 2, 3, 0]] - corners_px, axis=1))) / n

@@ -1,0 +1,137 @@
+"""The whole-pattern corner fit of small blurred markers, against the renderer's true corners."""
+
+import math
+
+import numpy as np
+import pytest
+
+from perchpose.corners import fit_marker_edges
+from perchpose.detection import MarkerDetector
+from perchpose.geometry import facing_pose
+from perchpose.pattern_fit import printed_pattern, refine_corners_pattern
+from perchpose.sim.render import ImageQuality, Renderer
+from perchpose.target import MarkerSpec, TargetSpec
+
+
+def test_the_paper_targets_printed_pattern(paper_target: TargetSpec) -> None:
+    outer = printed_pattern(paper_target, 0)
+    assert outer is not None
+    assert outer.n_cells == 6
+    # its own cell edges, the inner marker's (one cell wide and centred, 7 cells across) and
+    # the sheet's edge 0.8 cells (the 20 mm quiet zone) beyond the border
+    expected = [*range(7), -0.8, 6.8, *(2.5 + np.arange(8) / 7)]
+    for lines in (outer.lines_u, outer.lines_v):
+        assert all(np.min(np.abs(lines - x)) < 1e-9 for x in expected)
+    assert outer.sheet_cells == pytest.approx((0.8, 0.8, 0.8, 0.8))
+    cells = paper_target.markers[0].cells
+    for row in range(6):
+        for col in range(6):
+            if 2 <= row <= 3 and 2 <= col <= 3:
+                continue  # the centre holds the inner marker
+            iu = int(np.searchsorted(outer.lines_u, col + 0.5)) - 1
+            iv = int(np.searchsorted(outer.lines_v, row + 0.5)) - 1
+            assert outer.code[iv, iu] == cells[row, col]
+    assert outer.code[0, 0] == -1  # off the sheet
+    inner = printed_pattern(paper_target, 1)
+    assert inner is not None
+    assert inner.sheet_cells == (math.inf,) * 4
+
+
+def test_a_marker_printed_at_an_angle_within_reach_is_refused() -> None:
+    target = TargetSpec(
+        markers=(
+            MarkerSpec("DICT_4X4_1000", 997, 150.0),
+            MarkerSpec("DICT_ARUCO_ORIGINAL", 5, 25.0, rotation_deg=30.0),
+        )
+    )
+    assert printed_pattern(target, 0) is None
+    assert printed_pattern(target, 1) is None
+
+
+def test_a_flat_image_has_no_pattern(
+    paper_target: TargetSpec, renderers: dict[str, Renderer]
+) -> None:
+    camera = renderers["webcam"].camera
+    flat = np.full((camera.height_px, camera.width_px), 128, np.uint8)
+    square = np.array([[200.0, 150.0], [220.0, 150.0], [220.0, 170.0], [200.0, 170.0]])
+    pattern = printed_pattern(paper_target, 0)
+    assert pattern is not None
+    assert refine_corners_pattern(flat, square, camera, pattern) is None
+
+
+def _radial_rms(corners: np.ndarray, true: np.ndarray) -> tuple[float, float]:
+    outward = true - true.mean(axis=0)
+    outward /= np.linalg.norm(outward, axis=1, keepdims=True)
+    err = corners - true
+    return float(np.mean(np.sum(err * outward, axis=1))), float(np.mean(np.sum(err * err, axis=1)))
+
+
+def test_small_blurred_markers_are_unbiased(renderers: dict[str, Renderer]) -> None:
+    """Outer markers of 16-24 px, blur 1.1 px, no noise: cells of 2.7-4 px, under 4 blur
+    sigmas. The one-edge model pulls the corners inwards; the pattern fit does not."""
+    r = renderers["fpv"]
+    quality = ImageQuality(blur_sigma_px=1.1, noise_sigma=0.0)
+    detector = MarkerDetector(r.camera, r.target, "subpix")
+    pattern = printed_pattern(r.target, 0)
+    assert pattern is not None
+    rng = np.random.default_rng(21)
+    cells = r.target.markers[0].cells
+    margins = r.target.white_margin_cells(0)
+    edge_radial, fit_radial, fit_ms = [], [], []
+    for side_px in np.linspace(16.0, 24.0, 8):
+        z = r.camera.focal_px * 0.15 / side_px
+        x, y = rng.uniform(-0.1, 0.1, 2) * z
+        T = facing_pose(x, y, z, rng.uniform(-3, 3), rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3))
+        image = r.render(T, quality)
+        true = r.corners_px(T)[0]
+        (det,) = [d for d in detector.detect(image) if d.marker_index == 0]
+        assert true is not None
+        edges = fit_marker_edges(image, det.corners_px, r.camera, cells, margin_cells=margins)
+        assert edges is not None
+        fitted = refine_corners_pattern(
+            image, edges.corners_px, r.camera, pattern, blur_px=edges.blur_px
+        )
+        assert fitted is not None
+        edge_radial.append(_radial_rms(edges.corners_px, true)[0])
+        radial, ms = _radial_rms(fitted, true)
+        fit_radial.append(radial)
+        fit_ms.append(ms)
+    assert float(np.mean(edge_radial)) < -0.06
+    assert abs(float(np.mean(fit_radial))) < 0.01
+    assert math.sqrt(float(np.mean(fit_ms))) < 0.04
+
+
+@pytest.mark.parametrize("camera_name", ["webcam", "fpv"])
+def test_analog_markers_of_15_to_25_px_within_a_tenth_of_a_pixel(
+    renderers: dict[str, Renderer], camera_name: str
+) -> None:
+    """The evaluation's analog images (low contrast, blur 1.1 px, noise, JPEG, vignetting),
+    both markers at 15-25 px, through the detector's default corners."""
+    r = renderers[camera_name]
+    quality = ImageQuality.preset("analog_fpv")
+    subpix = MarkerDetector(r.camera, r.target, "subpix")
+    rng = np.random.default_rng(22)
+    radial, ms, found, fitted_count = [], [], 0, 0
+    for index, marker in enumerate(r.target.markers):
+        for side_px in rng.uniform(15.0, 25.0, 12):
+            z = r.camera.focal_px * marker.side_m / side_px
+            x, y = rng.uniform(-0.1, 0.1, 2) * z
+            yaw = rng.uniform(-3, 3)
+            T = facing_pose(x, y, z, yaw, rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3))
+            image = r.render(T, quality, rng)
+            true = r.corners_px(T)[index]
+            dets = [d for d in subpix.detect(image) if d.marker_index == index]
+            if true is None or not dets or not 15.0 <= dets[0].side_px < 25.0:
+                continue
+            found += 1
+            fit = subpix.fit_corners(image, dets[0])
+            if fit is None:
+                continue
+            fitted_count += 1
+            a, b = _radial_rms(fit.corners_px, true)
+            radial.append(a)
+            ms.append(b)
+    assert found >= 16
+    assert fitted_count >= 0.9 * found
+    assert math.sqrt(float(np.mean(ms))) <= 0.1
+    assert abs(float(np.mean(radial))) <= 0.02
