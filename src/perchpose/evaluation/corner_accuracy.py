@@ -2,7 +2,9 @@
 
 Frames are rendered with 3 x 3 rays per pixel at random poses (1.8 m to 8 cm, tilted up to
 17 deg), so that each marker's true corners are known exactly; every detected marker is scored
-with OpenCV's ``cornerSubPix`` corners and with the edge fit of ``perchpose.corners``.
+with OpenCV's ``cornerSubPix`` corners, with the edge fit of ``perchpose.corners`` alone, and
+with the detector's default (the edge fit, and the pattern fit of ``perchpose.pattern_fit`` for
+small blurred markers).
 """
 
 from __future__ import annotations
@@ -14,13 +16,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from perchpose.corners import fit_marker_edges
 from perchpose.detection import MarkerDetector
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.target import TargetSpec
 
 SIDE_BINS_PX = (15.0, 25.0, 40.0, 80.0, 160.0, 400.0)
-METHODS = ("subpix", "edges")
+METHODS = ("subpix", "edges", "edges+pattern")
 
 
 @dataclass(frozen=True)
@@ -51,6 +54,7 @@ def corner_accuracy(
 ) -> list[CornerRow]:
     """Score both corner methods on ``poses`` random frames per image quality."""
     detector = MarkerDetector(renderer.camera, renderer.target, "subpix")
+    margins = [renderer.target.white_margin_cells(i) for i in range(len(renderer.target.markers))]
     rows: list[CornerRow] = []
     for quality_name, quality in qualities.items():
         scores: dict[str, list[tuple[float, float, float] | None]] = {m: [] for m in METHODS}
@@ -67,12 +71,23 @@ def corner_accuracy(
                 true = truth[det.marker_index]
                 if true is None:
                     continue
-                edges = detector.fit_edges(image, det)
-                fitted = None if edges is None else edges.corners_px
+                i = det.marker_index
+                edges = fit_marker_edges(
+                    image,
+                    det.corners_px,
+                    renderer.camera,
+                    renderer.target.markers[i].cells,
+                    margin_cells=margins[i],
+                )
+                default = detector.fit_corners(image, det)
                 outward = true - true.mean(axis=0)
                 outward /= np.linalg.norm(outward, axis=1, keepdims=True)
                 sides.append(det.side_px)
-                for method, corners in (("subpix", det.corners_px), ("edges", fitted)):
+                for method, corners in (
+                    ("subpix", det.corners_px),
+                    ("edges", None if edges is None else edges.corners_px),
+                    ("edges+pattern", None if default is None else default.corners_px),
+                ):
                     if corners is None:
                         scores[method].append(None)
                         continue
@@ -115,7 +130,9 @@ def corners_markdown(rows: list[CornerRow]) -> str:
         "Detected corners against the renderer's true corners (3 x 3 rays per pixel, random "
         "poses from 1.8 m to 8 cm). `subpix`: OpenCV's `cornerSubPix` with a window fitted to "
         "the marker's cells; `edges`: the four border edges fitted through the lens model and "
-        "intersected (the default). Radial: mean error along the direction from the marker "
+        "intersected; `edges+pattern` (the default): the same, and for markers whose cells span "
+        "under 5 blur sigmas (or whose edge fit failed) a fit of the whole printed pattern. "
+        "Radial: mean error along the direction from the marker "
         "centre to the corner (negative = pulled inwards).",
         "",
         "| images | method | side (px) | markers | RMS (px) | radial (px) | fitted |",
