@@ -122,7 +122,7 @@ class PatternFitSettings:
     max_shift_cells : a corner further than this from its start fails the fit. min_blur_px,
     max_blur_px : the blur's bounds; a fit that ends on one fails."""
 
-    all_below_px: float = 40.0
+    all_below_px: float = 24.0
     below_cell_blurs: float = 5.0
     max_side_px: float = 64.0
     out_cells: float = 0.7
