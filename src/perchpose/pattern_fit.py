@@ -152,6 +152,17 @@ def _homography(src: Array, dst: Array) -> Array:
     return np.asarray(np.linalg.solve(A, rhs), np.float64)
 
 
+def _inverse(g: Array) -> Array | None:
+    """The 8 entries (h33 = 1) of the inverse of homography ``g``, or None if it has none."""
+    try:
+        h = np.linalg.inv(np.append(g, 1.0).reshape(3, 3))
+    except np.linalg.LinAlgError:
+        return None
+    if h[2, 2] == 0:
+        return None
+    return np.asarray((h / h[2, 2]).ravel()[:8], np.float64)
+
+
 def _apply(g: Array, q: Array) -> tuple[Array, Array, Array]:
     """(u, v) of points ``q`` (P, 2) under homography entries ``g``, and the denominator."""
     w = g[6] * q[:, 0] + g[7] * q[:, 1] + 1.0
@@ -201,6 +212,15 @@ def refine_corners_pattern(
     except np.linalg.LinAlgError:
         return None
 
+    def to_pixels(homography: Array, uv: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """Pixels of marker points ``uv`` (cells) under q -> (u, v) ``homography``."""
+        inverse = _inverse(homography)
+        if inverse is None:
+            return np.full((len(uv), 2), np.nan), np.zeros(len(uv), bool)
+        qx, qy, _ = _apply(inverse, uv)
+        plane = np.stack([qx * scale + centre[0], qy * scale + centre[1], np.ones_like(qx)], 1)
+        return camera.project(plane)
+
     # the fitted pixels: those whose centres fall within out_cells of the marker (and on the
     # sheet), from a box around the region's outline
     out = np.array([min(cfg.out_cells, 0.9 * s) for s in pattern.sheet_cells])  # top right ...
@@ -210,14 +230,7 @@ def refine_corners_pattern(
         + [[(lo_u + hi_u) / 2, lo_v], [hi_u, (lo_v + hi_v) / 2]]
         + [[(lo_u + hi_u) / 2, hi_v], [lo_u, (lo_v + hi_v) / 2]]
     )
-    try:
-        g_inv = _homography(square, (xy - centre) / scale)
-    except np.linalg.LinAlgError:
-        return None
-    ox, oy, _ = _apply(g_inv, outline_uv)
-    outline_px, ok = camera.project(
-        np.stack([ox * scale + centre[0], oy * scale + centre[1], np.ones_like(ox)], axis=1)
-    )
+    outline_px, ok = to_pixels(g, outline_uv)
     if not np.all(ok):
         return None
     h_img, w_img = grey.shape[:2]
@@ -238,7 +251,6 @@ def refine_corners_pattern(
         return None
     px, q = px[inside], q[inside]
     values = grey[px[:, 1].astype(np.intp), px[:, 0].astype(np.intp)].astype(np.float64)
-    # the pixel-to-q Jacobian, per pixel (the lens model's), by differences of half a pixel
     # the lens model's pixel-to-q Jacobian, taken at the marker's centre: it changes by well
     # under 1 % across a marker this small, and only scales the blur
     mid_px = corners.mean(axis=0)
@@ -307,13 +319,7 @@ def refine_corners_pattern(
     sigma = math.exp(log_sigma)
     if not (cfg.min_blur_px < sigma < cfg.max_blur_px) or not levels[1] > 0:
         return None
-    try:
-        g_inv = np.linalg.inv(np.append(g, 1.0).reshape(3, 3))
-    except np.linalg.LinAlgError:
-        return None
-    h = np.hstack([square, np.ones((4, 1))]) @ g_inv.T
-    fitted_n = h[:, :2] / h[:, 2:3] * scale + centre
-    refined, ok = camera.project(np.hstack([fitted_n, np.ones((4, 1))]))
+    refined, ok = to_pixels(g, square)
     if not np.all(ok) or not np.all(np.isfinite(refined)):
         return None
     if np.max(np.linalg.norm(refined - corners, axis=1)) > cfg.max_shift_cells * cell_px:
