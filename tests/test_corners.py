@@ -10,6 +10,7 @@ import pytest
 from perchpose.camera import CameraModel
 from perchpose.corners import refine_corners_edges
 from perchpose.detection import MarkerDetector, refine_corners
+from perchpose.evaluation.corner_accuracy import corner_error_px
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Renderer
 
@@ -34,14 +35,11 @@ def corner_errors(
             assert true is not None
             edges = detector.fit_corners(image, det)
             fitted = None if edges is None else edges.corners_px
-            outward = true - true.mean(axis=0)
-            outward /= np.linalg.norm(outward, axis=1, keepdims=True)
             for name, corners in (("subpix", det.corners_px), ("edges", fitted)):
                 if corners is None:
                     continue
-                err = corners - true
-                rms = math.sqrt(float(np.mean(np.sum(err * err, axis=1))))
-                out[name].append((det.side_px, rms, float(np.mean(np.sum(err * outward, axis=1)))))
+                mean_sq, radial = corner_error_px(corners, true)
+                out[name].append((det.side_px, math.sqrt(mean_sq), radial))
     return out
 
 
@@ -139,9 +137,7 @@ def test_a_small_blurred_square_is_unbiased(side_px: float) -> None:
             _square_image(true, 1.1), true + rng.normal(0, 0.3, (4, 2)), camera, 6
         )
         assert fitted is not None
-        outward = true - true.mean(axis=0)
-        outward /= np.linalg.norm(outward, axis=1, keepdims=True)
-        radial.append(float(np.mean(np.sum((fitted - true) * outward, axis=1))))
+        radial.append(corner_error_px(fitted, true)[1])
     assert abs(float(np.mean(radial))) < 0.02
 
 
@@ -163,13 +159,11 @@ def test_the_sheet_edge_near_the_border_enters_the_model(renderers: dict[str, Re
         true = r.corners_px(T)[0]
         (det,) = [d for d in detector.detect(image) if d.marker_index == 0]
         assert true is not None
-        outward = true - true.mean(axis=0)
-        outward /= np.linalg.norm(outward, axis=1, keepdims=True)
         cells = r.target.markers[0].cells
         for out, m in ((with_margin, margins), (without, None)):
             fitted = refine_corners_edges(image, det.corners_px, r.camera, cells, margin_cells=m)
             assert fitted is not None
-            out.append(float(np.mean(np.sum((fitted - true) * outward, axis=1))))
+            out.append(corner_error_px(fitted, true)[1])
     assert abs(float(np.mean(with_margin))) < 0.04
     assert float(np.mean(without)) < -0.08
 

@@ -7,6 +7,7 @@ import pytest
 
 from perchpose.corners import fit_marker_edges
 from perchpose.detection import MarkerDetector
+from perchpose.evaluation.corner_accuracy import corner_error_px
 from perchpose.geometry import facing_pose
 from perchpose.pattern_fit import printed_pattern, refine_corners_pattern
 from perchpose.sim.render import ImageQuality, Renderer
@@ -59,13 +60,6 @@ def test_a_flat_image_has_no_pattern(
     assert refine_corners_pattern(flat, square, camera, pattern) is None
 
 
-def _radial_rms(corners: np.ndarray, true: np.ndarray) -> tuple[float, float]:
-    outward = true - true.mean(axis=0)
-    outward /= np.linalg.norm(outward, axis=1, keepdims=True)
-    err = corners - true
-    return float(np.mean(np.sum(err * outward, axis=1))), float(np.mean(np.sum(err * err, axis=1)))
-
-
 def test_small_blurred_markers_are_unbiased(renderers: dict[str, Renderer]) -> None:
     """Outer markers of 16-24 px, blur 1.1 px, no noise: cells of 2.7-4 px, under 4 blur
     sigmas. The one-edge model pulls the corners inwards; the pattern fit does not."""
@@ -92,8 +86,8 @@ def test_small_blurred_markers_are_unbiased(renderers: dict[str, Renderer]) -> N
             image, edges.corners_px, r.camera, pattern, blur_px=edges.blur_px
         )
         assert fitted is not None
-        edge_radial.append(_radial_rms(edges.corners_px, true)[0])
-        radial, ms = _radial_rms(fitted, true)
+        edge_radial.append(corner_error_px(edges.corners_px, true)[1])
+        ms, radial = corner_error_px(fitted, true)
         fit_radial.append(radial)
         fit_ms.append(ms)
     assert float(np.mean(edge_radial)) < -0.06
@@ -128,9 +122,9 @@ def test_analog_markers_of_15_to_25_px_within_a_tenth_of_a_pixel(
             if fit is None:
                 continue
             fitted_count += 1
-            a, b = _radial_rms(fit.corners_px, true)
-            radial.append(a)
-            ms.append(b)
+            mean_sq, radial_px = corner_error_px(fit.corners_px, true)
+            radial.append(radial_px)
+            ms.append(mean_sq)
     assert found >= 16
     assert fitted_count >= 0.9 * found
     assert math.sqrt(float(np.mean(ms))) <= 0.1

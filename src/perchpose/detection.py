@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.corners import fit_marker_edges
+from perchpose.corners import EdgeFit, fit_marker_edges
 from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
 from perchpose.target import TargetSpec, aruco_dictionary
 
@@ -250,9 +250,7 @@ class MarkerDetector:
         starting from the edges' corners."""
         i = det.marker_index
         cells = self.target.markers[i].cells
-        edges = fit_marker_edges(
-            grey, det.corners_px, self.camera, cells, margin_cells=self._margins[i]
-        )
+        edges = self.fit_edges(grey, det)
         corners = None if edges is None else edges.corners_px
         pattern = self._patterns[i]
         if pattern is not None and self.pattern_settings.applies(
@@ -266,6 +264,18 @@ class MarkerDetector:
             corners = fitted if fitted is not None else corners
         return (
             None if corners is None else MarkerDetection(det.marker_index, corners, det.image_pass)
+        )
+
+    def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> EdgeFit | None:
+        """The edge fit alone of ``det`` (``perchpose.corners``, with the marker's cells and
+        white margin from the target), or None if it fails."""
+        i = det.marker_index
+        return fit_marker_edges(
+            grey,
+            det.corners_px,
+            self.camera,
+            self.target.markers[i].cells,
+            margin_cells=self._margins[i],
         )
 
     def _track_edges(

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perchpose.corners import fit_marker_edges
 from perchpose.detection import MarkerDetector
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Renderer
@@ -45,6 +44,16 @@ class CornerRow:
     fitted: float
 
 
+def corner_error_px(corners_px: np.ndarray, true_px: np.ndarray) -> tuple[float, float]:
+    """Four corners against the true ones: the mean squared distance (px^2), and the mean
+    error along the direction from the true centre to each corner (px; negative: pulled
+    inwards)."""
+    err = np.asarray(corners_px, np.float64) - true_px
+    outward = true_px - true_px.mean(axis=0)
+    outward /= np.linalg.norm(outward, axis=1, keepdims=True)
+    return float(np.mean(np.sum(err * err, axis=1))), float(np.mean(np.sum(err * outward, axis=1)))
+
+
 def corner_accuracy(
     renderer: Renderer[TargetSpec],
     qualities: dict[str, ImageQuality],
@@ -54,7 +63,6 @@ def corner_accuracy(
 ) -> list[CornerRow]:
     """Score both corner methods on ``poses`` random frames per image quality."""
     detector = MarkerDetector(renderer.camera, renderer.target, "subpix")
-    margins = [renderer.target.white_margin_cells(i) for i in range(len(renderer.target.markers))]
     rows: list[CornerRow] = []
     for quality_name, quality in qualities.items():
         scores: dict[str, list[tuple[float, float, float] | None]] = {m: [] for m in METHODS}
@@ -71,17 +79,8 @@ def corner_accuracy(
                 true = truth[det.marker_index]
                 if true is None:
                     continue
-                i = det.marker_index
-                edges = fit_marker_edges(
-                    image,
-                    det.corners_px,
-                    renderer.camera,
-                    renderer.target.markers[i].cells,
-                    margin_cells=margins[i],
-                )
+                edges = detector.fit_edges(image, det)
                 default = detector.fit_corners(image, det)
-                outward = true - true.mean(axis=0)
-                outward /= np.linalg.norm(outward, axis=1, keepdims=True)
                 sides.append(det.side_px)
                 for method, corners in (
                     ("subpix", det.corners_px),
@@ -91,14 +90,7 @@ def corner_accuracy(
                     if corners is None:
                         scores[method].append(None)
                         continue
-                    err = corners - true
-                    scores[method].append(
-                        (
-                            float(np.mean(np.sum(err * err, axis=1))),
-                            float(np.mean(np.sum(err * outward, axis=1))),
-                            det.side_px,
-                        )
-                    )
+                    scores[method].append((*corner_error_px(corners, true), det.side_px))
         side_arr = np.array(sides)
         for method in METHODS:
             for lo, hi in itertools.pairwise(SIDE_BINS_PX):
