@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from perchpose.camera import CameraModel
-from perchpose.corners import refine_corners_edges
+from perchpose.corners import fit_marker_edges
 from perchpose.detection import MarkerDetector, refine_corners
 from perchpose.evaluation.corner_accuracy import corner_error_px
 from perchpose.geometry import facing_pose
@@ -85,7 +85,7 @@ def test_no_edge_no_corners(renderers: dict[str, Renderer]) -> None:
     camera = renderers["webcam"].camera
     flat = np.full((camera.height_px, camera.width_px), 128, np.uint8)
     square = np.array([[200.0, 150.0], [300.0, 150.0], [300.0, 250.0], [200.0, 250.0]])
-    assert refine_corners_edges(flat, square, camera, 6) is None
+    assert fit_marker_edges(flat, square, camera, 6) is None
 
 
 def test_a_start_off_by_a_fraction_of_a_pixel_converges(renderers: dict[str, Renderer]) -> None:
@@ -94,13 +94,13 @@ def test_a_start_off_by_a_fraction_of_a_pixel_converges(renderers: dict[str, Ren
     image = r.render(T)
     true = r.corners_px(T)[0]
     assert true is not None
-    fitted = refine_corners_edges(image, true + 0.3, r.camera, 6)
+    fitted = fit_marker_edges(image, true + 0.3, r.camera, 6)
     assert fitted is not None
-    assert np.max(np.abs(fitted - true)) < 0.1
+    assert np.max(np.abs(fitted.corners_px - true)) < 0.1
     # a start half a cell off is beyond the fit's reach: refused rather than moved that far
     cell = float(np.linalg.norm(true[1] - true[0])) / 6
-    far = refine_corners_edges(image, true + [0.5 * cell, 0.5 * cell], r.camera, 6)
-    assert far is None or np.max(np.abs(far - true)) < 0.1
+    far = fit_marker_edges(image, true + [0.5 * cell, 0.5 * cell], r.camera, 6)
+    assert far is None or np.max(np.abs(far.corners_px - true)) < 0.1
 
 
 def _square_image(corners_px: np.ndarray, blur_px: float, size: tuple[int, int] = (160, 160)):
@@ -133,11 +133,11 @@ def test_a_small_blurred_square_is_unbiased(side_px: float) -> None:
         R = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
         unit = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
         true = 80.0 + rng.uniform(-3, 3, 2) + (unit * side_px / 2) @ R.T
-        fitted = refine_corners_edges(
+        fitted = fit_marker_edges(
             _square_image(true, 1.1), true + rng.normal(0, 0.3, (4, 2)), camera, 6
         )
         assert fitted is not None
-        radial.append(corner_error_px(fitted, true)[1])
+        radial.append(corner_error_px(fitted.corners_px, true)[1])
     assert abs(float(np.mean(radial))) < 0.02
 
 
@@ -161,9 +161,9 @@ def test_the_sheet_edge_near_the_border_enters_the_model(renderers: dict[str, Re
         assert true is not None
         cells = r.target.markers[0].cells
         for out, m in ((with_margin, margins), (without, None)):
-            fitted = refine_corners_edges(image, det.corners_px, r.camera, cells, margin_cells=m)
+            fitted = fit_marker_edges(image, det.corners_px, r.camera, cells, margin_cells=m)
             assert fitted is not None
-            out.append(corner_error_px(fitted, true)[1])
+            out.append(corner_error_px(fitted.corners_px, true)[1])
     assert abs(float(np.mean(with_margin))) < 0.04
     assert float(np.mean(without)) < -0.08
 
@@ -196,6 +196,6 @@ def test_real_photo_markers_are_fitted(charuco_dir: Path) -> None:
         cells = (dictionary.generateImageMarker(int(marker_id), 8, borderBits=1) > 127).astype(
             np.uint8
         )
-        fitted = refine_corners_edges(image, start, camera, cells)
+        fitted = fit_marker_edges(image, start, camera, cells)
         assert fitted is not None
-        assert np.max(np.abs(fitted - start)) < 0.35
+        assert np.max(np.abs(fitted.corners_px - start)) < 0.35

@@ -313,20 +313,6 @@ class EdgeFit:
     blur_px: float
 
 
-def refine_corners_edges(
-    grey: NDArray[np.uint8],
-    corners_px: Array,
-    camera: CameraModel,
-    cells: int | NDArray[np.uint8],
-    settings: EdgeFitSettings | None = None,
-    margin_cells: Sequence[float] | None = None,
-) -> Array | None:
-    """Corners (4, 2) of a marker from its four fitted border edges (``fit_marker_edges``), or
-    None."""
-    fit = fit_marker_edges(grey, corners_px, camera, cells, settings, margin_cells)
-    return None if fit is None else fit.corners_px
-
-
 def fit_marker_edges(
     grey: NDArray[np.uint8],
     corners_px: Array,
