@@ -5,6 +5,7 @@ import pytest
 
 from perchpose import PerchingEstimator
 from perchpose.errors import ImageError, TimestampError
+from perchpose.estimator import Estimate
 from perchpose.geometry import facing_pose, wrap_angle_deg
 from perchpose.sim.render import Renderer
 from perchpose.sim.scenarios import markers_in_view
@@ -71,21 +72,28 @@ def test_estimate_carries_markers_and_timings(renderers: dict[str, Renderer]) ->
     assert e.timings.total_ms >= e.timings.detect_ms > 0
 
 
-def test_stays_valid_for_exactly_eight_lost_frames(renderers: dict[str, Renderer]) -> None:
-    r = renderers["webcam"]
-    est = PerchingEstimator(r.camera, r.target)
+def _through_a_dropout(
+    r: Renderer, est: PerchingEstimator
+) -> tuple[list[Estimate], list[Estimate], Estimate]:
+    """A still target at 60 cm: 5 frames seen, 10 with both markers hidden, then 1 seen."""
     rng = np.random.default_rng(0)
     T = facing_pose(0.02, 0.0, 0.6, 0.2)
     hidden = (dropout_occluder(r.camera, r.target, T),)
     seen = [est.update(r.render(T, rng=rng), k / 30) for k in range(5)]
-    assert all(e.valid and e.stage == 2 for e in seen)
     lost = [est.update(r.render(T, rng=rng, occluders=hidden), k / 30) for k in range(5, 15)]
+    back = est.update(r.render(T, rng=rng), 15 / 30)
+    return seen, lost, back
+
+
+def test_stays_valid_for_exactly_eight_lost_frames(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    seen, lost, back = _through_a_dropout(r, PerchingEstimator(r.camera, r.target))
+    assert all(e.valid and e.stage == 2 for e in seen)
     assert [e.valid for e in lost] == [True] * 8 + [False] * 2
     assert [e.stage for e in lost] == [2] * 8 + [0] * 2
     assert all(e.markers[0].missed_frames == k + 1 for k, e in enumerate(lost[:8]))
     coasting = lost[7]
     assert abs(coasting.x_cm - 2.0) < 0.5  # coasted from a still target: stays put
-    back = est.update(r.render(T, rng=rng), 15 / 30)
     assert back.valid
     assert back.stage == 2
     assert back.markers[0].missed_frames == 0
@@ -123,15 +131,10 @@ def test_blank_frame_is_no_estimate(renderers: dict[str, Renderer]) -> None:
 def test_covariance_fusion_keeps_the_dropout_rule(renderers: dict[str, Renderer]) -> None:
     r = renderers["webcam"]
     est = PerchingEstimator(r.camera, r.target, fusion="covariance")
-    rng = np.random.default_rng(0)
-    T = facing_pose(0.02, 0.0, 0.6, 0.2)
-    hidden = (dropout_occluder(r.camera, r.target, T),)
-    seen = [est.update(r.render(T, rng=rng), k / 30) for k in range(5)]
+    seen, lost, back = _through_a_dropout(r, est)
     assert all(e.valid and e.stage == 2 for e in seen)
-    lost = [est.update(r.render(T, rng=rng, occluders=hidden), k / 30) for k in range(5, 15)]
     assert [e.valid for e in lost] == [True] * 8 + [False] * 2
     assert abs(lost[7].x_cm - 2.0) < 0.2
-    back = est.update(r.render(T, rng=rng), 15 / 30)
     assert back.valid
     assert abs(back.z_cm - 60.0) < 0.2
 
