@@ -41,11 +41,19 @@ _ERF_A = (0.254829592, -0.284496736, 1.421413741, -1.453152027, 1.061405429)
 class EdgeFitSettings:
     """inside_cells, outside_cells : how far the profiles reach across the edge into the black
     border (one cell wide, so well under 1) and into the white margin, in marker cells.
-    min/max_window_px : bounds of those reaches. step_px : sampling step along a profile,
-    widened to keep at most max_samples per profile. max_profiles : profiles per side (one per
-    2 px of side below that). trim : fraction of each side left out at both ends (the corners'
-    neighbourhoods). max_shift_cells : a fitted corner further than this from its start is
-    rejected (the start is kept). iterations : rounds of the step-model fit.
+    min/max_window_px : bounds of those reaches.
+    step_px : sampling step along a profile, widened to keep at most max_samples per profile.
+    Every profile of a side samples the same offsets from the starting line, so the samples
+    keep one phase to the edge along the whole side; the model's small misfit of the pixel's
+    square and of the bilinear interpolation then shifts the edge by a phase-dependent amount
+    that does not average out. With steps under about half a pixel it stays under 0.001 px
+    (noise-free 83 px markers, blur 0.6 px: -0.004 px radial at the 0.9 px steps of 14
+    samples, +0.000 at 24).
+    max_profiles : profiles per side (one per 2 px of side below that).
+    trim : fraction of each side left out at both ends (the corners' neighbourhoods).
+    max_shift_cells : a fitted corner further than this from its start is rejected (the start
+    is kept).
+    iterations : rounds of the step-model fit.
     own_levels_from_px : a marker whose sides are all at least this long fits dark and light
     levels per side, not one pair for the marker: across a large marker vignetting and lighting
     change them (analog renders of 160-400 px markers, webcam lens: 0.09 px RMS against 0.12); a
@@ -56,7 +64,7 @@ class EdgeFitSettings:
     min_window_px: float = 1.0
     max_window_px: float = 8.0
     step_px: float = 0.35
-    max_samples: int = 14
+    max_samples: int = 24
     max_profiles: int = 24
     trim: float = 0.1
     max_shift_cells: float = 0.6
