@@ -11,9 +11,9 @@ from perchpose.sim.render import ImageQuality, Renderer
 def test_bound_rows_put_the_achieved_error_beside_the_bound() -> None:
     renderer = Renderer(CameraModel.preset("webcam"), TargetSpec.paper(), supersample=3)
     rows = bound_rows(
-        renderer, ImageQuality(), (0.35, 1.6), 4, np.random.default_rng(3), lambda _n: None
+        renderer, ImageQuality(), (0.35, 1.8), 4, np.random.default_rng(3), lambda _n: None
     )
-    assert [r.distance_m for r in rows] == [0.35, 1.6]
+    assert [r.distance_m for r in rows] == [0.35, 1.8]
     near, far = rows
     assert near.markers == (0, 1)
     assert far.markers == (0,)
@@ -23,7 +23,7 @@ def test_bound_rows_put_the_achieved_error_beside_the_bound() -> None:
         assert all(b > 0 for b in r.bound)
         assert all(math.isfinite(v) for v in r.joint)
     # the bound on depth grows with distance, faster than linearly
-    assert far.bound[2] > (1.6 / 0.35) * near.bound[2]
+    assert far.bound[2] > (1.8 / 0.35) * near.bound[2]
     # the achieved error stays within a few bounds of the limit on clean renders
     assert near.ratio < 4.0
     assert "Cramer-Rao" in bound_markdown(rows)

@@ -1,8 +1,11 @@
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
+from perchpose import CameraModel
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Occluder, Renderer
 
@@ -50,6 +53,81 @@ def test_edge_is_antialiased_where_the_geometry_puts_it(renderers: dict[str, Ren
     assert fraction_outside == pytest.approx(expected, abs=1 / 3 + 1e-9)
     assert 0.0 <= mean <= 1.0
     _ = q
+
+
+@dataclass(frozen=True)
+class _HalfPlane:
+    """Black for x < 0, white for x >= 0, on a 1 m square sheet (1 mm texels)."""
+
+    texture: tuple[NDArray[np.float32], float]
+    sheet_half_extent_m: float = 0.5
+
+
+def _half_plane() -> _HalfPlane:
+    texture = np.zeros((1000, 1000), np.float32)
+    texture[:, 500:] = 1.0
+    return _HalfPlane((texture, 0.001))
+
+
+def _white_area(
+    normal: np.ndarray, offset: float, cols: np.ndarray, rows: np.ndarray
+) -> np.ndarray:
+    """Exact area of each pixel's square on the side ``normal . p >= offset`` (the square
+    clipped by the line, then the shoelace formula)."""
+    out = np.zeros(len(cols))
+    for k, (x, y) in enumerate(zip(cols, rows, strict=True)):
+        square = np.array(
+            [[x - 0.5, y - 0.5], [x + 0.5, y - 0.5], [x + 0.5, y + 0.5], [x - 0.5, y + 0.5]]
+        )
+        kept = []
+        for i in range(4):
+            p, q = square[i], square[(i + 1) % 4]
+            fp, fq = float(normal @ p) - offset, float(normal @ q) - offset
+            if fp >= 0:
+                kept.append(p)
+            if fp * fq < 0:
+                kept.append(p + (q - p) * fp / (fp - fq))
+        if len(kept) >= 3:
+            P = np.array(kept)
+            out[k] = 0.5 * abs(P[:, 0] @ np.roll(P[:, 1], 1) - P[:, 1] @ np.roll(P[:, 0], 1))
+    return out
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 26.57, 45.0])
+def test_edge_pixels_hold_the_exact_area_at_any_angle(yaw_deg: float) -> None:
+    """A straight edge through a pinhole camera: each pixel's grey level is the area of its
+    square on the white side to 0.03, and along the edge the error averages under 0.006 px.
+    A regular 3 x 3 grid of rays alone is off by 0.05-0.17 px along the whole edge at these
+    angles, where its steps repeat with the pixels."""
+    camera = CameraModel(
+        np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]]), np.zeros(5), 640, 480
+    )
+    q = ImageQuality(
+        black_level=0.0, white_level=255.0, surround=0.0, blur_sigma_px=0.0, noise_sigma=0.0
+    )
+    T = facing_pose(0.0013, 0.0007, 1.0, math.radians(yaw_deg))
+    ends, _ = camera.project(
+        (T[:3, :3] @ np.array([[0.0, -0.1, 0.0], [0.0, 0.1, 0.0]]).T).T + T[:3, 3]
+    )
+    along = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    normal = np.array([-along[1], along[0]])
+    white, _ = camera.project((T[:3, :3] @ np.array([0.05, 0.0, 0.0]) + T[:3, 3])[None])
+    if normal @ white[0] < normal @ ends[0]:
+        normal = -normal
+    offset = float(normal @ ends[0])
+    rows, cols = (g.ravel() for g in np.mgrid[140:340, 220:420])
+    near = np.abs(np.stack([cols, rows], 1) @ normal - offset) < 1.0
+    exact = _white_area(normal, offset, cols[near], rows[near])
+    on_edge = (exact > 0.01) & (exact < 0.99)
+    errors = {}
+    for edge_samples in (89, 0):
+        image = Renderer(camera, _half_plane(), supersample=3, edge_samples=edge_samples).render(
+            T, q
+        )
+        errors[edge_samples] = image[rows[near], cols[near]] / 255.0 - exact
+    assert np.max(np.abs(errors[89])) < 0.03
+    assert abs(float(np.mean(errors[89][on_edge]))) < 0.006
+    assert abs(float(np.mean(errors[0][on_edge]))) > 0.05
 
 
 def test_occluder_hides_the_target(renderers: dict[str, Renderer]) -> None:
