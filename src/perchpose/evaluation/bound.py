@@ -42,6 +42,11 @@ class BoundRow:
         """Largest ratio of the joint pose's error to the bound over x, y, z."""
         return max(j / b for j, b in zip(self.joint[:3], self.bound[:3], strict=True) if b > 0)
 
+    @property
+    def yaw_ratio(self) -> float:
+        """Ratio of the joint pose's yaw error to the bound on yaw."""
+        return self.joint[3] / self.bound[3] if self.bound[3] > 0 else math.nan
+
 
 def _rms(errors: list[list[float]]) -> tuple[float, float, float, float]:
     e = np.array(errors)
@@ -181,11 +186,13 @@ def bound_markdown(rows: list[BoundRow]) -> str:
         "corners against the true ones, per marker (the table shows their RMS). Bound: "
         "standard deviation of an unbiased pose from those corners. Achieved: RMS error of the "
         "joint pose from all corners (weighted by the measured noise), and of the largest "
-        "marker's pose alone. x, y, z in cm, yaw in deg.",
+        "marker's pose alone. x, y, z in cm, yaw in deg. Joint / bound: the largest ratio over "
+        "x, y and z, and the ratio on yaw.",
         "",
         "| camera | z (m) | markers | frames | corner noise (px) | bound x/y/z, yaw | "
-        "joint x/y/z, yaw | joint / bound | largest marker alone x/y/z, yaw |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "joint x/y/z, yaw | joint / bound, position | joint / bound, yaw | "
+        "largest marker alone x/y/z, yaw |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def quad(v: tuple[float, float, float, float]) -> str:
@@ -195,6 +202,6 @@ def bound_markdown(rows: list[BoundRow]) -> str:
         lines.append(
             f"| {r.camera} | {r.distance_m:.2f} | {','.join(map(str, r.markers))} | {r.frames} | "
             f"{r.corner_sigma_px:.3f} | {quad(r.bound)} | {quad(r.joint)} | {r.ratio:.2f} | "
-            f"{quad(r.single)} |"
+            f"{r.yaw_ratio:.2f} | {quad(r.single)} |"
         )
     return "\n".join(lines) + "\n"

@@ -356,7 +356,10 @@ def run_paper_evaluation(
         "dropout": asdict(drop),
         "ablations": [{k: v for k, v in asdict(a).items() if k != "run"} for a in ablations],
         "corners": [asdict(r) for r in corner_rows],
-        "bound": [{**asdict(r), "joint_over_bound": r.ratio} for r in bounds],
+        "bound": [
+            {**asdict(r), "joint_over_bound": r.ratio, "yaw_over_bound": r.yaw_ratio}
+            for r in bounds
+        ],
     }
     results = _clean(results)
     (out / "results.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
