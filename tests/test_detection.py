@@ -103,7 +103,9 @@ def test_tracking_finds_what_the_full_search_finds(
     renderers: dict[str, Renderer], camera_name: str
 ) -> None:
     """The tracking windows (and on a fisheye the rectified-only search of large markers) see
-    the same markers, with the same corners, as searching every frame from scratch."""
+    every marker that searching each frame from scratch sees, with the same corners; a marker
+    at the edge of detection (9-10 px) that only the window around its last place finds must be
+    where the marker is."""
     r = renderers[camera_name]
     detector = MarkerDetector(r.camera, r.target)
     rng = np.random.default_rng(5)
@@ -112,13 +114,17 @@ def test_tracking_finds_what_the_full_search_finds(
     for k, z in enumerate(np.linspace(1.0, 0.12, 16)):
         T = facing_pose(0.05 * z * math.sin(k / 3), 0.04 * z, float(z), 0.2 * k)
         image = r.render(T, rng=rng)
-        with_hint = detector.detect(image, hint)
-        fresh = detector.detect(image)
-        assert [d.marker_index for d in with_hint] == [d.marker_index for d in fresh]
-        for a, b in zip(with_hint, fresh, strict=True):
-            assert np.max(np.abs(a.corners_px - b.corners_px)) < 0.05
+        with_hint = {d.marker_index: d for d in detector.detect(image, hint)}
+        fresh = {d.marker_index: d for d in detector.detect(image)}
+        assert set(fresh) <= set(with_hint)
+        for i, d in with_hint.items():
+            if i in fresh:
+                assert np.max(np.abs(d.corners_px - fresh[i].corners_px)) < 0.05
+            else:
+                assert d.side_px < 12.0
+                assert np.max(np.abs(d.corners_px - r.corners_px(T)[i])) < 0.5
         tracked += bool(hint)
-        hint = with_hint
+        hint = tuple(with_hint.values())
     assert tracked >= 14
 
 

@@ -1,11 +1,13 @@
 """Render the target as a camera sees it, with known pose.
 
-Each output pixel is the mean of ``supersample**2`` rays through the lens model, intersected with
-the target plane. Pixels within one pixel of an edge (where those rays disagree) are traced again
-with ``edge_samples`` rays on a Fibonacci lattice, so edges are antialiased to a small fraction
-of a pixel at every angle and corners sit where the geometry puts them, for both distortion
-models and at any distance. Image effects (exposure, contrast, blur, motion blur, noise, JPEG,
-occluders) are applied after.
+The image is built on a grid of ``supersample`` x ``supersample`` cells per pixel. Each cell is
+one ray through the lens model, intersected with the target plane; cells within one cell of an
+edge (where those rays disagree) are traced again with ``edge_samples`` rays on a Fibonacci
+lattice, so each cell holds its area's mean to a small fraction of its size at every edge angle
+and corners sit where the geometry puts them, for both distortion models and at any distance.
+The optical blur is applied to the cells, which are then averaged into pixels: blur before the
+pixels integrate the light, as in a camera. Exposure and contrast come first; vignetting, motion
+blur, noise and JPEG after, on the pixels; occluders are drawn before the blur.
 """
 
 from __future__ import annotations
@@ -109,21 +111,21 @@ class Renderer(Generic[P]):
         is still white with the set deviation, and two frames' windows almost never overlap
         in alignment; it costs a tenth of fresh noise. For long closed-loop runs; the
         evaluation draws fresh noise.
-    edge_samples : rays per pixel, on a Fibonacci lattice, for the pixels within one pixel of
-        an edge; 0 keeps the regular ``supersample`` grid there too. Needs ``supersample`` > 1
-        to find the edges. A regular 3 x 3 grid places an edge only to a third of a pixel along
-        each axis; along a whole edge those steps average out at most angles, but not near the
-        angles where the edge's steps repeat with the grid (0, 45, 90 deg...), where a small
-        marker's corners came out up to 0.07 px off. The lattice's rays all have distinct
-        offsets along both axes, so a straight edge at any angle is placed to about
-        1 / ``edge_samples`` of a pixel.
+    edge_samples : rays per cell, on a Fibonacci lattice, for the cells within one cell of an
+        edge; 0 keeps the single ray there too. Needs ``supersample`` > 1 to find the edges. A
+        regular 3 x 3 grid of rays places an edge only to a third of a pixel along each axis;
+        along a whole edge those steps average out at most angles, but not near the angles
+        where the edge's steps repeat with the grid (0, 27, 45, 90 deg...), where a whole edge
+        came out up to 0.17 px off and a 22 px marker's corners up to 0.07 px. The lattice's
+        rays all have distinct offsets along both axes, so a straight edge at any angle is
+        placed to about 1 / (``supersample`` * ``edge_samples``) of a pixel.
     """
 
     camera: CameraModel
     target: P
     supersample: int = 3
     noise_bank: bool = False
-    edge_samples: int = 89
+    edge_samples: int = 34
     _rays: NDArray[np.float32] | None = field(default=None, repr=False)
     _vignette: NDArray[np.float32] | None = field(default=None, repr=False)
     _bank: NDArray[np.float32] | None = field(default=None, repr=False)
@@ -232,34 +234,29 @@ class Renderer(Generic[P]):
         )
         return np.asarray(refl, np.float32)
 
-    def _pixel_means(
+    def _cell_means(
         self,
         T_camera_target: Array,
         origin_px: tuple[int, int],
         samples: NDArray[np.float32],
         off_sheet: float,
     ) -> NDArray[np.float32]:
-        """Each traced pixel's mean reflectance; pixels within one pixel of a change between
-        samples are traced again with the edge lattice."""
+        """(h n, w n): the mean reflectance over each sample's cell (1/n of a pixel a side):
+        the sample itself where it and its eight neighbours agree, the mean of the edge
+        lattice's rays through the cell where they do not."""
         h, n, w, _ = samples.shape
-        if n == 1:
-            return samples.reshape(h, w)
-        fine = samples.reshape(h * n, w * n)
-        means = np.asarray(cv2.resize(fine, (w, h), interpolation=cv2.INTER_AREA), np.float32)
-        if self.edge_samples <= 0:
-            return means
-        # a pixel whose samples and its neighbours' all agree is uniform: an edge through it
-        # would cross a line between two of those samples
-        block = np.ones((n, n), np.uint8)
-        lowest = cv2.erode(fine, block, anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)[::n, ::n]
-        highest = cv2.dilate(fine, block, anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)[::n, ::n]
+        cells = np.array(samples.reshape(h * n, w * n), np.float32)
+        if n == 1 or self.edge_samples <= 0:
+            return cells
+        # a cell whose neighbours' samples all agree with its own is uniform: an edge through
+        # it would cross a line between two of those samples
         ring = np.ones((3, 3), np.uint8)
-        lowest = cv2.erode(lowest, ring, borderType=cv2.BORDER_REPLICATE)
-        highest = cv2.dilate(highest, ring, borderType=cv2.BORDER_REPLICATE)
+        lowest = cv2.erode(cells, ring, borderType=cv2.BORDER_REPLICATE)
+        highest = cv2.dilate(cells, ring, borderType=cv2.BORDER_REPLICATE)
         rows, cols = np.nonzero(highest > lowest)
         if rows.size == 0:
-            return means
-        rays = self._lattice_rays(rows + origin_px[1], cols + origin_px[0])
+            return cells
+        rays = self._lattice_rays(rows + origin_px[1] * n, cols + origin_px[0] * n)
         # remap takes maps under 32767 a side: fold the rays into rows of 4096
         width = 4096
         padded = np.zeros((-(-rays.shape[0] // width) * width, 3), np.float32)
@@ -268,30 +265,40 @@ class Renderer(Generic[P]):
         T = check_transform(T_camera_target, "T_camera_target")
         refl = self._look_up(T, padded.reshape(-1, width, 3)).reshape(-1)[: rays.shape[0]]
         refl[refl < 0] = off_sheet
-        means[rows, cols] = refl.reshape(rows.size, -1).mean(axis=1, dtype=np.float32)
-        return means
+        cells[rows, cols] = refl.reshape(rows.size, -1).mean(axis=1, dtype=np.float32)
+        return cells
 
     def _lattice_rays(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float32]:
-        """(len(rows) * edge_samples, 3) rays through the edge lattice of pixels (rows, cols).
+        """(len(rows) * edge_samples, 3) rays through the edge lattice of the cells (rows,
+        cols) of the ``supersample`` grid (whole frame).
 
         Across one pixel the lens bends a ray by a second-order amount far below the lattice's
-        spacing, so each pixel's rays come from an affine fit to its cached ``supersample``
-        grid instead of the lens model."""
+        spacing, so each cell's rays come from an affine fit to its pixel's cached grid of rays
+        instead of the lens model."""
         n = self.supersample
         w, h = self.camera.size
-        grid = self._camera_rays().reshape(h, n, w, n, 3)[rows, :, cols, :]  # (P, n, n, 3)
+        lattice = _fibonacci_lattice(self.edge_samples) / n
         offsets = (np.arange(n) + 0.5) / n - 0.5
         spread = n * np.sum(offsets * offsets)
-        lattice = _fibonacci_lattice(self.edge_samples)
-        # ray k = mean + u_k * slope along u + v_k * slope along v, each a weighted sum of the
-        # grid's rays: one (samples, n * n) weight matrix for every pixel
-        weights = (
-            1.0 / (n * n)
-            + lattice[:, 0, None, None] * offsets[None, None, :] / spread
-            + lattice[:, 1, None, None] * offsets[None, :, None] / spread
-        ).reshape(-1, n * n)
-        rays = np.matmul(weights.astype(np.float32), grid.reshape(-1, n * n, 3))
-        return np.asarray(rays.reshape(-1, 3), np.float32)
+        grid_rays = self._camera_rays().reshape(h, n, w, n, 3)
+        out = np.empty((rows.size, lattice.shape[0], 3), np.float32)
+        sub_v, sub_u = rows % n, cols % n
+        for i in range(n):
+            for j in range(n):
+                here = np.nonzero((sub_v == i) & (sub_u == j))[0]
+                if here.size == 0:
+                    continue
+                grid = grid_rays[rows[here] // n, :, cols[here] // n, :]  # (P, n, n, 3)
+                # ray k = the grid's mean + u_k * its slope along u + v_k * its slope along v:
+                # one (samples, n * n) weight matrix for the cells at this place in a pixel
+                u, v = offsets[j] + lattice[:, 0], offsets[i] + lattice[:, 1]
+                weights = (
+                    1.0 / (n * n)
+                    + u[:, None, None] * offsets[None, None, :] / spread
+                    + v[:, None, None] * offsets[None, :, None] / spread
+                ).reshape(-1, n * n)
+                out[here] = np.matmul(weights.astype(np.float32), grid.reshape(-1, n * n, 3))
+        return out.reshape(-1, 3)
 
     def render(
         self,
@@ -302,37 +309,50 @@ class Renderer(Generic[P]):
     ) -> NDArray[np.uint8]:
         """A grey (H, W) uint8 frame of the target at ``T_camera_target`` (metres).
 
-        Everything outside the sheet's pixel box is the uniform surround, so the light levels
-        and the optical blur are computed in the box (grown by the blur's reach) and the rest of
-        the frame is filled; occluders and motion blur, which reach anywhere, take the whole
-        frame. Noise and JPEG always cover the whole frame."""
+        The optical blur acts on the light before the pixels integrate it: it is applied to
+        the ``supersample`` grid's cells, which are then averaged into pixels (a blur applied to
+        the pixels instead shifts an edge by up to 0.03 px, depending on where it falls within
+        a pixel). Everything outside the sheet's pixel box is the uniform surround, so the blur
+        is computed in the box grown by its reach; occluders take the whole frame. Vignetting,
+        motion blur, noise and JPEG follow, on the pixels."""
         q = quality or ImageQuality()
         w, h = self.camera.size
+        n = self.supersample
         gain = np.float32(q.exposure * (q.white_level - q.black_level))
         dark = np.float32(q.exposure * q.black_level)
+        background = dark + gain * np.float32(q.surround)
         (x0, y0, x1, y1), samples = self._trace(T_camera_target, q.surround)
-        img: NDArray[np.float32] = np.full((h, w), dark + gain * np.float32(q.surround), np.float32)
-        if x1 > x0 and y1 > y0:
-            refl = self._pixel_means(T_camera_target, (x0, y0), samples, q.surround)
-            img[y0:y1, x0:x1] = dark + gain * refl
-        if q.vignetting > 0:
-            img *= 1.0 - np.float32(q.vignetting) * self._vignette_map()
-        whole_frame = bool(occluders) or q.motion_blur_px >= 1.0
-        for occ in occluders:
-            cv2.fillPoly(img, [np.round(occ.polygon_px).astype(np.int32)], float(occ.grey))
-        if q.blur_sigma_px > 0:
-            if whole_frame or x1 <= x0 or y1 <= y0:
-                img = np.asarray(cv2.GaussianBlur(img, (0, 0), q.blur_sigma_px), np.float32)
+        in_view = x1 > x0 and y1 > y0
+        img: NDArray[np.float32] = np.full((h, w), background, np.float32)
+        if q.blur_sigma_px > 0 and (in_view or occluders):
+            if occluders or not in_view:
+                bx0, by0, bx1, by1 = 0, 0, w, h
             else:
-                # beyond the box the frame is uniform (up to vignetting, which varies too
-                # slowly for the blur to change it): blurring the box and a ring as wide as the
-                # kernel's reach gives the whole-frame blur there and changes nothing outside
+                # beyond the box the frame is uniform: blurring the box and a ring as wide as
+                # the kernel's reach gives the whole-frame blur there and changes nothing outside
                 reach = int(math.ceil(4.0 * q.blur_sigma_px)) + 1
                 bx0, by0 = max(0, x0 - reach), max(0, y0 - reach)
                 bx1, by1 = min(w, x1 + reach), min(h, y1 + reach)
-                img[by0:by1, bx0:bx1] = cv2.GaussianBlur(
-                    img[by0:by1, bx0:bx1], (0, 0), q.blur_sigma_px
+            canvas = np.full(((by1 - by0) * n, (bx1 - bx0) * n), background, np.float32)
+            if in_view:
+                cells = self._cell_means(T_camera_target, (x0, y0), samples, q.surround)
+                canvas[(y0 - by0) * n : (y1 - by0) * n, (x0 - bx0) * n : (x1 - bx0) * n] = (
+                    dark + gain * cells
                 )
+            for occ in occluders:
+                # pixel u holds cells n u .. n u + n - 1, whose centres are at n u + (n - 1) / 2
+                polygon = (occ.polygon_px - [bx0, by0]) * n + (n - 1) / 2.0
+                cv2.fillPoly(canvas, [np.round(polygon).astype(np.int32)], float(occ.grey))
+            canvas = np.asarray(cv2.GaussianBlur(canvas, (0, 0), q.blur_sigma_px * n), np.float32)
+            img[by0:by1, bx0:bx1] = _bin(canvas, n)
+        else:
+            if in_view:
+                cells = self._cell_means(T_camera_target, (x0, y0), samples, q.surround)
+                img[y0:y1, x0:x1] = dark + gain * _bin(cells, n)
+            for occ in occluders:
+                cv2.fillPoly(img, [np.round(occ.polygon_px).astype(np.int32)], float(occ.grey))
+        if q.vignetting > 0:
+            img *= 1.0 - np.float32(q.vignetting) * self._vignette_map()
         if q.motion_blur_px >= 1.0:
             kernel = _motion_kernel(q.motion_blur_px, q.motion_angle_deg)
             img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
@@ -388,6 +408,14 @@ class Renderer(Generic[P]):
             uv, ok = self.camera.project(p)
             out.append(uv if bool(np.all(ok)) else None)
         return out
+
+
+def _bin(cells: NDArray[np.float32], n: int) -> NDArray[np.float32]:
+    """The mean of each n x n block of ``cells``."""
+    if n == 1:
+        return cells
+    h, w = cells.shape[0] // n, cells.shape[1] // n
+    return np.asarray(cv2.resize(cells, (w, h), interpolation=cv2.INTER_AREA), np.float32)
 
 
 def _fibonacci_lattice(count: int) -> Array:
