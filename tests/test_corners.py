@@ -183,8 +183,9 @@ def test_analog_frames_within_a_tenth_of_a_pixel(
 
 def test_real_photo_markers_are_fitted(charuco_dir: Path) -> None:
     """OpenCV's sample photo of six DICT_6X6_250 markers (24-45 px, a real lens and print):
-    every marker's edges are fitted, within a third of a pixel of its cornerSubPix corners (which
-    sit about 0.2 px inside on rendered frames)."""
+    every marker's edges are fitted, within 0.4 px of its cornerSubPix corners, and outwards of
+    them on average, as on rendered frames, where cornerSubPix sits about 0.2 px inside (here
+    +0.13 to +0.25 px; the photo is sharp, its fitted optical blur about 0.1 px)."""
     image = cv2.imread(str(charuco_dir / "singlemarkersoriginal.jpg"), cv2.IMREAD_GRAYSCALE)
     camera = CameraModel.load(charuco_dir / "tutorial_camera_charuco.yml")
     dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)
@@ -198,4 +199,7 @@ def test_real_photo_markers_are_fitted(charuco_dir: Path) -> None:
         )
         fitted = fit_marker_edges(image, start, camera, cells)
         assert fitted is not None
-        assert np.max(np.abs(fitted.corners_px - start)) < 0.35
+        assert np.max(np.abs(fitted.corners_px - start)) < 0.4
+        outward = start - start.mean(axis=0)
+        outward /= np.linalg.norm(outward, axis=1, keepdims=True)
+        assert float(np.mean(np.sum((fitted.corners_px - start) * outward, axis=1))) > 0.05

@@ -7,10 +7,12 @@ a symmetric blur: across an edge, the image is a step convolved with the blur, w
 is the edge. So each side of the marker's outer border is fitted, then the corners are the
 intersections of neighbouring sides.
 
-Per side, intensity profiles are sampled across the edge (bilinear) at points spaced along it,
-and fitted together with ``a + b * Phi((s - d_k) / sigma)``: one edge offset ``d_k`` per profile,
-and dark level ``a``, contrast ``b`` and blur ``sigma`` shared by the marker (per side for large
-markers), by Gauss-Newton on all of them at once. What the blur mixes in from around the edge
+Per side, profiles run across the edge at points spaced along it. Each takes the pixels nearest
+points spaced along the profile, at their centres' own offsets from the edge, and they are fitted
+together with ``a + b * F(s - d_k)``, F a step blurred by a Gaussian of ``sigma`` and integrated
+over the pixel's square: one edge offset ``d_k`` per profile, and dark level ``a``, contrast
+``b`` and blur ``sigma`` shared by the marker (per side for large markers), by Gauss-Newton on
+all of them at once. What the blur mixes in from around the edge
 is modelled from the target's print: the border's inner edge where the cell inside is white,
 and the end of the white margin outside (the sheet's edge, or another marker) when it lies
 within a few pixels. The edge points are taken to the camera's normalised image plane, where a
@@ -42,13 +44,8 @@ class EdgeFitSettings:
     """inside_cells, outside_cells : how far the profiles reach across the edge into the black
     border (one cell wide, so well under 1) and into the white margin, in marker cells.
     min/max_window_px : bounds of those reaches.
-    step_px : sampling step along a profile, widened to keep at most max_samples per profile.
-    Every profile of a side samples the same offsets from the starting line, so the samples
-    keep one phase to the edge along the whole side; the model's small misfit of the pixel's
-    square and of the bilinear interpolation then shifts the edge by a phase-dependent amount
-    that does not average out. With steps under about half a pixel it stays under 0.001 px
-    (noise-free 83 px markers, blur 0.6 px: -0.004 px radial at the 0.9 px steps of 14
-    samples, +0.000 at 24).
+    step_px : spacing of the points along a profile whose nearest pixels it fits, widened to
+    keep at most max_samples per profile.
     max_profiles : profiles per side (one per 2 px of side below that).
     trim : fraction of each side left out at both ends (the corners' neighbourhoods).
     max_shift_cells : a fitted corner further than this from its start is rejected (the start
@@ -64,7 +61,7 @@ class EdgeFitSettings:
     min_window_px: float = 1.0
     max_window_px: float = 8.0
     step_px: float = 0.35
-    max_samples: int = 24
+    max_samples: int = 14
     max_profiles: int = 24
     trim: float = 0.1
     max_shift_cells: float = 0.6
@@ -102,6 +99,21 @@ class _Surround:
 # a step further beyond the end of the profiles than this many blur sigmas (first guess) is
 # left out of the model: its blur does not reach them, and its level could not be fitted
 _BEYOND_REACH_SIGMAS = 3.0
+# bounds of the fitted optical blur sigma, px
+_MIN_BLUR_PX, _MAX_BLUR_PX = 0.05, 6.0
+
+
+def _pixel_step(t: Array, sigma: float) -> tuple[Array, Array, Array]:
+    """A unit step at 0 blurred by a Gaussian of ``sigma`` and integrated over a pixel 1 wide,
+    at ``t`` (px): ``sigma * (psi((t + 1/2) / sigma) - psi((t - 1/2) / sigma))`` with
+    ``psi(x) = x Phi(x) + phi(x)``; its derivatives by t and by log sigma. (A pixel turned to
+    the edge projects onto its normal as a trapezoid of the same variance, 1/12.)"""
+    a = (t + 0.5) * (1.0 / sigma)
+    b = (t - 0.5) * (1.0 / sigma)
+    cdf_a, pdf_a = _phi_pdf(a)
+    cdf_b, pdf_b = _phi_pdf(b)
+    value = sigma * (a * cdf_a + pdf_a - b * cdf_b - pdf_b)
+    return value, cdf_a - cdf_b, sigma * (pdf_a - pdf_b)
 
 
 def _fit_side(
@@ -110,12 +122,20 @@ def _fit_side(
     iterations: int,
     surround: _Surround | None = None,
     groups: NDArray[np.intp] | None = None,
+    pixels: tuple[Array, Array] | None = None,
 ) -> tuple[Array, float] | None:
     """Edge offsets (K,) of K profiles (K, M) sampled at ``offsets`` (M,), dark to light, and
-    the blur sigma (px), or None without an edge. ``groups`` (K,): which dark and light levels
-    each profile shares (default: one pair for all).
+    the optical blur sigma (px, without the pixel's own square), or None without an edge.
+    ``groups`` (K,): which dark and light levels each profile shares (default: one pair for
+    all). ``pixels``: the data to fit, (K, M) offsets across the edge of whole pixels' centres
+    and (K, M) their values (default: the samples themselves).
 
-    Model: ``a + b * Phi((s - d_k) / sigma)``, plus, with ``surround``, the border's inner edge
+    Model: ``a + b * F(s - d_k)``, F a step blurred by ``sigma`` and integrated over the pixel
+    (``_pixel_step``), fitted to the pixels themselves at their exact offsets. A Gaussian step
+    fitted to bilinearly interpolated samples instead locks the edge to the pixel grid by an
+    amount that depends on where the edge falls in a pixel: on a 25 px marker turned 0.5-2 deg
+    from the pixel rows (noise-free), up to 0.19 deg of yaw at an optical blur of 0.3 px and
+    0.016 deg at 0.6 px. With ``surround``, the model also holds the border's inner edge
     where the cell inside is white and the end of the white margin outside: blur mixes both
     into the profiles once they are within a few sigma, and left out they pull the edge (by
     0.1 px for a 30 px marker whose margin is under a cell, at a blur of 1.1 px). Gauss-Newton
@@ -137,10 +157,13 @@ def _fit_side(
     h = float(offsets[1] - offsets[0])
     rise = float(np.mean(np.max(np.diff(values, axis=1), axis=1))) / (hi - lo)
     sigma0 = _blur_from_rise(min(rise, 0.999), h) if rise > 0 else 1.0
-    drop, log_sigma = 0.0, math.log(min(6.0, max(0.2, sigma0)))
+    # that sigma holds the pixel's square (variance 1/12) and, from the interpolation, about
+    # as much again
+    sigma0 = math.sqrt(max(sigma0 * sigma0 - 1.0 / 6.0, _MIN_BLUR_PX**2))
+    drop, log_sigma = 0.0, math.log(min(_MAX_BLUR_PX, max(_MIN_BLUR_PX, sigma0)))
     white = inner = margin = None
     if surround is not None:
-        beyond = _BEYOND_REACH_SIGMAS * math.exp(log_sigma)
+        beyond = _BEYOND_REACH_SIGMAS * math.exp(log_sigma) + 0.5
         reach_in = surround.border_px < -float(offsets[0]) + beyond
         if np.any(reach_in & (surround.white_inside > 0)):
             white = np.where(reach_in, surround.white_inside, 0.0)[:, None]
@@ -148,32 +171,30 @@ def _fit_side(
         near = surround.margin_px < float(offsets[-1]) + beyond
         if np.any(near):
             margin = np.where(near, surround.margin_px, 1e6)[:, None]
+    at, data = (np.broadcast_to(offsets, values.shape), values) if pixels is None else pixels
     for _ in range(iterations):
         sigma = math.exp(log_sigma)
         a, b = a_q[g_of][:, None], b_q[g_of][:, None]
-        u = (offsets[None, :] - d[:, None]) * (1.0 / sigma)
-        G, pdf = _phi_pdf(u)
-        dG_dd = pdf * (-1.0 / sigma)  # d/d(d_k)
-        dG_ds = -pdf * u  # d/d(log sigma)
+        t = at - d[:, None]
+        G, slope, dG_ds = _pixel_step(t, sigma)  # dG_ds: d/d(log sigma)
+        dG_dd = -slope  # d/d(d_k)
         if white is not None and inner is not None:
-            u2 = u + inner * (1.0 / sigma)
-            Phi2, pdf2 = _phi_pdf(u2)
-            G = G + white * (1.0 - Phi2)
-            dG_dd = dG_dd + white * pdf2 * (1.0 / sigma)
-            dG_ds = dG_ds + white * pdf2 * u2
+            F2, slope2, ds2 = _pixel_step(t + inner, sigma)
+            G = G + white * (1.0 - F2)
+            dG_dd = dG_dd + white * slope2
+            dG_ds = dG_ds - white * ds2
         J_d = b * dG_dd
         J_s = b * dG_ds
         model = a + b * G
         extra = []  # shared parameters besides the levels: the margin's drop, log sigma
         if margin is not None:
-            u3 = u - margin * (1.0 / sigma)
-            Phi3, pdf3 = _phi_pdf(u3)
-            model = model - drop * Phi3
-            J_d = J_d + drop * pdf3 * (1.0 / sigma)
-            J_s = J_s + drop * pdf3 * u3
-            extra.append(-Phi3)
+            F3, slope3, ds3 = _pixel_step(t - margin, sigma)
+            model = model - drop * F3
+            J_d = J_d + drop * slope3
+            J_s = J_s - drop * ds3
+            extra.append(-F3)
         extra.append(J_s)
-        r = model - values
+        r = model - data
         # Gauss-Newton on every d_k, the levels of each group and the extras: each d_k touches
         # only its own profile and each level only its group's, so the normal equations are
         # assembled from per-profile sums and solved through the shared parameters' Schur
@@ -220,7 +241,7 @@ def _fit_side(
         if margin is not None:
             drop -= float(step[2 * n_groups])
         step_s = float(np.clip(step[-1], -0.5, 0.5))
-        log_sigma = min(math.log(6.0), max(math.log(0.2), log_sigma - step_s))
+        log_sigma = min(math.log(_MAX_BLUR_PX), max(math.log(_MIN_BLUR_PX), log_sigma - step_s))
         # steps shrink about tenfold a round: after these the edges would move about 1e-3 px
         if float(np.max(np.abs(step_d))) < 8e-3 and abs(step_s) < 8e-3:
             break
@@ -370,6 +391,13 @@ def fit_marker_edges(
     normal = normal * np.where(outward == 0, 1.0, outward)
     samples = p_px[:, None, :] + offsets[None, :, None] * normal[:, None, :]
     values = _bilinear(grey, samples)
+    # the fit's data: the pixel nearest each sample, at its own offset across the edge
+    nearest = np.round(samples)
+    pixel_offsets = np.einsum("kmj,kj->km", nearest - p_px[:, None, :], normal)
+    pixel_values = grey[
+        np.clip(nearest[..., 1], 0, grey.shape[0] - 1).astype(np.intp),
+        np.clip(nearest[..., 0], 0, grey.shape[1] - 1).astype(np.intp),
+    ].astype(np.float64)
     rows = np.all(np.isfinite(values), axis=1)
     if np.count_nonzero(rows) < 12:
         return None
@@ -381,11 +409,19 @@ def fit_marker_edges(
     sides = None
     if float(sides_px.min()) >= cfg.own_levels_from_px:
         sides = np.repeat(np.arange(4), K)[rows]
-    fit = _fit_side(values[rows], offsets, cfg.iterations, surround, sides)
+    fit = _fit_side(
+        values[rows],
+        offsets,
+        cfg.iterations,
+        surround,
+        sides,
+        (pixel_offsets[rows], pixel_values[rows]),
+    )
     if fit is None:
         return None
     d = np.full(4 * K, np.nan)
-    d[rows], blur_px = fit
+    d[rows], optical_blur_px = fit
+    blur_px = math.sqrt(optical_blur_px**2 + 1.0 / 12.0)
     good = np.isfinite(d) & (d > -reach_in) & (d < reach_out)
     # the edge points in the normalised plane, through the lens model's local Jacobian at each
     # sample (the offsets are a pixel or two: the linearisation error is far below 1e-3 px)
