@@ -22,7 +22,9 @@ AMBIGUITY_RATIO = 2.0
 # while its reprojection error is under FLIP_RATIO times the other's, or under FLIP_FLOOR_PX:
 # four corners leave two degrees of freedom to the residual, so with corner noise of a tenth of
 # a pixel (a small marker on blurred images) either solution may reproject to 0.01 px or
-# 0.1 px by chance, and a ratio of two such numbers says nothing.
+# 0.1 px by chance, and a ratio of two such numbers says nothing. When both reproject under
+# FLIP_FLOOR_PX, the one closer to the expected rotation wins by any margin (nearly head-on the
+# two lie only a few degrees apart).
 FLIP_DEG = 5.0
 FLIP_RATIO = 4.0
 FLIP_FLOOR_PX = 0.25
@@ -139,7 +141,9 @@ def solve_marker_pose(
         d_best = rotation_angle_rad(best_T[:3, :3], R_previous)
         d_alt = rotation_angle_rad(alt_T[:3, :3], R_previous)
         agrees = d_alt < d_best - math.radians(FLIP_DEG)
-        if (ambiguous and d_alt < d_best) or (
+        # both under the floor, reprojection cannot tell them apart either
+        indistinct = ambiguous or alt_err < FLIP_FLOOR_PX
+        if (indistinct and d_alt < d_best) or (
             agrees and alt_err < max(FLIP_RATIO * best_err, FLIP_FLOOR_PX)
         ):
             best_err, best_T, alt_err, alt_T = alt_err, alt_T, best_err, best_T
