@@ -32,10 +32,9 @@ def test_bound_rows_put_the_achieved_error_beside_the_bound() -> None:
 @pytest.mark.parametrize("camera_name", ["webcam", "fpv"])
 def test_joint_pose_within_one_and_a_half_bounds(camera_name: str) -> None:
     """Both lenses, default images, markers in view from 35 cm to 1.8 m: pooled over four
-    headings of 15 frames each, the joint pose's position error is within 1.5x the Cramer-Rao
-    bound for the measured corner noise on every axis, and its yaw within 2x. (One heading
-    alone varies from 0.5 to 2x: a pose's corner biases are part of what it measures; a 25 px
-    marker turned 0.5-2 deg from the pixel rows carries a yaw bias of 0.05-0.1 deg.)"""
+    headings of 15 frames each, the joint pose's error is within 1.5x the Cramer-Rao bound for
+    the measured corner noise on every axis and on yaw (measured: up to 1.0x and 1.35x). One
+    heading alone varies from 0.5 to 2x: a pose's corner biases are part of what it measures."""
     renderer = Renderer(CameraModel.preset(camera_name), TargetSpec.paper(), supersample=3)
     rows = bound_rows(
         renderer,
@@ -50,4 +49,4 @@ def test_joint_pose_within_one_and_a_half_bounds(camera_name: str) -> None:
     for r in rows:
         assert r.frames >= 50
         assert r.ratio <= 1.5
-        assert r.yaw_ratio <= 2.0
+        assert r.yaw_ratio <= 1.5

@@ -1,11 +1,11 @@
 """Achieved pose error beside the Cramer-Rao bound for the measured corner noise.
 
-At each distance the target is rendered (3 x 3 rays per pixel, 89 at edges) at several poses,
-in several frames with independent noise at each. The corner noise is measured on those frames
-(detected against true corners); the bound is ``sigma^2 (J^T J)^-1`` at the true pose for the
-markers fully in view; the achieved error is the RMS error of the joint pose over the frames,
-and of the per-marker IPPE pose of the largest marker in view (what the paper's pipeline
-measures before fusing). Results are pooled over the poses of a distance.
+At each distance the target is rendered (3 x 3 rays per pixel, 34 per ninth of a pixel at
+edges) at several poses, in several frames with independent noise at each. The corner noise is
+measured on those frames (detected against true corners); the bound is ``sigma^2 (J^T J)^-1``
+at the true pose for the markers fully in view; the achieved error is the RMS error of the joint
+pose over the frames, and of the per-marker IPPE pose of the largest marker in view (what the
+paper's pipeline measures before fusing). Results are pooled over the poses of a distance.
 """
 
 from __future__ import annotations
@@ -181,12 +181,13 @@ def bound_markdown(rows: list[BoundRow]) -> str:
         "## Against the physical limit (Cramer-Rao bound)",
         "",
         "Per distance: poses with random headings, frames with independent noise at each (3 x "
-        "3 rays per pixel, 89 at edges), pooled: the bound is the RMS of the poses' bounds, "
-        "the errors the RMS over all frames. Corner noise: per-axis RMS of the detected "
-        "corners against the true ones, per marker (the table shows their RMS). Bound: "
-        "standard deviation of an unbiased pose from those corners. Achieved: RMS error of the "
-        "joint pose from all corners (weighted by the measured noise), and of the largest "
-        "marker's pose alone. x, y, z in cm, yaw in deg. Joint / bound: the largest ratio over "
+        "3 rays per pixel, 34 per ninth of a pixel at edges), pooled: the bound is the RMS of the "
+        "poses' bounds, the errors the RMS over all frames. Corner noise: per-axis RMS of the "
+        "detected corners against the true ones, per marker (the table shows their RMS). "
+        "Bound: standard deviation of an unbiased pose from those corners. Achieved: RMS error "
+        "of the joint pose from all corners (weighted by the measured noise), and of the "
+        "largest marker's pose alone. x, y, z in cm, yaw in deg. Joint / bound: the largest "
+        "ratio over "
         "x, y and z, and the ratio on yaw.",
         "",
         "| camera | z (m) | markers | frames | corner noise (px) | bound x/y/z, yaw | "

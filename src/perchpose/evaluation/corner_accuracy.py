@@ -1,10 +1,10 @@
 """How close detected marker corners come to the true corners, per corner method and size.
 
-Frames are rendered (3 x 3 rays per pixel, 89 at edges) at random poses (1.8 m to 8 cm, tilted up to
-17 deg), so that each marker's true corners are known exactly; every detected marker is scored
-with OpenCV's ``cornerSubPix`` corners, with the edge fit of ``perchpose.corners`` alone, and
-with the detector's default (the edge fit, and the pattern fit of ``perchpose.pattern_fit`` for
-small blurred markers).
+Frames are rendered (3 x 3 rays per pixel, 34 per ninth of a pixel at edges) at random poses
+(1.8 m to 8 cm, tilted up to 17 deg), so that each marker's true corners are known exactly;
+every detected marker is scored with OpenCV's ``cornerSubPix`` corners, with the edge fit of
+``perchpose.corners`` alone, and with the detector's default (the edge fit, and the pattern fit
+of ``perchpose.pattern_fit`` for small blurred markers).
 """
 
 from __future__ import annotations
@@ -119,10 +119,10 @@ def corners_markdown(rows: list[CornerRow]) -> str:
         "",
         "## Corner accuracy",
         "",
-        "Detected corners against the renderer's true corners (3 x 3 rays per pixel, 89 at "
-        "edges; random poses from 1.8 m to 8 cm). `subpix`: OpenCV's `cornerSubPix` with a "
-        "window fitted to "
-        "the marker's cells; `edges`: the four border edges fitted through the lens model and "
+        "Detected corners against the renderer's true corners (3 x 3 rays per pixel, 34 per "
+        "ninth of a pixel at edges; random poses from 1.8 m to 8 cm). `subpix`: OpenCV's "
+        "`cornerSubPix` with a window fitted to the marker's cells; `edges`: the four border "
+        "edges fitted through the lens model and "
         "intersected; `edges+pattern` (the default): the same, and for markers whose cells span "
         "under 5 blur sigmas (or whose edge fit failed) a fit of the whole printed pattern. "
         "Radial: mean error along the direction from the marker "
