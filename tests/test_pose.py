@@ -6,6 +6,7 @@ import pytest
 from perchpose import CameraModel, TargetSpec
 from perchpose.geometry import facing_pose, rot_x
 from perchpose.pose import PoseFailure, rotation_angle_rad, solve_marker_pose
+from perchpose.target import MarkerSpec
 
 
 def _project(camera: CameraModel, T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -78,6 +79,19 @@ def test_degenerate_corners_are_a_failure_value() -> None:
     assert result.reason
 
 
+def _chosen_and_other_rad(
+    camera: CameraModel, marker: MarkerSpec, corners_px: np.ndarray, T: np.ndarray
+) -> tuple[float, float]:
+    """How far the chosen and the other IPPE solution lie from the true rotation, with the
+    true rotation as the expected one."""
+    result = solve_marker_pose(camera, marker, 1, corners_px, R_previous=T[:3, :3])
+    assert not isinstance(result, PoseFailure)
+    assert result.alt_T_camera_target is not None
+    chosen = rotation_angle_rad(result.T_camera_target[:3, :3], T[:3, :3])
+    other = rotation_angle_rad(result.alt_T_camera_target[:3, :3], T[:3, :3])
+    return chosen, other
+
+
 def test_reprojection_within_the_corner_noise_does_not_overrule_the_expected_rotation() -> None:
     """An 18 px marker nearly head-on with corner noise of 0.1 px: either IPPE solution may
     reproject several times better than the other by chance. The one that agrees with the
@@ -90,14 +104,8 @@ def test_reprojection_within_the_corner_noise_does_not_overrule_the_expected_rot
     for _ in range(300):
         tilt = rng.uniform(-0.2, 0.2, 2)
         T = facing_pose(0.01, -0.005, 0.41, rng.uniform(-3, 3), tilt[0], tilt[1])
-        p = (T[:3, :3] @ marker.corners_target_m.T).T + T[:3, 3]
-        uv, _ = camera.project(p)
-        noisy = uv + rng.normal(0.0, 0.1, uv.shape)
-        result = solve_marker_pose(camera, marker, 1, noisy, R_previous=T[:3, :3])
-        assert not isinstance(result, PoseFailure)
-        assert result.alt_T_camera_target is not None
-        chosen = rotation_angle_rad(result.T_camera_target[:3, :3], T[:3, :3])
-        other = rotation_angle_rad(result.alt_T_camera_target[:3, :3], T[:3, :3])
+        noisy = _project(camera, T, marker.corners_target_m) + rng.normal(0.0, 0.1, (4, 2))
+        chosen, other = _chosen_and_other_rad(camera, marker, noisy, T)
         wrong += chosen > other + math.radians(5.0)
     assert wrong == 0
 
@@ -114,10 +122,6 @@ def test_solutions_both_within_the_noise_floor_follow_the_expected_rotation() ->
         tilt = rng.uniform(-0.05, 0.05, 2)
         T = facing_pose(0.01, -0.01, 0.42, rng.uniform(-3, 3), tilt[0], tilt[1])
         noisy = _project(camera, T, marker.corners_target_m) + rng.normal(0.0, 0.05, (4, 2))
-        result = solve_marker_pose(camera, marker, 1, noisy, R_previous=T[:3, :3])
-        assert not isinstance(result, PoseFailure)
-        assert result.alt_T_camera_target is not None
-        chosen = rotation_angle_rad(result.T_camera_target[:3, :3], T[:3, :3])
-        other = rotation_angle_rad(result.alt_T_camera_target[:3, :3], T[:3, :3])
+        chosen, other = _chosen_and_other_rad(camera, marker, noisy, T)
         wrong += chosen > other
     assert wrong == 0
