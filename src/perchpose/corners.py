@@ -122,9 +122,9 @@ def _fit_side(
     values: Array,
     offsets: Array,
     iterations: int,
+    pixels: tuple[Array, Array],
     surround: _Surround | None = None,
     groups: NDArray[np.intp] | None = None,
-    pixels: tuple[Array, Array] | None = None,
     along: Array | None = None,
 ) -> tuple[Array, float] | None:
     """Edge offsets (K,) of K profiles (K, M) sampled at ``offsets`` (M,), dark to light, and
@@ -133,7 +133,7 @@ def _fit_side(
     all). ``along`` (K,): each profile's place along its side, -1 to 1; given, each group's
     levels also change linearly along it (vignetting and uneven light across a large marker).
     ``pixels``: the data to fit, (K, M) offsets across the edge of whole pixels' centres
-    and (K, M) their values (default: the samples themselves).
+    and (K, M) their values (the samples give the starting values only).
 
     Model: ``a + b * F(s - d_k)``, F a step blurred by ``sigma`` and integrated over the pixel
     (``_pixel_step``), fitted to the pixels themselves at their exact offsets. A Gaussian step
@@ -181,7 +181,7 @@ def _fit_side(
         near = surround.margin_px < float(offsets[-1]) + beyond
         if np.any(near):
             margin = np.where(near, surround.margin_px, 1e6)[:, None]
-    at, data = (np.broadcast_to(offsets, values.shape), values) if pixels is None else pixels
+    at, data = pixels
     for _ in range(iterations):
         sigma = math.exp(log_sigma)
         a, b = (a_q @ W)[:, None], (b_q @ W)[:, None]
@@ -424,9 +424,9 @@ def fit_marker_edges(
         values[rows],
         offsets,
         cfg.iterations,
+        (pixel_offsets[rows], pixel_values[rows]),
         surround,
         sides,
-        (pixel_offsets[rows], pixel_values[rows]),
         along,
     )
     if fit is None:
