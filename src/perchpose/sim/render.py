@@ -323,6 +323,11 @@ class Renderer(Generic[P]):
         background = dark + gain * np.float32(q.surround)
         (x0, y0, x1, y1), samples = self._trace(T_camera_target, q.surround)
         in_view = x1 > x0 and y1 > y0
+        light = (
+            dark + gain * self._cell_means(T_camera_target, (x0, y0), samples, q.surround)
+            if in_view
+            else None
+        )
         img: NDArray[np.float32] = np.full((h, w), background, np.float32)
         if q.blur_sigma_px > 0 and (in_view or occluders):
             if occluders or not in_view:
@@ -334,11 +339,8 @@ class Renderer(Generic[P]):
                 bx0, by0 = max(0, x0 - reach), max(0, y0 - reach)
                 bx1, by1 = min(w, x1 + reach), min(h, y1 + reach)
             canvas = np.full(((by1 - by0) * n, (bx1 - bx0) * n), background, np.float32)
-            if in_view:
-                cells = self._cell_means(T_camera_target, (x0, y0), samples, q.surround)
-                canvas[(y0 - by0) * n : (y1 - by0) * n, (x0 - bx0) * n : (x1 - bx0) * n] = (
-                    dark + gain * cells
-                )
+            if light is not None:
+                canvas[(y0 - by0) * n : (y1 - by0) * n, (x0 - bx0) * n : (x1 - bx0) * n] = light
             for occ in occluders:
                 # pixel u holds cells n u .. n u + n - 1, whose centres are at n u + (n - 1) / 2
                 polygon = (occ.polygon_px - [bx0, by0]) * n + (n - 1) / 2.0
@@ -346,9 +348,8 @@ class Renderer(Generic[P]):
             canvas = np.asarray(cv2.GaussianBlur(canvas, (0, 0), q.blur_sigma_px * n), np.float32)
             img[by0:by1, bx0:bx1] = _bin(canvas, n)
         else:
-            if in_view:
-                cells = self._cell_means(T_camera_target, (x0, y0), samples, q.surround)
-                img[y0:y1, x0:x1] = dark + gain * _bin(cells, n)
+            if light is not None:
+                img[y0:y1, x0:x1] = _bin(light, n)
             for occ in occluders:
                 cv2.fillPoly(img, [np.round(occ.polygon_px).astype(np.int32)], float(occ.grey))
         if q.vignetting > 0:
