@@ -143,9 +143,7 @@ def solve_marker_pose(
         agrees = d_alt < d_best - math.radians(FLIP_DEG)
         # both under the floor, reprojection cannot tell them apart either
         indistinct = ambiguous or alt_err < FLIP_FLOOR_PX
-        if (indistinct and d_alt < d_best) or (
-            agrees and alt_err < max(FLIP_RATIO * best_err, FLIP_FLOOR_PX)
-        ):
+        if (indistinct and d_alt < d_best) or (agrees and alt_err < FLIP_RATIO * best_err):
             best_err, best_T, alt_err, alt_T = alt_err, alt_T, best_err, best_T
     if not math.isfinite(best_err):
         return PoseFailure(marker_index, "reprojection failed")
