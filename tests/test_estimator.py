@@ -5,11 +5,11 @@ import pytest
 
 from perchpose import PerchingEstimator
 from perchpose.errors import ImageError, TimestampError
-from perchpose.estimator import Estimate
 from perchpose.geometry import facing_pose, wrap_angle_deg
 from perchpose.sim.render import Renderer
 from perchpose.sim.scenarios import markers_in_view
 from perchpose.sim.sequence import dropout_occluder
+from perchpose.values import Estimate
 
 # The paper's Table 1 positions (cm) and Table 2 headings (deg).
 TABLE1_CM = [(0, 0, 24), (3, 5, 16), (5, 8, 11), (10, 12, 7), (6, -5, 18)]
@@ -98,6 +98,33 @@ def test_stays_valid_for_exactly_eight_lost_frames(renderers: dict[str, Renderer
     assert back.stage == 2
     assert back.markers[0].missed_frames == 0
     assert abs(back.z_cm - 60.0) < 0.5
+
+
+@pytest.mark.parametrize("fusion", ["covariance", "paper"])
+def test_a_camera_stall_ends_the_estimate(renderers: dict[str, Renderer], fusion: str) -> None:
+    """Frames at 0-1 s of a target approaching at 30 cm/s, then one frame without it at 6 s:
+    the filter must not extrapolate over the 5 s gap (it once gave z = -76 cm, valid)."""
+    r = renderers["webcam"]
+    est = PerchingEstimator(r.camera, r.target, fusion=fusion)  # type: ignore[arg-type]
+    rng = np.random.default_rng(1)
+    for k in range(31):
+        t = k / 30
+        e = est.update(r.render(facing_pose(0.02, 0.0, 0.8 - 0.3 * t, 0.1), rng=rng), t)
+        assert e.valid
+        assert e.age_s == 0.0
+    hidden = facing_pose(0.02, 0.0, 0.5, 0.1)
+    blank = r.render(hidden, rng=rng, occluders=(dropout_occluder(r.camera, r.target, hidden),))
+    coasting = est.update(blank, 31 / 30)
+    assert coasting.valid  # one frame later: coasting is what the filter is for
+    assert coasting.age_s == pytest.approx(1 / 30)
+    stale = est.update(blank, 6.0)
+    assert not stale.valid
+    assert stale.stage == 0
+    assert math.isnan(stale.z_cm)
+    # seen again after the gap: a fresh track at the new measurement, not a jump from the old
+    again = est.update(r.render(facing_pose(0.0, 0.0, 0.4, 0.1), rng=rng), 6.1)
+    assert again.valid
+    assert abs(again.z_cm - 40.0) < 0.3
 
 
 def test_timestamps_must_be_finite_and_not_go_backwards(renderers: dict[str, Renderer]) -> None:

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from perchpose import CameraModel, TargetSpec
-from perchpose.detection import MarkerDetection
 from perchpose.geometry import facing_pose
 from perchpose.joint_pose import pose_covariance, solve_joint_pose, target_points, uncertainty
 from perchpose.pose import solve_marker_pose
+from perchpose.values import MarkerDetection
 
 
 def noisy_detections(

@@ -3,7 +3,16 @@ import math
 import numpy as np
 import pytest
 
-from perchpose.kalman import H, KalmanSettings, MarkerTrack, PaperKalmanFilter, transition
+from perchpose.kalman import (
+    PAPER_COAST_S,
+    CovarianceFilterSettings,
+    CovarianceTrack,
+    H,
+    KalmanSettings,
+    MarkerTrack,
+    PaperKalmanFilter,
+    transition,
+)
 
 
 def test_matrices_follow_the_paper() -> None:
@@ -88,3 +97,81 @@ def test_bad_settings_are_rejected() -> None:
         KalmanSettings(k1=0.0)
     with pytest.raises(ValueError, match="alpha"):
         KalmanSettings(alpha=1.5)
+
+
+def test_track_is_dropped_when_its_measurement_is_too_old_whatever_the_frame_count() -> None:
+    track = MarkerTrack(KalmanSettings())
+    for k in range(31):
+        track.measured(np.array([0.0, 0.0, 0.0, 0.8 - 0.3 * k / 30]), k / 30)
+    track.missed_frame(6.0)  # the first frame after a 5 s camera stall
+    assert not track.alive
+    assert track.predicted_pose(6.0) is None
+    assert track.age_s(6.0) == math.inf
+
+
+def test_coasting_ends_at_the_time_limit() -> None:
+    track = CovarianceTrack(CovarianceFilterSettings(n_max=100, max_coast_s=0.2))
+    R = 1e-6 * np.eye(4)
+    track.measured(np.array([0.0, 0.0, 0.0, 1.0]), R, 0.0)
+    alive = []
+    for k in range(1, 10):
+        track.missed_frame(k * 0.05)
+        alive.append(track.alive)
+    assert alive == [True] * 4 + [False] * 5
+    assert pytest.approx(8 / 30) == PAPER_COAST_S
+
+
+def test_a_measurement_after_a_long_gap_starts_a_new_filter() -> None:
+    track = MarkerTrack(KalmanSettings())
+    for k in range(30):
+        track.measured(np.array([0.0, 0.01 * k, 0.0, 1.0 - 0.01 * k]), k / 30)
+    track.measured(np.array([0.3, 0.05, 0.05, 0.5]), 10.0)  # no frames at all for 9 s
+    assert track.filter is not None
+    np.testing.assert_allclose(track.filter.pose, [0.3, 0.05, 0.05, 0.5])
+    np.testing.assert_array_equal(track.filter.x[[1, 3, 5, 7]], 0.0)
+
+
+def test_covariance_track_weighs_measurements_by_their_covariance() -> None:
+    """Two tracks see the same steps; the one told its measurements are noisier moves less,
+    keeps the prior, innovation and innovation covariance of its last update, and its P stays
+    symmetric and positive definite."""
+    settings = CovarianceFilterSettings()
+    precise, noisy = CovarianceTrack(settings), CovarianceTrack(settings)
+    z0 = np.array([0.1, 0.0, 0.0, 1.0])
+    precise.measured(z0, 1e-6 * np.eye(4), 0.0)
+    noisy.measured(z0, 1e-6 * np.eye(4), 0.0)
+    z1 = np.array([0.1, 0.01, 0.0, 1.0])
+    precise.measured(z1, 1e-6 * np.eye(4), 1 / 30)
+    noisy.measured(z1, 1e-2 * np.eye(4), 1 / 30)
+    assert precise.filter is not None
+    assert noisy.filter is not None
+    assert precise.filter.pose[1] > noisy.filter.pose[1] > 0.0
+    np.testing.assert_allclose(precise.filter.x_prior[[0, 2, 4, 6]], z0, atol=1e-12)
+    np.testing.assert_allclose(precise.filter.y, z1 - z0, atol=1e-12)
+    assert precise.filter.S[1, 1] > 1e-6
+    for f in (precise.filter, noisy.filter):
+        np.testing.assert_allclose(f.P, f.P.T, atol=1e-15)
+        assert np.all(np.linalg.eigvalsh(f.P) > 0)
+
+
+def test_covariance_track_wraps_yaw_and_follows_constant_velocity() -> None:
+    track = CovarianceTrack(CovarianceFilterSettings())
+    R = np.diag([1e-6, 1e-6, 1e-6, 1e-6])
+    for k in range(90):
+        t = k / 30
+        yaw = math.remainder(math.radians(170 + 30 * t), 2 * math.pi)  # crosses 180 deg
+        z = np.array([yaw, 0.1 * t, 0.0, 1.0 - 0.2 * t])
+        track.measured(z, R, t)
+        assert track.filter is not None
+        assert -math.pi < track.filter.x[0] <= math.pi
+    assert track.filter is not None
+    np.testing.assert_allclose(
+        track.filter.x[[1, 3, 5, 7]], [math.radians(30), 0.1, 0.0, -0.2], atol=1e-3
+    )
+
+
+def test_bad_coasting_limit_is_rejected() -> None:
+    with pytest.raises(ValueError, match="max_coast_s"):
+        KalmanSettings(max_coast_s=0.0)
+    with pytest.raises(ValueError, match="max_coast_s"):
+        CovarianceFilterSettings(max_coast_s=-1.0)

@@ -2,8 +2,9 @@
 
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
-from perchpose.estimator import Estimate, PerchingEstimator
+from perchpose.estimator import PerchingEstimator
 from perchpose.target import MarkerSpec, TargetSpec
+from perchpose.values import Estimate
 
 __all__ = [
     "CameraModel",

@@ -20,6 +20,7 @@ from perchpose.camera import CameraModel
 from perchpose.corners import EdgeFit, fit_marker_edges
 from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
 from perchpose.target import TargetSpec, aruco_dictionary
+from perchpose.values import MarkerDetection, quad_side_px
 
 Array = NDArray[np.float64]
 
@@ -44,30 +45,6 @@ DEFAULT_MIN_PERIMETER_RATE = 0.03  # OpenCV's default minMarkerPerimeterRate
 TRACKING_THRESHOLD_WINDOWS_PX = (7, 7)
 SMALL_MARKER_THRESHOLD_WINDOWS_PX = (3, 7)
 SMALL_MARKER_SIDE_PX = 20.0
-
-
-@dataclass(frozen=True)
-class MarkerDetection:
-    """One target marker found in an image.
-
-    marker_index : index into ``TargetSpec.markers``.
-    corners_px : (4, 2) float64, pixels of the original image, ArUco order.
-    image_pass : ``raw`` (found on the image itself) or ``rectified``.
-    """
-
-    marker_index: int
-    corners_px: Array
-    image_pass: Literal["raw", "rectified"]
-
-    @property
-    def side_px(self) -> float:
-        """Mean side length in pixels."""
-        return _quad_side_px(self.corners_px)
-
-
-def _quad_side_px(quad: Array) -> float:
-    d = quad[[1, 2, 3, 0]] - quad
-    return float(np.sqrt((d * d).sum(axis=1)).mean())
 
 
 def _detector_parameters(
@@ -292,7 +269,7 @@ class MarkerDetector:
         the edge of detection, where markers come and go) may drop out without one. A small
         marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners."""
         quads = self._predicted_quads(hint)
-        small = any(_quad_side_px(q) < SMALL_MARKER_SIDE_PX for q in quads.values())
+        small = any(quad_side_px(q) < SMALL_MARKER_SIDE_PX for q in quads.values())
         detector = self._tracking_small if small else self._tracking
         box = self._tracking_window(grey.shape, quads)
         if box is None:
@@ -331,7 +308,7 @@ class MarkerDetector:
             box = self._rectified_box(rectified, maps[0].shape)
             if box is None:
                 continue
-            small = _quad_side_px(rectified) < SMALL_MARKER_SIDE_PX
+            small = quad_side_px(rectified) < SMALL_MARKER_SIDE_PX
             detector = self._tracking_small if small else self._tracking
             for index, det in self._rectified_pass(grey, maps, box, detector).items():
                 mapped = self._unrectify(det.corners_px)

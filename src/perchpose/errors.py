@@ -41,6 +41,11 @@ class LinkError(PerchposeError):
     malformed connection string, or a frame the link cannot serve."""
 
 
+class ControllerConfigError(PerchposeError):
+    """Controller or pilot settings that cannot work (negative limits, an unstable loop), or a
+    mounting file that cannot be read."""
+
+
 def require_positive(
     settings: object, names: Iterable[str], error: type[PerchposeError], prefix: str = ""
 ) -> None:

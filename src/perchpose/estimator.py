@@ -4,83 +4,33 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.detection import CornerMethod, MarkerDetection, MarkerDetector
+from perchpose.detection import CornerMethod, MarkerDetector
 from perchpose.errors import TimestampError
 from perchpose.fusion import STAGE_NONE, FusionSigmas, fuse_paper
 from perchpose.geometry import angle_diff_rad, rot_z, yaw_rad
 from perchpose.joint_pose import measurement_jacobian, solve_joint_pose
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, KalmanSettings, MarkerTrack
-from perchpose.pose import MarkerPose, PoseFailure, solve_marker_pose
+from perchpose.pose import solve_marker_pose
 from perchpose.target import TargetSpec
+from perchpose.values import (
+    Estimate,
+    MarkerDetection,
+    MarkerPose,
+    MarkerState,
+    PoseFailure,
+    Timings,
+)
 
 FusionMethod = Literal["paper", "covariance"]
 FUSION_METHODS: tuple[FusionMethod, ...] = ("paper", "covariance")
 
 Array = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class MarkerState:
-    """What one marker contributed to a frame.
-
-    label : ``DICTIONARY:id``.
-    detection : the detected corners, or None.
-    measurement : the raw per-frame pose, or None (not detected, or rejected).
-    rejected : why a detected marker gave no measurement ('' if it did).
-    filtered_pose : (4,) [yaw_rad, x_m, y_m, z_m] of the marker's filter after this frame, or None.
-    missed_frames : consecutive frames without a measurement.
-    contributing : the marker's filtered pose went into the fused estimate.
-    """
-
-    label: str
-    detection: MarkerDetection | None
-    measurement: MarkerPose | None
-    rejected: str
-    filtered_pose: Array | None
-    missed_frames: int
-    contributing: bool
-
-
-@dataclass(frozen=True)
-class Timings:
-    """Wall-clock milliseconds spent in each step of one update."""
-
-    detect_ms: float
-    pose_ms: float
-    filter_ms: float
-    total_ms: float
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """The target's pose in the camera frame for one frame (DESIGN section 2).
-
-    x_cm, y_cm, z_cm : target centre in the camera frame, centimetres (NaN when not valid).
-    yaw_deg : atan2(R[1,0], R[0,0]) of R_camera_target, degrees in (-180, 180] (NaN if not valid).
-    stage : 0 no estimate, 1 outer marker only, 2 both, 3 inner only.
-    """
-
-    t_s: float
-    valid: bool
-    stage: int
-    x_cm: float
-    y_cm: float
-    z_cm: float
-    yaw_deg: float
-    markers: tuple[MarkerState, ...]
-    timings: Timings
-
-    @property
-    def detected(self) -> tuple[int, ...]:
-        """Indices of the markers measured in this frame."""
-        return tuple(i for i, m in enumerate(self.markers) if m.measurement is not None)
 
 
 class PerchingEstimator:
@@ -288,9 +238,9 @@ class PerchingEstimator:
             else:
                 contributing = {i for i, tr in enumerate(self._tracks) if tr.alive}
             poses = {
-                i: tr.filter.pose
+                i: pose
                 for i, tr in enumerate(self._tracks)
-                if i in contributing and tr.filter is not None
+                if i in contributing and (pose := tr.pose) is not None
             }
         fused, stage = fuse_paper(poses, self.sigmas)
         if self.fusion == "covariance":
@@ -305,21 +255,26 @@ class PerchingEstimator:
                 detection=by_index.get(i),
                 measurement=measurements.get(i),
                 rejected=rejected.get(i, ""),
-                filtered_pose=None if tr.filter is None else tr.filter.pose,
+                filtered_pose=tr.pose,
                 missed_frames=tr.missed,
                 contributing=i in poses,
             )
             for i, (spec, tr) in enumerate(zip(self.target.markers, self._tracks, strict=True))
         )
-        valid = stage != STAGE_NONE
+        if self.fusion == "covariance":
+            age = self._fused.age_s(t) if self.use_filter else 0.0
+        elif measurements or not self.use_filter:
+            age = 0.0
+        else:
+            age = min((self._tracks[i].age_s(t) for i in poses), default=math.inf)
+        position = (float(fused[1]), float(fused[2]), float(fused[3]))
+        valid = stage != STAGE_NONE and bool(np.all(np.isfinite(fused)))
         return Estimate(
             t_s=t,
             valid=valid,
-            stage=stage,
-            x_cm=float(fused[1] * 100.0),
-            y_cm=float(fused[2] * 100.0),
-            z_cm=float(fused[3] * 100.0),
-            yaw_deg=float(math.degrees(fused[0])) if valid else math.nan,
+            stage=stage if valid else STAGE_NONE,
+            t_camera_target_m=position if valid else (math.nan, math.nan, math.nan),
+            yaw_rad=float(fused[0]) if valid else math.nan,
             markers=states,
             timings=Timings(
                 detect_ms=(t1 - t0) * 1e3,
@@ -327,4 +282,5 @@ class PerchingEstimator:
                 filter_ms=(t3 - t2) * 1e3,
                 total_ms=(t3 - t0) * 1e3,
             ),
+            age_s=age if valid else math.nan,
         )

@@ -20,9 +20,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.detection import MarkerDetection
 from perchpose.geometry import rvec_tvec_from_transform, transform_from_rvec_tvec, yaw_rad
 from perchpose.target import TargetSpec
+from perchpose.values import MarkerDetection
 
 Array = NDArray[np.float64]
 _STEP_RAD = 1e-6

@@ -1,4 +1,5 @@
-"""The paper's Kalman filter: one per marker, constant velocity, yaw on the circle.
+"""The Kalman filters: the paper's (one per marker) and the fused pose's, both constant
+velocity with yaw on the circle, on one set of equations and one rule for missed frames.
 
 State x = [psi, psi_dot, tx, tx_dot, ty, ty_dot, tz, tz_dot] in rad, rad/s, m, m/s;
 measurement z = [psi, tx, ty, tz]. F is the constant-velocity transition with dt from the frame
@@ -8,6 +9,8 @@ The paper does not give k1 and k2; the defaults below are ours (see ``KalmanSett
 
 from __future__ import annotations
 
+import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,12 +25,21 @@ H[0, 0] = H[1, 2] = H[2, 4] = H[3, 6] = 1.0
 _VELOCITIES = np.array([1, 3, 5, 7])
 
 
-def _check_dropout_rule(alpha: float, n_max: int) -> None:
-    """The paper's rule for frames without a measurement: 0 <= alpha <= 1, n_max >= 0."""
+# The paper's coasting limit: 8 frames at its FPV camera's 30 frames per second.
+PAPER_COAST_S = 8.0 / 30.0
+# Timestamps built as k / fps carry rounding of about 1e-15 s; the time limit allows this much.
+_TIME_SLACK_S = 1e-6
+
+
+def check_dropout_rule(alpha: float, n_max: int, max_coast_s: float) -> None:
+    """The rule for frames without a measurement: 0 <= alpha <= 1, n_max >= 0, and a positive
+    time limit ``max_coast_s``."""
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must be in [0, 1], got {alpha}")
     if n_max < 0:
         raise ValueError(f"n_max must be >= 0, got {n_max}")
+    if not max_coast_s > 0:
+        raise ValueError(f"max_coast_s must be positive, got {max_coast_s}")
 
 
 @dataclass(frozen=True)
@@ -41,6 +53,9 @@ class KalmanSettings:
         within 1 % of the distance; k2 = k1 lagged by up to 3.6 % on the same rendered frames.
     alpha : velocity decay per frame without a detection (paper: 0.85).
     n_max : frames a marker may go undetected before its track is dropped (paper: 8).
+    max_coast_s : seconds a track may go without a detection before it is dropped, whatever
+        the number of frames (default: the paper's 8 frames at 30 frames per second). A camera
+        that stalls delivers no frames to count; this bound ends the extrapolation anyway.
     p0_position, p0_velocity : initial variances of the position/yaw and velocity states.
     """
 
@@ -48,13 +63,14 @@ class KalmanSettings:
     k2: float = 1e-4
     alpha: float = 0.85
     n_max: int = 8
+    max_coast_s: float = PAPER_COAST_S
     p0_position: float = 1e-4
     p0_velocity: float = 1.0
 
     def __post_init__(self) -> None:
         if not (self.k1 > 0 and self.k2 > 0):
             raise ValueError(f"k1 and k2 must be positive, got k1={self.k1}, k2={self.k2}")
-        _check_dropout_rule(self.alpha, self.n_max)
+        check_dropout_rule(self.alpha, self.n_max, self.max_coast_s)
 
 
 def transition(dt_s: float) -> Array:
@@ -64,69 +80,101 @@ def transition(dt_s: float) -> Array:
     return F
 
 
-class PaperKalmanFilter:
-    """The 8-state filter of one marker. Prior and posterior are both kept.
+class ConstantVelocityFilter:
+    """The Kalman equations, written once, for the 8-state constant-velocity model with yaw on
+    the circle.
 
-    x : (8,) state; P : (8, 8) covariance; x_prior, P_prior : after the last predict.
+    x : (8,) state [psi, psi_dot, tx, tx_dot, ty, ty_dot, tz, tz_dot]; P : (8, 8) covariance.
+    x_prior, P_prior : after the last predict. y : (4,) the last innovation (yaw wrapped),
+    S : (4, 4) its covariance.
     """
 
-    def __init__(self, z: Array, settings: KalmanSettings) -> None:
-        self.settings = settings
-        self.R = settings.k1 * np.eye(4)
-        self.Q = settings.k2 * np.eye(8)
+    def __init__(self, z: Array, P0: Array) -> None:
         self.x = np.zeros(8)
         self.x[[0, 2, 4, 6]] = z
         self.x[0] = wrap_angle_rad(float(z[0]))
-        p0 = np.array([settings.p0_position, settings.p0_velocity] * 4)
-        self.P = np.diag(p0)
+        self.P = np.asarray(P0, dtype=np.float64).copy()
         self.x_prior = self.x.copy()
         self.P_prior = self.P.copy()
+        self.y = np.zeros(4)
+        self.S = np.full((4, 4), np.nan)
 
-    def predict(self, dt_s: float) -> None:
-        """Propagate the state by ``dt_s`` seconds."""
+    def predict_with(self, dt_s: float, Q: Array) -> None:
+        """x = F x, P = F P F^T + Q for a step of ``dt_s`` seconds."""
         F = transition(dt_s)
         self.x = F @ self.x
         self.x[0] = wrap_angle_rad(float(self.x[0]))
-        self.P = F @ self.P @ F.T + self.Q
+        self.P = F @ self.P @ F.T + Q
         self.x_prior = self.x.copy()
         self.P_prior = self.P.copy()
 
-    def decay_velocities(self) -> None:
-        """Multiply the velocity states by alpha (a frame without a detection)."""
-        self.x[_VELOCITIES] *= self.settings.alpha
-
-    def update(self, z: Array) -> None:
-        """Correct with a measurement z = [psi, tx, ty, tz]; the yaw innovation is wrapped.
-
-        Joseph form keeps P symmetric and positive definite.
-        """
+    def update_with(self, z: Array, R: Array) -> None:
+        """Correct with z = [psi, tx, ty, tz] of covariance R (4, 4); the yaw innovation is
+        wrapped. The Joseph form keeps P symmetric and positive definite."""
         y = np.asarray(z, dtype=np.float64) - H @ self.x
         y[0] = angle_diff_rad(float(z[0]), float(self.x[0]))
-        S = H @ self.P @ H.T + self.R
+        S = H @ self.P @ H.T + R
         K = np.linalg.solve(S, H @ self.P).T
         self.x = self.x + K @ y
         self.x[0] = wrap_angle_rad(float(self.x[0]))
         I_KH = np.eye(8) - K @ H
-        self.P = I_KH @ self.P @ I_KH.T + K @ self.R @ K.T
+        self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
+        self.y = y
+        self.S = S
+
+    def decay_velocities(self, alpha: float) -> None:
+        """Multiply the velocity states by ``alpha`` (a frame without a measurement)."""
+        self.x[_VELOCITIES] *= alpha
 
     @property
     def pose(self) -> Array:
         """(4,) filtered [psi_rad, tx_m, ty_m, tz_m]."""
         return np.asarray(H @ self.x)
 
+    def predicted_pose(self, dt_s: float) -> Array:
+        """(4,) [psi, tx, ty, tz] ``dt_s`` seconds ahead, without changing the filter."""
+        return np.asarray(H @ (transition(dt_s) @ self.x))
 
-class MarkerTrack:
-    """A marker's filter plus the paper's lost-marker rule.
 
-    A frame without the marker decays its velocities by alpha and predicts; after ``n_max``
-    such frames in a row the track is dropped (``alive`` False) and the next detection starts a
-    new filter.
+class PaperKalmanFilter(ConstantVelocityFilter):
+    """The 8-state filter of one marker: R = k1 I4, Q = k2 I8 per step."""
+
+    def __init__(self, z: Array, settings: KalmanSettings) -> None:
+        p0 = np.array([settings.p0_position, settings.p0_velocity] * 4)
+        super().__init__(z, np.diag(p0))
+        self.settings = settings
+        self.R = settings.k1 * np.eye(4)
+        self.Q = settings.k2 * np.eye(8)
+
+    def predict(self, dt_s: float) -> None:
+        """Propagate the state by ``dt_s`` seconds."""
+        self.predict_with(dt_s, self.Q)
+
+    def decay_velocities(self, alpha: float | None = None) -> None:
+        """Multiply the velocity states by alpha (default: the settings')."""
+        super().decay_velocities(self.settings.alpha if alpha is None else alpha)
+
+    def update(self, z: Array) -> None:
+        """Correct with a measurement z = [psi, tx, ty, tz]."""
+        self.update_with(z, self.R)
+
+
+class Track(ABC):
+    """A filter plus the rule for frames without a measurement, written once for both filters.
+
+    A frame without a measurement decays the velocities by alpha and predicts; the track is
+    dropped (``alive`` False) after ``n_max`` such frames in a row or when its newest
+    measurement is more than ``max_coast_s`` old, whichever comes first. A measurement after
+    such a gap starts a new filter.
     """
 
-    def __init__(self, settings: KalmanSettings) -> None:
-        self.settings = settings
-        self.filter: PaperKalmanFilter | None = None
+    def __init__(self, alpha: float, n_max: int, max_coast_s: float) -> None:
+        self.alpha = alpha
+        self.n_max = n_max
+        self.max_coast_s = max_coast_s
+        self.filter: ConstantVelocityFilter | None = None
         self.t_s = 0.0
+        self.t_measured_s = math.nan
         self.missed = 0
 
     @property
@@ -134,34 +182,80 @@ class MarkerTrack:
         """True while the track has a state to offer."""
         return self.filter is not None
 
-    def measured(self, z: Array, t_s: float) -> None:
-        """A detection at ``t_s``: start the filter, or predict and correct."""
-        if self.filter is None:
-            self.filter = PaperKalmanFilter(z, self.settings)
+    @property
+    def pose(self) -> Array | None:
+        """(4,) [psi_rad, tx_m, ty_m, tz_m], or None."""
+        return None if self.filter is None else self.filter.pose
+
+    def age_s(self, t_s: float) -> float:
+        """Seconds from the newest measurement to ``t_s`` (inf without one)."""
+        return math.inf if self.filter is None else t_s - self.t_measured_s
+
+    def _too_old(self, t_s: float) -> bool:
+        return t_s - self.t_measured_s > self.max_coast_s + _TIME_SLACK_S
+
+    @abstractmethod
+    def _start(self, z: Array, R: Array | None) -> ConstantVelocityFilter:
+        """The first filter of a track."""
+
+    @abstractmethod
+    def _correct(self, z: Array, R: Array | None, dt_s: float) -> None:
+        """Predict by ``dt_s`` and correct with z."""
+
+    @abstractmethod
+    def _coast(self, dt_s: float) -> None:
+        """Predict by ``dt_s`` without a measurement."""
+
+    def _measure(self, z: Array, R: Array | None, t_s: float) -> None:
+        if self.filter is None or self._too_old(t_s):
+            self.filter = self._start(z, R)
         else:
-            self.filter.predict(t_s - self.t_s)
-            self.filter.update(z)
-        self.t_s = t_s
+            self._correct(z, R, t_s - self.t_s)
+        self.t_s = self.t_measured_s = t_s
         self.missed = 0
 
     def missed_frame(self, t_s: float) -> None:
-        """A frame at ``t_s`` without a detection: coast, or drop after n_max frames."""
+        """A frame at ``t_s`` without a measurement: coast, or drop the track."""
         if self.filter is None:
             return
         self.missed += 1
-        if self.missed > self.settings.n_max:
+        if self.missed > self.n_max or self._too_old(t_s):
             self.filter = None
             return
-        self.filter.decay_velocities()
-        self.filter.predict(t_s - self.t_s)
+        self.filter.decay_velocities(self.alpha)
+        self._coast(t_s - self.t_s)
         self.t_s = t_s
 
     def predicted_pose(self, t_s: float) -> Array | None:
         """(4,) [psi, tx, ty, tz] the track expects at ``t_s``, without changing it."""
-        if self.filter is None:
-            return None
-        pose = transition(t_s - self.t_s) @ self.filter.x
-        return np.asarray(H @ pose)
+        return None if self.filter is None else self.filter.predicted_pose(t_s - self.t_s)
+
+
+class MarkerTrack(Track):
+    """The paper's filter of one marker with its lost-marker rule."""
+
+    filter: PaperKalmanFilter | None
+
+    def __init__(self, settings: KalmanSettings) -> None:
+        super().__init__(settings.alpha, settings.n_max, settings.max_coast_s)
+        self.settings = settings
+
+    def _start(self, z: Array, R: Array | None) -> PaperKalmanFilter:
+        return PaperKalmanFilter(z, self.settings)
+
+    def _correct(self, z: Array, R: Array | None, dt_s: float) -> None:
+        assert self.filter is not None
+        self.filter.predict(dt_s)
+        self.filter.update(z)
+
+    def _coast(self, dt_s: float) -> None:
+        assert self.filter is not None
+        self.filter.predict(dt_s)
+
+    def measured(self, z: Array, t_s: float) -> None:
+        """A detection z = [psi, tx, ty, tz] at ``t_s``: start the filter, or predict and
+        correct."""
+        self._measure(z, None, t_s)
 
 
 @dataclass(frozen=True)
@@ -173,8 +267,8 @@ class CovarianceFilterSettings:
         0.05: accelerations of a few tenths of m/s^2 (a drone slowing down on its approach) are
         followed without lag.
     q_yaw : the same for yaw (rad^2/s^3).
-    alpha, n_max : the paper's rule for frames without a measurement (velocities times alpha
-        per frame; after n_max frames the estimate is dropped).
+    alpha, n_max, max_coast_s : the rule for frames without a measurement (velocities times
+        alpha per frame; dropped after n_max frames or max_coast_s seconds).
     corner_sigma_px : corner noise per axis the measurement covariance is computed with.
     """
 
@@ -183,11 +277,12 @@ class CovarianceFilterSettings:
     alpha: float = 0.85
     n_max: int = 8
     corner_sigma_px: float = 0.1
+    max_coast_s: float = PAPER_COAST_S
 
     def __post_init__(self) -> None:
         if not (self.q_position > 0 and self.q_yaw > 0 and self.corner_sigma_px > 0):
             raise ValueError("q_position, q_yaw and corner_sigma_px must be positive")
-        _check_dropout_rule(self.alpha, self.n_max)
+        check_dropout_rule(self.alpha, self.n_max, self.max_coast_s)
 
 
 def white_acceleration_noise(dt_s: float, q: Array) -> Array:
@@ -200,73 +295,33 @@ def white_acceleration_noise(dt_s: float, q: Array) -> Array:
     return Q
 
 
-class CovarianceTrack:
-    """One filter of the fused pose, corrected with each measurement's own covariance, with the
-    paper's dropout rule (velocities decay by alpha; dropped after n_max missed frames)."""
+class CovarianceTrack(Track):
+    """One filter of the fused pose, corrected with each measurement's own covariance and
+    driven by white-noise acceleration, with the same rule for missed frames."""
 
     def __init__(self, settings: CovarianceFilterSettings) -> None:
+        super().__init__(settings.alpha, settings.n_max, settings.max_coast_s)
         self.settings = settings
-        self.x: Array | None = None
-        self.P = np.zeros((8, 8))
-        self.t_s = 0.0
-        self.missed = 0
         self._q = np.array([settings.q_yaw, settings.q_position, settings.q_position,
                             settings.q_position])  # fmt: skip
 
-    @property
-    def alive(self) -> bool:
-        return self.x is not None
+    def _start(self, z: Array, R: Array | None) -> ConstantVelocityFilter:
+        assert R is not None
+        P0 = np.zeros((8, 8))
+        P0[np.ix_([0, 2, 4, 6], [0, 2, 4, 6])] = R
+        P0[_VELOCITIES, _VELOCITIES] = 1.0
+        return ConstantVelocityFilter(z, P0)
 
-    @property
-    def pose(self) -> Array | None:
-        """(4,) [psi_rad, tx_m, ty_m, tz_m], or None."""
-        return None if self.x is None else np.asarray(H @ self.x)
+    def _coast(self, dt_s: float) -> None:
+        assert self.filter is not None
+        self.filter.predict_with(dt_s, white_acceleration_noise(dt_s, self._q))
 
-    def predicted_pose(self, t_s: float) -> Array | None:
-        """(4,) [psi, tx, ty, tz] the filter expects at ``t_s``, without changing it."""
-        if self.x is None:
-            return None
-        return np.asarray(H @ (transition(t_s - self.t_s) @ self.x))
-
-    def _predict(self, t_s: float) -> None:
-        assert self.x is not None
-        dt = t_s - self.t_s
-        F = transition(dt)
-        self.x = F @ self.x
-        self.x[0] = wrap_angle_rad(float(self.x[0]))
-        self.P = F @ self.P @ F.T + white_acceleration_noise(dt, self._q)
-        self.t_s = t_s
+    def _correct(self, z: Array, R: Array | None, dt_s: float) -> None:
+        assert self.filter is not None
+        assert R is not None
+        self._coast(dt_s)
+        self.filter.update_with(z, R)
 
     def measured(self, z: Array, R: Array, t_s: float) -> None:
         """A measurement z = [psi, tx, ty, tz] with covariance R (4, 4) at ``t_s``."""
-        if self.x is None:
-            self.x = np.zeros(8)
-            self.x[[0, 2, 4, 6]] = z
-            self.x[0] = wrap_angle_rad(float(z[0]))
-            self.P = np.zeros((8, 8))
-            self.P[np.ix_([0, 2, 4, 6], [0, 2, 4, 6])] = R
-            self.P[_VELOCITIES, _VELOCITIES] = 1.0
-            self.t_s = t_s
-            self.missed = 0
-            return
-        self._predict(t_s)
-        y = np.asarray(z, np.float64) - H @ self.x
-        y[0] = angle_diff_rad(float(z[0]), float(self.x[0]))
-        S = H @ self.P @ H.T + R
-        K = np.linalg.solve(S, H @ self.P).T
-        self.x = self.x + K @ y
-        self.x[0] = wrap_angle_rad(float(self.x[0]))
-        I_KH = np.eye(8) - K @ H
-        self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
-        self.missed = 0
-
-    def missed_frame(self, t_s: float) -> None:
-        """A frame at ``t_s`` without a measurement: coast, or drop after n_max frames."""
-        if self.x is None:
-            return
-        self.missed += 1
-        if self.missed > self.settings.n_max:
-            self.x = None
-            return
-        self.x[_VELOCITIES] *= self.settings.alpha
-        self._predict(t_s)
+        self._measure(z, R, t_s)

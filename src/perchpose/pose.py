@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.geometry import invert_transform, transform_from_rvec_tvec, yaw_rad
+from perchpose.geometry import invert_transform, transform_from_rvec_tvec
 from perchpose.target import MarkerSpec
+from perchpose.values import MarkerPose, PoseFailure
 
 Array = NDArray[np.float64]
 
@@ -28,46 +28,6 @@ AMBIGUITY_RATIO = 2.0
 FLIP_DEG = 5.0
 FLIP_RATIO = 4.0
 FLIP_FLOOR_PX = 0.25
-
-
-@dataclass(frozen=True)
-class MarkerPose:
-    """The pose of the target measured from one marker.
-
-    T_camera_target : (4, 4) float64, metres.
-    reproj_rms_px : RMS distance between detected and reprojected corners, pixels.
-    alt_reproj_rms_px : the same for the other IPPE solution (inf if there was none).
-    ambiguous : the two solutions were too close to tell apart by reprojection alone.
-    alt_T_camera_target : (4, 4) the other IPPE solution, or None.
-    """
-
-    marker_index: int
-    T_camera_target: Array
-    reproj_rms_px: float
-    alt_reproj_rms_px: float
-    ambiguous: bool
-    alt_T_camera_target: Array | None = None
-
-    @property
-    def yaw_rad(self) -> float:
-        """Yaw of the target in the camera frame, radians."""
-        return yaw_rad(self.T_camera_target[:3, :3])
-
-    @property
-    def t_m(self) -> Array:
-        """Target centre in the camera frame, (3,) metres."""
-        return self.T_camera_target[:3, 3]
-
-
-@dataclass(frozen=True)
-class PoseFailure:
-    """A marker whose pose could not be computed, and why. Falsy."""
-
-    marker_index: int
-    reason: str
-
-    def __bool__(self) -> bool:
-        return False
 
 
 def rotation_angle_rad(R_a: Array, R_b: Array) -> float:

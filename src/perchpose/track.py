@@ -11,11 +11,12 @@ from tqdm import tqdm
 
 from perchpose.camera import CameraModel
 from perchpose.errors import ImageError, PerchposeError
-from perchpose.estimator import Estimate, PerchingEstimator
+from perchpose.estimator import PerchingEstimator
 from perchpose.io.overlay import OverlayWriter, draw_overlay
 from perchpose.io.sinks import PoseWriter, estimate_row
 from perchpose.io.sources import open_source
 from perchpose.target import TargetSpec
+from perchpose.values import Estimate
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ the firmware's protocol-version handshake, so cflib picks today's setpoint encod
 import math
 import queue
 import struct
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +19,10 @@ from cflib.crtp.crtpstack import CRTPPacket, CRTPPort
 
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.cli import main
-from perchpose.control import PerchingController
-from perchpose.errors import LinkError
-from perchpose.estimator import Estimate, Timings
-from perchpose.io.crazyflie import PerchingPilot, PilotSettings, connect
+from perchpose.control import PerchingController, PerchingPilot, PilotSettings
+from perchpose.errors import ControllerConfigError, LinkError
+from perchpose.io.crazyflie import connect
+from perchpose.values import Estimate
 
 PROTOCOL_VERSION = 10
 
@@ -202,27 +203,102 @@ def test_abort_lands_in_real_time(
     assert pilot.state == "landed"
 
 
-def test_commit_without_sight_ends_perched(crazyflie: tuple[Crazyflie, FakeRadioLink]) -> None:
-    """Close under the plate the camera sees nothing: the final climb runs, then motors stop."""
-    cf, link = crazyflie
-    settings = PilotSettings(perched_after_commit_s=0.5)
-    pilot = PerchingPilot(cf.commander, level, settings=settings, report=lambda _m: None)
-    # the magnet 3 cm under the target centre, the camera still seeing it
-    near = Estimate(0.0, True, 3, -1.5, 0.0, 1.0, 0.0, (), Timings(0, 0, 0, 0))
-    pilot.update(near, 0.0)
-    for i in range(1, 30):
+def _near_then_blind(pilot: PerchingPilot) -> None:
+    """Three frames with the magnet 3 cm under the target centre, then 1.5 s in which the
+    camera, too close, sees nothing."""
+    near = Estimate.of_pose(0.0, (-0.015, 0.0, 0.01), 0.0, stage=3)
+    for i in range(3):
+        pilot.update(replace(near, t_s=i / 30.0), i / 30.0)
+    for i in range(3, 48):
         pilot.update(None, i / 30.0)
+
+
+def test_commit_ends_perched_only_on_contact(crazyflie: tuple[Crazyflie, FakeRadioLink]) -> None:
+    """The final climb runs until the vehicle's height stops rising against the plate."""
+    cf, link = crazyflie
+    height = [1.90]
+
+    def height_m() -> float:  # climbs at the commit speed, stalls at the plate (1.95 m)
+        height[0] = min(1.95, height[0] + 0.15 / 30.0)
+        return height[0]
+
+    pilot = PerchingPilot(cf.commander, level, height_m=height_m, report=lambda _m: None)
+    _near_then_blind(pilot)
     packets = [decode(p) for p in link.sent]
     climbs = [p for p in packets if p[0] == "velocity"]
     assert all(p[3] == pytest.approx(pilot.controller.settings.commit_speed_mps) for p in climbs)
     assert packets[-2:] == [("stop",), ("notify_stop", 0)]
     assert pilot.state == "perched"
+    # stopped 0.3 s (the contact window) after the climb stalled, not on a timer
+    stalled_at = math.ceil((1.95 - 1.90) / (0.15 / 30.0))  # samples until the plate
+    assert len(climbs) >= stalled_at
+
+
+def test_time_alone_never_stops_the_motors(crazyflie: tuple[Crazyflie, FakeRadioLink]) -> None:
+    """Without contact evidence (no height source, or a height that keeps rising) a final
+    climb that does not end backs off instead of stopping the motors."""
+    cf, link = crazyflie
+    for height_m in (None, iter(np.arange(0.0, 5.0, 0.01)).__next__):
+        link.sent.clear()
+        pilot = PerchingPilot(cf.commander, level, height_m=height_m, report=lambda _m: None)
+        near = Estimate.of_pose(0.0, (-0.015, 0.0, 0.01), 0.0, stage=3)
+        for i in range(3):
+            pilot.update(replace(near, t_s=i / 30.0), i / 30.0)
+        phases = [pilot.update(None, i / 30.0).phase for i in range(3, 100)]
+        packets = [decode(p) for p in link.sent]
+        assert all(p[0] == "velocity" for p in packets)
+        assert pilot.state == "lost"
+        assert "commit" in phases
+        assert phases[-1] == "lost"
+
+
+def test_one_outlier_frame_neither_commits_nor_stops(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """30 frames with the target 60 cm above, one frame at (-1.5, 0, 3) cm, then 60 frames at
+    60 cm again: the pilot keeps flying on the later frames and never stops the motors."""
+    cf, link = crazyflie
+    pilot = PerchingPilot(cf.commander, level, height_m=lambda: 1.0, report=lambda _m: None)
+    far = (0.0, 0.0, 0.60)
+    frames = [far] * 30 + [(-0.015, 0.0, 0.03)] + [far] * 60
+    steps = [
+        pilot.update(Estimate.of_pose(k / 30.0, p, 0.0), k / 30.0) for k, p in enumerate(frames)
+    ]
+    packets = [decode(p) for p in link.sent]
+    assert all(p[0] == "velocity" for p in packets)
+    assert len(packets) == len(frames)
+    assert pilot.state == "perching"
+    assert "commit" not in {s.phase for s in steps}
+    assert steps[-1].v_mps is not None
+    assert steps[-1].v_mps[2] > 0.1  # climbing towards the target 60 cm above
+
+
+def test_stale_or_non_finite_estimates_are_not_flown(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    cf, link = crazyflie
+    pilot = PerchingPilot(cf.commander, level, height_m=lambda: 1.0, report=lambda _m: None)
+    old = Estimate.of_pose(0.0, (0.1, 0.0, 0.6), 0.0, age_s=5.0)
+    assert pilot.update(old, 0.0).v_mps is None  # never takes over on a stale pose
+    assert pilot.update(Estimate.of_pose(0.0, (0.1, 0.0, 0.6), 0.0), 0.0).v_mps is not None
+    late = pilot.update(Estimate.of_pose(0.1, (0.1, 0.0, 0.6), 0.0), 2.0)  # captured 1.9 s ago
+    assert late.phase == "lost"
+    assert late.v_mps == (0.0, 0.0, 0.0)
+    nan = Estimate.of_pose(2.1, (math.nan, 0.0, 0.6), 0.0)
+    assert pilot.update(nan, 2.1).phase == "lost"
+    # a non-finite attitude from the vehicle makes a non-finite setpoint: a hover goes out
+    pilot.attitude = lambda: np.full((3, 3), np.nan)
+    step = pilot.update(Estimate.of_pose(2.2, (0.1, 0.0, 0.6), 0.0), 2.2)
+    assert step.v_mps == (0.0, 0.0, 0.0)
+    assert pilot.replaced_setpoints == 1
+    velocities = [decode(p)[1:] for p in link.sent]
+    assert all(math.isfinite(v) for packet in velocities for v in packet)
 
 
 def test_bad_uri_and_settings() -> None:
     with pytest.raises(LinkError, match="radio://"):
         connect("http://example.com")
-    with pytest.raises(LinkError, match="land_speed_mps"):
+    with pytest.raises(ControllerConfigError, match="land_speed_mps"):
         PilotSettings(land_speed_mps=0.0)
 
 

@@ -13,9 +13,9 @@ from scipy.spatial.transform import Rotation
 
 from perchpose.cli import main
 from perchpose.errors import LinkError
-from perchpose.estimator import Estimate, Timings
 from perchpose.io.mavlink import LandingTargetSink, mavutil_module
 from perchpose.io.sinks import read_track_csv
+from perchpose.values import Estimate
 
 MOUNT_M = np.array([0.015, 0.0, 0.012])  # control.default_T_body_camera's offset
 
@@ -120,7 +120,8 @@ def test_track_sends_one_landing_target_per_valid_row(
 
 
 def estimate_at(t_s: float, xyz_cm: tuple[float, float, float], yaw_deg: float) -> Estimate:
-    return Estimate(t_s, True, 1, *xyz_cm, yaw_deg, (), Timings(0, 0, 0, 0))
+    x, y, z = (v / 100.0 for v in xyz_cm)
+    return Estimate.of_pose(t_s, (x, y, z), math.radians(yaw_deg), stage=1)
 
 
 def test_local_ned_uses_the_vehicles_attitude_and_position() -> None:
@@ -160,6 +161,37 @@ def test_local_ned_waits_for_attitude() -> None:
         sink.close()
     assert len(reports) == 1
     assert "ATTITUDE" in reports[0]
+
+
+def test_stale_and_non_finite_estimates_are_never_sent() -> None:
+    """Only fresh, finite poses leave: a coasted estimate older than max_age_s, or one whose
+    vehicle attitude is NaN, is refused (reported once); a fresh one still goes out."""
+    port = free_udp_port()
+    receiver = Receiver(port, attitude=(math.nan, 0.0, 0.0))
+    reports: list[str] = []
+    body = LandingTargetSink(f"udpout:127.0.0.1:{port}", max_age_s=0.3, report=reports.append)
+    ned = LandingTargetSink(f"udpout:127.0.0.1:{port}", frame="local_ned", report=reports.append)
+    try:
+        fresh = estimate_at(1.0, (2.0, 1.0, 50.0), 10.0)
+        old = Estimate.of_pose(1.1, fresh.t_camera_target_m, fresh.yaw_rad, age_s=0.5)
+        assert not body.send(old)
+        assert body.send(fresh)
+        assert body.refused == 1
+        deadline = time.monotonic() + 5.0
+        while ned.vehicle.R_ned_frd is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert not ned.send(fresh)  # the attitude the vehicle sent is NaN
+        assert ned.refused == 1
+    finally:
+        body.close()
+        ned.close()
+        receiver.stop()
+    (msg,) = receiver.of_type("LANDING_TARGET")
+    assert msg.time_usec == 1_000_000
+    assert all(math.isfinite(v) for v in (msg.x, msg.y, msg.z, msg.angle_x, msg.distance))
+    assert len(reports) == 2
+    assert "0.50 s old" in reports[0]
+    assert "non-finite" in reports[1]
 
 
 def test_a_link_that_cannot_open_is_reported_once_and_tracking_goes_on() -> None:

@@ -16,12 +16,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perchpose.detection import MarkerDetection, MarkerDetector
+from perchpose.detection import MarkerDetector
 from perchpose.geometry import facing_pose, yaw_rad
 from perchpose.joint_pose import pose_covariance, solve_joint_pose, uncertainty
-from perchpose.pose import MarkerPose, solve_marker_pose
+from perchpose.pose import solve_marker_pose
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.target import TargetSpec
+from perchpose.values import MarkerDetection, MarkerPose
 
 
 @dataclass(frozen=True)

@@ -11,15 +11,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.detection import CornerMethod, MarkerDetection, MarkerDetector
-from perchpose.estimator import Estimate, PerchingEstimator
+from perchpose.detection import CornerMethod, MarkerDetector
+from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import fit_sigma_least_squares, fit_sigma_lms
 from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
-from perchpose.pose import MarkerPose, rotation_angle_rad
+from perchpose.pose import rotation_angle_rad
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import Scenario, markers_in_view
 from perchpose.sim.sequence import render_frame
 from perchpose.target import TargetSpec
+from perchpose.values import Estimate, MarkerDetection, MarkerPose
 
 Array = NDArray[np.float64]
 Tick = Callable[[int], None]

@@ -18,13 +18,13 @@ rotation about the frame's z axis that turns the frame's x axis onto the target'
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import LinkError
-from perchpose.estimator import Estimate
+from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
 
@@ -79,10 +79,10 @@ def landing_target(
         raise LinkError(f"unknown LANDING_TARGET frame {frame!r} (choose {', '.join(FRAMES)})")
     if not estimate.valid:
         raise LinkError(f"frame at t = {estimate.t_s:.3f} s has no valid estimate to send")
-    p_camera_m = np.array([estimate.x_cm, estimate.y_cm, estimate.z_cm]) / 100.0
+    p_camera_m = estimate.t_m
     R_body_camera = T_body_camera[:3, :3]
     p_frd_m = R_FRD_FLU @ (R_body_camera @ p_camera_m + T_body_camera[:3, 3])
-    yaw = math.radians(estimate.yaw_deg)
+    yaw = estimate.yaw_rad
     x_target_frd = R_FRD_FLU @ R_body_camera @ np.array([math.cos(yaw), math.sin(yaw), 0.0])
     if frame == "local_ned":
         if R_ned_frd is None:
@@ -98,7 +98,7 @@ def landing_target(
     distance = float(np.linalg.norm(p_camera_m))
     depth = max(float(p_camera_m[2]), 1e-9)
     size = 2.0 * math.atan(0.5 * target_side_m / max(distance, 1e-9))
-    return LandingTarget(
+    message = LandingTarget(
         time_usec=round(estimate.t_s * 1e6),
         frame=frame,
         x_m=float(p_m[0]),
@@ -111,3 +111,10 @@ def landing_target(
         size_y_rad=size,
         q_wxyz=(math.cos(heading / 2.0), 0.0, 0.0, math.sin(heading / 2.0)),
     )
+    numbers = [v for v in astuple(message) if isinstance(v, float)] + list(message.q_wxyz)
+    if not all(math.isfinite(v) for v in numbers):
+        raise LinkError(
+            f"frame at t = {estimate.t_s:.3f} s: LANDING_TARGET would carry a non-finite field "
+            "(estimate, attitude or vehicle position); not sent"
+        )
+    return message

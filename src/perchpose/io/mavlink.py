@@ -25,9 +25,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.control import default_T_body_camera
+from perchpose.control.mount import default_T_body_camera
 from perchpose.errors import LinkError
-from perchpose.estimator import Estimate
 from perchpose.geometry import check_transform
 from perchpose.io.landing_target import (
     FRAMES,
@@ -36,6 +35,7 @@ from perchpose.io.landing_target import (
     landing_target,
 )
 from perchpose.target import TargetSpec
+from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -97,8 +97,10 @@ class LandingTargetSink:
     url : pymavlink connection string. frame : ``body_frd`` (ArduPilot) or ``local_ned`` (PX4).
     T_body_camera : the camera's mounting on the body (FLU), default
     ``control.default_T_body_camera()``. target : sets the angular size fields.
-    time_offset_s : added to the frame times for ``time_usec``. report : receives the one-line
-    link reports (default: the ``perchpose.io.mavlink`` logger).
+    time_offset_s : added to the frame times for ``time_usec``. max_age_s : an estimate whose
+    newest measurement is older than this (``Estimate.age_s``) is not sent; default 0.5 s, well
+    inside the autopilots' own LANDING_TARGET timeouts (ArduPilot 2 s, PX4 ``PLD_BTOUT`` 5 s).
+    report : receives the one-line link reports (default: the ``perchpose.io.mavlink`` logger).
     """
 
     def __init__(
@@ -114,6 +116,7 @@ class LandingTargetSink:
         heartbeat_period_s: float = 1.0,
         retry_period_s: float = 2.0,
         position_max_age_s: float = 1.0,
+        max_age_s: float = 0.5,
         report: Callable[[str], None] | None = None,
     ) -> None:
         if frame not in FRAMES:
@@ -134,6 +137,11 @@ class LandingTargetSink:
         self.heartbeat_period_s = heartbeat_period_s
         self.retry_period_s = retry_period_s
         self.position_max_age_s = position_max_age_s
+        if not max_age_s > 0:
+            raise LinkError(f"max_age_s must be positive, got {max_age_s}")
+        self.max_age_s = max_age_s
+        self.refused = 0
+        self._refused_reported = False
         self.report = report or log.warning
         self.vehicle = VehicleState()
         self.sent = 0
@@ -241,9 +249,22 @@ class LandingTargetSink:
 
     # -- estimates ------------------------------------------------------------------------
 
+    def _refuse(self, why: str) -> None:
+        self.refused += 1
+        if not self._refused_reported:
+            self.report(f"MAVLink {self.url}: {why} (reported once; see LandingTargetSink.refused)")
+            self._refused_reported = True
+
     def message(self, estimate: Estimate) -> LandingTarget | None:
-        """The LANDING_TARGET this sink would send for ``estimate`` now (None: nothing)."""
+        """The LANDING_TARGET this sink would send for ``estimate`` now (None: nothing). Stale
+        or non-finite estimates are refused and counted in ``refused``."""
         if not estimate.valid:
+            return None
+        if not estimate.age_s <= self.max_age_s:
+            self._refuse(
+                f"estimate at t = {estimate.t_s:.3f} s is {estimate.age_s:.2f} s old "
+                f"(limit {self.max_age_s:g} s); not sent"
+            )
             return None
         R_ned_frd = p_ned = None
         if self.frame == "local_ned":
@@ -260,14 +281,18 @@ class LandingTargetSink:
             if self.vehicle.p_ned_m is not None and age < self.position_max_age_s:
                 p_ned = self.vehicle.p_ned_m
         shifted = replace(estimate, t_s=estimate.t_s + self.time_offset_s)
-        return landing_target(
-            shifted,
-            self.T_body_camera,
-            self.target_side_m,
-            frame=self.frame,
-            R_ned_frd=R_ned_frd,
-            p_ned_vehicle_m=p_ned,
-        )
+        try:
+            return landing_target(
+                shifted,
+                self.T_body_camera,
+                self.target_side_m,
+                frame=self.frame,
+                R_ned_frd=R_ned_frd,
+                p_ned_vehicle_m=p_ned,
+            )
+        except LinkError as exc:
+            self._refuse(str(exc))
+            return None
 
     def send(self, estimate: Estimate | None) -> bool:
         """Send LANDING_TARGET for a valid estimate; True if a message went out."""

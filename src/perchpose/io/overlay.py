@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
-from perchpose.estimator import Estimate
+from perchpose.values import Estimate
 
 GREEN = (0, 200, 0)
 RED = (0, 0, 255)

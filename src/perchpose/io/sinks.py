@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import IO, Any
 
 from perchpose.errors import PerchposeError
-from perchpose.estimator import Estimate
 from perchpose.target import TargetSpec
+from perchpose.values import Estimate
 
 BASE_COLUMNS = ("frame", "t_s", "valid", "stage", "x_cm", "y_cm", "z_cm", "yaw_deg")
 

@@ -1,8 +1,9 @@
 """Closed-loop perching in simulation: the vehicle, the camera in the loop, the estimator and
-the perching controller; only the scoring reads the true pose."""
+the perching pilot that also flies the Crazyflie; only the scoring reads the true pose."""
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -11,16 +12,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.control import Command, ControllerSettings, PerchingController
-from perchpose.estimator import Estimate, PerchingEstimator, Timings
+from perchpose.control import ControllerSettings, PerchingController, PerchingPilot, PilotSettings
+from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import stage_of
 from perchpose.geometry import invert_transform, make_transform, rot_z, yaw_rad
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams, VehicleConfigError
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
 from perchpose.target import TargetSpec
+from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 ESTIMATORS = ("paper", "outer", "inner", "covariance", "truth")
 # standard deviation of the gust force, newtons (the vehicle weighs 0.38 N)
@@ -39,6 +42,7 @@ class PerchSetup:
     vehicle: QuadrotorParams = field(default_factory=QuadrotorParams)
     onboard: OnboardGains = field(default_factory=OnboardGains)
     controller: ControllerSettings = field(default_factory=ControllerSettings)
+    pilot: PilotSettings = field(default_factory=PilotSettings)
     estimator: str = "paper"
     plate_z_m: float = 2.0
     start_below_m: tuple[float, float] = (0.6, 1.5)
@@ -120,6 +124,26 @@ class PerchResult:
     phase: tuple[str, ...] = field(repr=False)
 
 
+class HeldSetpoint:
+    """The commander the simulated vehicle flies: it holds the last setpoint the pilot sent
+    (cflib's units: m/s and deg/s), and a stop or no setpoint at all is a hover."""
+
+    def __init__(self) -> None:
+        self.v_mps = np.zeros(3)
+        self.yaw_rate_rad_s = 0.0
+
+    def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yawrate: float) -> None:
+        self.v_mps = np.array([vx, vy, vz])
+        self.yaw_rate_rad_s = math.radians(yawrate)
+
+    def send_stop_setpoint(self) -> None:
+        self.v_mps = np.zeros(3)
+        self.yaw_rate_rad_s = 0.0
+
+    def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
+        """Nothing to hand back in a simulation."""
+
+
 def truth_estimate(
     T_camera_target: Array, camera: CameraModel, target: TargetSpec, t_s: float
 ) -> Estimate:
@@ -127,17 +151,15 @@ def truth_estimate(
     in_view = markers_in_view(camera, target, T_camera_target)
     stage = stage_of({i for i, v in enumerate(in_view) if v})
     valid = stage > 0
-    t = T_camera_target[:3, 3] * 100.0
+    if not valid:
+        return Estimate.none(t_s)
+    t = T_camera_target[:3, 3]
     return Estimate(
         t_s=t_s,
-        valid=valid,
+        valid=True,
         stage=stage,
-        x_cm=float(t[0]) if valid else math.nan,
-        y_cm=float(t[1]) if valid else math.nan,
-        z_cm=float(t[2]) if valid else math.nan,
-        yaw_deg=math.degrees(yaw_rad(T_camera_target[:3, :3])) if valid else math.nan,
-        markers=(),
-        timings=Timings(0.0, 0.0, 0.0, 0.0),
+        t_camera_target_m=(float(t[0]), float(t[1]), float(t[2])),
+        yaw_rad=yaw_rad(T_camera_target[:3, :3]),
     )
 
 
@@ -168,7 +190,15 @@ def run_perch(
     vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
     render = renderer or setup.renderer()
     estimator = _estimator_for(setup)
-    controller = PerchingController(setup.controller)
+    commander = HeldSetpoint()
+    pilot = PerchingPilot(
+        commander,
+        lambda: vehicle.R_world_body,
+        controller=PerchingController(setup.controller),
+        settings=setup.pilot,
+        height_m=lambda: float(vehicle.p_m[2]),
+        report=log.debug,
+    )
     T_world_target = setup.T_world_target
     mx, my, mz = (float(c) for c in setup.controller.p_body_magnet_m)
     p_magnet_body = (mx, my, mz)
@@ -177,7 +207,7 @@ def run_perch(
     dt = 1.0 / setup.physics_hz
     steps_per_frame = max(1, int(round(setup.physics_hz / setup.fps)))
     pipeline: deque[tuple[float, Array | NDArray[np.uint8] | None]] = deque()
-    command = Command(np.zeros(3), 0.0, "search")
+    phase = "waiting"
     ts, magnets, stages, phases = [], [], [], []
     n_frames = int(round(setup.duration_s * setup.fps))
     for k in range(n_frames):
@@ -205,7 +235,8 @@ def run_perch(
                 else:
                     estimate = estimator.update(np.asarray(payload, np.uint8), t_capture)
                 stage = estimate.stage
-                command = controller.update(estimate, t, vehicle.R_world_body)
+                step = pilot.update(estimate, t)
+                phase = step.phase or step.state
         v_estimate = vehicle.v_mps + rng.normal(0.0, setup.velocity_noise_mps, 3)
         forces = None
         if sigma_wind > 0:
@@ -216,8 +247,8 @@ def run_perch(
         contact = vehicle.fly(
             dt,
             steps_per_frame,
-            command.v_mps,
-            command.yaw_rate_rad_s,
+            commander.v_mps,
+            commander.yaw_rate_rad_s,
             v_estimate,
             forces,
             stop_z_m=setup.plate_z_m,
@@ -237,7 +268,7 @@ def run_perch(
             ts.append(t)
             magnets.append(magnet)
             stages.append(stage)
-            phases.append(command.phase)
+            phases.append(phase)
             return PerchResult(
                 seed,
                 setup.estimator,
@@ -254,7 +285,7 @@ def run_perch(
         ts.append(t)
         magnets.append(np.array(vehicle.point_in_world(p_magnet_body)))
         stages.append(stage)
-        phases.append(command.phase)
+        phases.append(phase)
     return PerchResult(
         seed,
         setup.estimator,

@@ -12,16 +12,16 @@ from perchpose.control import (
     default_T_body_camera,
     load_T_body_camera,
 )
-from perchpose.estimator import Estimate, Timings
 from perchpose.geometry import invert_transform, make_transform
+from perchpose.values import Estimate
 
 
 def _estimate(
     x_cm: float, y_cm: float, z_cm: float, yaw_deg: float = 0.0, valid: bool = True
 ) -> Estimate:
-    return Estimate(
-        0.0, valid, 2 if valid else 0, x_cm, y_cm, z_cm, yaw_deg, (), Timings(0, 0, 0, 0)
-    )
+    if not valid:
+        return Estimate.none(0.0)
+    return Estimate.of_pose(0.0, (x_cm / 100, y_cm / 100, z_cm / 100), math.radians(yaw_deg))
 
 
 def _camera_view(settings: ControllerSettings, target_body_m: np.ndarray) -> Estimate:
@@ -54,11 +54,72 @@ def test_aligns_before_climbing_and_commits_at_the_end() -> None:
     centred = c.update(_camera_view(s, np.array([0.0, 0.0, 0.5])), 0.1, np.eye(3))
     assert centred.phase == "climb"
     assert centred.v_mps[2] == pytest.approx(s.max_z_mps)
-    close = c.update(_camera_view(s, np.array([0.001, 0.0, 0.05])), 0.2, np.eye(3))
+    close_view = _camera_view(s, np.array([0.001, 0.0, 0.035]))
+    first = c.update(close_view, 0.2, np.eye(3))
+    assert first.phase == "climb"  # one frame is no evidence
+    c.update(close_view, 0.23, np.eye(3))
+    close = c.update(close_view, 0.27, np.eye(3))
     assert close.phase == "commit"
     assert close.v_mps[2] == pytest.approx(s.commit_speed_mps)
     blind = c.update(None, 0.3, np.eye(3))
     assert blind.phase == "commit"
+
+
+def test_commit_needs_consistent_frames_and_ends_on_far_evidence() -> None:
+    s = ControllerSettings()
+    c = PerchingController(s)
+    far = _camera_view(s, np.array([0.0, 0.0, 0.6]))
+    near = _camera_view(s, np.array([0.0, 0.0, 0.03]))
+    phases = [
+        c.update(e, k / 30, np.eye(3)).phase for k, e in enumerate([far, near, far, near, far])
+    ]
+    assert "commit" not in phases
+    phases = [c.update(near, (5 + k) / 30, np.eye(3)).phase for k in range(3)]
+    assert phases == ["climb", "climb", "commit"]
+    # one frame that puts the target far again ends the final climb
+    back = c.update(far, 8 / 30, np.eye(3))
+    assert back.phase == "climb"
+    assert back.v_mps[2] == pytest.approx(s.max_z_mps)
+
+
+def test_blind_commit_needs_consistent_frames() -> None:
+    s = ControllerSettings()
+    c = PerchingController(s)
+    c.update(_camera_view(s, np.array([0.0, 0.0, 0.6])), 0.0, np.eye(3))
+    c.update(_camera_view(s, np.array([0.0, 0.0, 0.6])), 1 / 30, np.eye(3))
+    c.update(_camera_view(s, np.array([0.0, 0.0, 0.08])), 2 / 30, np.eye(3))  # an outlier
+    assert c.update(None, 3 / 30, np.eye(3)).phase == "lost"
+    c2 = PerchingController(s)
+    for k in range(3):
+        c2.update(_camera_view(s, np.array([0.0, 0.0, 0.10 - 0.005 * k])), k / 30, np.eye(3))
+    assert c2.update(None, 3 / 30, np.eye(3)).phase == "commit"
+
+
+def test_a_final_climb_that_never_ends_backs_off() -> None:
+    s = ControllerSettings(commit_timeout_s=1.0)
+    c = PerchingController(s)
+    for k in range(3):
+        c.update(_camera_view(s, np.array([0.0, 0.0, 0.03])), k / 30, np.eye(3))
+    assert c.phase == "commit"
+    assert c.update(None, 0.9, np.eye(3)).phase == "commit"
+    backed = c.update(None, 1.2, np.eye(3))
+    assert backed.phase == "lost"
+    np.testing.assert_array_equal(backed.v_mps, 0.0)
+
+
+def test_stale_and_non_finite_estimates_count_as_no_target() -> None:
+    s = ControllerSettings(max_estimate_age_s=0.5)
+    c = PerchingController(s)
+    seen = _camera_view(s, np.array([0.10, 0.0, 0.6]))
+    assert c.update(seen, 0.0, np.eye(3)).phase == "align"
+    old = Estimate.of_pose(1.0, seen.t_camera_target_m, 0.0, age_s=0.6)
+    assert c.update(old, 1.0, np.eye(3)).phase == "lost"
+    late = Estimate.of_pose(1.0, seen.t_camera_target_m, 0.0)
+    assert c.update(late, 1.6, np.eye(3)).phase == "lost"  # captured 0.6 s before
+    inf = Estimate.of_pose(1.7, (math.inf, 0.0, 0.6), 0.0)
+    command = c.update(inf, 1.7, np.eye(3))
+    assert command.phase == "lost"
+    assert np.all(np.isfinite(command.v_mps))
 
 
 def test_lost_target_holds_then_descends() -> None:

@@ -10,52 +10,33 @@ Phases: ``search`` (no target yet: hold), ``align`` (centre the magnet under the
 to its heading at constant height), ``climb`` (rise while keeping alignment, slowing near the
 plate), ``commit`` (the last centimetres at a constant gentle speed), ``lost`` (target lost:
 hold, then descend to re-acquire).
+
+The final climb is entered only on consistent evidence: ``commit_frames`` valid frames in a
+row that put the magnet within ``commit_distance_m`` below the target and ``commit_align_m``
+of its centre, or, when the camera loses the target (too close to see it), that many valid
+frames in a row within ``blind_commit_m`` and twice the align radius. A valid estimate during
+the climb that puts the target further than ``commit_exit_m`` above or ``commit_exit_lateral_m``
+aside ends it (one outlier frame can neither start nor hold a final climb), and a final climb
+that has run ``commit_timeout_s`` without the vehicle's own contact check ending it backs off
+(``lost``: hold, then descend to re-acquire). An estimate older than ``max_estimate_age_s`` or
+with a non-finite field counts as no target.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
-from perchpose.errors import PerchposeError, require_positive
-from perchpose.estimator import Estimate
-from perchpose.geometry import check_transform, make_transform, wrap_angle_rad
+from perchpose.control.mount import default_T_body_camera
+from perchpose.errors import ControllerConfigError, require_positive
+from perchpose.geometry import wrap_angle_rad
+from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
-
-
-class ControllerConfigError(PerchposeError):
-    """Controller settings that cannot work (negative limits, an unstable loop)."""
-
-
-def default_T_body_camera() -> Array:
-    """Camera on top of the body looking up, its axes parallel to the body's (image x along the
-    body's front, optical axis up), 15 mm ahead of and 12 mm above the body centre. With it, the
-    estimate's yaw is the heading error between the body and the target."""
-    return make_transform(np.eye(3), np.array([0.015, 0.0, 0.012]))
-
-
-def load_T_body_camera(path: str | Path) -> Array:
-    """``T_body_camera`` from a YAML file holding a 4x4 matrix under that key (body FLU: x
-    forward, y left, z up; camera: OpenCV optical frame)."""
-    where = Path(path)
-    try:
-        data = yaml.safe_load(where.read_text())
-    except OSError as exc:
-        raise ControllerConfigError(f"{where}: cannot read ({exc.strerror})") from exc
-    except yaml.YAMLError as exc:
-        raise ControllerConfigError(f"{where}: not YAML ({exc})") from exc
-    if not isinstance(data, dict) or "T_body_camera" not in data:
-        raise ControllerConfigError(f"{where}: no T_body_camera (a 4x4 matrix, metres)")
-    try:
-        return check_transform(np.asarray(data["T_body_camera"], dtype=float), "T_body_camera")
-    except (ValueError, TypeError, PerchposeError) as exc:
-        raise ControllerConfigError(f"{where}: T_body_camera: {exc}") from exc
 
 
 @dataclass(frozen=True)
@@ -66,9 +47,13 @@ class ControllerSettings:
     vehicle climbs at full rate. commit_distance_m : height below the plate where the final
     constant-speed climb starts. commit_speed_mps : that speed. blind_commit_m : losing the
     target closer than this while aligned (the camera is then too close to see it) commits
-    instead of counting as lost. hold_s : hover after losing the
-    target before descending at descend_mps. camera_period_s : update period, for the stability
-    check.
+    instead of counting as lost. commit_frames : consecutive valid frames that must agree
+    before the final climb starts. commit_exit_m, commit_exit_lateral_m : a valid estimate
+    putting the target further above or aside than these ends the final climb.
+    commit_timeout_s : a final climb still going after this long backs off.
+    max_estimate_age_s : estimates older than this (``Estimate.age_s`` plus the time since
+    capture) are ignored. hold_s : hover after losing the target before descending at
+    descend_mps. camera_period_s : update period, for the stability check.
     """
 
     k_xy: float = 1.6
@@ -82,6 +67,11 @@ class ControllerSettings:
     commit_speed_mps: float = 0.15
     commit_align_m: float = 0.006
     blind_commit_m: float = 0.12
+    commit_frames: int = 3
+    commit_exit_m: float = 0.10
+    commit_exit_lateral_m: float = 0.03
+    commit_timeout_s: float = 2.0
+    max_estimate_age_s: float = 0.5
     hold_s: float = 1.0
     descend_mps: float = 0.1
     camera_period_s: float = 1.0 / 30.0
@@ -100,8 +90,14 @@ class ControllerSettings:
             "commit_speed_mps",
             "descend_mps",
             "camera_period_s",
+            "commit_exit_m",
+            "commit_exit_lateral_m",
+            "commit_timeout_s",
+            "max_estimate_age_s",
         )
         require_positive(self, positive, ControllerConfigError)
+        if self.commit_frames < 1:
+            raise ControllerConfigError(f"commit_frames must be >= 1, got {self.commit_frames}")
         # a proportional loop closed through a sampled, one-frame-late measurement is stable
         # only while gain * period stays well under 1
         for name in ("k_xy", "k_z", "k_yaw"):
@@ -125,6 +121,15 @@ class Command:
     error_m: Array | None = None
 
 
+def usable(estimate: Estimate | None, t_s: float, max_age_s: float) -> bool:
+    """A valid estimate with finite fields, at most ``max_age_s`` old at ``t_s`` (its own age
+    plus the time since its frame was captured)."""
+    if estimate is None or not estimate.valid or not estimate.finite:
+        return False
+    age = estimate.age_s + max(0.0, t_s - estimate.t_s)
+    return math.isfinite(age) and age <= max_age_s
+
+
 class PerchingController:
     """Steers the magnet onto the target's centre; call ``update`` once per camera frame."""
 
@@ -132,37 +137,69 @@ class PerchingController:
         self.settings = settings or ControllerSettings()
         self.phase = "search"
         self._lost_since: float | None = None
-        self._last_error: Array | None = None
+        self._commit_since: float | None = None
+        # world-frame magnet-to-target vectors of the latest valid frames, newest last
+        self._recent: deque[Array] = deque(maxlen=self.settings.commit_frames)
 
     def magnet_to_target(self, estimate: Estimate, R_world_body: Array) -> tuple[Array, float]:
         """(world-frame vector from the magnet to the target centre, heading error in rad)."""
         s = self.settings
-        p_camera = np.array([estimate.x_cm, estimate.y_cm, estimate.z_cm]) / 100.0
+        p_camera = estimate.t_m
         T = s.T_body_camera
         p_body = T[:3, :3] @ p_camera + T[:3, 3]
         d_world = R_world_body @ (p_body - np.asarray(s.p_body_magnet_m))
-        yaw = math.radians(estimate.yaw_deg)
+        yaw = estimate.yaw_rad
         x_target_camera = np.array([math.cos(yaw), math.sin(yaw), 0.0])
         x_target_body = T[:3, :3] @ x_target_camera
         heading_error = math.atan2(float(x_target_body[1]), float(x_target_body[0]))
         return d_world, wrap_angle_rad(heading_error)
 
+    def _all_recent(self, height_m: float, lateral_m: float) -> bool:
+        """The last ``commit_frames`` valid frames all had the target under ``height_m`` above
+        and ``lateral_m`` aside."""
+        return len(self._recent) == self.settings.commit_frames and all(
+            float(d[2]) < height_m and float(np.hypot(d[0], d[1])) < lateral_m for d in self._recent
+        )
+
+    def _enter_commit(self, t_s: float) -> None:
+        if self.phase != "commit":
+            self._commit_since = t_s
+        self.phase = "commit"
+
+    def back_off(self, t_s: float) -> None:
+        """Abandon the final climb (no contact came): hold, then descend to re-acquire."""
+        self.phase = "lost"
+        self._commit_since = None
+        self._lost_since = t_s
+        self._recent.clear()
+
     def update(self, estimate: Estimate | None, t_s: float, R_world_body: Array) -> Command:
-        """The setpoint for this frame; ``estimate`` None or not valid means no target."""
+        """The setpoint for this frame; an estimate that is None, not valid, not finite or too
+        old means no target."""
         s = self.settings
-        if estimate is None or not estimate.valid:
+        since = self._commit_since
+        if self.phase == "commit" and since is not None and t_s - since >= s.commit_timeout_s:
+            self.back_off(t_s)
+        if not usable(estimate, t_s, s.max_estimate_age_s):
             return self._no_target(t_s)
+        assert estimate is not None
         self._lost_since = None
         d, heading_error = self.magnet_to_target(estimate, R_world_body)
-        self._last_error = d
+        if estimate.age_s <= 0.0:  # a measurement of this frame, not a coasting filter's guess
+            self._recent.append(d)
         lateral = float(np.hypot(d[0], d[1]))
         v = np.zeros(3)
         scale = min(1.0, s.max_xy_mps / max(1e-9, s.k_xy * lateral))
         v[:2] = s.k_xy * d[:2] * scale
         yaw_rate = float(np.clip(s.k_yaw * heading_error, -s.max_yaw_rate, s.max_yaw_rate))
         height = float(d[2])
-        if self.phase == "commit" or (height < s.commit_distance_m and lateral < s.commit_align_m):
-            self.phase = "commit"
+        if self.phase == "commit" and (
+            height > s.commit_exit_m or lateral > s.commit_exit_lateral_m
+        ):
+            self.phase = "align"  # the evidence says the target is not where the climb is
+            self._commit_since = None
+        if self.phase == "commit" or self._all_recent(s.commit_distance_m, s.commit_align_m):
+            self._enter_commit(t_s)
             v[2] = s.commit_speed_mps
         else:
             aligned = float(
@@ -178,18 +215,15 @@ class PerchingController:
             return Command(np.array([0.0, 0.0, s.commit_speed_mps]), 0.0, "commit")
         if self.phase == "search":
             return Command(np.zeros(3), 0.0, "search")
-        last = self._last_error
-        if (
-            self.phase in ("align", "climb")
-            and last is not None
-            and last[2] < s.blind_commit_m
-            and float(np.hypot(last[0], last[1])) < 2 * s.align_radius_m
+        if self.phase in ("align", "climb") and self._all_recent(
+            s.blind_commit_m, 2 * s.align_radius_m
         ):
-            self.phase = "commit"
+            self._enter_commit(t_s)
             return Command(np.array([0.0, 0.0, s.commit_speed_mps]), 0.0, "commit")
         if self._lost_since is None:
             self._lost_since = t_s
         self.phase = "lost"
+        self._recent.clear()
         if t_s - self._lost_since < s.hold_s:
             return Command(np.zeros(3), 0.0, "lost")
         return Command(np.array([0.0, 0.0, -s.descend_mps]), 0.0, "lost")

@@ -1,0 +1,286 @@
+"""The perching phase machine: the controller wrapped in the safety states that fly a vehicle.
+
+``PerchingPilot`` turns each frame's estimate into a world-frame velocity setpoint with the
+controller of ``perchpose.control.controller`` and sends it through any object with cflib's
+``Commander`` methods (``send_velocity_world_setpoint``: m/s and deg/s, world z up). The
+Crazyflie link (``perchpose.io.crazyflie``) and the simulation (``perchpose.sim.perch``) both
+run it.
+
+- ``waiting``: nothing is sent until the first usable estimate (the pilot takes over then);
+- ``perching``: the controller's setpoints (align, climb, commit);
+- ``lost``: the target is gone; the controller hovers, then descends to re-acquire it;
+- ``landing``: lost for longer than ``land_after_lost_s``, or stopped by the user: descend at
+  ``land_speed_mps`` until the height source says landed (or ``land_duration_s`` elapses), then
+  a stop setpoint;
+- ``perched``: contact: during the final climb the vehicle's height stopped rising (under
+  ``contact_rise_m`` over ``contact_window_s`` while climbing): a stop setpoint cuts the motors
+  and the magnet holds the vehicle. Time alone never stops the motors; without a height source
+  there is no contact evidence, and a final climb that does not end backs off;
+- ``landed``, ``link_lost``: nothing more is sent. After a link loss the Crazyflie's own
+  commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s and 2 s without
+  setpoints).
+
+Every setpoint passes ``safe_setpoint`` last: nothing non-finite is sent, and speeds and yaw
+rate are clamped to ``PilotSettings.limits``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.control.controller import Command, PerchingController, usable
+from perchpose.control.setpoint import SetpointLimits, safe_setpoint
+from perchpose.errors import ControllerConfigError, require_positive
+from perchpose.values import Estimate
+
+Array = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+STATES = ("waiting", "perching", "lost", "landing", "perched", "landed", "link_lost")
+FLYING = ("perching", "lost", "landing")
+
+
+class CommanderLike(Protocol):
+    """The part of ``cflib.crazyflie.commander.Commander`` the pilot uses."""
+
+    def send_velocity_world_setpoint(
+        self, vx: float, vy: float, vz: float, yawrate: float
+    ) -> None: ...
+
+    def send_stop_setpoint(self) -> None: ...
+
+    def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None: ...
+
+
+@dataclass(frozen=True)
+class PilotSettings:
+    """Safety limits (SI units).
+
+    land_after_lost_s : a target lost this long lands the vehicle. land_speed_mps : descent
+    speed when landing. land_duration_s : landing ends after this long when no height source
+    says so earlier. landed_height_m : height under which the vehicle counts as landed.
+    contact_window_s, contact_rise_m : contact is a final climb whose height rose less than
+    contact_rise_m over the last contact_window_s. limits : the largest setpoint sent.
+    """
+
+    land_after_lost_s: float = 4.0
+    land_speed_mps: float = 0.2
+    land_duration_s: float = 10.0
+    landed_height_m: float = 0.06
+    contact_window_s: float = 0.3
+    contact_rise_m: float = 0.005
+    setpoint_period_s: float = 0.05
+    limits: SetpointLimits = field(default_factory=SetpointLimits)
+
+    def __post_init__(self) -> None:
+        positive = (
+            "land_after_lost_s",
+            "land_speed_mps",
+            "land_duration_s",
+            "contact_window_s",
+            "contact_rise_m",
+            "setpoint_period_s",
+        )
+        require_positive(self, positive, ControllerConfigError, "pilot setting ")
+
+
+@dataclass(frozen=True)
+class PilotStep:
+    """What the pilot did for one frame: its state and the setpoint sent (None: nothing)."""
+
+    t_s: float
+    state: str
+    v_mps: tuple[float, float, float] | None
+    yaw_rate_deg_s: float | None
+    phase: str | None
+
+
+class ContactDetector:
+    """Contact evidence: during the final climb, the height stopped rising."""
+
+    def __init__(self, window_s: float, rise_m: float) -> None:
+        self.window_s = window_s
+        self.rise_m = rise_m
+        self._samples: deque[tuple[float, float]] = deque()
+
+    def reset(self) -> None:
+        self._samples.clear()
+
+    def touched(self, t_s: float, height_m: float | None) -> bool:
+        """Add a height sample of the final climb; True once the height has risen less than
+        ``rise_m`` over a whole window."""
+        if height_m is None or not math.isfinite(height_m):
+            return False
+        self._samples.append((t_s, height_m))
+        while len(self._samples) > 1 and t_s - self._samples[1][0] >= self.window_s:
+            self._samples.popleft()
+        t0, h0 = self._samples[0]
+        if t_s - t0 < self.window_s:
+            return False
+        return max(h for _, h in self._samples) - h0 < self.rise_m
+
+
+class PerchingPilot:
+    """Drives ``commander`` from per-frame estimates; call ``update`` once per camera frame.
+
+    attitude : returns the vehicle's ``R_world_body`` (world z up), e.g. from the Crazyflie's
+    state estimate. height_m : the vehicle's height above the ground from its own state
+    estimate (None: unknown); it is the contact evidence that ends a perch.
+    """
+
+    def __init__(
+        self,
+        commander: CommanderLike,
+        attitude: Callable[[], Array],
+        *,
+        controller: PerchingController | None = None,
+        settings: PilotSettings | None = None,
+        height_m: Callable[[], float | None] | None = None,
+        report: Callable[[str], None] | None = None,
+    ) -> None:
+        self.commander = commander
+        self.attitude = attitude
+        self.controller = controller or PerchingController()
+        self.settings = settings or PilotSettings()
+        self.height_m = height_m
+        self.report = report or log.warning
+        self.state = "waiting"
+        self.transitions: list[tuple[float, str, str]] = []
+        self.replaced_setpoints = 0
+        self._last_valid_t: float | None = None
+        self._landing_since: float | None = None
+        self._contact = ContactDetector(
+            self.settings.contact_window_s, self.settings.contact_rise_m
+        )
+        self.last_t_s = 0.0
+        if height_m is None:
+            self.report(
+                "pilot: no height source, so no contact evidence: the motors are never "
+                "stopped on the plate, and a final climb backs off after "
+                f"{self.controller.settings.commit_timeout_s:g} s"
+            )
+
+    # -- state ----------------------------------------------------------------------------
+
+    def _enter(self, state: str, t_s: float, why: str) -> None:
+        if state != self.state:
+            self.transitions.append((t_s, self.state, state))
+            self.report(f"pilot: {self.state} -> {state} at t = {t_s:.2f} s ({why})")
+            self.state = state
+
+    @property
+    def flying(self) -> bool:
+        return self.state in FLYING
+
+    def watch_link(self, crazyflie: Any) -> None:
+        """Be told when ``crazyflie`` (a ``cflib.crazyflie.Crazyflie``) loses its link."""
+        crazyflie.connection_lost.add_callback(lambda _uri, reason: self.link_lost(str(reason)))
+
+    def link_lost(self, reason: str = "link lost") -> None:
+        """The radio link is gone: send nothing more (the firmware's watchdog takes over)."""
+        if self.state not in ("landed", "perched", "link_lost"):
+            self._enter("link_lost", self.last_t_s, reason)
+
+    def abort(self, t_s: float, reason: str = "stopped by the user") -> None:
+        """Stop perching: land if flying; otherwise never take over."""
+        if self.flying and self.state != "landing":
+            self._start_landing(t_s, reason)
+        elif self.state == "waiting":
+            self._enter("landed", t_s, reason)
+
+    # -- setpoints ------------------------------------------------------------------------
+
+    def _send(self, t_s: float, v: Array, yaw_rate_rad_s: float, phase: str | None) -> PilotStep:
+        sp = safe_setpoint(v, yaw_rate_rad_s, self.settings.limits)
+        if sp.replaced:
+            self.replaced_setpoints += 1
+            if self.replaced_setpoints == 1:
+                self.report(
+                    f"pilot: a non-finite setpoint at t = {t_s:.2f} s was replaced by a hover "
+                    "(reported once)"
+                )
+        vx, vy, vz = sp.v_mps
+        yaw_rate_deg_s = math.degrees(sp.yaw_rate_rad_s)
+        self.commander.send_velocity_world_setpoint(vx, vy, vz, yaw_rate_deg_s)
+        return PilotStep(t_s, self.state, sp.v_mps, yaw_rate_deg_s, phase)
+
+    def _stop(self, t_s: float, state: str, why: str) -> PilotStep:
+        self.commander.send_stop_setpoint()
+        self.commander.send_notify_setpoint_stop(0)
+        self._enter(state, t_s, why)
+        return PilotStep(t_s, self.state, None, None, None)
+
+    def _start_landing(self, t_s: float, why: str) -> None:
+        self._landing_since = t_s
+        self._enter("landing", t_s, why)
+
+    def _height(self) -> float | None:
+        return self.height_m() if self.height_m is not None else None
+
+    def _land_step(self, t_s: float) -> PilotStep:
+        s = self.settings
+        since = self._landing_since if self._landing_since is not None else t_s
+        height = self._height()
+        if (height is not None and height < s.landed_height_m) or t_s - since >= (
+            s.land_duration_s
+        ):
+            return self._stop(t_s, "landed", "on the ground")
+        return self._send(t_s, np.array([0.0, 0.0, -s.land_speed_mps]), 0.0, None)
+
+    def update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
+        """One frame: the estimate (None, not valid or too old: no target) at time ``t_s``."""
+        self.last_t_s = t_s
+        s = self.settings
+        limit_s = self.controller.settings.max_estimate_age_s
+        fresh = usable(estimate, t_s, limit_s)
+        if self.state == "waiting":
+            if not fresh:
+                return PilotStep(t_s, self.state, None, None, None)
+            self._enter("perching", t_s, "target in view")
+        if self.state in ("landed", "perched", "link_lost"):
+            return PilotStep(t_s, self.state, None, None, None)
+        if self.state == "landing":
+            return self._land_step(t_s)
+        if fresh:
+            self._last_valid_t = t_s
+        command: Command = self.controller.update(estimate, t_s, self.attitude())
+        if command.phase == "commit":
+            if self._contact.touched(t_s, self._height()):
+                return self._stop(t_s, "perched", "the final climb stopped against the plate")
+            self._enter("perching", t_s, "final climb")
+        else:
+            self._contact.reset()
+            if command.phase == "lost":
+                last = self._last_valid_t if self._last_valid_t is not None else t_s
+                if t_s - last >= s.land_after_lost_s:
+                    self._start_landing(t_s, f"target lost for {t_s - last:.1f} s")
+                    return self._land_step(t_s)
+                self._enter("lost", t_s, "target lost")
+            else:
+                self._enter("perching", t_s, "target in view")
+        return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
+
+    def __call__(self, estimate: Estimate | None, t_s: float) -> None:
+        """The per-frame hook ``track`` calls."""
+        self.update(estimate, t_s)
+
+    def land(
+        self,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        """Finish a landing in real time (after ``abort`` or a lost target), sending a setpoint
+        every ``setpoint_period_s`` until landed."""
+        t0 = clock() - self.last_t_s
+        while self.state == "landing":
+            self._land_step(clock() - t0)
+            sleep(self.settings.setpoint_period_s)

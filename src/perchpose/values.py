@@ -1,0 +1,196 @@
+"""The pipeline's result values: detections, per-marker poses, and the estimate of one frame.
+
+This is the bottom layer: the links, the controller and the sinks import these types without
+the vision pipeline. Every value carries SI units once (metres, radians, seconds); the paper's
+centimetres and degrees are derived properties for the output edge (CSV columns, reports).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.geometry import yaw_rad
+
+Array = NDArray[np.float64]
+
+
+def quad_side_px(quad: Array) -> float:
+    """Mean side length of a (4, 2) quadrilateral, pixels."""
+    d = quad[[1, 2, 3, 0]] - quad
+    return float(np.sqrt((d * d).sum(axis=1)).mean())
+
+
+@dataclass(frozen=True)
+class MarkerDetection:
+    """One target marker found in an image.
+
+    marker_index : index into ``TargetSpec.markers``.
+    corners_px : (4, 2) float64, pixels of the original image, ArUco order.
+    image_pass : ``raw`` (found on the image itself) or ``rectified``.
+    """
+
+    marker_index: int
+    corners_px: Array
+    image_pass: Literal["raw", "rectified"]
+
+    @property
+    def side_px(self) -> float:
+        """Mean side length in pixels."""
+        return quad_side_px(self.corners_px)
+
+
+@dataclass(frozen=True)
+class MarkerPose:
+    """The pose of the target measured from one marker.
+
+    T_camera_target : (4, 4) float64, metres.
+    reproj_rms_px : RMS distance between detected and reprojected corners, pixels.
+    alt_reproj_rms_px : the same for the other IPPE solution (inf if there was none).
+    ambiguous : the two solutions were too close to tell apart by reprojection alone.
+    alt_T_camera_target : (4, 4) the other IPPE solution, or None.
+    """
+
+    marker_index: int
+    T_camera_target: Array
+    reproj_rms_px: float
+    alt_reproj_rms_px: float
+    ambiguous: bool
+    alt_T_camera_target: Array | None = None
+
+    @property
+    def yaw_rad(self) -> float:
+        """Yaw of the target in the camera frame, radians."""
+        return yaw_rad(self.T_camera_target[:3, :3])
+
+    @property
+    def t_m(self) -> Array:
+        """Target centre in the camera frame, (3,) metres."""
+        return self.T_camera_target[:3, 3]
+
+
+@dataclass(frozen=True)
+class PoseFailure:
+    """A marker whose pose could not be computed, and why. Falsy."""
+
+    marker_index: int
+    reason: str
+
+    def __bool__(self) -> bool:
+        return False
+
+
+@dataclass(frozen=True)
+class MarkerState:
+    """What one marker contributed to a frame.
+
+    label : ``DICTIONARY:id``.
+    detection : the detected corners, or None.
+    measurement : the raw per-frame pose, or None (not detected, or rejected).
+    rejected : why a detected marker gave no measurement ('' if it did).
+    filtered_pose : (4,) [yaw_rad, x_m, y_m, z_m] of the marker's filter after this frame, or None.
+    missed_frames : consecutive frames without a measurement.
+    contributing : the marker's filtered pose went into the fused estimate.
+    """
+
+    label: str
+    detection: MarkerDetection | None
+    measurement: MarkerPose | None
+    rejected: str
+    filtered_pose: Array | None
+    missed_frames: int
+    contributing: bool
+
+
+@dataclass(frozen=True)
+class Timings:
+    """Wall-clock milliseconds spent in each step of one update."""
+
+    detect_ms: float = 0.0
+    pose_ms: float = 0.0
+    filter_ms: float = 0.0
+    total_ms: float = 0.0
+
+
+NO_POSITION = (math.nan, math.nan, math.nan)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The target's pose in the camera frame for one frame (DESIGN section 2), in SI units.
+
+    t_s : the frame's capture time, seconds.
+    valid : there is a pose to act on.
+    stage : 0 no estimate, 1 outer marker only, 2 both, 3 inner only.
+    t_camera_target_m : (x, y, z) target centre in the camera frame, metres (NaN if not valid).
+    yaw_rad : atan2(R[1,0], R[0,0]) of R_camera_target, radians in (-pi, pi] (NaN if not valid).
+    markers : per-marker contributions (empty when the pose did not come from images).
+    timings : time spent on the frame.
+    age_s : seconds since the newest measurement the pose rests on (0 when this frame measured
+        the target; a coasting filter's extrapolation is older). Links refuse poses older than
+        their limit.
+
+    ``x_cm``, ``y_cm``, ``z_cm`` and ``yaw_deg`` are the same pose in the paper's units.
+    """
+
+    t_s: float
+    valid: bool
+    stage: int
+    t_camera_target_m: tuple[float, float, float] = NO_POSITION
+    yaw_rad: float = math.nan
+    markers: tuple[MarkerState, ...] = ()
+    timings: Timings = field(default_factory=Timings)
+    age_s: float = 0.0
+
+    @classmethod
+    def none(cls, t_s: float, markers: tuple[MarkerState, ...] = ()) -> Estimate:
+        """No pose for the frame at ``t_s``."""
+        return cls(t_s, False, 0, markers=markers)
+
+    @classmethod
+    def of_pose(
+        cls,
+        t_s: float,
+        t_camera_target_m: tuple[float, float, float] | Array,
+        yaw_rad: float,
+        stage: int = 2,
+        age_s: float = 0.0,
+    ) -> Estimate:
+        """A valid estimate of a known pose (a simulation's truth, a replay, a test)."""
+        x, y, z = (float(v) for v in t_camera_target_m)
+        return cls(t_s, True, stage, (x, y, z), float(yaw_rad), age_s=age_s)
+
+    @property
+    def t_m(self) -> Array:
+        """(3,) target centre in the camera frame, metres."""
+        return np.array(self.t_camera_target_m, dtype=np.float64)
+
+    @property
+    def finite(self) -> bool:
+        """Every pose field is a finite number."""
+        return all(math.isfinite(v) for v in (*self.t_camera_target_m, self.yaw_rad))
+
+    @property
+    def x_cm(self) -> float:
+        return self.t_camera_target_m[0] * 100.0
+
+    @property
+    def y_cm(self) -> float:
+        return self.t_camera_target_m[1] * 100.0
+
+    @property
+    def z_cm(self) -> float:
+        return self.t_camera_target_m[2] * 100.0
+
+    @property
+    def yaw_deg(self) -> float:
+        return math.degrees(self.yaw_rad)
+
+    @property
+    def detected(self) -> tuple[int, ...]:
+        """Indices of the markers measured in this frame."""
+        return tuple(i for i, m in enumerate(self.markers) if m.measurement is not None)
