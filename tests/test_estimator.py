@@ -1,11 +1,13 @@
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from perchpose import PerchingEstimator
+from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.errors import ImageError, TimestampError
 from perchpose.geometry import facing_pose, wrap_angle_deg
+from perchpose.io.sources import open_source
 from perchpose.sim.render import Renderer
 from perchpose.sim.scenarios import markers_in_view
 from perchpose.sim.sequence import dropout_occluder
@@ -125,6 +127,40 @@ def test_a_camera_stall_ends_the_estimate(renderers: dict[str, Renderer], fusion
     again = est.update(r.render(facing_pose(0.0, 0.0, 0.4, 0.1), rng=rng), 6.1)
     assert again.valid
     assert abs(again.z_cm - 40.0) < 0.3
+
+
+@pytest.mark.parametrize("fusion", ["covariance", "paper"])
+def test_a_jump_is_followed_at_once(renderers: dict[str, Renderer], fusion: str) -> None:
+    """A still target at 25 cm, then (re-acquired, or another sequence) at 150 cm: the first
+    frame after the jump is already there, where a filter that smooths it lagged by over a
+    metre and took 11 frames to settle."""
+    r = renderers["webcam"]
+    est = PerchingEstimator(r.camera, r.target, fusion=fusion)  # type: ignore[arg-type]
+    rng = np.random.default_rng(3)
+    near, far = facing_pose(0.01, 0.0, 0.25, 0.3), facing_pose(-0.05, 0.02, 1.5, 0.3)
+    for k in range(15):
+        assert est.update(r.render(near, rng=rng), k / 30).valid
+    assert est.reinitialised == 0
+    after = [est.update(r.render(far, rng=rng), k / 30) for k in range(15, 20)]
+    assert est.reinitialised >= 1
+    for e in after:
+        assert e.valid
+        assert abs(e.z_cm - 150.0) < 1.5
+        assert abs(e.x_cm + 5.0) < 0.5
+
+
+@pytest.mark.parametrize("fusion", ["covariance", "paper"])
+def test_an_approach_never_restarts_a_filter(approach_fpv_dir: Path, fusion: str) -> None:
+    """The impossible-innovation gate stays silent on a real approach with a dropout."""
+    camera = CameraModel.load(approach_fpv_dir / "camera.yaml")
+    est = PerchingEstimator(camera, TargetSpec.paper(), fusion=fusion)  # type: ignore[arg-type]
+    frames = open_source(str(approach_fpv_dir))
+    valid = 0
+    for frame in frames:
+        assert frame.image is not None
+        valid += est.update(frame.image, frame.t_s).valid
+    assert valid > 60
+    assert est.reinitialised == 0
 
 
 def test_timestamps_must_be_finite_and_not_go_backwards(renderers: dict[str, Renderer]) -> None:

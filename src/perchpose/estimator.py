@@ -87,6 +87,11 @@ class PerchingEstimator:
         self._last_t_s: float | None = None
         self._hint: tuple[MarkerDetection, ...] = ()
 
+    @property
+    def reinitialised(self) -> int:
+        """Times a filter restarted at a measurement its covariance called impossible."""
+        return self._fused.reinitialised + sum(tr.reinitialised for tr in self._tracks)
+
     def reset(self) -> None:
         """Forget all tracks (a new sequence)."""
         self._tracks = [MarkerTrack(self.kalman) for _ in self.target.markers]

@@ -31,6 +31,11 @@ PAPER_COAST_S = 8.0 / 30.0
 _TIME_SLACK_S = 1e-6
 
 
+# An innovation this many squared standard deviations out (ten sigma in one dimension) is no
+# measurement of the state the filter holds: the target was re-acquired, swapped or jumped.
+REINIT_CHI2 = 100.0
+
+
 def check_dropout_rule(alpha: float, n_max: int, max_coast_s: float) -> None:
     """The rule for frames without a measurement: 0 <= alpha <= 1, n_max >= 0, and a positive
     time limit ``max_coast_s``."""
@@ -56,6 +61,8 @@ class KalmanSettings:
     max_coast_s : seconds a track may go without a detection before it is dropped, whatever
         the number of frames (default: the paper's 8 frames at 30 frames per second). A camera
         that stalls delivers no frames to count; this bound ends the extrapolation anyway.
+    reinit_chi2 : a measurement whose innovation has a squared Mahalanobis distance above this
+        restarts the filter at it (default 100: ten standard deviations).
     p0_position, p0_velocity : initial variances of the position/yaw and velocity states.
     """
 
@@ -64,6 +71,7 @@ class KalmanSettings:
     alpha: float = 0.85
     n_max: int = 8
     max_coast_s: float = PAPER_COAST_S
+    reinit_chi2: float = REINIT_CHI2
     p0_position: float = 1e-4
     p0_velocity: float = 1.0
 
@@ -71,6 +79,8 @@ class KalmanSettings:
         if not (self.k1 > 0 and self.k2 > 0):
             raise ValueError(f"k1 and k2 must be positive, got k1={self.k1}, k2={self.k2}")
         check_dropout_rule(self.alpha, self.n_max, self.max_coast_s)
+        if not self.reinit_chi2 > 0:
+            raise ValueError(f"reinit_chi2 must be positive, got {self.reinit_chi2}")
 
 
 def transition(dt_s: float) -> Array:
@@ -108,12 +118,17 @@ class ConstantVelocityFilter:
         self.x_prior = self.x.copy()
         self.P_prior = self.P.copy()
 
+    def innovation(self, z: Array, R: Array) -> tuple[Array, Array]:
+        """(y, S): the innovation of z = [psi, tx, ty, tz] (yaw wrapped) and its covariance
+        for a measurement of covariance R (4, 4)."""
+        y = np.asarray(z, dtype=np.float64) - H @ self.x
+        y[0] = angle_diff_rad(float(z[0]), float(self.x[0]))
+        return y, H @ self.P @ H.T + R
+
     def update_with(self, z: Array, R: Array) -> None:
         """Correct with z = [psi, tx, ty, tz] of covariance R (4, 4); the yaw innovation is
         wrapped. The Joseph form keeps P symmetric and positive definite."""
-        y = np.asarray(z, dtype=np.float64) - H @ self.x
-        y[0] = angle_diff_rad(float(z[0]), float(self.x[0]))
-        S = H @ self.P @ H.T + R
+        y, S = self.innovation(z, R)
         K = np.linalg.solve(S, H @ self.P).T
         self.x = self.x + K @ y
         self.x[0] = wrap_angle_rad(float(self.x[0]))
@@ -165,13 +180,18 @@ class Track(ABC):
     A frame without a measurement decays the velocities by alpha and predicts; the track is
     dropped (``alive`` False) after ``n_max`` such frames in a row or when its newest
     measurement is more than ``max_coast_s`` old, whichever comes first. A measurement after
-    such a gap starts a new filter.
+    such a gap starts a new filter, and so does one whose innovation the filter's own
+    covariance calls impossible (squared Mahalanobis distance over ``reinit_chi2``: a
+    re-acquired or swapped target is followed at once instead of over many frames; counted in
+    ``reinitialised``).
     """
 
-    def __init__(self, alpha: float, n_max: int, max_coast_s: float) -> None:
+    def __init__(self, alpha: float, n_max: int, max_coast_s: float, reinit_chi2: float) -> None:
         self.alpha = alpha
         self.n_max = n_max
         self.max_coast_s = max_coast_s
+        self.reinit_chi2 = reinit_chi2
+        self.reinitialised = 0
         self.filter: ConstantVelocityFilter | None = None
         self.t_s = 0.0
         self.t_measured_s = math.nan
@@ -199,8 +219,8 @@ class Track(ABC):
         """The first filter of a track."""
 
     @abstractmethod
-    def _correct(self, z: Array, R: Array | None, dt_s: float) -> None:
-        """Predict by ``dt_s`` and correct with z."""
+    def _noise(self, R: Array | None) -> Array:
+        """The measurement covariance (4, 4) to correct with."""
 
     @abstractmethod
     def _coast(self, dt_s: float) -> None:
@@ -210,7 +230,14 @@ class Track(ABC):
         if self.filter is None or self._too_old(t_s):
             self.filter = self._start(z, R)
         else:
-            self._correct(z, R, t_s - self.t_s)
+            self._coast(t_s - self.t_s)
+            R_used = self._noise(R)
+            y, S = self.filter.innovation(z, R_used)
+            if float(y @ np.linalg.solve(S, y)) > self.reinit_chi2:
+                self.filter = self._start(z, R)
+                self.reinitialised += 1
+            else:
+                self.filter.update_with(z, R_used)
         self.t_s = self.t_measured_s = t_s
         self.missed = 0
 
@@ -237,16 +264,15 @@ class MarkerTrack(Track):
     filter: PaperKalmanFilter | None
 
     def __init__(self, settings: KalmanSettings) -> None:
-        super().__init__(settings.alpha, settings.n_max, settings.max_coast_s)
+        super().__init__(settings.alpha, settings.n_max, settings.max_coast_s, settings.reinit_chi2)
         self.settings = settings
 
     def _start(self, z: Array, R: Array | None) -> PaperKalmanFilter:
         return PaperKalmanFilter(z, self.settings)
 
-    def _correct(self, z: Array, R: Array | None, dt_s: float) -> None:
+    def _noise(self, R: Array | None) -> Array:
         assert self.filter is not None
-        self.filter.predict(dt_s)
-        self.filter.update(z)
+        return self.filter.R
 
     def _coast(self, dt_s: float) -> None:
         assert self.filter is not None
@@ -269,6 +295,7 @@ class CovarianceFilterSettings:
     q_yaw : the same for yaw (rad^2/s^3).
     alpha, n_max, max_coast_s : the rule for frames without a measurement (velocities times
         alpha per frame; dropped after n_max frames or max_coast_s seconds).
+    reinit_chi2 : the innovation (squared Mahalanobis distance) that restarts the filter.
     corner_sigma_px : corner noise per axis the measurement covariance is computed with.
     """
 
@@ -278,11 +305,14 @@ class CovarianceFilterSettings:
     n_max: int = 8
     corner_sigma_px: float = 0.1
     max_coast_s: float = PAPER_COAST_S
+    reinit_chi2: float = REINIT_CHI2
 
     def __post_init__(self) -> None:
         if not (self.q_position > 0 and self.q_yaw > 0 and self.corner_sigma_px > 0):
             raise ValueError("q_position, q_yaw and corner_sigma_px must be positive")
         check_dropout_rule(self.alpha, self.n_max, self.max_coast_s)
+        if not self.reinit_chi2 > 0:
+            raise ValueError(f"reinit_chi2 must be positive, got {self.reinit_chi2}")
 
 
 def white_acceleration_noise(dt_s: float, q: Array) -> Array:
@@ -300,7 +330,7 @@ class CovarianceTrack(Track):
     driven by white-noise acceleration, with the same rule for missed frames."""
 
     def __init__(self, settings: CovarianceFilterSettings) -> None:
-        super().__init__(settings.alpha, settings.n_max, settings.max_coast_s)
+        super().__init__(settings.alpha, settings.n_max, settings.max_coast_s, settings.reinit_chi2)
         self.settings = settings
         self._q = np.array([settings.q_yaw, settings.q_position, settings.q_position,
                             settings.q_position])  # fmt: skip
@@ -316,11 +346,9 @@ class CovarianceTrack(Track):
         assert self.filter is not None
         self.filter.predict_with(dt_s, white_acceleration_noise(dt_s, self._q))
 
-    def _correct(self, z: Array, R: Array | None, dt_s: float) -> None:
-        assert self.filter is not None
+    def _noise(self, R: Array | None) -> Array:
         assert R is not None
-        self._coast(dt_s)
-        self.filter.update_with(z, R)
+        return R
 
     def measured(self, z: Array, R: Array, t_s: float) -> None:
         """A measurement z = [psi, tx, ty, tz] with covariance R (4, 4) at ``t_s``."""
