@@ -241,10 +241,13 @@ def track(
 
     With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
     """
+    from perchpose.io.overlay import check_overlay_path
     from perchpose.track import track as run_track
 
     cam = _load_camera(camera_file)
     spec = _load_target(target_file)
+    if overlay is not None:
+        check_overlay_path(overlay)  # before any vehicle link takes over
     with _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks:
         summary = run_track(
             source,

@@ -12,7 +12,7 @@ from tqdm import tqdm
 from perchpose.camera import CameraModel
 from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
-from perchpose.io.overlay import OverlayWriter, draw_overlay
+from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
 from perchpose.io.sinks import PoseWriter, estimate_row
 from perchpose.io.sources import open_source
 from perchpose.target import TargetSpec
@@ -26,6 +26,7 @@ class TrackSummary:
     frames: int
     valid: int
     bad_frames: int
+    lost_frames: int
     stage_counts: dict[int, int]
     mean_ms: float
     out: Path
@@ -51,6 +52,8 @@ def track(
     every frame would be. Each of ``on_frame`` (vehicle links) is called once per frame with the
     estimate (None for an unreadable frame) and the frame's time.
     """
+    if overlay is not None:
+        check_overlay_path(overlay)
     frames = open_source(source, fps)
     est = estimator or PerchingEstimator(camera, target)
     say = warn or (lambda msg: print(f"warning: {msg}", file=sys.stderr))
@@ -86,7 +89,7 @@ def track(
             if error:
                 bad += 1
                 say(error)
-            writer.write(estimate_row(frame.index, frame.t_s, estimate, target, error))
+            writer.write(estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file))
             if estimate is not None:
                 valid += int(estimate.valid)
                 stage_counts[estimate.stage] += 1
@@ -109,4 +112,4 @@ def track(
     if n == 0:
         raise PerchposeError(f"{frames.description}: the source gave no frames")
     processed = max(1, n - bad)
-    return TrackSummary(n, valid, bad, stage_counts, total_ms / processed, Path(out))
+    return TrackSummary(n, valid, bad, frames.lost, stage_counts, total_ms / processed, Path(out))

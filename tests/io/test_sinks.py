@@ -52,3 +52,56 @@ def test_jsonl(tmp_path: Path, renderers: dict[str, Renderer]) -> None:
 def test_bad_output_suffix(tmp_path: Path) -> None:
     with pytest.raises(PerchposeError, match=r"\.csv or \.jsonl"):
         PoseWriter(tmp_path / "p.txt", TargetSpec.paper())
+
+
+class _FillingDisk:
+    """The file object of a disk that fills up: it takes ``room`` more characters, writes part
+    of the next text and then fails as a full disk does."""
+
+    def __init__(self, inner, room: int) -> None:  # type: ignore[no-untyped-def]
+        self.inner = inner
+        self.room = room
+
+    def write(self, text: str) -> int:
+        if len(text) > self.room:
+            self.inner.write(text[: self.room // 2 + 1])
+            self.inner.flush()
+            raise OSError(28, "No space left on device")
+        self.room -= len(text)
+        return int(self.inner.write(text))
+
+    def flush(self) -> None:
+        self.inner.flush()
+
+    def tell(self) -> int:
+        return int(self.inner.tell())
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def test_a_full_disk_keeps_whole_rows_and_names_the_file(tmp_path: Path) -> None:
+    target = TargetSpec.paper()
+    path = tmp_path / "p.csv"
+    writer = PoseWriter(path, target)
+    for k in range(3):
+        writer.write(estimate_row(k, k / 30, None, target, error="x", file=f"{k}.png"))
+    writer._file = _FillingDisk(writer._file, room=20)  # type: ignore[assignment]
+    full = r"p\.csv: cannot write \(No space left on device\); 3 whole rows kept"
+    with pytest.raises(PerchposeError, match=full):
+        writer.write(estimate_row(3, 3 / 30, None, target, error="x", file="3.png"))
+    writer.close()
+    rows = read_track_csv(path)
+    assert [r["frame"] for r in rows] == ["0", "1", "2"]
+    assert all(r["file"] == f"{k}.png" for k, r in enumerate(rows))
+    assert path.read_text().endswith("\n")
+
+
+def test_rows_reach_the_file_as_they_are_written(tmp_path: Path) -> None:
+    """A run killed at any point (SIGKILL included) keeps every row written before it."""
+    target = TargetSpec.paper()
+    writer = PoseWriter(tmp_path / "p.csv", target)
+    for k in range(5):
+        writer.write(estimate_row(k, k / 30, None, target))
+    assert len(read_track_csv(tmp_path / "p.csv")) == 5  # before close
+    writer.close()

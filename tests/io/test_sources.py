@@ -19,6 +19,7 @@ def test_folder_is_sorted_by_name_with_times_from_fps(tmp_path: Path) -> None:
     (tmp_path / "notes.txt").write_text("not an image")
     frames = list(open_source(str(tmp_path), fps=10))
     assert [f.name for f in frames] == ["a.png", "b.png", "c.jpg"]
+    assert [f.file for f in frames] == [str(tmp_path / n) for n in ("a.png", "b.png", "c.jpg")]
     assert [f.t_s for f in frames] == [0.0, 0.1, 0.2]
     assert frames[0].image is not None
     assert frames[0].image.shape == (48, 64)
@@ -77,3 +78,78 @@ def test_not_a_video(tmp_path: Path) -> None:
 def test_bad_fps() -> None:
     with pytest.raises(SourceError, match="--fps must be a positive"):
         open_source(".", fps=-1)
+
+
+def test_numbers_in_names_sort_by_value(tmp_path: Path) -> None:
+    names = [f"img_{i}.png" for i in range(12)] + ["IMG_3b.png"]
+    _write_images(tmp_path, names[::-1])
+    expected = [f"img_{i}.png" for i in range(4)] + ["IMG_3b.png"]
+    expected += [f"img_{i}.png" for i in range(4, 12)]
+    assert [f.name for f in open_source(str(tmp_path))] == expected
+    assert [f.name for f in open_source(str(tmp_path / "img_*.png"))][:3] == [
+        "img_0.png",
+        "img_1.png",
+        "img_2.png",
+    ]
+
+
+def _video(path: Path, frames: int, fourcc: str) -> None:
+    """Frame k: noise on top (so that it compresses poorly), grey level 8 k below."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*fourcc), 30.0, (160, 120))
+    assert writer.isOpened()
+    rng = np.random.default_rng(0)
+    for k in range(frames):
+        image = np.full((120, 160, 3), 8 * k, np.uint8)
+        image[:60] = rng.integers(0, 255, (60, 160, 3), dtype=np.uint8)
+        writer.write(image)
+    writer.release()
+
+
+def test_a_damaged_video_keeps_a_row_per_frame_and_counts_the_lost(tmp_path: Path) -> None:
+    """20 kB zeroed in the middle of an MP4: the frames there are lost, the later ones still
+    decode, each in its own row at its own index."""
+    path = tmp_path / "v.mp4"
+    _video(path, 30, "mp4v")
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 20_000] = bytes(20_000)
+    path.write_bytes(bytes(data))
+    source = open_source(str(path))
+    frames = list(source)
+    assert [f.index for f in frames] == list(range(30))
+    lost = [f for f in frames if f.image is None]
+    assert 1 <= len(lost) < 15
+    assert source.lost == len(lost)
+    assert all("cannot be decoded" in f.error and f.file == f"{path}#{f.index}" for f in lost)
+    after = [f for f in frames if f.image is not None and f.index > lost[-1].index]
+    assert len(after) >= 10
+    # frame k is grey 8 k below the noise (the codec darkens it by 3-5 levels): each decoded
+    # frame sits at its own index, where a frame one place off would be 8 levels further off
+    levels = np.array([float(f.image[80:, :].mean()) for f in after if f.image is not None])
+    expected = 8.0 * np.array([f.index for f in after])
+    assert np.all(np.abs(levels - expected) < 6)
+
+
+def test_a_truncated_video_says_how_many_frames_it_lost(tmp_path: Path) -> None:
+    path = tmp_path / "v.avi"
+    _video(path, 30, "MJPG")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 2 // 3])
+    source = open_source(str(path))
+    frames = list(source)
+    assert len(frames) == 30
+    decoded = sum(f.image is not None for f in frames)
+    assert 10 <= decoded < 30
+    assert source.lost == len(frames) - decoded > 0
+
+
+def test_a_truncated_jpeg_is_flagged(tmp_path: Path) -> None:
+    image = np.random.default_rng(1).integers(0, 255, (120, 160), dtype=np.uint8)
+    ok, data = cv2.imencode(".jpg", image)
+    assert ok
+    (tmp_path / "a.jpg").write_bytes(data.tobytes())
+    (tmp_path / "b.jpg").write_bytes(data.tobytes()[: len(data) // 2])
+    a, b = open_source(str(tmp_path))
+    assert a.error == ""
+    assert b.image is not None  # the decoder greys the missing half out
+    assert "truncated JPEG" in b.error

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import cv2
@@ -77,16 +78,30 @@ def _draw_text(out: NDArray[np.uint8], estimate: Estimate | None, note: str) -> 
         )
 
 
+CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
+
+
+def check_overlay_path(path: str | Path) -> Path:
+    """An overlay video path that can be written: a known suffix and an existing, writable
+    folder (checked before the first frame, so that a run with a vehicle link never fails on it
+    later)."""
+    where = Path(path)
+    if where.suffix.lower() not in CODECS:
+        raise PerchposeError(f"{where}: overlay must end in .mp4, .m4v, .avi or .mkv")
+    folder = where.parent if str(where.parent) else Path(".")
+    if not folder.is_dir():
+        raise PerchposeError(f"{where}: overlay folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise PerchposeError(f"{where}: overlay folder {folder} is not writable")
+    return where
+
+
 class OverlayWriter:
     """Writes BGR frames to an MP4 (``mp4v``) or AVI (``MJPG``) file."""
 
     def __init__(self, path: str | Path, fps: float, size: tuple[int, int]) -> None:
-        self.path = Path(path)
-        suffix = self.path.suffix.lower()
-        codecs = {".mp4": "mp4v", ".m4v": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
-        if suffix not in codecs:
-            raise PerchposeError(f"{self.path}: overlay must end in .mp4, .m4v, .avi or .mkv")
-        fourcc = cv2.VideoWriter.fourcc(*codecs[suffix])
+        self.path = check_overlay_path(path)
+        fourcc = cv2.VideoWriter.fourcc(*CODECS[self.path.suffix.lower()])
         rate = fps if math.isfinite(fps) and fps > 0 else 30.0
         self._writer = cv2.VideoWriter(str(self.path), fourcc, rate, size)
         if not self._writer.isOpened():

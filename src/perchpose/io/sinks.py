@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
+import os
 from pathlib import Path
 from typing import IO, Any
 
@@ -27,7 +29,7 @@ def raw_columns(target: TargetSpec) -> tuple[str, ...]:
 
 def columns(target: TargetSpec) -> tuple[str, ...]:
     """All columns of a track file."""
-    return (*BASE_COLUMNS, *raw_columns(target), "total_ms", "error")
+    return (*BASE_COLUMNS, *raw_columns(target), "total_ms", "age_s", "error", "file")
 
 
 def _num(value: float, digits: int) -> str:
@@ -35,11 +37,18 @@ def _num(value: float, digits: int) -> str:
 
 
 def estimate_row(
-    frame: int, t_s: float, estimate: Estimate | None, target: TargetSpec, error: str = ""
+    frame: int,
+    t_s: float,
+    estimate: Estimate | None,
+    target: TargetSpec,
+    error: str = "",
+    file: str = "",
 ) -> dict[str, Any]:
-    """The row of one frame; ``estimate`` None for a frame that could not be processed."""
+    """The row of one frame; ``estimate`` None for a frame that could not be processed.
+    ``age_s`` is 0 for a pose measured in this frame and the age of the newest measurement
+    for a filter's prediction; ``file`` names the frame's source."""
     row: dict[str, Any] = dict.fromkeys(columns(target), "")
-    row.update(frame=frame, t_s=f"{t_s:.6f}", valid=0, stage=0, error=error)
+    row.update(frame=frame, t_s=f"{t_s:.6f}", valid=0, stage=0, error=error, file=file)
     if estimate is None:
         return row
     row.update(
@@ -47,6 +56,7 @@ def estimate_row(
     )
     if estimate.valid:
         row.update(
+            age_s=_num(estimate.age_s, 4),
             x_cm=_num(estimate.x_cm, 4),
             y_cm=_num(estimate.y_cm, 4),
             z_cm=_num(estimate.z_cm, 4),
@@ -65,7 +75,12 @@ def estimate_row(
 
 
 class PoseWriter:
-    """Writes rows to ``path``: CSV (``.csv``) or JSON Lines (``.jsonl``)."""
+    """Writes rows to ``path``: CSV (``.csv``) or JSON Lines (``.jsonl``).
+
+    Each row reaches the file whole as it is written (flushed row by row: a run killed at any
+    point keeps every finished row); a write that fails (a full disk) cuts the file back to its
+    last whole row and raises ``PerchposeError`` naming the file.
+    """
 
     def __init__(self, path: str | Path, target: TargetSpec) -> None:
         self.path = Path(path)
@@ -78,21 +93,52 @@ class PoseWriter:
             self._file: IO[str] = self.path.open("w", newline="", encoding="utf-8")
         except OSError as exc:
             raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
+        self._buffer = io.StringIO()
         self._csv = None
+        self.rows = 0
+        self._good_bytes = 0
         if not self._jsonl:
-            self._csv = csv.DictWriter(self._file, fieldnames=list(columns(target)))
+            self._csv = csv.DictWriter(self._buffer, fieldnames=list(columns(target)))
             self._csv.writeheader()
+            self._commit()
+
+    def _commit(self) -> None:
+        text = self._buffer.getvalue()
+        self._buffer.seek(0)
+        self._buffer.truncate()
+        try:
+            self._file.write(text)
+            self._file.flush()
+        except OSError as exc:
+            self._cut_back()
+            raise PerchposeError(
+                f"{self.path}: cannot write ({exc.strerror}); {self.rows} whole rows kept"
+            ) from exc
+        self._good_bytes = self._file.tell()
+
+    def _cut_back(self) -> None:
+        """Drop a partly written row (best effort: the disk may refuse even this)."""
+        try:
+            os.truncate(self.path, self._good_bytes)
+        except OSError:
+            return
 
     def write(self, row: dict[str, Any]) -> None:
         """Append one row."""
         if self._csv is not None:
             self._csv.writerow(row)
         else:
-            self._file.write(json.dumps({k: _json_value(v) for k, v in row.items()}) + "\n")
+            self._buffer.write(json.dumps({k: _json_value(v) for k, v in row.items()}) + "\n")
+        self._commit()
+        self.rows += 1
 
     def close(self) -> None:
-        """Flush and close the file."""
-        self._file.close()
+        """Close the file (every written row is already in it)."""
+        try:
+            self._file.close()
+        except OSError as exc:
+            self._cut_back()
+            raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
 
     def __enter__(self) -> PoseWriter:
         return self

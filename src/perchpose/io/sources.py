@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import glob as globlib
 import math
+import re
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ class Frame:
     index : position in the source, from 0. t_s : capture time, seconds.
     image : (H, W) or (H, W, 3) uint8, or None when it could not be read (``error`` says why).
     name : file name, or ``frame N`` for videos and cameras.
+    file : where the frame came from: the image file's path, or ``VIDEO#N`` / ``camera K#N``.
     """
 
     index: int
@@ -36,15 +38,19 @@ class Frame:
     image: NDArray[np.uint8] | None
     name: str
     error: str = ""
+    file: str = ""
 
 
 class FrameSource:
-    """Iterable of ``Frame``; ``count`` is the number of frames when known in advance."""
+    """Iterable of ``Frame``; ``count`` is the number of frames when known in advance.
+    ``lost`` counts the frames that could not be decoded (each still yields a ``Frame`` with
+    ``image`` None and the reason in ``error``)."""
 
     def __init__(self, description: str, count: int | None, fps: float) -> None:
         self.description = description
         self.count = count
         self.fps = fps
+        self.lost = 0
 
     def __iter__(self) -> Iterator[Frame]:
         raise NotImplementedError
@@ -62,9 +68,10 @@ class ImageFilesSource(FrameSource):
             t_s = i / self.fps
             image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if image is None:
-                yield Frame(i, t_s, None, path.name, f"{path}: cannot read image")
+                self.lost += 1
+                yield Frame(i, t_s, None, path.name, f"{path}: cannot read image", str(path))
                 continue
-            yield Frame(i, t_s, _to_uint8(image), path.name)
+            yield Frame(i, t_s, _to_uint8(image), path.name, _damage(path), str(path))
 
 
 class VideoSource(FrameSource):
@@ -86,12 +93,64 @@ class VideoSource(FrameSource):
             while True:
                 ok, image = self.capture.read()
                 if not ok or image is None:
-                    break
+                    if self.live or self.count is None or i >= self.count:
+                        break
+                    # a damaged or truncated file: one row per frame the header promises; the
+                    # demuxer moves on by itself to whatever can still be decoded
+                    self.lost += 1
+                    yield self._lost_frame(i)
+                    i += 1
+                    continue
+                if not self.live:
+                    # frames the decoder skipped over: their timestamps say where it resumed
+                    while i < self._index_of_last_read(i):
+                        self.lost += 1
+                        yield self._lost_frame(i)
+                        i += 1
                 t_s = time.monotonic() - t0 if self.live else i / self.fps
-                yield Frame(i, t_s, _to_uint8(image), f"frame {i}")
+                yield Frame(i, t_s, _to_uint8(image), f"frame {i}", file=f"{self.description}#{i}")
                 i += 1
         finally:
             self.capture.release()
+
+    def _index_of_last_read(self, expected: int) -> int:
+        """The index of the frame just read, from its presentation time and the file's own
+        frame rate (``expected`` when the container gives no usable time)."""
+        msec = float(self.capture.get(cv2.CAP_PROP_POS_MSEC))
+        rate = float(self.capture.get(cv2.CAP_PROP_FPS))
+        if not (math.isfinite(msec) and msec >= 0 and math.isfinite(rate) and rate > 0):
+            return expected
+        index = round(msec * rate / 1000.0)
+        if self.count is not None:
+            index = min(index, self.count - 1)
+        return max(expected, index)
+
+    def _lost_frame(self, i: int) -> Frame:
+        why = f"{self.description}: frame {i} cannot be decoded (damaged or truncated video)"
+        return Frame(i, i / self.fps, None, f"frame {i}", why, f"{self.description}#{i}")
+
+
+def _damage(path: Path) -> str:
+    """Why an image that decoded may still be incomplete ('' when nothing is known): a JPEG
+    without its end-of-image marker was cut short, and its decoder greys out the rest."""
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        return ""
+    try:
+        with path.open("rb") as f:
+            f.seek(max(0, path.stat().st_size - 64))
+            tail = f.read()
+    except OSError as exc:
+        return f"{path}: cannot read ({exc.strerror})"
+    if b"\xff\xd9" not in tail:
+        return f"{path}: truncated JPEG (no end-of-image marker); the image is incomplete"
+    return ""
+
+
+def natural_key(path: Path) -> tuple[tuple[int, int | str], ...]:
+    """Sort key of a file name as a person reads it: runs of digits by value (``img_2`` before
+    ``img_10``), the rest case-insensitively."""
+    parts = re.split(r"(\d+)", path.name)
+    return tuple((0, int(p)) if p.isdigit() else (1, p.lower()) for p in parts if p)
 
 
 def _to_uint8(image: NDArray[Any]) -> NDArray[np.uint8]:
@@ -103,7 +162,8 @@ def _to_uint8(image: NDArray[Any]) -> NDArray[np.uint8]:
 
 
 def open_source(source: str, fps: float | None = None) -> FrameSource:
-    """Open ``source``: a folder of images (sorted by name), a glob, a video file, one image
+    """Open ``source``: a folder of images (in natural order: ``img_2`` before ``img_10``), a
+    glob (the same order), a video file, one image
     file, or a camera index such as ``0``.
 
     fps : frame rate used for t_s = index / fps where the source has no clock (default 30;
@@ -119,13 +179,16 @@ def open_source(source: str, fps: float | None = None) -> FrameSource:
         return VideoSource(capture, rate, f"camera {source}", live=True)
     path = Path(source)
     if any(ch in source for ch in "*?["):
-        paths = sorted(Path(p) for p in globlib.glob(source) if Path(p).is_file())
+        paths = sorted(
+            (Path(p) for p in globlib.glob(source) if Path(p).is_file()), key=natural_key
+        )
         if not paths:
             raise SourceError(f"{source}: the pattern matches no file")
         return ImageFilesSource(paths, rate, source)
     if path.is_dir():
         paths = sorted(
-            p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+            (p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+            key=natural_key,
         )
         if not paths:
             raise SourceError(f"{path}: the folder holds no image files")
