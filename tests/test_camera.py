@@ -113,3 +113,31 @@ def test_image_size_must_match_the_calibration() -> None:
 def test_unknown_preset() -> None:
     with pytest.raises(CameraFileError, match="unknown camera preset"):
         CameraModel.preset("hubble")
+
+
+_XML_MATRICES = (
+    '<camera_matrix type_id="opencv-matrix"><rows>3</rows><cols>3</cols><dt>d</dt>'
+    "<data>500 0 320 0 500 240 0 0 1</data></camera_matrix>"
+    '<distortion_coefficients type_id="opencv-matrix"><rows>1</rows><cols>5</cols><dt>d</dt>'
+    "<data>0 0 0 0 0</data></distortion_coefficients>"
+)
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        (f"<image_width>abc</image_width><image_height>480</image_height>{_XML_MATRICES}",
+         "image_width is not a number"),
+        (f"<image_width>1e308</image_width><image_height>480</image_height>{_XML_MATRICES}",
+         "image_width must be a whole number"),
+        (f"<image_width>640</image_width><image_height>-4</image_height>{_XML_MATRICES}",
+         "image_height must be a whole number"),
+        ("<image_width>640</image_width><camera_matrix><rows>3</rows><data>1 2",
+         "malformed OpenCV FileStorage"),
+    ],
+)  # fmt: skip
+def test_malformed_opencv_xml_is_one_clear_error(tmp_path: Path, body: str, message: str) -> None:
+    path = tmp_path / "cam.xml"
+    path.write_text(f'<?xml version="1.0"?>\n<opencv_storage>\n{body}\n</opencv_storage>\n')
+    with pytest.raises(CameraFileError, match=message):
+        CameraModel.load(path)

@@ -1,5 +1,7 @@
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -245,3 +247,41 @@ def test_console_entry_point_reports_without_traceback(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0
     assert "camera file not found" in proc.stderr
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGHUP, 129)])
+def test_sigterm_and_sighup_end_a_run_as_ctrl_c_does(
+    approach_webcam_dir: Path, tmp_path: Path, signum: int, code: int
+) -> None:
+    """The rows written before the signal are all in the file, whole; one line says why."""
+    out = tmp_path / "p.csv"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "perchpose",
+            "track",
+            str(approach_webcam_dir),
+            "--camera",
+            str(approach_webcam_dir / "camera.yaml"),
+            "--out",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if out.exists() and out.read_text().count("\n") >= 6:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before the signal"
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code
+    assert err.strip() == f"perchpose: terminated ({signal.Signals(signum).name})"
+    rows = read_track_csv(out)
+    assert 5 <= len(rows) < 90
+    assert [r["frame"] for r in rows] == [str(k) for k in range(len(rows))]
+    assert all(None not in r.values() and r["file"].endswith(".png") for r in rows)

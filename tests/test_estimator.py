@@ -172,6 +172,9 @@ def test_timestamps_must_be_finite_and_not_go_backwards(renderers: dict[str, Ren
         est.update(image, 0.5)
     with pytest.raises(TimestampError, match="not finite"):
         est.update(image, math.nan)
+    for bad in ("soon", None, [1.0]):
+        with pytest.raises(TimestampError, match="is not a number"):
+            est.update(image, bad)  # type: ignore[arg-type]
     est.update(image, 1.0)  # the same time again is allowed
 
 

@@ -35,7 +35,7 @@ def test_rotated_offset_marker_geometry() -> None:
 def test_yaml_round_trip(tmp_path: Path) -> None:
     spec = TargetSpec(
         (
-            MarkerSpec("DICT_5X5_100", 7, 30.0, (1.0, 2.0), 15.0),
+            MarkerSpec("DICT_5X5_100", 7, 30.0, (100.0, 2.0), 15.0),  # beside the large one
             MarkerSpec("DICT_4X4_1000", 12, 120.0),
         ),
         name="custom",
@@ -146,3 +146,36 @@ def test_white_margin_around_each_marker(paper_target: TargetSpec) -> None:
     far = paper_target.white_margin_cells(1, max_cells=8.0)
     assert min(far) == pytest.approx(3.5, abs=0.01)
     assert all(m >= 3.49 for m in far)
+
+
+@pytest.mark.parametrize(
+    ("inner", "message"),
+    [
+        (MarkerSpec("DICT_ARUCO_ORIGINAL", 5, 60.0), "covers black cells"),
+        (MarkerSpec("DICT_ARUCO_ORIGINAL", 5, 25.0, (80.0, 0.0)), "straddles the edge"),
+        (MarkerSpec("DICT_ARUCO_ORIGINAL", 5, 25.0, (0.0, 40.0)), "covers black cells"),
+    ],
+)
+def test_impossible_nesting_is_refused(inner: MarkerSpec, message: str) -> None:
+    outer = MarkerSpec("DICT_4X4_1000", 997, 150.0)
+    with pytest.raises(TargetSpecError, match=message):
+        TargetSpec((outer, inner))
+
+
+def test_an_inner_marker_listed_first_is_still_checked(tmp_path: Path) -> None:
+    """A file whose 'inner' marker is larger than the 'outer' one: the small one then sits on
+    the large one's data cells."""
+    path = tmp_path / "t.yaml"
+    path.write_text(
+        "markers:\n"
+        "  - {dictionary: DICT_ARUCO_ORIGINAL, id: 5, side_mm: 150}\n"
+        "  - {dictionary: DICT_4X4_1000, id: 997, side_mm: 100}\n"
+    )
+    with pytest.raises(TargetSpecError, match=r"t\.yaml.*covers black cells"):
+        TargetSpec.load(path)
+
+
+def test_markers_side_by_side_are_fine() -> None:
+    a = MarkerSpec("DICT_4X4_1000", 997, 100.0, (-60.0, 0.0))
+    b = MarkerSpec("DICT_4X4_1000", 998, 100.0, (60.0, 0.0))
+    assert len(TargetSpec((a, b)).markers) == 2

@@ -377,8 +377,10 @@ def _from_ros_mapping(data: dict[str, Any], path: Path) -> CameraModel:
 def _load_opencv_storage(path: Path) -> CameraModel:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file") from exc
+    except (cv2.error, SystemError) as exc:
+        # OpenCV's parser reports malformed XML as cv2.error, which its Python binding can
+        # surface wrapped in a SystemError
+        raise CameraFileError(f"{path}: malformed OpenCV FileStorage file") from exc
     try:
         if not fs.isOpened():
             raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file")
@@ -396,8 +398,8 @@ def _load_opencv_storage(path: Path) -> CameraModel:
             raise CameraFileError(
                 f"{path}: camera_matrix or distortion_coefficients is not a matrix"
             )
-        width = int(node("image_width", "width").real())
-        height = int(node("image_height", "height").real())
+        width = _size_field(node("image_width", "width"), "image_width", path)
+        height = _size_field(node("image_height", "height"), "image_height", path)
         model_node = fs.getNode("distortion_model")
         model = _model_name(model_node.string() if not model_node.empty() else "plumb_bob", path)
         try:
@@ -411,5 +413,17 @@ def _load_opencv_storage(path: Path) -> CameraModel:
             )
         except CameraFileError as exc:
             raise CameraFileError(f"{path}: {exc}") from exc
+    except cv2.error as exc:
+        raise CameraFileError(f"{path}: malformed OpenCV FileStorage file") from exc
     finally:
         fs.release()
+
+
+def _size_field(node: Any, name: str, path: Path) -> int:
+    """An image size in pixels from a FileStorage node: a whole number from 1 to 100000."""
+    if not (node.isInt() or node.isReal()):
+        raise CameraFileError(f"{path}: {name} is not a number")
+    value = float(node.real())
+    if not (math.isfinite(value) and value == int(value) and 0 < value <= 100_000):
+        raise CameraFileError(f"{path}: {name} must be a whole number of pixels, got {value:g}")
+    return int(value)

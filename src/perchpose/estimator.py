@@ -101,7 +101,10 @@ class PerchingEstimator:
         self._hint = ()
 
     def _check_time(self, t_s: float) -> float:
-        t = float(t_s)
+        try:
+            t = float(t_s)
+        except (TypeError, ValueError) as exc:
+            raise TimestampError(f"timestamp {t_s!r} is not a number") from exc
         if not math.isfinite(t):
             raise TimestampError(f"timestamp {t_s!r} is not finite")
         if self._last_t_s is not None and t < self._last_t_s:

@@ -19,7 +19,7 @@ import yaml
 from numpy.typing import NDArray
 
 from perchpose.errors import TargetSpecError
-from perchpose.geometry import make_transform, rot_z
+from perchpose.geometry import invert_transform, make_transform, rot_z
 
 Array = NDArray[np.float64]
 
@@ -110,6 +110,32 @@ class MarkerSpec:
         }
 
 
+def _check_nesting(big: MarkerSpec, small: MarkerSpec, target: str) -> None:
+    """A smaller marker lies wholly outside a larger one, or wholly on its white cells (as the
+    paper's 25 mm marker sits on the white centre of the 150 mm one); anything else prints
+    over the larger marker's border or data and neither can be read."""
+    u = np.linspace(-0.499, 0.499, 25) * small.side_m
+    gx, gy = np.meshgrid(u, u)
+    points = small.T_target_marker @ np.stack(
+        [gx.ravel(), gy.ravel(), np.zeros(gx.size), np.ones(gx.size)]
+    )
+    local = invert_transform(big.T_target_marker) @ points
+    n = big.cells.shape[0]
+    col = np.floor(local[0] / big.side_m * n + n / 2).astype(int)
+    row = np.floor(n / 2 - local[1] / big.side_m * n).astype(int)
+    inside = (col >= 0) & (col < n) & (row >= 0) & (row < n)
+    if not inside.any():
+        return
+    where = f"target {target!r}: marker {small.label} ({small.side_mm:g} mm)"
+    if not inside.all():
+        raise TargetSpecError(f"{where} straddles the edge of marker {big.label}")
+    if not np.all(big.cells[row, col] == 1):
+        raise TargetSpecError(
+            f"{where} covers black cells of marker {big.label} ({big.side_mm:g} mm): a nested "
+            "marker must sit on the larger marker's white cells"
+        )
+
+
 @dataclass(frozen=True)
 class TargetSpec:
     """A target made of square markers, the largest first.
@@ -134,6 +160,9 @@ class TargetSpec:
         object.__setattr__(self, "markers", ordered)
         if not (math.isfinite(self.quiet_zone_mm) and self.quiet_zone_mm >= 0):
             raise TargetSpecError(f"target {self.name!r}: quiet_zone_mm must be >= 0")
+        for i, big in enumerate(self.markers):
+            for small in self.markers[i + 1 :]:
+                _check_nesting(big, small, self.name)
 
     # ------------------------------------------------------------------ presets
     @staticmethod
