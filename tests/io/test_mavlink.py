@@ -200,11 +200,15 @@ def test_a_link_that_cannot_open_is_reported_once_and_tracking_goes_on() -> None
         "/dev/perchpose-no-such-port,57600", retry_period_s=0.05, report=reports.append
     )
     try:
+        accepted = []
         for i in range(5):
-            assert not sink.send(estimate_at(i / 30, (0.0, 0.0, 50.0), 0.0))
+            accepted.append(sink.send(estimate_at(i / 30, (0.0, 0.0, 50.0), 0.0)))
             time.sleep(0.06)  # retries happen meanwhile
     finally:
         sink.close()
+    # the first may be queued while the link's thread first tries to open it
+    assert not any(accepted[1:])
+    assert sink.sent == 0
     assert sink.dropped == 5
     assert len(reports) == 1
     assert "/dev/perchpose-no-such-port" in reports[0]
@@ -235,3 +239,77 @@ def test_cli_reports_a_bad_url(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert "udpout:localhost" in err[0]
+
+
+class TcpVehicle:
+    """A vehicle-side MAVLink TCP server on the loopback interface (pymavlink ``tcpin``)."""
+
+    def __init__(self, port: int) -> None:
+        self.conn = mavutil_module().mavlink_connection(f"tcpin:127.0.0.1:{port}")
+        self.messages: list[Any] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.conn.recv_match(blocking=True, timeout=0.05)
+            if msg is not None and msg.get_type() == "LANDING_TARGET":
+                self.messages.append(msg)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.conn.close()
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _send_until(sink: LandingTargetSink, vehicle: TcpVehicle, count: int, t0: float) -> None:
+    deadline = time.monotonic() + 10.0
+    k = 0
+    while len(vehicle.messages) < count and time.monotonic() < deadline:
+        sink.send(estimate_at(t0 + k / 30, (0.0, 0.0, 50.0), 0.0))
+        k += 1
+        time.sleep(1 / 30)
+
+
+def test_tcp_link_survives_the_vehicle_restarting(capfd: pytest.CaptureFixture[str]) -> None:
+    """Peer down at the start, up, closed, up again: reported once per outage, reconnected
+    each time, and nothing printed to stdout."""
+    port = free_tcp_port()
+    reports: list[str] = []
+    sink = LandingTargetSink(f"tcp:127.0.0.1:{port}", retry_period_s=0.1, report=reports.append)
+    vehicle = None
+    try:
+        for _ in range(5):  # nobody listens yet: dropped, never blocking the caller
+            sink.send(estimate_at(0.0, (0.0, 0.0, 50.0), 0.0))
+            time.sleep(0.05)
+        assert not sink.connected
+        vehicle = TcpVehicle(port)
+        _send_until(sink, vehicle, 3, 1.0)
+        assert len(vehicle.messages) >= 3
+        vehicle.stop()  # the vehicle closes the connection
+        deadline = time.monotonic() + 5.0
+        while sink.connected and time.monotonic() < deadline:
+            sink.send(estimate_at(2.0, (0.0, 0.0, 50.0), 0.0))
+            time.sleep(0.05)
+        assert not sink.connected
+        vehicle = TcpVehicle(port)
+        _send_until(sink, vehicle, 3, 3.0)
+        assert len(vehicle.messages) >= 3
+        assert vehicle.messages[-1].time_usec >= 3_000_000
+    finally:
+        sink.close()
+        if vehicle is not None:
+            vehicle.stop()
+    out = capfd.readouterr().out
+    assert out == ""
+    downs = [r for r in reports if "retrying" in r]
+    ups = [r for r in reports if "link up again" in r]
+    assert len(downs) == 2
+    assert len(ups) == 2

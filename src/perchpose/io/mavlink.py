@@ -4,12 +4,15 @@ Needs the ``mavlink`` extra (``pip install perchpose[mavlink]``). LANDING_TARGET
 fields are MAVLink 2 extensions, so this module sets ``MAVLINK20=1`` before pymavlink is
 imported (and switches pymavlink's dialect to MAVLink 2 if it was imported without it).
 
-One ``LandingTargetSink`` owns one connection. A background thread sends a HEARTBEAT every
+One ``LandingTargetSink`` owns one connection, and only its own thread touches it: the thread
+opens the link, sends the LANDING_TARGET messages ``send`` queues, sends a HEARTBEAT every
 second (an onboard computer: ``MAV_TYPE_ONBOARD_CONTROLLER``, component
 ``MAV_COMP_ID_ONBOARD_COMPUTER``), reads the vehicle's ATTITUDE and LOCAL_POSITION_NED (needed
-for ``frame="local_ned"``) and reopens a link that failed. A link that cannot be opened or goes
-down is reported once through ``report``; estimates arriving meanwhile are dropped, and tracking
-goes on.
+for ``frame="local_ned"``) and reopens a link that failed, so tracking never waits on the
+network. A link that cannot be opened or goes down (a TCP peer that closes included) is
+reported once through ``report``; estimates arriving meanwhile are dropped, and tracking goes
+on. pymavlink's own messages about its TCP socket never reach stdout: the sink detects a
+closed peer itself and reconnects on its own schedule.
 """
 
 from __future__ import annotations
@@ -18,8 +21,10 @@ import logging
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -48,6 +53,8 @@ MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_ACTIVE = 4
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
+# LANDING_TARGET messages waiting for the link's thread; a link this far behind drops the oldest
+QUEUE_LENGTH = 8
 
 
 def mavutil_module() -> Any:
@@ -61,6 +68,29 @@ def mavutil_module() -> Any:
         os.environ["MAVLINK20"] = "1"
         mavutil.set_dialect(mavutil.current_dialect)
     return mavutil
+
+
+def _peer_closed() -> None:
+    raise ConnectionResetError("closed by the peer")
+
+
+def _landing_target_send(mav: Any, *, msg: LandingTarget) -> None:
+    mav.landing_target_send(
+        msg.time_usec,
+        0,
+        MAV_FRAME_IDS[msg.frame],
+        msg.angle_x_rad,
+        msg.angle_y_rad,
+        msg.distance_m,
+        msg.size_x_rad,
+        msg.size_y_rad,
+        msg.x_m,
+        msg.y_m,
+        msg.z_m,
+        list(msg.q_wxyz),
+        LANDING_TARGET_TYPE_VISION_FIDUCIAL,
+        1,
+    )
 
 
 def check_url(url: str) -> str:
@@ -149,12 +179,14 @@ class LandingTargetSink:
         self._mavutil = mavutil_module()
         self._lock = threading.Lock()
         self._conn: Any = None
+        self._down = False
         self._down_reported = False
         self._no_attitude_reported = False
         self._next_retry = 0.0
         self._next_heartbeat = 0.0
+        self._queue: deque[LandingTarget] = deque()
+        self._wake = threading.Event()
         self._stop = threading.Event()
-        self._open()
         self._thread = threading.Thread(target=self._service, name="mavlink", daemon=True)
         self._thread.start()
 
@@ -171,11 +203,18 @@ class LandingTargetSink:
                 source_system=self.source_system,
                 source_component=self.source_component,
                 autoreconnect=False,
+                retries=0,  # TCP: one attempt; the service thread retries on its schedule
             )
         except Exception as exc:  # pymavlink raises whatever the transport raises
             self._link_down(f"cannot open {self.url}: {exc}")
             return
-        self._conn = conn
+        if self.url.startswith("tcp:"):
+            # pymavlink prints and carries on when a TCP peer closes; make it an error instead
+            conn.handle_eof = _peer_closed
+            conn.handle_disconnect = _peer_closed
+        with self._lock:
+            self._conn = conn
+            self._down = False
         self._next_heartbeat = 0.0
         if self._down_reported:
             self.report(f"MAVLink {self.url}: link up again")
@@ -187,7 +226,11 @@ class LandingTargetSink:
                 self._conn.close()
             except Exception:  # the link is already broken; closing is best effort
                 log.debug("closing %s failed", self.url, exc_info=True)
-        self._conn = None
+        with self._lock:
+            self._conn = None
+            self._down = True
+            self.dropped += len(self._queue)
+            self._queue.clear()
         self._next_retry = time.monotonic() + self.retry_period_s
         if not self._down_reported:
             self.report(
@@ -196,29 +239,50 @@ class LandingTargetSink:
             self._down_reported = True
 
     def _send(self, send: Callable[[Any], None], what: str) -> bool:
-        with self._lock:
-            if self._conn is None:
-                return False
-            try:
-                send(self._conn.mav)
-            except OSError as exc:
-                self._link_down(f"{self.url} down while sending {what}: {exc}")
-                return False
+        """Send on the service thread; a transport error takes the link down."""
+        if self._conn is None:
+            return False
+        try:
+            send(self._conn.mav)
+        except OSError as exc:
+            self._link_down(f"{self.url} down while sending {what}: {exc}")
+            return False
         return True
 
+    def _drain(self) -> None:
+        while True:
+            with self._lock:
+                if not self._queue:
+                    return
+                msg = self._queue.popleft()
+            if self._send(partial(_landing_target_send, msg=msg), "LANDING_TARGET"):
+                self.sent += 1
+            elif self._conn is None:
+                self.dropped += 1
+                return
+
     def _service(self) -> None:
-        while not self._stop.is_set():
+        while True:
+            stopping = self._stop.is_set()
             now = time.monotonic()
             if self._conn is None:
+                if stopping:
+                    break
                 if now >= self._next_retry:
-                    with self._lock:
-                        self._open()
+                    self._open()
             else:
+                self._drain()
+                if stopping:
+                    break
                 if now >= self._next_heartbeat:
                     self._next_heartbeat = now + self.heartbeat_period_s
                     self._send(self._heartbeat, "HEARTBEAT")
                 self._receive()
-            self._stop.wait(0.01)
+            self._wake.wait(0.01)
+            self._wake.clear()
+        with self._lock:
+            self.dropped += len(self._queue)
+            self._queue.clear()
 
     def _heartbeat(self, mav: Any) -> None:
         mav.heartbeat_send(
@@ -227,16 +291,13 @@ class LandingTargetSink:
 
     def _receive(self) -> None:
         for _ in range(100):
-            with self._lock:
-                if self._conn is None:
-                    return
-                try:
-                    msg = self._conn.recv_match(
-                        type=["ATTITUDE", "LOCAL_POSITION_NED"], blocking=False
-                    )
-                except OSError as exc:
-                    self._link_down(f"{self.url} down while reading: {exc}")
-                    return
+            if self._conn is None:
+                return
+            try:
+                msg = self._conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED"], blocking=False)
+            except OSError as exc:
+                self._link_down(f"{self.url} down while reading: {exc}")
+                return
             if msg is None:
                 return
             now = time.monotonic()
@@ -295,45 +356,33 @@ class LandingTargetSink:
             return None
 
     def send(self, estimate: Estimate | None) -> bool:
-        """Send LANDING_TARGET for a valid estimate; True if a message went out."""
+        """Hand LANDING_TARGET for a valid estimate to the link's thread; True if it was
+        accepted (False: nothing to send, or the link is down and the estimate is dropped).
+        Never waits on the network."""
         if estimate is None:
             return False
         msg = self.message(estimate)
         if msg is None:
             return False
-        frame_id = MAV_FRAME_IDS[msg.frame]
-
-        def send(mav: Any) -> None:
-            mav.landing_target_send(
-                msg.time_usec,
-                0,
-                frame_id,
-                msg.angle_x_rad,
-                msg.angle_y_rad,
-                msg.distance_m,
-                msg.size_x_rad,
-                msg.size_y_rad,
-                msg.x_m,
-                msg.y_m,
-                msg.z_m,
-                list(msg.q_wxyz),
-                LANDING_TARGET_TYPE_VISION_FIDUCIAL,
-                1,
-            )
-
-        if self._send(send, "LANDING_TARGET"):
-            self.sent += 1
-            return True
-        self.dropped += 1
-        return False
+        with self._lock:
+            if self._down:
+                self.dropped += 1
+                return False
+            if len(self._queue) >= QUEUE_LENGTH:  # a stalled link: the oldest is least useful
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append(msg)
+        self._wake.set()
+        return True
 
     def __call__(self, estimate: Estimate | None, t_s: float) -> None:
         """The per-frame hook ``track`` calls."""
         self.send(estimate)
 
     def close(self) -> None:
-        """Stop the service thread and close the connection."""
+        """Send what is queued, stop the service thread and close the connection."""
         self._stop.set()
+        self._wake.set()
         self._thread.join(timeout=2.0)
         with self._lock:
             if self._conn is not None:
