@@ -153,3 +153,44 @@ def test_a_marker_running_out_of_a_fisheye_image_gives_no_false_quad(
             true = truth[d.marker_index]
             assert true is not None
             assert np.max(np.abs(d.corners_px - true)) < 1.0
+
+
+def _sheet_pixels(target: TargetSpec, px: int) -> tuple[np.ndarray, float]:
+    """The printed sheet as a (px, px) uint8 picture and the metres per pixel."""
+    half = target.sheet_half_extent_m
+    centres = (np.arange(px) + 0.5 - px / 2) * (2 * half / px)
+    xx, yy = np.meshgrid(centres, -centres)
+    albedo = np.nan_to_num(target.albedo(xx, yy), nan=1.0)
+    return (30 + 190 * albedo).astype(np.uint8), 2 * half / px
+
+
+def _paste(canvas: np.ndarray, sheet: np.ndarray, corners_px: np.ndarray) -> None:
+    n = sheet.shape[0]
+    src = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
+    H = cv2.getPerspectiveTransform(src, corners_px.astype(np.float32))
+    size = (canvas.shape[1], canvas.shape[0])
+    warped = cv2.warpPerspective(sheet, H, size, flags=cv2.INTER_AREA)
+    mask = cv2.warpPerspective(np.full_like(sheet, 255), H, size) > 128
+    canvas[mask] = warped[mask]
+
+
+def test_two_copies_in_view_are_never_fused(webcam: CameraModel, paper_target: TargetSpec) -> None:
+    """A large copy whose inner marker is covered, and a small, turned copy fully visible: the
+    small copy's inner marker is not where the large copy's outer marker puts it, so it is
+    left out (the largest quad per marker alone fused the two into a phantom pose)."""
+    sheet, _ = _sheet_pixels(paper_target, 600)
+    covered = sheet.copy()
+    covered[270:330, 270:330] = 220  # white over the large copy's inner marker
+    canvas = np.full((480, 640), 90, np.uint8)
+    _paste(canvas, covered, np.array([[20, 40], [340, 60], [330, 380], [30, 370]]))
+    turned = np.array([[470, 200], [600, 230], [570, 360], [440, 330]])
+    _paste(canvas, sheet, turned)
+    detector = MarkerDetector(webcam, paper_target)
+    found = detector.detect(canvas)
+    by_index = {d.marker_index: d for d in found}
+    assert set(by_index) == {0}
+    assert by_index[0].corners_px[:, 0].max() < 400  # the large copy's outer marker
+    # each copy alone is found whole
+    alone = np.full((480, 640), 90, np.uint8)
+    _paste(alone, sheet, turned)
+    assert {d.marker_index for d in detector.detect(alone)} == {0, 1}

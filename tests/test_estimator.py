@@ -150,15 +150,20 @@ def test_a_jump_is_followed_at_once(renderers: dict[str, Renderer], fusion: str)
 
 
 @pytest.mark.parametrize("fusion", ["covariance", "paper"])
-def test_an_approach_never_restarts_a_filter(approach_fpv_dir: Path, fusion: str) -> None:
-    """The impossible-innovation gate stays silent on a real approach with a dropout."""
+def test_an_approach_never_restarts_a_filter_nor_drops_a_marker(
+    approach_fpv_dir: Path, fusion: str
+) -> None:
+    """The impossible-innovation gate and the markers' consistency test stay silent on a
+    rendered approach with a dropout."""
     camera = CameraModel.load(approach_fpv_dir / "camera.yaml")
     est = PerchingEstimator(camera, TargetSpec.paper(), fusion=fusion)  # type: ignore[arg-type]
     frames = open_source(str(approach_fpv_dir))
     valid = 0
     for frame in frames:
         assert frame.image is not None
-        valid += est.update(frame.image, frame.t_s).valid
+        e = est.update(frame.image, frame.t_s)
+        valid += e.valid
+        assert not any("disagrees" in m.rejected for m in e.markers)
     assert valid > 60
     assert est.reinitialised == 0
 

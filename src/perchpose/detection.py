@@ -47,6 +47,38 @@ SMALL_MARKER_THRESHOLD_WINDOWS_PX = (3, 7)
 SMALL_MARKER_SIDE_PX = 20.0
 
 
+def one_target(
+    target: TargetSpec, candidates: dict[int, list[MarkerDetection]]
+) -> dict[int, MarkerDetection]:
+    """One copy of the target from every quad found per marker, when several copies are in
+    view: the largest quad of the largest marker found, and of each other marker the quad that
+    sits where the plane through that one puts it (centre within half its side; a size that
+    does not match is left to ``perchpose.consistency``, which says why). A marker with no
+    such quad belongs to another copy and is left out, so markers of two copies are never
+    fused into one pose."""
+    if not candidates:
+        return {}
+    reference_index = min(candidates)
+    reference = max(candidates[reference_index], key=lambda d: d.side_px)
+    chosen = {reference_index: reference}
+    plane = target.markers[reference_index].corners_target_m[:, :2]
+    H, _ = cv2.findHomography(plane, reference.corners_px)
+    for index, dets in candidates.items():
+        if index == reference_index:
+            continue
+        if H is None:
+            chosen[index] = max(dets, key=lambda d: d.side_px)
+            continue
+        corners_m = target.markers[index].corners_target_m[:, :2].reshape(-1, 1, 2)
+        predicted = np.asarray(cv2.perspectiveTransform(corners_m, H), np.float64).reshape(4, 2)
+        centre, side = predicted.mean(axis=0), quad_side_px(predicted)
+        best = min(dets, key=lambda d: float(np.linalg.norm(d.corners_px.mean(axis=0) - centre)))
+        offset = float(np.linalg.norm(best.corners_px.mean(axis=0) - centre))
+        if offset < 0.5 * side:
+            chosen[index] = best
+    return chosen
+
+
 def _detector_parameters(
     threshold_windows_px: tuple[int, int] | None = None,
 ) -> cv2.aruco.DetectorParameters:
@@ -484,9 +516,9 @@ class MarkerDetector:
         ``offset`` (a window's origin), by ``detector`` (the full search's by default)."""
         run = (detector or self._search).run
         corners, ids, dict_indices = run(grey, max(self.camera.size))
-        found: dict[int, MarkerDetection] = {}
+        candidates: dict[int, list[MarkerDetection]] = {}
         if ids is None or len(ids) == 0:
-            return found
+            return {}
         for quad, marker_id, dict_index in zip(
             corners,
             np.asarray(ids).reshape(-1),
@@ -497,10 +529,8 @@ class MarkerDetector:
             cells = int(self.target.markers[index].cells.shape[0])
             refined = refine_corners(grey, np.asarray(quad, np.float64).reshape(4, 2), cells)
             det = MarkerDetection(index, refined + np.array(offset, np.float64), image_pass)
-            previous = found.get(index)
-            if previous is None or det.side_px > previous.side_px:
-                found[index] = det
-        return found
+            candidates.setdefault(index, []).append(det)
+        return one_target(self.target, candidates)
 
     def _rectify_maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         maps, K_rect = rectification(self.camera)

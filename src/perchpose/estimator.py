@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
+from perchpose.consistency import DISAGREE_CHI2, disagreements
 from perchpose.detection import CornerMethod, MarkerDetector
 from perchpose.errors import TimestampError
 from perchpose.fusion import STAGE_NONE, FusionSigmas, fuse_paper
@@ -46,6 +47,10 @@ class PerchingEstimator:
         coasting: a frame without a detection has no estimate).
     corners : ``"edges"`` (default: corners from the four fitted border edges, unbiased) or
         ``"subpix"`` (OpenCV's ``cornerSubPix``, about 0.2 px inside the true corners).
+    disagree_chi2 : markers whose positions are further apart than this squared Mahalanobis
+        distance (with ``covariance_filter.corner_sigma_px`` corner noise) are not fused: the
+        one nearer the filter's prediction is kept, neither without one
+        (``perchpose.consistency``).
     fusion : ``"covariance"`` (default: one PnP over every corner of every marker, its
         covariance from the Jacobian, and one filter of the fused pose with a
         white-noise-acceleration model; settings in ``covariance_filter``) or ``"paper"``
@@ -65,11 +70,15 @@ class PerchingEstimator:
         corners: CornerMethod = "edges",
         fusion: FusionMethod = "covariance",
         covariance_filter: CovarianceFilterSettings | None = None,
+        disagree_chi2: float = DISAGREE_CHI2,
     ) -> None:
         if fusion not in FUSION_METHODS:
             raise ValueError(f"fusion must be one of {', '.join(FUSION_METHODS)}, got {fusion!r}")
         self.fusion = fusion
         self.covariance_filter = covariance_filter or CovarianceFilterSettings()
+        if not disagree_chi2 > 0:
+            raise ValueError(f"disagree_chi2 must be positive, got {disagree_chi2}")
+        self.disagree_chi2 = disagree_chi2
         self._fused = CovarianceTrack(self.covariance_filter)
         n = len(target.markers)
         self.markers = tuple(range(n)) if markers is None else tuple(sorted(set(markers)))
@@ -133,6 +142,7 @@ class PerchingEstimator:
     def _estimate(self, t: float, detections: tuple[MarkerDetection, ...], t0: float) -> Estimate:
         t1 = time.perf_counter()
         measurements, rejected = self._measure(detections, t)
+        self._drop_disagreeing(measurements, rejected, t)
         t2 = time.perf_counter()
         return self._filter_and_fuse(t, detections, measurements, rejected, (t0, t1, t2))
 
@@ -174,15 +184,43 @@ class PerchingEstimator:
                 measurements[det.marker_index] = result
         return measurements, rejected
 
-    def _predicted_yaw_rad(self, marker_index: int, t: float) -> float | None:
-        """The yaw the filter expects at ``t``: the fused filter's (covariance fusion), else the
-        marker's own track's, else any live track's; None without a live filter."""
+    def _drop_disagreeing(
+        self, measurements: dict[int, MarkerPose], rejected: dict[int, str], t: float
+    ) -> None:
+        """Markers whose positions disagree beyond ``disagree_chi2`` are not fused: the one
+        nearer the filter's prediction stays; without a prediction neither does (the frame
+        then has no measurement, and the reason is in each marker's ``rejected``)."""
+        sigma = self.covariance_filter.corner_sigma_px
+        found = disagreements(self.camera, self.target, measurements, sigma, self.disagree_chi2)
+        if not found:
+            return
+        predicted = self._predicted_pose(min(measurements), t)
+        for d in found:
+            labels = {i: self.target.markers[i].label for i in (d.reference, d.other)}
+            pair = (d.reference, d.other)
+            losers: tuple[int, ...]
+            if predicted is None:
+                losers = pair
+            else:
+                miss = {i: float(np.linalg.norm(measurements[i].t_m - predicted[1:])) for i in pair}
+                losers = (max(pair, key=lambda i: miss[i]),)
+            for i in losers:
+                other = labels[d.other if i == d.reference else d.reference]
+                rejected[i] = f"disagrees with {other} (chi2 {d.chi2:.0f})"
+                measurements.pop(i, None)
+
+    def _predicted_pose(self, marker_index: int, t: float) -> Array | None:
+        """(4,) [yaw, x, y, z] the filter expects at ``t``: the fused filter's (covariance
+        fusion), else the marker's own track's, else any live track's; None without one."""
         if self.fusion == "covariance" and self._fused.alive:
-            predicted = self._fused.predicted_pose(t)
-        else:
-            tracks = [self._tracks[marker_index], *self._tracks]
-            track = next((tr for tr in tracks if tr.alive), None)
-            predicted = None if track is None else track.predicted_pose(t)
+            return self._fused.predicted_pose(t)
+        tracks = [self._tracks[marker_index], *self._tracks]
+        track = next((tr for tr in tracks if tr.alive), None)
+        return None if track is None else track.predicted_pose(t)
+
+    def _predicted_yaw_rad(self, marker_index: int, t: float) -> float | None:
+        """The yaw the filter expects at ``t`` (``_predicted_pose``)."""
+        predicted = self._predicted_pose(marker_index, t)
         return None if predicted is None else float(predicted[0])
 
     def _fuse_covariance(
