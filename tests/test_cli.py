@@ -285,3 +285,25 @@ def test_sigterm_and_sighup_end_a_run_as_ctrl_c_does(
     assert 5 <= len(rows) < 90
     assert [r["frame"] for r in rows] == [str(k) for k in range(len(rows))]
     assert all(None not in r.values() and r["file"].endswith(".png") for r in rows)
+
+
+def test_a_bad_overlay_path_is_refused_before_the_first_frame(
+    short_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "p.csv"
+    code, _, err = _run(
+        [
+            "track",
+            str(short_sequence),
+            "--camera",
+            str(short_sequence / "camera.yaml"),
+            "--out",
+            str(out),
+            "--overlay",
+            str(tmp_path / "no-such-folder" / "run.mp4"),
+        ],
+        capsys,
+    )
+    assert code == 2
+    assert "overlay folder" in _single_error_line(err)
+    assert not out.exists()  # nothing ran: no vehicle link would have been opened either
