@@ -552,7 +552,8 @@ def perch(
     """Closed-loop perching in simulation from random starts 60-150 cm below the target."""
     import json
 
-    from perchpose.sim.campaign import compare, write_campaign
+    from perchpose.evaluation.perching import write_campaign
+    from perchpose.sim.campaign import compare
     from perchpose.sim.perch import ESTIMATORS, PerchSetup
 
     names = [e.strip() for e in estimators.split(",") if e.strip()]

@@ -118,6 +118,9 @@ class Timings:
 
 NO_POSITION = (math.nan, math.nan, math.nan)
 
+# The first columns of every per-frame pose file (track files, truth.csv): the public contract.
+POSE_COLUMNS = ("frame", "t_s", "valid", "stage", "x_cm", "y_cm", "z_cm", "yaw_deg")
+
 
 @dataclass(frozen=True)
 class Estimate:

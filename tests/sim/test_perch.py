@@ -7,7 +7,8 @@ import pytest
 
 from perchpose import CameraModel, TargetSpec
 from perchpose.cli import main
-from perchpose.sim.campaign import run_campaign, summarise
+from perchpose.evaluation.perching import summarise
+from perchpose.sim.campaign import run_campaign
 from perchpose.sim.perch import CONTACT_RADIUS_MM, PerchSetup, run_perch
 from perchpose.sim.quadrotor import VehicleConfigError
 

@@ -12,9 +12,9 @@ from typing import IO, Any
 
 from perchpose.errors import PerchposeError
 from perchpose.target import TargetSpec
-from perchpose.values import Estimate
+from perchpose.values import POSE_COLUMNS, Estimate
 
-BASE_COLUMNS = ("frame", "t_s", "valid", "stage", "x_cm", "y_cm", "z_cm", "yaw_deg")
+BASE_COLUMNS = POSE_COLUMNS
 
 
 def raw_columns(target: TargetSpec) -> tuple[str, ...]:

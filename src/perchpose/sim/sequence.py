@@ -15,17 +15,17 @@ from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
 from perchpose.fusion import stage_of
 from perchpose.geometry import yaw_rad
-from perchpose.io.sinks import BASE_COLUMNS
 from perchpose.sim.render import Occluder, Renderer
 from perchpose.sim.scenarios import Scenario, markers_in_view
 from perchpose.target import TargetSpec
+from perchpose.values import POSE_COLUMNS
 
 Array = np.ndarray
 
 
 def truth_columns(target: TargetSpec) -> tuple[str, ...]:
     """Columns of truth.csv: the track columns, then ``dropout`` and ``m{i}_in_view``."""
-    return (*BASE_COLUMNS, "dropout", *(f"m{i}_in_view" for i in range(len(target.markers))))
+    return (*POSE_COLUMNS, "dropout", *(f"m{i}_in_view" for i in range(len(target.markers))))
 
 
 def dropout_occluder(camera: CameraModel, target: TargetSpec, T: Array) -> Occluder:
