@@ -27,15 +27,17 @@ def free_udp_port() -> int:
 
 
 class Receiver:
-    """A vehicle-side endpoint: collects what arrives, optionally streams its own state."""
+    """A vehicle-side endpoint (UDP, or a TCP server with ``scheme="tcpin"``): collects what
+    arrives, optionally streams its own state."""
 
     def __init__(
         self,
         port: int,
         attitude: tuple[float, float, float] | None = None,
         p_ned_m: tuple[float, float, float] | None = None,
+        scheme: str = "udpin",
     ) -> None:
-        self.conn = mavutil_module().mavlink_connection(f"udpin:127.0.0.1:{port}")
+        self.conn = mavutil_module().mavlink_connection(f"{scheme}:127.0.0.1:{port}")
         self.messages: list[Any] = []
         self.attitude = attitude
         self.p_ned_m = p_ned_m
@@ -241,38 +243,16 @@ def test_cli_reports_a_bad_url(
     assert "udpout:localhost" in err[0]
 
 
-class TcpVehicle:
-    """A vehicle-side MAVLink TCP server on the loopback interface (pymavlink ``tcpin``)."""
-
-    def __init__(self, port: int) -> None:
-        self.conn = mavutil_module().mavlink_connection(f"tcpin:127.0.0.1:{port}")
-        self.messages: list[Any] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            msg = self.conn.recv_match(blocking=True, timeout=0.05)
-            if msg is not None and msg.get_type() == "LANDING_TARGET":
-                self.messages.append(msg)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.conn.close()
-
-
 def free_tcp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
-def _send_until(sink: LandingTargetSink, vehicle: TcpVehicle, count: int, t0: float) -> None:
+def _send_until(sink: LandingTargetSink, vehicle: Receiver, count: int, t0: float) -> None:
     deadline = time.monotonic() + 10.0
     k = 0
-    while len(vehicle.messages) < count and time.monotonic() < deadline:
+    while len(vehicle.of_type("LANDING_TARGET")) < count and time.monotonic() < deadline:
         sink.send(estimate_at(t0 + k / 30, (0.0, 0.0, 50.0), 0.0))
         k += 1
         time.sleep(1 / 30)
@@ -290,19 +270,19 @@ def test_tcp_link_survives_the_vehicle_restarting(capfd: pytest.CaptureFixture[s
             sink.send(estimate_at(0.0, (0.0, 0.0, 50.0), 0.0))
             time.sleep(0.05)
         assert not sink.connected
-        vehicle = TcpVehicle(port)
+        vehicle = Receiver(port, scheme="tcpin")
         _send_until(sink, vehicle, 3, 1.0)
-        assert len(vehicle.messages) >= 3
+        assert len(vehicle.of_type("LANDING_TARGET")) >= 3
         vehicle.stop()  # the vehicle closes the connection
         deadline = time.monotonic() + 5.0
         while sink.connected and time.monotonic() < deadline:
             sink.send(estimate_at(2.0, (0.0, 0.0, 50.0), 0.0))
             time.sleep(0.05)
         assert not sink.connected
-        vehicle = TcpVehicle(port)
+        vehicle = Receiver(port, scheme="tcpin")
         _send_until(sink, vehicle, 3, 3.0)
-        assert len(vehicle.messages) >= 3
-        assert vehicle.messages[-1].time_usec >= 3_000_000
+        assert len(vehicle.of_type("LANDING_TARGET")) >= 3
+        assert vehicle.of_type("LANDING_TARGET")[-1].time_usec >= 3_000_000
     finally:
         sink.close()
         if vehicle is not None:
