@@ -36,15 +36,17 @@ _TIME_SLACK_S = 1e-6
 REINIT_CHI2 = 100.0
 
 
-def check_dropout_rule(alpha: float, n_max: int, max_coast_s: float) -> None:
-    """The rule for frames without a measurement: 0 <= alpha <= 1, n_max >= 0, and a positive
-    time limit ``max_coast_s``."""
+def check_track_rule(alpha: float, n_max: int, max_coast_s: float, reinit_chi2: float) -> None:
+    """The settings every ``Track`` shares: for frames without a measurement 0 <= alpha <= 1,
+    n_max >= 0 and a positive time limit ``max_coast_s``; a positive ``reinit_chi2``."""
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must be in [0, 1], got {alpha}")
     if n_max < 0:
         raise ValueError(f"n_max must be >= 0, got {n_max}")
     if not max_coast_s > 0:
         raise ValueError(f"max_coast_s must be positive, got {max_coast_s}")
+    if not reinit_chi2 > 0:
+        raise ValueError(f"reinit_chi2 must be positive, got {reinit_chi2}")
 
 
 @dataclass(frozen=True)
@@ -78,9 +80,7 @@ class KalmanSettings:
     def __post_init__(self) -> None:
         if not (self.k1 > 0 and self.k2 > 0):
             raise ValueError(f"k1 and k2 must be positive, got k1={self.k1}, k2={self.k2}")
-        check_dropout_rule(self.alpha, self.n_max, self.max_coast_s)
-        if not self.reinit_chi2 > 0:
-            raise ValueError(f"reinit_chi2 must be positive, got {self.reinit_chi2}")
+        check_track_rule(self.alpha, self.n_max, self.max_coast_s, self.reinit_chi2)
 
 
 def transition(dt_s: float) -> Array:
@@ -310,9 +310,7 @@ class CovarianceFilterSettings:
     def __post_init__(self) -> None:
         if not (self.q_position > 0 and self.q_yaw > 0 and self.corner_sigma_px > 0):
             raise ValueError("q_position, q_yaw and corner_sigma_px must be positive")
-        check_dropout_rule(self.alpha, self.n_max, self.max_coast_s)
-        if not self.reinit_chi2 > 0:
-            raise ValueError(f"reinit_chi2 must be positive, got {self.reinit_chi2}")
+        check_track_rule(self.alpha, self.n_max, self.max_coast_s, self.reinit_chi2)
 
 
 def white_acceleration_noise(dt_s: float, q: Array) -> Array:

@@ -26,7 +26,6 @@ class TrackSummary:
     frames: int
     valid: int
     bad_frames: int
-    lost_frames: int
     stage_counts: dict[int, int]
     mean_ms: float
     out: Path
@@ -112,4 +111,4 @@ def track(
     if n == 0:
         raise PerchposeError(f"{frames.description}: the source gave no frames")
     processed = max(1, n - bad)
-    return TrackSummary(n, valid, bad, frames.lost, stage_counts, total_ms / processed, Path(out))
+    return TrackSummary(n, valid, bad, stage_counts, total_ms / processed, Path(out))

@@ -7,8 +7,9 @@ import pytest
 from perchpose import PerchingEstimator, TargetSpec
 from perchpose.errors import PerchposeError
 from perchpose.geometry import facing_pose
-from perchpose.io.sinks import BASE_COLUMNS, PoseWriter, columns, estimate_row, read_track_csv
+from perchpose.io.sinks import PoseWriter, columns, estimate_row, read_track_csv
 from perchpose.sim.render import Renderer
+from perchpose.values import POSE_COLUMNS
 
 
 def _estimate(r: Renderer):  # type: ignore[no-untyped-def]
@@ -26,7 +27,7 @@ def test_csv_rows_hold_pose_and_raw_measurements(
         w.write(estimate_row(0, 0.0, e, target))
         w.write(estimate_row(1, 1 / 30, None, target, error="1.png: cannot read image"))
     rows = read_track_csv(tmp_path / "p.csv")
-    assert tuple(rows[0])[: len(BASE_COLUMNS)] == BASE_COLUMNS
+    assert tuple(rows[0])[: len(POSE_COLUMNS)] == POSE_COLUMNS
     assert tuple(rows[0]) == columns(target)
     assert rows[0]["valid"] == "1"
     assert float(rows[0]["z_cm"]) == pytest.approx(50.0, abs=0.5)

@@ -255,11 +255,12 @@ class LandingTargetSink:
                 if not self._queue:
                     return
                 msg = self._queue.popleft()
-            if self._send(partial(_landing_target_send, msg=msg), "LANDING_TARGET"):
+            sent = self._send(partial(_landing_target_send, msg=msg), "LANDING_TARGET")
+            with self._lock:
+                if not sent:  # the link went down with this message in hand
+                    self.dropped += 1
+                    return
                 self.sent += 1
-            elif self._conn is None:
-                self.dropped += 1
-                return
 
     def _service(self) -> None:
         while True:

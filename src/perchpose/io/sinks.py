@@ -14,8 +14,6 @@ from perchpose.errors import PerchposeError
 from perchpose.target import TargetSpec
 from perchpose.values import POSE_COLUMNS, Estimate
 
-BASE_COLUMNS = POSE_COLUMNS
-
 
 def raw_columns(target: TargetSpec) -> tuple[str, ...]:
     """Per-marker raw measurement columns: ``m{i}_x_cm`` ... ``m{i}_yaw_deg``, i = marker index
@@ -29,7 +27,7 @@ def raw_columns(target: TargetSpec) -> tuple[str, ...]:
 
 def columns(target: TargetSpec) -> tuple[str, ...]:
     """All columns of a track file."""
-    return (*BASE_COLUMNS, *raw_columns(target), "total_ms", "age_s", "error", "file")
+    return (*POSE_COLUMNS, *raw_columns(target), "total_ms", "age_s", "error", "file")
 
 
 def _num(value: float, digits: int) -> str:
