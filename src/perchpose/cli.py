@@ -6,6 +6,7 @@ line on stderr and the command exits with code 2.
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import sys
@@ -506,21 +507,40 @@ def calibrate(
 
 
 @cli.command()
-@click.option("--runs", default=200, show_default=True, help="Runs per estimator.")
+@click.option("--runs", default=200, show_default=True, help="Runs per estimator and wind.")
 @click.option("--seed", default=0, show_default=True, help="Seed of the first run.")
 @click.option(
     "--wind",
     default="none",
     show_default=True,
     type=click.Choice(["none", "light", "moderate", "strong"]),
-    help="Gust level.",
+    help="Wind level: mean / turbulence 0 / 0, 1.5 / 0.5, 3 / 1, 4.5 / 1.5 m/s (Dryden).",
+)
+@click.option(
+    "--wind-mps", type=float, default=None, help="Mean wind speed instead of the level's."
+)
+@click.option(
+    "--gust-mps", type=float, default=None, help="Turbulence intensity instead of the level's."
+)
+@click.option(
+    "--sweep",
+    type=click.Choice(["wind"]),
+    default=None,
+    help="Fly every wind level for every estimator; writes perch.md and wind.png.",
 )
 @click.option(
     "--estimator",
     "estimators",
-    default="paper,truth",
+    default="covariance,paper,truth",
     show_default=True,
     help="Comma-separated: paper, outer, inner, covariance (joint PnP, covariance filter), truth.",
+)
+@click.option(
+    "--disturbances/--no-disturbances",
+    default=True,
+    show_default=True,
+    help="Draw per run: motor mismatch, attitude bias, latency jitter, dropout bursts, battery "
+    "sag, odometry drift (off: a clean lab).",
 )
 @camera_option_fpv
 @click.option(
@@ -529,7 +549,7 @@ def calibrate(
     default="perch",
     show_default=True,
     type=click.Path(file_okay=False),
-    help="Folder for runs.csv, perch.json, figure.",
+    help="Folder for runs.csv (written run by run), perch.json, perch.md and figures.",
 )
 @click.option(
     "--json",
@@ -539,62 +559,54 @@ def calibrate(
     help="Also write the summary JSON here.",
 )
 @click.option("--workers", default=2, show_default=True, help="Processes to run in parallel.")
+@click.option(
+    "--scheduler",
+    default=None,
+    help="Run on Dask: 'local' (a LocalCluster of --workers processes) or tcp://HOST:PORT.",
+)
+@click.option("--resume", is_flag=True, help="Keep the runs already in --out; fly the rest.")
 def perch(
     runs: int,
     seed: int,
     wind: str,
+    wind_mps: float | None,
+    gust_mps: float | None,
+    sweep: str | None,
     estimators: str,
+    disturbances: bool,
     camera_file: str,
     out: str,
     json_out: str | None,
     workers: int,
+    scheduler: str | None,
+    resume: bool,
 ) -> None:
     """Closed-loop perching in simulation from random starts 60-150 cm below the target."""
-    import json
+    from perchpose.app.perch import PerchCampaign, summary_table
 
-    from perchpose.evaluation.perching import write_campaign
-    from perchpose.sim.campaign import compare
-    from perchpose.sim.perch import ESTIMATORS, PerchSetup
-
-    names = [e.strip() for e in estimators.split(",") if e.strip()]
-    unknown = [n for n in names if n not in ESTIMATORS]
-    if unknown or not names:
-        raise PerchposeError(
-            f"--estimator: unknown {unknown or names} (choose from {', '.join(ESTIMATORS)})"
-        )
-    if runs < 1:
-        raise PerchposeError(f"--runs must be >= 1, got {runs}")
-    setup = PerchSetup(_load_camera(camera_file), TargetSpec.paper(), estimator=names[0], wind=wind)
-    results = compare(
-        setup,
-        names,
-        runs,
-        seed,
-        max(1, workers),
-        sys.stderr.isatty(),
+    campaign = PerchCampaign.from_options(
+        _load_camera(camera_file),
+        estimators=estimators,
+        runs=runs,
+        seed=seed,
+        wind=wind,
+        wind_mps=wind_mps,
+        gust_mps=gust_mps,
+        sweep=sweep,
+        disturbances=disturbances,
+    )
+    content = campaign.fly(
+        out,
+        workers=max(1, workers),
+        scheduler=scheduler,
+        resume=resume,
+        progress=sys.stderr.isatty(),
         say=lambda m: click.echo(m, err=True),
     )
-    content = write_campaign(out, results, setup)
-    click.echo(
-        f"{'estimator':10} {'success':>8} {'offset p50/p95 (mm)':>20} "
-        f"{'time p50 (s)':>13}  failures"
-    )
-    by = content["by_estimator"]
-    assert isinstance(by, dict)
-    for name, s in by.items():
-        off, tt = s["contact_offset_mm"], s["time_to_perch_s"]
-        fails = {k: v for k, v in s["reasons"].items() if k != "perched"}
-
-        def num(v: float | None) -> str:
-            return "-" if v is None else f"{v:.1f}"
-
-        click.echo(
-            f"{name:10} {s['success_rate']:8.1%} {num(off['p50']):>9}/{num(off['p95']):<10} "
-            f"{num(tt['p50']):>13}  {fails or 'none'}"
-        )
+    click.echo(summary_table(content), nl=False)
     if json_out:
-        Path(json_out).write_text(json.dumps(content, indent=2), encoding="utf-8")
-    click.echo(f"wrote {out}/runs.csv, {out}/perch.json and {out}/trajectories.png")
+        Path(json_out).write_text(json.dumps(content, indent=2, default=str), encoding="utf-8")
+    click.echo(f"wrote {out}/runs.csv, perch.json, perch.md and figures")
 
 
 class Terminated(KeyboardInterrupt):

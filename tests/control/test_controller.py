@@ -1,4 +1,5 @@
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -8,7 +9,9 @@ import yaml
 from perchpose.control import (
     ControllerConfigError,
     ControllerSettings,
+    Odometry,
     PerchingController,
+    PerchingPilot,
     default_T_body_camera,
     load_T_body_camera,
 )
@@ -167,3 +170,117 @@ def test_mount_file(tmp_path: Path) -> None:
         load_T_body_camera(other)
     with pytest.raises(ControllerConfigError, match="cannot read"):
         load_T_body_camera(tmp_path / "missing.yaml")
+
+
+def _seen(settings: ControllerSettings, target_body_m: list[float], t_s: float) -> Estimate:
+    """The camera's report of a frame captured at ``t_s``."""
+    return replace(_camera_view(settings, np.array(target_body_m)), t_s=t_s)
+
+
+def _odometry(t_s: float, x_m: float = 0.0, vx_mps: float = 0.0) -> Odometry:
+    return Odometry(t_s, np.array([x_m, 0.0, 1.0]), np.array([vx_mps, 0.0, 0.0]))
+
+
+def test_odometry_takes_the_cameras_latency_out() -> None:
+    s = ControllerSettings(observer_rate=0.0)
+    with_odometry, without = PerchingController(s), PerchingController(s)
+    # captured at t = 0 with the target 1 cm ahead; by t = 1/30 the vehicle has moved 1 cm on
+    with_odometry.update(None, 0.0, np.eye(3), _odometry(0.0))
+    seen = _seen(s, [0.01, 0.0, 0.6], 0.0)
+    late = with_odometry.update(seen, 1 / 30, np.eye(3), _odometry(1 / 30, x_m=0.01))
+    stale = without.update(seen, 1 / 30, np.eye(3))
+    assert stale.v_mps[0] == pytest.approx(s.k_xy * 0.01, rel=1e-6)
+    assert abs(late.v_mps[0]) < 1e-6  # it is there already
+
+
+def test_the_last_centimetres_are_flown_on_odometry() -> None:
+    s = ControllerSettings(observer_rate=0.0)
+    c = PerchingController(s)
+    for k in range(3):
+        t = k / 30
+        c.update(_seen(s, [0.0, 0.0, 0.05], t), t, np.eye(3), _odometry(t))
+    assert c.phase == "commit"
+    # the camera is too close to see; the vehicle drifts 1 cm aside: it steers back
+    blind = c.update(None, 4 / 30, np.eye(3), _odometry(4 / 30, x_m=0.01))
+    assert blind.phase == "commit"
+    assert blind.v_mps[0] == pytest.approx(-s.k_xy * 0.01, abs=2e-3)
+    assert blind.v_mps[2] == pytest.approx(s.commit_speed_mps)
+
+
+def test_a_climb_out_of_the_cone_backs_off_and_gives_up_after_its_tries() -> None:
+    s = ControllerSettings(observer_rate=0.0, max_tries=2)
+    c = PerchingController(s)
+    t = 0.0
+    for attempt in range(2):
+        for _ in range(3):
+            c.update(_seen(s, [0.0, 0.0, 0.05], t), t, np.eye(3), _odometry(t))
+            t += 1 / 30
+        assert c.phase == "commit"
+        # odometry says the vehicle is 4 cm aside: outside the magnet's reach
+        command = c.update(None, t, np.eye(3), _odometry(t, x_m=0.04))
+        t += 1 / 30
+        if attempt == 0:
+            assert command.phase == "retreat"
+            assert command.v_mps[2] < 0  # down, to align again
+            # below retry_below_m the vehicle aligns again
+            far = c.update(_seen(s, [0.0, 0.0, 0.3], t), t, np.eye(3), _odometry(t))
+            assert far.phase in ("align", "climb")
+            t += 1 / 30
+    assert command.phase == "give-up"
+    assert c.tries == 2
+    assert c.update(_seen(s, [0.0, 0.0, 0.05], t), t, np.eye(3), _odometry(t)).phase == "give-up"
+
+
+def test_no_final_climb_while_sliding_sideways() -> None:
+    s = ControllerSettings(observer_rate=0.0)
+    c = PerchingController(s)
+    for k in range(5):
+        t = k / 30
+        command = c.update(_seen(s, [0.0, 0.0, 0.05], t), t, np.eye(3), _odometry(t, vx_mps=0.1))
+        assert command.phase != "commit"
+    command = c.update(_seen(s, [0.0, 0.0, 0.05], 5 / 30), 5 / 30, np.eye(3), _odometry(5 / 30))
+    assert command.phase == "commit"
+
+
+def test_a_camera_dropout_mid_approach_holds_height_on_odometry() -> None:
+    s = ControllerSettings(observer_rate=0.0)
+    c = PerchingController(s)
+    c.update(_seen(s, [0.0, 0.0, 0.6], 0.0), 0.0, np.eye(3), _odometry(0.0))
+    gap = c.update(None, 0.2, np.eye(3), _odometry(0.2, x_m=-0.01))
+    assert gap.phase in ("align", "climb")
+    assert gap.v_mps[2] == 0.0
+    assert gap.v_mps[0] > 0  # back towards the held target
+    lost = c.update(None, 0.2 + s.hold_target_s + 0.1, np.eye(3), _odometry(1.5))
+    assert lost.phase == "lost"
+
+
+def test_pilot_lands_when_the_controller_gives_up() -> None:
+    s = ControllerSettings(observer_rate=0.0, max_tries=1)
+    sent: list[tuple[float, ...]] = []
+
+    class Commander:
+        def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yr: float) -> None:
+            sent.append((vx, vy, vz, yr))
+
+        def send_stop_setpoint(self) -> None:
+            sent.append(())
+
+        def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
+            pass
+
+    position = {"x": 0.0}
+    pilot = PerchingPilot(
+        Commander(),
+        lambda: np.eye(3),
+        controller=PerchingController(s),
+        height_m=lambda: 1.0,
+        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
+        report=lambda _m: None,
+    )
+    for k in range(3):
+        pilot.update(_seen(s, [0.0, 0.0, 0.05], k / 30), k / 30)
+    position["x"] = 0.05
+    step = pilot.update(None, 4 / 30)
+    assert step.state == "landing"
+    assert step.v_mps is not None
+    assert step.v_mps[2] < 0

@@ -1,7 +1,13 @@
 """Closed-loop control shared by the simulation and the vehicle links: the perching controller,
 the phase machine that flies it, the mounting of the camera, and the last check on setpoints."""
 
-from perchpose.control.controller import Command, ControllerSettings, PerchingController, usable
+from perchpose.control.controller import (
+    Command,
+    ControllerSettings,
+    Odometry,
+    PerchingController,
+    usable,
+)
 from perchpose.control.mount import default_T_body_camera, load_T_body_camera
 from perchpose.control.pilot import CommanderLike, PerchingPilot, PilotSettings, PilotStep
 from perchpose.control.setpoint import Setpoint, SetpointLimits, safe_setpoint
@@ -12,6 +18,7 @@ __all__ = [
     "CommanderLike",
     "ControllerConfigError",
     "ControllerSettings",
+    "Odometry",
     "PerchingController",
     "PerchingPilot",
     "PilotSettings",

@@ -20,6 +20,24 @@ aside ends it (one outlier frame can neither start nor hold a final climb), and 
 that has run ``commit_timeout_s`` without the vehicle's own contact check ending it backs off
 (``lost``: hold, then descend to re-acquire). An estimate older than ``max_estimate_age_s`` or
 with a non-finite field counts as no target.
+
+With the vehicle's own odometry (``Odometry``: position and velocity from the flight
+controller's state estimate, in its own drifting world frame), the controller also
+
+- holds the target's position in that frame from each fresh fix, matched to the odometry at
+  the frame's capture time (so the camera's latency does not lag the loop), and steers on it
+  between fixes: the last centimetres, where the camera is too close to see, are flown
+  closed-loop on odometry (for at most ``hold_target_s``);
+- rejects disturbances with an observer on the velocity loop (``control.disturbance``: the gap
+  between the velocity it asks for and the one the vehicle flies, beyond the loop's own lag:
+  wind, a sagging battery, an attitude bias) and an
+  integral on the lateral position error (what the odometry cannot see: its own velocity
+  bias), both with anti-windup (clamped; the position integral runs only within
+  ``integrate_within_m`` of the centre);
+- commits only inside a capture cone: the magnet within ``commit_align_m`` of the centre and
+  moving sideways slower than ``capture_speed_mps``. A final climb that leaves the cone or
+  times out backs off (``retreat``: down to ``retry_below_m`` under the target, then align
+  again); after ``max_tries`` failed climbs it gives up (``give-up``: the pilot lands).
 """
 
 from __future__ import annotations
@@ -31,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.control.disturbance import DisturbanceObserver
 from perchpose.control.mount import default_T_body_camera
 from perchpose.errors import ControllerConfigError, require_positive
 from perchpose.geometry import wrap_angle_rad
@@ -44,16 +63,33 @@ class ControllerSettings:
     """Gains and limits (SI units).
 
     k_xy, k_z, k_yaw : proportional gains, 1/s. align_radius_m : lateral error under which the
-    vehicle climbs at full rate. commit_distance_m : height below the plate where the final
-    constant-speed climb starts. commit_speed_mps : that speed. blind_commit_m : losing the
-    target closer than this while aligned (the camera is then too close to see it) commits
-    instead of counting as lost. commit_frames : consecutive valid frames that must agree
-    before the final climb starts. commit_exit_m, commit_exit_lateral_m : a valid estimate
-    putting the target further above or aside than these ends the final climb.
+    vehicle climbs at full rate far from the plate (none beyond twice it). cone_slope : nearer
+    the plate that radius narrows to cone_slope times the height, down to commit_align_m.
+    commit_distance_m : height below the plate where the final constant-speed climb starts.
+    commit_speed_mps : that speed. blind_commit_m : losing the target closer than this while
+    aligned (the camera is then too close to see it) commits instead of counting as lost
+    (without odometry: when the last frames were within twice the align radius; with it:
+    within blind_align_m, and the odometry steers the rest). commit_frames : consecutive valid
+    frames that must agree before the final climb starts. commit_exit_m, commit_exit_lateral_m :
+    a valid estimate putting the target further above or aside than these ends the final climb.
     commit_timeout_s : a final climb still going after this long backs off.
     max_estimate_age_s : estimates older than this (``Estimate.age_s`` plus the time since
     capture) are ignored. hold_s : hover after losing the target before descending at
     descend_mps. camera_period_s : update period, for the stability check.
+
+    With odometry: hold_target_s : how long the target's position held from the last fix is
+    flown on. fix_weight : the weight of a new fix against the held position (the target does
+    not move; the odometry drifts slowly). onboard_velocity_gain : the flight controller's
+    velocity-loop gain, 1/s (its model in the disturbance observer). observer_rate : the
+    observer's poles, rad/s (0: no observer). max_disturbance_xy_mps, max_disturbance_z_mps :
+    the largest setpoint offset it may add. k_i_xy :
+    integral gain on the lateral position error, 1/s^2 (with k_xy, a critically damped loop):
+    it removes what the velocity integrator cannot see, a bias of the odometry's own velocity;
+    max_integral_xy_mps : its clamp. integrate_within_m : the integral runs only while the
+    lateral error is under this (the approach from a far start would wind it up).
+    capture_speed_mps : the largest sideways speed at which the final climb may start.
+    retry_below_m : how far under the target a backed-off climb descends before aligning
+    again. max_tries : failed final climbs before giving up.
     """
 
     k_xy: float = 1.6
@@ -63,15 +99,29 @@ class ControllerSettings:
     max_z_mps: float = 0.3
     max_yaw_rate: float = 1.5
     align_radius_m: float = 0.015
+    cone_slope: float = 0.05
     commit_distance_m: float = 0.04
     commit_speed_mps: float = 0.15
-    commit_align_m: float = 0.006
+    commit_align_m: float = 0.004
     blind_commit_m: float = 0.12
+    blind_align_m: float = 0.005
     commit_frames: int = 3
     commit_exit_m: float = 0.10
     commit_exit_lateral_m: float = 0.03
     commit_timeout_s: float = 2.0
     max_estimate_age_s: float = 0.5
+    hold_target_s: float = 1.0
+    onboard_velocity_gain: float = 3.0
+    observer_rate: float = 5.0
+    k_i_xy: float = 0.64
+    max_integral_xy_mps: float = 0.1
+    integrate_within_m: float = 0.03
+    max_disturbance_xy_mps: float = 0.6
+    max_disturbance_z_mps: float = 0.3
+    capture_speed_mps: float = 0.03
+    retry_below_m: float = 0.15
+    max_tries: int = 3
+    fix_weight: float = 0.5
     hold_s: float = 1.0
     descend_mps: float = 0.1
     camera_period_s: float = 1.0 / 30.0
@@ -87,6 +137,8 @@ class ControllerSettings:
             "max_z_mps",
             "max_yaw_rate",
             "align_radius_m",
+            "cone_slope",
+            "blind_align_m",
             "commit_speed_mps",
             "descend_mps",
             "camera_period_s",
@@ -94,10 +146,32 @@ class ControllerSettings:
             "commit_exit_lateral_m",
             "commit_timeout_s",
             "max_estimate_age_s",
+            "hold_target_s",
+            "capture_speed_mps",
+            "retry_below_m",
+            "max_disturbance_xy_mps",
+            "max_disturbance_z_mps",
+            "max_integral_xy_mps",
+            "integrate_within_m",
+            "onboard_velocity_gain",
         )
         require_positive(self, positive, ControllerConfigError)
         if self.commit_frames < 1:
             raise ControllerConfigError(f"commit_frames must be >= 1, got {self.commit_frames}")
+        if self.max_tries < 1:
+            raise ControllerConfigError(f"max_tries must be >= 1, got {self.max_tries}")
+        if not 0 < self.fix_weight <= 1:
+            raise ControllerConfigError(f"fix_weight must be in (0, 1], got {self.fix_weight}")
+        if self.k_i_xy < 0 or self.k_i_xy > self.k_xy**2:
+            raise ControllerConfigError(
+                f"k_i_xy must be between 0 and k_xy^2 = {self.k_xy**2:.2f} /s^2 "
+                f"(an oscillating loop beyond), got {self.k_i_xy}"
+            )
+        if not 0 <= self.observer_rate * self.camera_period_s < 0.5:
+            raise ControllerConfigError(
+                f"observer_rate = {self.observer_rate} rad/s must be >= 0 and under "
+                f"{0.5 / self.camera_period_s:.1f} rad/s at this camera period"
+            )
         # a proportional loop closed through a sampled, one-frame-late measurement is stable
         # only while gain * period stays well under 1
         for name in ("k_xy", "k_z", "k_yaw"):
@@ -109,6 +183,16 @@ class ControllerSettings:
                     f"(need {name} < "
                     f"{0.25 / self.camera_period_s:.1f} /s)"
                 )
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """The flight controller's own state estimate at ``t_s``: position and velocity in its
+    world frame (z up; the origin and a slow drift are its own)."""
+
+    t_s: float
+    p_m: Array
+    v_mps: Array
 
 
 @dataclass(frozen=True)
@@ -136,10 +220,33 @@ class PerchingController:
     def __init__(self, settings: ControllerSettings | None = None) -> None:
         self.settings = settings or ControllerSettings()
         self.phase = "search"
+        self.tries = 0
         self._lost_since: float | None = None
         self._commit_since: float | None = None
-        # world-frame magnet-to-target vectors of the latest valid frames, newest last
+        # magnet-to-target vectors (world frame) of the latest measured frames, newest last
         self._recent: deque[Array] = deque(maxlen=self.settings.commit_frames)
+        # odometry: recent positions (to match a frame's capture time), the held target
+        self._track: deque[tuple[float, Array]] = deque(maxlen=64)
+        self._target_odom: Array | None = None
+        self._target_t: float | None = None
+        self._observer = DisturbanceObserver(
+            self.settings.onboard_velocity_gain,
+            self.settings.observer_rate,
+            (
+                self.settings.max_disturbance_xy_mps,
+                self.settings.max_disturbance_xy_mps,
+                self.settings.max_disturbance_z_mps,
+            ),
+        )
+        self._integral_xy = np.zeros(2)
+        self._steer_t: float | None = None
+        self._last_t: float | None = None
+        self._last_sp: Array | None = None
+
+    @property
+    def disturbance_mps(self) -> Array:
+        """The integrator's estimate of the setpoint offset the disturbances need, m/s."""
+        return self._observer.offset_mps
 
     def magnet_to_target(self, estimate: Estimate, R_world_body: Array) -> tuple[Array, float]:
         """(world-frame vector from the magnet to the target centre, heading error in rad)."""
@@ -155,8 +262,8 @@ class PerchingController:
         return d_world, wrap_angle_rad(heading_error)
 
     def _all_recent(self, height_m: float, lateral_m: float) -> bool:
-        """The last ``commit_frames`` valid frames all had the target under ``height_m`` above
-        and ``lateral_m`` aside."""
+        """The last ``commit_frames`` measured frames all had the target under ``height_m``
+        above and ``lateral_m`` aside."""
         return len(self._recent) == self.settings.commit_frames and all(
             float(d[2]) < height_m and float(np.hypot(d[0], d[1])) < lateral_m for d in self._recent
         )
@@ -167,47 +274,216 @@ class PerchingController:
         self.phase = "commit"
 
     def back_off(self, t_s: float) -> None:
-        """Abandon the final climb (no contact came): hold, then descend to re-acquire."""
-        self.phase = "lost"
+        """Abandon the final climb (no contact came, or it left the capture cone): descend
+        under the target and align again (``retreat``), or give up after ``max_tries``."""
+        self.tries += 1
+        self.phase = "give-up" if self.tries >= self.settings.max_tries else "retreat"
         self._commit_since = None
         self._lost_since = t_s
         self._recent.clear()
 
-    def update(self, estimate: Estimate | None, t_s: float, R_world_body: Array) -> Command:
-        """The setpoint for this frame; an estimate that is None, not valid, not finite or too
-        old means no target."""
+    # -- odometry ---------------------------------------------------------------------------
+
+    def _magnet_odom(self, p_m: Array, R_world_body: Array) -> Array:
+        magnet: Array = np.asarray(p_m, np.float64) + R_world_body @ np.asarray(
+            self.settings.p_body_magnet_m, np.float64
+        )
+        return magnet
+
+    def _position_at(self, t_s: float) -> Array | None:
+        """The odometry's position at ``t_s`` (interpolated; None before its history)."""
+        if not self._track or t_s < self._track[0][0] - 1e-9:
+            return None
+        previous = self._track[0]
+        for sample in self._track:
+            if sample[0] >= t_s:
+                t0, p0 = previous
+                t1, p1 = sample
+                w = 0.0 if t1 <= t0 else (t_s - t0) / (t1 - t0)
+                return p0 + w * (p1 - p0)
+            previous = sample
+        return self._track[-1][1]
+
+    def _hold_fix(self, estimate: Estimate, d: Array, R_world_body: Array) -> None:
+        """Hold the target's odometry-frame position from a fresh fix."""
+        p_capture = self._position_at(estimate.t_s)
+        if p_capture is None:
+            return
+        fix = self._magnet_odom(p_capture, R_world_body) + d
+        if self._target_odom is None:
+            self._target_odom = fix
+        else:
+            self._target_odom = self._target_odom + self.settings.fix_weight * (
+                fix - self._target_odom
+            )
+        self._target_t = estimate.t_s
+
+    def _held_error(
+        self, t_s: float, R_world_body: Array, odometry: Odometry | None, limit_s: float
+    ) -> Array | None:
+        """Magnet-to-target from the held target and the odometry now, or None."""
+        if odometry is None or self._target_odom is None or self._target_t is None:
+            return None
+        if t_s - self._target_t > limit_s:
+            return None
+        return self._target_odom - self._magnet_odom(odometry.p_m, R_world_body)
+
+    def _reject(self, v_cmd: Array, t_s: float, odometry: Odometry | None) -> Array:
+        """The velocity setpoint with the disturbance observer's offset added."""
         s = self.settings
+        dt = 0.0 if self._last_t is None else min(0.1, max(0.0, t_s - self._last_t))
+        self._last_t = t_s
+        if odometry is None or s.observer_rate == 0:
+            return v_cmd
+        previous = self._last_sp if self._last_sp is not None else np.zeros(3)
+        self._observer.update(previous, odometry.v_mps, dt)
+        v_sp = v_cmd + self._observer.offset_mps
+        self._last_sp = v_sp
+        return v_sp
+
+    # -- the loop -----------------------------------------------------------------------------
+
+    def update(
+        self,
+        estimate: Estimate | None,
+        t_s: float,
+        R_world_body: Array,
+        odometry: Odometry | None = None,
+    ) -> Command:
+        """The setpoint for this frame; an estimate that is None, not valid, not finite or too
+        old means no target. ``odometry``: the flight controller's state estimate now."""
+        command = self._command(estimate, t_s, R_world_body, odometry)
+        if command.phase in ("search", "give-up"):
+            return command
+        return Command(
+            self._reject(command.v_mps, t_s, odometry),
+            command.yaw_rate_rad_s,
+            command.phase,
+            command.error_m,
+        )
+
+    def _command(
+        self,
+        estimate: Estimate | None,
+        t_s: float,
+        R_world_body: Array,
+        odometry: Odometry | None,
+    ) -> Command:
+        s = self.settings
+        if odometry is not None:
+            self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
+        if self.phase == "give-up":
+            return Command(np.zeros(3), 0.0, "give-up")
         since = self._commit_since
         if self.phase == "commit" and since is not None and t_s - since >= s.commit_timeout_s:
             self.back_off(t_s)
-        if not usable(estimate, t_s, s.max_estimate_age_s):
-            return self._no_target(t_s)
-        assert estimate is not None
-        self._lost_since = None
-        d, heading_error = self.magnet_to_target(estimate, R_world_body)
-        if estimate.age_s <= 0.0:  # a measurement of this frame, not a coasting filter's guess
-            self._recent.append(d)
+            if self.phase == "give-up":
+                return Command(np.zeros(3), 0.0, "give-up")
+        yaw_rate = 0.0
+        if usable(estimate, t_s, s.max_estimate_age_s):
+            assert estimate is not None
+            self._lost_since = None
+            d, heading_error = self.magnet_to_target(estimate, R_world_body)
+            yaw_rate = float(np.clip(s.k_yaw * heading_error, -s.max_yaw_rate, s.max_yaw_rate))
+            if estimate.age_s <= 0.0:  # a measurement of this frame, not a coasting guess
+                self._recent.append(d)
+                if odometry is not None:
+                    self._hold_fix(estimate, d, R_world_body)
+            held = self._held_error(t_s, R_world_body, odometry, s.hold_target_s)
+            error = held if held is not None else d
+            return self._steer(error, yaw_rate, t_s, odometry)
+        limit = s.commit_timeout_s if self.phase == "commit" else s.hold_target_s
+        held = self._held_error(t_s, R_world_body, odometry, limit)
+        if held is not None and self.phase in ("commit", "retreat", "climb", "align"):
+            if self.phase in ("align", "climb") and not self._all_recent(
+                s.blind_commit_m, 2 * s.align_radius_m
+            ):
+                # a camera dropout mid-approach: hold height and stay aligned on odometry
+                command = self._steer(held, 0.0, t_s, odometry, may_commit=False)
+                command.v_mps[2] = 0.0
+                return command
+            return self._steer(held, 0.0, t_s, odometry, blind=True)
+        return self._no_target(t_s)
+
+    def _steer(
+        self,
+        d: Array,
+        yaw_rate: float,
+        t_s: float,
+        odometry: Odometry | None,
+        *,
+        blind: bool = False,
+        may_commit: bool = True,
+    ) -> Command:
+        """Align, climb, commit or retreat on the magnet-to-target vector ``d``."""
+        s = self.settings
         lateral = float(np.hypot(d[0], d[1]))
+        height = float(d[2])
         v = np.zeros(3)
         scale = min(1.0, s.max_xy_mps / max(1e-9, s.k_xy * lateral))
-        v[:2] = s.k_xy * d[:2] * scale
-        yaw_rate = float(np.clip(s.k_yaw * heading_error, -s.max_yaw_rate, s.max_yaw_rate))
-        height = float(d[2])
+        v[:2] = s.k_xy * d[:2] * scale + self._integrate(
+            d, t_s, wind=lateral < s.integrate_within_m
+        )
+        if self.phase == "retreat":
+            if height < s.retry_below_m:
+                v[2] = -s.descend_mps
+                return Command(v, yaw_rate, "retreat", d)
+            self.phase = "align"
+            self._recent.clear()
         if self.phase == "commit" and (
             height > s.commit_exit_m or lateral > s.commit_exit_lateral_m
         ):
-            self.phase = "align"  # the evidence says the target is not where the climb is
+            # the evidence says the target is not where the climb is
+            if odometry is not None:
+                self.back_off(t_s)
+                if self.phase == "give-up":
+                    return Command(np.zeros(3), 0.0, "give-up")
+                v[2] = -s.descend_mps
+                return Command(v, yaw_rate, "retreat", d)
+            self.phase = "align"
             self._commit_since = None
-        if self.phase == "commit" or self._all_recent(s.commit_distance_m, s.commit_align_m):
+        slow = (
+            odometry is None
+            or float(np.hypot(odometry.v_mps[0], odometry.v_mps[1])) < s.capture_speed_mps
+        )
+        if self.phase == "commit" or (
+            may_commit
+            and slow
+            and (
+                self._all_recent(s.commit_distance_m, s.commit_align_m)
+                or (blind and self._all_recent(s.blind_commit_m, s.blind_align_m))
+            )
+        ):
             self._enter_commit(t_s)
             v[2] = s.commit_speed_mps
-        else:
-            aligned = float(
-                np.clip(1.0 - (lateral - s.align_radius_m) / (3 * s.align_radius_m), 0.0, 1.0)
-            )
-            self.phase = "climb" if aligned > 0 else "align"
-            v[2] = aligned * float(np.clip(s.k_z * height, s.commit_speed_mps, s.max_z_mps))
+            return Command(v, yaw_rate, "commit", d)
+        aligned = self._aligned(lateral, height)
+        self.phase = "climb" if aligned > 0 else "align"
+        v[2] = aligned * float(np.clip(s.k_z * height, s.commit_speed_mps, s.max_z_mps))
         return Command(v, yaw_rate, self.phase, d)
+
+    def _aligned(self, lateral_m: float, height_m: float) -> float:
+        """The share of the climb rate allowed at this lateral error: 1 inside the capture
+        cone, falling to 0 at twice its radius. The cone's radius is ``align_radius_m`` far
+        from the plate and narrows as ``cone_slope`` times the height to ``commit_align_m``
+        at the plate: nearer the plate, the vehicle climbs only when nearly centred."""
+        s = self.settings
+        radius = min(s.align_radius_m, max(s.commit_align_m, s.cone_slope * max(0.0, height_m)))
+        return float(np.clip(2.0 - lateral_m / radius, 0.0, 1.0))
+
+    def _integrate(self, d: Array, t_s: float, *, wind: bool) -> Array:
+        """The lateral position integral, advanced by the time since the last steered frame
+        when ``wind`` (no more than a frame's worth across a gap)."""
+        s = self.settings
+        last, self._steer_t = self._steer_t, t_s
+        if last is not None and wind:
+            dt = min(0.1, max(0.0, t_s - last))
+            self._integral_xy = np.clip(
+                self._integral_xy + s.k_i_xy * dt * np.asarray(d[:2], np.float64),
+                -s.max_integral_xy_mps,
+                s.max_integral_xy_mps,
+            )
+        return self._integral_xy
 
     def _no_target(self, t_s: float) -> Command:
         s = self.settings

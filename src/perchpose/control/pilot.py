@@ -9,7 +9,8 @@ run it.
 - ``waiting``: nothing is sent until the first usable estimate (the pilot takes over then);
 - ``perching``: the controller's setpoints (align, climb, commit);
 - ``lost``: the target is gone; the controller hovers, then descends to re-acquire it;
-- ``landing``: lost for longer than ``land_after_lost_s``, or stopped by the user: descend at
+- ``landing``: lost for longer than ``land_after_lost_s``, the controller gave up after its
+  tries at a final climb, or stopped by the user: descend at
   ``land_speed_mps`` until the height source says landed (or ``land_duration_s`` elapses), then
   a stop setpoint;
 - ``perched``: contact: during the final climb the vehicle's height stopped rising (under
@@ -37,7 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.control.controller import Command, PerchingController, usable
+from perchpose.control.controller import Command, Odometry, PerchingController, usable
 from perchpose.control.setpoint import SetpointLimits, safe_setpoint
 from perchpose.errors import ControllerConfigError, require_positive
 from perchpose.values import Estimate
@@ -134,7 +135,10 @@ class PerchingPilot:
 
     attitude : returns the vehicle's ``R_world_body`` (world z up), e.g. from the Crazyflie's
     state estimate. height_m : the vehicle's height above the ground from its own state
-    estimate (None: unknown); it is the contact evidence that ends a perch.
+    estimate (None: unknown); it is the contact evidence that ends a perch. odometry : the
+    vehicle's position and velocity now (world frame, z up, m and m/s) from its own state
+    estimate, or None while unknown; with it the controller rejects disturbances and flies the
+    last centimetres on odometry.
     """
 
     def __init__(
@@ -145,6 +149,7 @@ class PerchingPilot:
         controller: PerchingController | None = None,
         settings: PilotSettings | None = None,
         height_m: Callable[[], float | None] | None = None,
+        odometry: Callable[[], tuple[Array, Array] | None] | None = None,
         report: Callable[[str], None] | None = None,
     ) -> None:
         self.commander = commander
@@ -152,6 +157,7 @@ class PerchingPilot:
         self.controller = controller or PerchingController()
         self.settings = settings or PilotSettings()
         self.height_m = height_m
+        self.odometry = odometry
         self.report = report or log.warning
         self.state = "waiting"
         self.transitions: list[tuple[float, str, str]] = []
@@ -252,7 +258,13 @@ class PerchingPilot:
             return self._land_step(t_s)
         if fresh:
             self._last_valid_t = t_s
-        command: Command = self.controller.update(estimate, t_s, self.attitude())
+        state = self.odometry() if self.odometry is not None else None
+        odometry = None if state is None else Odometry(t_s, state[0], state[1])
+        command: Command = self.controller.update(estimate, t_s, self.attitude(), odometry)
+        if command.phase == "give-up":
+            tries = self.controller.tries
+            self._start_landing(t_s, f"gave up after {tries} final climbs without contact")
+            return self._land_step(t_s)
         if command.phase == "commit":
             if self._contact.touched(t_s, self._height()):
                 return self._stop(t_s, "perched", "the final climb stopped against the plate")

@@ -17,7 +17,7 @@ class SetpointLimits:
     """The largest setpoint a link may send (SI units): horizontal speed (the norm of x and y),
     vertical speed, yaw rate."""
 
-    max_xy_mps: float = 0.5
+    max_xy_mps: float = 1.0
     max_z_mps: float = 0.5
     max_yaw_rate_rad_s: float = 2.0
 

@@ -1,34 +1,161 @@
-"""Perching campaigns as results: success rates, failure causes, percentiles, and the files a
-campaign writes (``runs.csv``, ``perch.json``, ``trajectories.png``)."""
+"""Perching campaigns as results: success rates with their confidence intervals, failure
+causes, percentiles, and the files a campaign writes.
+
+``runs.csv`` gets one row per run as each run finishes (``CampaignLog``), so a killed campaign
+keeps every finished run and ``--resume`` carries on from them; ``campaign.json`` records the
+setup the rows belong to. ``perch.json`` (the figures), ``perch.md`` (a table per wind level and
+estimator), ``trajectories.png`` and, for a wind sweep, ``wind.png`` are written from the rows.
+"""
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 from collections import Counter
-from dataclasses import dataclass
+from collections.abc import Iterable, Iterator
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
-from perchpose.evaluation.plots import perch_figure
-from perchpose.sim.perch import CONTACT_RADIUS_MM, PerchResult, PerchSetup
+from perchpose.errors import PerchposeError
+from perchpose.evaluation.plots import perch_figure, wind_sweep_figure
+from perchpose.sim.perch import CONTACT_RADIUS_MM, REASONS, PerchResult, PerchSetup
+
+RUN_COLUMNS = (
+    "estimator",
+    "wind",
+    "wind_mean_mps",
+    "turbulence_sigma_mps",
+    "seed",
+    "success",
+    "reason",
+    "contact_offset_mm",
+    "contact_speed_mps",
+    "time_to_perch_s",
+    "tries",
+    "wind_direction_deg",
+)
+
+
+class CampaignError(PerchposeError):
+    """A campaign that cannot start or go on: a resume file from another setup, a scheduler
+    that does not answer."""
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """One finished run, as ``runs.csv`` holds it."""
+
+    estimator: str
+    wind: str
+    wind_mean_mps: float
+    turbulence_sigma_mps: float
+    seed: int
+    success: bool
+    reason: str
+    contact_offset_mm: float
+    contact_speed_mps: float
+    time_to_perch_s: float
+    tries: int
+    wind_direction_deg: float
+
+    @staticmethod
+    def of(result: PerchResult, setup: PerchSetup) -> RunRecord:
+        level = setup.wind_level
+        return RunRecord(
+            result.estimator,
+            setup.wind,
+            level.mean_mps,
+            level.turbulence_sigma_mps,
+            result.seed,
+            result.success,
+            result.reason,
+            result.contact_offset_mm,
+            result.contact_speed_mps,
+            result.time_to_perch_s,
+            result.tries,
+            math.degrees(result.wind_direction_rad),
+        )
+
+    @property
+    def key(self) -> tuple[str, str, float, float, int]:
+        """What identifies a run: estimator, wind and seed."""
+        return (
+            self.estimator,
+            self.wind,
+            self.wind_mean_mps,
+            self.turbulence_sigma_mps,
+            self.seed,
+        )
+
+    def row(self) -> list[str]:
+        return [
+            self.estimator,
+            self.wind,
+            f"{self.wind_mean_mps:g}",
+            f"{self.turbulence_sigma_mps:g}",
+            str(self.seed),
+            str(int(self.success)),
+            self.reason,
+            f"{self.contact_offset_mm:.3f}",
+            f"{self.contact_speed_mps:.4f}",
+            f"{self.time_to_perch_s:.3f}",
+            str(self.tries),
+            f"{self.wind_direction_deg:.1f}",
+        ]
+
+    @staticmethod
+    def from_row(row: dict[str, str], where: str) -> RunRecord:
+        try:
+            return RunRecord(
+                row["estimator"],
+                row["wind"],
+                float(row["wind_mean_mps"]),
+                float(row["turbulence_sigma_mps"]),
+                int(row["seed"]),
+                row["success"] == "1",
+                row["reason"],
+                float(row["contact_offset_mm"]),
+                float(row["contact_speed_mps"]),
+                float(row["time_to_perch_s"]),
+                int(row["tries"]),
+                float(row["wind_direction_deg"]),
+            )
+        except (KeyError, ValueError, TypeError) as exc:
+            raise CampaignError(f"{where}: not a perchpose runs.csv row ({exc})") from exc
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """The Wilson score interval of a binomial proportion (95 % by default)."""
+    if n <= 0:
+        return (0.0, 1.0)
+    p = successes / n
+    denominator = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denominator
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denominator
+    return (max(0.0, centre - half), min(1.0, centre + half))
 
 
 @dataclass(frozen=True)
 class CampaignSummary:
-    """Statistics of a set of runs of one estimator."""
+    """Statistics of a set of runs of one estimator in one wind."""
 
     estimator: str
+    wind: str
     runs: int
     success_rate: float
+    success_interval: tuple[float, float]
     reasons: dict[str, int]
     contact_offset_mm: dict[str, float]
+    contact_speed_mps: dict[str, float]
     time_to_perch_s: dict[str, float]
 
 
-def _percentiles(values: list[float]) -> dict[str, float]:
+def _percentiles(values: Iterable[float]) -> dict[str, float]:
     finite = np.array([v for v in values if math.isfinite(v)])
     if finite.size == 0:
         return {"p50": math.nan, "p90": math.nan, "p95": math.nan, "max": math.nan}
@@ -40,101 +167,245 @@ def _percentiles(values: list[float]) -> dict[str, float]:
     }
 
 
-def summarise(results: list[PerchResult]) -> CampaignSummary:
-    """Success rate, failure reasons and percentiles of contact offset and time to perch."""
-    if not results:
+def summarise(records: list[RunRecord] | list[PerchResult]) -> CampaignSummary:
+    """Success rate (with its Wilson interval), failure reasons and percentiles of contact
+    offset, contact speed of the successes, and time to perch."""
+    if not records:
         raise ValueError("no runs to summarise")
+    wins = sum(r.success for r in records)
+    first = records[0]
     return CampaignSummary(
-        estimator=results[0].estimator,
-        runs=len(results),
-        success_rate=sum(r.success for r in results) / len(results),
-        reasons=dict(Counter(r.reason for r in results)),
-        contact_offset_mm=_percentiles([r.contact_offset_mm for r in results]),
-        time_to_perch_s=_percentiles([r.time_to_perch_s for r in results if r.success]),
+        estimator=first.estimator,
+        wind=first.wind if isinstance(first, RunRecord) else "",
+        runs=len(records),
+        success_rate=wins / len(records),
+        success_interval=wilson_interval(wins, len(records)),
+        reasons=dict(Counter(r.reason for r in records)),
+        contact_offset_mm=_percentiles(r.contact_offset_mm for r in records),
+        contact_speed_mps=_percentiles(r.contact_speed_mps for r in records if r.success),
+        time_to_perch_s=_percentiles(r.time_to_perch_s for r in records if r.success),
     )
 
 
-def write_campaign(
-    out_dir: str, results: dict[str, list[PerchResult]], setup: PerchSetup
-) -> dict[str, object]:
-    """Write ``runs.csv``, ``perch.json`` and ``trajectories.png`` into ``out_dir``; return the
-    JSON content."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    with (out / "runs.csv").open("w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f)
-        w.writerow(
-            [
-                "estimator",
-                "seed",
-                "success",
-                "reason",
-                "contact_offset_mm",
-                "contact_speed_mps",
-                "time_to_perch_s",
-            ]
-        )
-        for name, rs in results.items():
-            for r in rs:
-                w.writerow(
-                    [
-                        name,
-                        r.seed,
-                        int(r.success),
-                        r.reason,
-                        f"{r.contact_offset_mm:.3f}",
-                        f"{r.contact_speed_mps:.4f}",
-                        f"{r.time_to_perch_s:.3f}",
-                    ]
-                )
-    content = summary_json(results, setup)
-    (out / "perch.json").write_text(json.dumps(content, indent=2), encoding="utf-8")
-    first = next(iter(results.values()))
-    perch_figure(
-        str(out / "trajectories.png"),
-        [
-            (f"{r.estimator} seed {r.seed} ({r.reason})", r.t_s, r.p_magnet_m, r.stage)
-            for r in first[:5]
-        ],
-        setup.plate_z_m,
-        CONTACT_RADIUS_MM,
-    )
-    return content
-
-
-def summary_json(results: dict[str, list[PerchResult]], setup: PerchSetup) -> dict[str, object]:
-    """The figures of a campaign: per estimator, and the first estimator's at the top level
-    (``success_rate``, ``runs``, ``contact_offset_mm``, ``time_to_perch_s``)."""
-    per = {name: summarise(rs) for name, rs in results.items()}
-    first = next(iter(per.values()))
-
-    def clean(d: dict[str, float]) -> dict[str, float | None]:
-        return {k: (v if math.isfinite(v) else None) for k, v in d.items()}
-
+def setup_description(setup: PerchSetup) -> dict[str, object]:
+    """What a campaign's runs depend on besides estimator, wind and seed."""
+    c = setup.camera
     return {
-        "estimator": first.estimator,
-        "success_rate": first.success_rate,
-        "runs": first.runs,
-        "contact_offset_mm": clean(first.contact_offset_mm),
-        "time_to_perch_s": clean(first.time_to_perch_s),
-        "by_estimator": {
-            name: {
-                "success_rate": s.success_rate,
-                "runs": s.runs,
-                "reasons": s.reasons,
-                "contact_offset_mm": clean(s.contact_offset_mm),
-                "time_to_perch_s": clean(s.time_to_perch_s),
-            }
-            for name, s in per.items()
-        },
-        "setup": {
-            "camera": setup.camera.name,
-            "wind": setup.wind,
-            "fps": setup.fps,
-            "latency_frames": setup.latency_frames,
-            "drop_probability": setup.drop_probability,
-            "start_below_m": list(setup.start_below_m),
-            "start_lateral_fraction": setup.start_lateral_fraction,
-            "ceiling_effect": setup.ceiling_effect,
-        },
+        "camera": c.name,
+        "camera_model": c.model,
+        "image_px": [c.width_px, c.height_px],
+        "K": np.asarray(c.K).round(6).tolist(),
+        "fps": setup.fps,
+        "latency_frames": setup.latency_frames,
+        "drop_probability": setup.drop_probability,
+        "start_below_m": list(setup.start_below_m),
+        "start_lateral_fraction": setup.start_lateral_fraction,
+        "ceiling_effect": setup.ceiling_effect,
+        "duration_s": setup.duration_s,
+        "physics_hz": setup.physics_hz,
+        "disturbances": asdict(setup.disturbances),
+        "vehicle": asdict(setup.vehicle),
+        "controller": {k: v for k, v in asdict(setup.controller).items() if k != "T_body_camera"},
+        "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
     }
+
+
+def _fingerprint(description: dict[str, object]) -> str:
+    text = json.dumps(description, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+class CampaignLog:
+    """``runs.csv`` written a row at a time (flushed), with ``campaign.json`` naming the setup.
+
+    resume : keep the rows already there (they must come from the same setup) and report
+    which runs are done; otherwise start the file afresh.
+    """
+
+    def __init__(self, out_dir: str | Path, setup: PerchSetup, *, resume: bool = False) -> None:
+        self.out = Path(out_dir)
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CampaignError(f"{self.out}: cannot create the output folder ({exc})") from exc
+        self.path = self.out / "runs.csv"
+        description = setup_description(setup)
+        fingerprint = _fingerprint(description)
+        meta = self.out / "campaign.json"
+        self.records: list[RunRecord] = []
+        if resume:
+            self.records = self._resumed(meta, fingerprint)
+        meta.write_text(
+            json.dumps({"fingerprint": fingerprint, "setup": description}, indent=2, default=str),
+            encoding="utf-8",
+        )
+        fresh = not resume or not self.path.exists()
+        self._file: TextIO = self.path.open("w" if fresh else "a", newline="", encoding="utf-8")
+        self._writer = csv.writer(self._file)
+        if fresh:
+            self._writer.writerow(RUN_COLUMNS)
+            self._file.flush()
+
+    def _resumed(self, meta: Path, fingerprint: str) -> list[RunRecord]:
+        if not meta.exists() or not self.path.exists():
+            return []
+        try:
+            previous = json.loads(meta.read_text(encoding="utf-8"))["fingerprint"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise CampaignError(f"{meta}: not a perchpose campaign file ({exc})") from exc
+        if previous != fingerprint:
+            raise CampaignError(
+                f"{self.out}: --resume found runs of another setup (camera, vehicle, controller "
+                "or disturbances differ); use another --out or drop --resume"
+            )
+        records = list(read_runs(self.path))
+        self._cut_partial_row()
+        return records
+
+    def _cut_partial_row(self) -> None:
+        """A run killed mid-write leaves no half row behind the ones kept."""
+        data = self.path.read_bytes()
+        if data and not data.endswith(b"\n"):
+            self.path.write_bytes(data[: data.rfind(b"\n") + 1])
+
+    @property
+    def done(self) -> set[tuple[str, str, float, float, int]]:
+        return {r.key for r in self.records}
+
+    def add(self, record: RunRecord) -> None:
+        self.records.append(record)
+        self._writer.writerow(record.row())
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> CampaignLog:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+
+def read_runs(path: str | Path) -> Iterator[RunRecord]:
+    """The rows of a ``runs.csv``; a last row cut short by a killed run is skipped."""
+    with Path(path).open(newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    for i, row in enumerate(rows, start=2):
+        if None in row.values() or len(row) < len(RUN_COLUMNS):
+            if i == len(rows) + 1:
+                return  # the partial last line of a killed run
+            raise CampaignError(f"{path}: line {i} is not a whole run")
+        yield RunRecord.from_row(row, f"{path}: line {i}")
+
+
+def group(records: list[RunRecord]) -> dict[tuple[str, str], list[RunRecord]]:
+    """Runs by (wind, estimator), each in seed order, winds in the order first met."""
+    out: dict[tuple[str, str], list[RunRecord]] = {}
+    for r in records:
+        out.setdefault((r.wind, r.estimator), []).append(r)
+    return {k: sorted(v, key=lambda r: r.seed) for k, v in out.items()}
+
+
+def _clean(d: dict[str, float]) -> dict[str, float | None]:
+    return {k: (v if math.isfinite(v) else None) for k, v in d.items()}
+
+
+def _summary_dict(s: CampaignSummary, records: list[RunRecord]) -> dict[str, object]:
+    return {
+        "wind": s.wind,
+        "wind_mean_mps": records[0].wind_mean_mps,
+        "turbulence_sigma_mps": records[0].turbulence_sigma_mps,
+        "success_rate": s.success_rate,
+        "success_interval_95": list(s.success_interval),
+        "runs": s.runs,
+        "reasons": s.reasons,
+        "contact_offset_mm": _clean(s.contact_offset_mm),
+        "contact_speed_mps": _clean(s.contact_speed_mps),
+        "time_to_perch_s": _clean(s.time_to_perch_s),
+    }
+
+
+def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, object]:
+    """The figures of a campaign: per wind and estimator (``cells``), per estimator at the
+    campaign's own wind (``by_estimator``), and the first estimator's at the top level
+    (``success_rate``, ``runs``, ``contact_offset_mm``, ``time_to_perch_s``,
+    ``wind_mean_mps``, ``turbulence_sigma_mps``)."""
+    if not records:
+        raise CampaignError("the campaign has no finished runs")
+    groups = group(records)
+    cells = {f"{w}/{e}": _summary_dict(summarise(rs), rs) for (w, e), rs in groups.items()}
+    first_wind = next(iter(groups))[0]
+    by_estimator = {e: cells[f"{w}/{e}"] for (w, e) in groups if w == first_wind}
+    top = next(iter(by_estimator.values()))
+    first_name = next(iter(by_estimator))
+    return {
+        "estimator": first_name,
+        "wind": first_wind,
+        "wind_mean_mps": top["wind_mean_mps"],
+        "turbulence_sigma_mps": top["turbulence_sigma_mps"],
+        "success_rate": top["success_rate"],
+        "success_interval_95": top["success_interval_95"],
+        "runs": top["runs"],
+        "contact_offset_mm": top["contact_offset_mm"],
+        "time_to_perch_s": top["time_to_perch_s"],
+        "by_estimator": by_estimator,
+        "cells": cells,
+        "setup": setup_description(setup),
+    }
+
+
+def _num(v: object, fmt: str = ".1f") -> str:
+    return format(v, fmt) if isinstance(v, float) and math.isfinite(v) else "-"
+
+
+def markdown(records: list[RunRecord]) -> str:
+    """``perch.md``: one row per wind and estimator."""
+    lines = [
+        "| wind | mean / gust (m/s) | estimator | runs | perched | 95 % interval | "
+        "offset p50 / p95 (mm) | speed max (m/s) | failures |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for (wind, estimator), rs in group(records).items():
+        s = summarise(rs)
+        low, high = s.success_interval
+        fails = (
+            ", ".join(f"{k} {v}" for k, v in sorted(s.reasons.items()) if k != "perched") or "none"
+        )
+        lines.append(
+            f"| {wind} | {rs[0].wind_mean_mps:g} / {rs[0].turbulence_sigma_mps:g} | "
+            f"{estimator} | {s.runs} | {s.success_rate:.1%} | {low:.1%} - {high:.1%} | "
+            f"{_num(s.contact_offset_mm['p50'])} / {_num(s.contact_offset_mm['p95'])} | "
+            f"{_num(s.contact_speed_mps['max'], '.2f')} | {fails} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_reports(
+    log: CampaignLog, setup: PerchSetup, trajectories: list[PerchResult]
+) -> dict[str, object]:
+    """``perch.json``, ``perch.md``, ``trajectories.png`` and, with several winds,
+    ``wind.png`` beside ``runs.csv``; returns the JSON content."""
+    out = log.out
+    content = summary_json(log.records, setup)
+    (out / "perch.json").write_text(json.dumps(content, indent=2, default=str), encoding="utf-8")
+    (out / "perch.md").write_text(markdown(log.records), encoding="utf-8")
+    if trajectories:
+        perch_figure(
+            str(out / "trajectories.png"),
+            [
+                (f"{r.estimator} seed {r.seed} ({r.reason})", r.t_s, r.p_magnet_m, r.stage)
+                for r in trajectories[:5]
+            ],
+            setup.plate_z_m,
+            CONTACT_RADIUS_MM,
+        )
+    groups = group(log.records)
+    if len({w for w, _ in groups}) > 1:
+        series: dict[str, list[tuple[float, int, int, dict[str, int]]]] = {}
+        for (_, estimator), rs in groups.items():
+            wins = sum(r.success for r in rs)
+            reasons = dict(Counter(r.reason for r in rs if not r.success))
+            series.setdefault(estimator, []).append((rs[0].wind_mean_mps, wins, len(rs), reasons))
+        wind_sweep_figure(str(out / "wind.png"), series, wilson_interval, REASONS[1:])
+    return content

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
@@ -257,5 +259,55 @@ def perch_figure(
         ax.grid(True, lw=0.3)
     ax_z.legend(fontsize=7, ncol=3)
     ax_xy.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def wind_sweep_figure(
+    path: str,
+    series: dict[str, list[tuple[float, int, int, dict[str, int]]]],
+    interval: Callable[[int, int], tuple[float, float]],
+    causes: tuple[str, ...],
+) -> None:
+    """Success rate against mean wind per estimator with each rate's interval (left), and
+    the failures by cause per wind and estimator (right).
+
+    series : estimator -> [(mean wind m/s, successes, runs, {cause: count})].
+    """
+    fig = Figure(figsize=(11, 4.5))
+    ax_rate, ax_cause = fig.subplots(1, 2)
+    for name, unsorted in series.items():
+        points = sorted(unsorted)
+        x = np.array([p[0] for p in points])
+        rate = np.array([p[1] / p[2] for p in points]) * 100
+        bounds = np.array([interval(p[1], p[2]) for p in points]) * 100
+        ax_rate.errorbar(
+            x,
+            rate,
+            yerr=[rate - bounds[:, 0], bounds[:, 1] - rate],
+            marker="o",
+            capsize=3,
+            label=name,
+        )
+    ax_rate.set_xlabel("mean wind (m/s)")
+    ax_rate.set_ylabel("perched (%), 95 % Wilson interval")
+    ax_rate.set_ylim(-2, 102)
+    ax_rate.grid(True, lw=0.3)
+    ax_rate.legend(fontsize=8)
+    labels: list[str] = []
+    bottoms: list[float] = []
+    rows = [(name, p) for name, points in series.items() for p in sorted(points)]
+    for name, p in rows:
+        labels.append(f"{name}\n{p[0]:g} m/s")
+        bottoms.append(0.0)
+    for cause in causes:
+        heights = [100.0 * p[3].get(cause, 0) / p[2] for _, p in rows]
+        if any(heights):
+            ax_cause.bar(range(len(rows)), heights, bottom=bottoms, label=cause)
+            bottoms = [b + h for b, h in zip(bottoms, heights, strict=True)]
+    ax_cause.set_xticks(range(len(rows)), labels, fontsize=7)
+    ax_cause.set_ylabel("failed runs (%) by cause")
+    ax_cause.legend(fontsize=8)
+    ax_cause.grid(True, axis="y", lw=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

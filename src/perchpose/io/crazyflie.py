@@ -36,8 +36,9 @@ def R_world_body_from_quaternion(qw: float, qx: float, qy: float, qz: float) -> 
 
 
 class CrazyflieConnection:
-    """An open cflib link with the vehicle's attitude and height streamed from its state
-    estimate (``stateEstimate.qw/qx/qy/qz`` and ``stateEstimate.z``, 50 Hz)."""
+    """An open cflib link with the vehicle's attitude, height, position and velocity streamed
+    from its state estimate (``stateEstimate.qw/qx/qy/qz`` and ``.z`` in one log block,
+    ``stateEstimate.x/y/vx/vy/vz`` in a second: a block holds at most 26 bytes; 50 Hz)."""
 
     def __init__(self, uri: str, report: Callable[[str], None] | None = None) -> None:
         try:
@@ -53,6 +54,7 @@ class CrazyflieConnection:
         self.report = report or log.warning
         self._R_world_body = np.eye(3)
         self._height_m: float | None = None
+        self._odometry: tuple[Array, Array] | None = None
         cflib.crtp.init_drivers()
         self.cf: Any = Crazyflie()
         self._sync = SyncCrazyflie(uri, cf=self.cf)
@@ -66,9 +68,14 @@ class CrazyflieConnection:
         for name in [*names, "stateEstimate.z"]:
             self._log.add_variable(name, "float")
         self._log.data_received_cb.add_callback(self._state)
+        self._motion = LogConfig(name="perchpose-odometry", period_in_ms=20)
+        for axis in ("x", "y", "vx", "vy", "vz"):
+            self._motion.add_variable(f"stateEstimate.{axis}", "float")
+        self._motion.data_received_cb.add_callback(self._moved)
         try:
-            self.cf.log.add_config(self._log)
-            self._log.start()
+            for block in (self._log, self._motion):
+                self.cf.log.add_config(block)
+                block.start()
         except (KeyError, AttributeError) as exc:
             self._sync.close_link()
             raise LinkError(f"{uri}: the firmware does not log the state estimate: {exc}") from exc
@@ -82,8 +89,21 @@ class CrazyflieConnection:
         )
         self._height_m = float(data["stateEstimate.z"])
 
+    def _moved(self, _timestamp: int, data: dict[str, float], _config: object) -> None:
+        z = self._height_m if self._height_m is not None else 0.0
+        p = np.array([data["stateEstimate.x"], data["stateEstimate.y"], z], np.float64)
+        v = np.array(
+            [data["stateEstimate.vx"], data["stateEstimate.vy"], data["stateEstimate.vz"]],
+            np.float64,
+        )
+        self._odometry = (p, v)
+
     def attitude(self) -> Array:
         return self._R_world_body
+
+    def odometry(self) -> tuple[Array, Array] | None:
+        """Position and velocity (world frame, m, m/s) from the state estimate, or None."""
+        return self._odometry
 
     def height_m(self) -> float | None:
         return self._height_m
@@ -91,7 +111,12 @@ class CrazyflieConnection:
     def pilot(self, **kwargs: Any) -> PerchingPilot:
         """A pilot on this link, told about a link loss."""
         pilot = PerchingPilot(
-            self.cf.commander, self.attitude, height_m=self.height_m, report=self.report, **kwargs
+            self.cf.commander,
+            self.attitude,
+            height_m=self.height_m,
+            odometry=self.odometry,
+            report=self.report,
+            **kwargs,
         )
         pilot.watch_link(self.cf)
         return pilot
@@ -99,6 +124,7 @@ class CrazyflieConnection:
     def close(self) -> None:
         try:
             self._log.stop()
+            self._motion.stop()
         finally:
             self._sync.close_link()
 

@@ -1,5 +1,12 @@
-"""Closed-loop perching in simulation: the vehicle, the camera in the loop, the estimator and
-the perching pilot that also flies the Crazyflie; only the scoring reads the true pose."""
+"""Closed-loop perching in simulation: the vehicle in wind, the camera in the loop, the
+estimator and the perching pilot that also flies the Crazyflie; only the scoring reads the true
+pose.
+
+Each run draws, from its seed: the start, the wind's direction and its gusts, the vehicle's
+disturbances (``perchpose.sim.disturbances``) and the camera's noise, drops and latency. The
+world (start, wind, vehicle) comes from one generator and the camera from another, so the same
+seed flies the same world with every estimator.
+"""
 
 from __future__ import annotations
 
@@ -12,13 +19,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.control import ControllerSettings, PerchingController, PerchingPilot, PilotSettings
+from perchpose.control import (
+    ControllerSettings,
+    PerchingController,
+    PerchingPilot,
+    PilotSettings,
+)
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import stage_of
 from perchpose.geometry import invert_transform, make_transform, rot_z, yaw_rad
+from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams, VehicleConfigError
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
+from perchpose.sim.wind import DrydenWind, WindLevel, wind_level
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
@@ -26,10 +40,10 @@ Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 ESTIMATORS = ("paper", "outer", "inner", "covariance", "truth")
-# standard deviation of the gust force, newtons (the vehicle weighs 0.38 N)
-WIND_LEVELS = {"none": 0.0, "light": 0.004, "moderate": 0.008, "strong": 0.015}
+REASONS = ("perched", "off-centre", "too-fast", "timeout", "lost", "gave-up", "crash")
 CONTACT_RADIUS_MM = 12.5  # the paper's 25 mm magnet
 MAX_CONTACT_SPEED_MPS = 0.3
+MAX_TILT_DEG = 60.0  # beyond this the vehicle has flipped: a crash
 R_WORLD_TARGET = np.diag([1.0, -1.0, -1.0])  # printed face down, x along world x
 
 
@@ -53,8 +67,10 @@ class PerchSetup:
     physics_hz: float = 500.0
     duration_s: float = 20.0
     wind: str = "none"
+    wind_mps: float | None = None
+    gust_mps: float | None = None
+    disturbances: Disturbances = field(default_factory=Disturbances)
     ceiling_effect: bool = True
-    velocity_noise_mps: float = 0.01
     supersample: int = 1
     quality: ImageQuality = field(default_factory=ImageQuality)
 
@@ -63,10 +79,7 @@ class PerchSetup:
             raise VehicleConfigError(
                 f"unknown estimator {self.estimator!r} (choose {', '.join(ESTIMATORS)})"
             )
-        if self.wind not in WIND_LEVELS:
-            raise VehicleConfigError(
-                f"unknown wind level {self.wind!r} (choose {', '.join(WIND_LEVELS)})"
-            )
+        self.wind_level  # noqa: B018  (checks the level, or the speeds given instead)
         low, high = self.start_below_m
         if not 0 < low <= high:
             raise VehicleConfigError("start_below_m must be 0 < low <= high")
@@ -75,6 +88,16 @@ class PerchSetup:
         if abs(self.controller.camera_period_s - 1.0 / self.fps) > 1e-9:
             raise VehicleConfigError("the controller's camera_period_s must be 1 / fps")
         self.check_start_box()
+
+    @property
+    def wind_level(self) -> WindLevel:
+        """The named level, with ``wind_mps`` and ``gust_mps`` in place of its values where
+        given."""
+        level = wind_level(self.wind)
+        return WindLevel(
+            level.mean_mps if self.wind_mps is None else self.wind_mps,
+            level.turbulence_sigma_mps if self.gust_mps is None else self.gust_mps,
+        )
 
     def renderer(self) -> Renderer[TargetSpec]:
         """The renderer of this setup's frames (sensor noise from a bank: see ``Renderer``)."""
@@ -109,7 +132,8 @@ class PerchSetup:
 
 @dataclass(frozen=True)
 class PerchResult:
-    """One run. ``reason``: perched, off-centre, too-fast, timeout."""
+    """One run. ``reason``: one of ``REASONS``. ``tries``: final climbs the controller backed
+    off from. ``wind_direction_rad``: where this run's mean wind blew to."""
 
     seed: int
     estimator: str
@@ -122,6 +146,8 @@ class PerchResult:
     p_magnet_m: Array = field(repr=False)
     stage: NDArray[np.int64] = field(repr=False)
     phase: tuple[str, ...] = field(repr=False)
+    tries: int = 0
+    wind_direction_rad: float = 0.0
 
 
 class HeldSetpoint:
@@ -174,90 +200,161 @@ def _estimator_for(setup: PerchSetup) -> PerchingEstimator | None:
     )
 
 
+class _Flight:
+    """One run's world and vehicle, stepped frame by frame."""
+
+    def __init__(self, setup: PerchSetup, seed: int, renderer: Renderer[TargetSpec]) -> None:
+        self.setup = setup
+        self.seed = seed
+        world_seq, camera_seq = np.random.SeedSequence(seed).spawn(2)
+        world = np.random.default_rng(world_seq)
+        self.camera_rng = np.random.default_rng(camera_seq)
+        below = float(world.uniform(*setup.start_below_m))
+        lateral = setup.start_lateral_fraction * below
+        start = np.array(
+            [
+                world.uniform(-lateral, lateral),
+                world.uniform(-lateral, lateral),
+                setup.plate_z_m - below,
+            ]
+        )
+        self.vehicle = Quadrotor.hovering(
+            setup.vehicle, start, float(world.uniform(-math.pi, math.pi)), setup.onboard
+        )
+        self.vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
+        self.wind_direction_rad = float(world.uniform(-math.pi, math.pi))
+        self.wind = DrydenWind(
+            setup.wind_level, 1.0 / setup.fps, world, self.wind_direction_rad, setup.plate_z_m
+        )
+        self.draw = VehicleDraw.draw(setup.disturbances, setup.duration_s, world)
+        self.vehicle.attitude_bias = self.draw.attitude_bias
+        self.odometry = OdometryModel(setup.disturbances, start, world)
+        self.render = renderer
+        self.estimator = _estimator_for(setup)
+        self.commander = HeldSetpoint()
+        self.controller = PerchingController(setup.controller)
+        self.pilot = PerchingPilot(
+            self.commander,
+            lambda: self.vehicle.R_estimate,
+            controller=self.controller,
+            settings=setup.pilot,
+            height_m=lambda: float(self.odometry.p_m[2]),
+            odometry=lambda: (self.odometry.p_m, self.odometry.v_mps),
+            report=log.debug,
+        )
+        # frames on their way to the estimator: (arrival frame, capture time, image or pose)
+        self.pipeline: deque[tuple[int, float, Array | NDArray[np.uint8] | None]] = deque()
+        self._last_arrival = 0
+
+    def capture(self, k: int, t_s: float) -> None:
+        """The camera captures frame ``k`` now; it arrives ``latency_frames`` (sometimes one
+        more) frames later, never before the frame captured before it."""
+        s = self.setup
+        rng = self.camera_rng
+        T_camera_target = (
+            invert_transform(s.T_world_camera(self.vehicle.p_m, self.vehicle.R_world_body))
+            @ s.T_world_target
+        )
+        dropped = rng.random() < s.drop_probability or self.draw.in_burst(t_s)
+        late = rng.random() < s.disturbances.latency_jitter
+        arrival = max(self._last_arrival, k + s.latency_frames + int(late))
+        self._last_arrival = arrival
+        payload: Array | NDArray[np.uint8] | None
+        if dropped:
+            payload = None
+        elif self.estimator is None:
+            payload = T_camera_target
+        else:
+            payload = self.render.render(T_camera_target, s.quality, rng)
+        self.pipeline.append((arrival, t_s, payload))
+
+    def arrived(self, k: int) -> Estimate | None:
+        """Every frame that has reached the estimator by frame ``k``, in order; the newest
+        estimate (None when no frame arrived)."""
+        s = self.setup
+        estimate = None
+        while self.pipeline and self.pipeline[0][0] <= k:
+            _, t_capture, payload = self.pipeline.popleft()
+            if payload is None:
+                continue
+            if self.estimator is None:
+                estimate = truth_estimate(
+                    np.asarray(payload, np.float64), s.camera, s.target, t_capture
+                )
+            else:
+                estimate = self.estimator.update(np.asarray(payload, np.uint8), t_capture)
+        return estimate
+
+    def fly_frame(self, t_s: float, steps: int, p_magnet_body: Array) -> int | None:
+        """The vehicle through one frame period in this frame's wind; the contact step or
+        None."""
+        s = self.setup
+        v = self.vehicle
+        v.wind_mps = self.wind.step()
+        v.thrust_scale = self.draw.thrust_scale(t_s)
+        contact = v.fly(
+            1.0 / s.physics_hz,
+            steps,
+            self.commander.v_mps,
+            self.commander.yaw_rate_rad_s,
+            self.odometry.v_mps,
+            stop_z_m=s.plate_z_m,
+            p_body_point_m=p_magnet_body,
+        )
+        self.odometry.update(v.p_m, v.v_mps, 1.0 / s.fps)
+        return contact
+
+    def crashed(self) -> bool:
+        v = self.vehicle
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(v.R_world_body[2, 2])))))
+        return bool(v.p_m[2] < 0.02 or tilt > MAX_TILT_DEG or not np.isfinite(v.p_m).all())
+
+
 def run_perch(
     setup: PerchSetup, seed: int, renderer: Renderer[TargetSpec] | None = None
 ) -> PerchResult:
     """One perching run from a random start drawn with ``seed``."""
-    rng = np.random.default_rng(seed)
-    below = float(rng.uniform(*setup.start_below_m))
-    lateral = setup.start_lateral_fraction * below
-    start = np.array(
-        [rng.uniform(-lateral, lateral), rng.uniform(-lateral, lateral), setup.plate_z_m - below]
-    )
-    vehicle = Quadrotor.hovering(
-        setup.vehicle, start, float(rng.uniform(-math.pi, math.pi)), setup.onboard
-    )
-    vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
-    render = renderer or setup.renderer()
-    estimator = _estimator_for(setup)
-    commander = HeldSetpoint()
-    pilot = PerchingPilot(
-        commander,
-        lambda: vehicle.R_world_body,
-        controller=PerchingController(setup.controller),
-        settings=setup.pilot,
-        height_m=lambda: float(vehicle.p_m[2]),
-        report=log.debug,
-    )
-    T_world_target = setup.T_world_target
-    mx, my, mz = (float(c) for c in setup.controller.p_body_magnet_m)
-    p_magnet_body = (mx, my, mz)
-    sigma_wind = WIND_LEVELS[setup.wind]
-    gust = np.zeros(3)
-    dt = 1.0 / setup.physics_hz
+    flight = _Flight(setup, seed, renderer or setup.renderer())
+    p_magnet_body = np.asarray(setup.controller.p_body_magnet_m, np.float64)
     steps_per_frame = max(1, int(round(setup.physics_hz / setup.fps)))
-    pipeline: deque[tuple[float, Array | NDArray[np.uint8] | None]] = deque()
+    ts: list[float] = []
+    magnets: list[Array] = []
+    stages: list[int] = []
+    phases: list[str] = []
+
+    def result(success: bool, reason: str, offset: float, speed: float, t: float) -> PerchResult:
+        return PerchResult(
+            seed,
+            setup.estimator,
+            success,
+            reason,
+            offset,
+            speed,
+            t,
+            np.array(ts),
+            np.array(magnets).reshape(-1, 3),
+            np.array(stages, np.int64),
+            tuple(phases),
+            flight.controller.tries,
+            flight.wind_direction_rad,
+        )
+
     phase = "waiting"
-    ts, magnets, stages, phases = [], [], [], []
-    n_frames = int(round(setup.duration_s * setup.fps))
-    for k in range(n_frames):
+    for k in range(int(round(setup.duration_s * setup.fps))):
         t = k / setup.fps
-        # the camera captures now; the frame reaches the estimator latency_frames later
-        T_camera_target = (
-            invert_transform(setup.T_world_camera(vehicle.p_m, vehicle.R_world_body))
-            @ T_world_target
-        )
-        dropped = rng.random() < setup.drop_probability
-        if dropped:
-            pipeline.append((t, None))
-        elif estimator is None:
-            pipeline.append((t, T_camera_target))
-        else:
-            pipeline.append((t, render.render(T_camera_target, setup.quality, rng)))
-        stage = 0
-        if len(pipeline) > setup.latency_frames:
-            t_capture, payload = pipeline.popleft()
-            if payload is not None:
-                if estimator is None:
-                    estimate = truth_estimate(
-                        np.asarray(payload, np.float64), setup.camera, setup.target, t_capture
-                    )
-                else:
-                    estimate = estimator.update(np.asarray(payload, np.uint8), t_capture)
-                stage = estimate.stage
-                step = pilot.update(estimate, t)
-                phase = step.phase or step.state
-        v_estimate = vehicle.v_mps + rng.normal(0.0, setup.velocity_noise_mps, 3)
-        forces = None
-        if sigma_wind > 0:
-            forces = np.empty((steps_per_frame, 3))
-            for i in range(steps_per_frame):
-                gust += -gust * dt + sigma_wind * math.sqrt(2.0 * dt) * rng.normal(size=3)
-                forces[i] = gust
-        contact = vehicle.fly(
-            dt,
-            steps_per_frame,
-            commander.v_mps,
-            commander.yaw_rate_rad_s,
-            v_estimate,
-            forces,
-            stop_z_m=setup.plate_z_m,
-            p_body_point_m=np.array(p_magnet_body),
-        )
+        flight.capture(k, t)
+        estimate = flight.arrived(k)
+        step = flight.pilot.update(estimate, t)
+        phase = step.phase or step.state
+        contact = flight.fly_frame(t, steps_per_frame, p_magnet_body)
+        ts.append(t)
+        magnets.append(np.array(flight.vehicle.point_in_world(tuple(p_magnet_body))))
+        stages.append(estimate.stage if estimate is not None else 0)
+        phases.append(phase)
         if contact is not None:
-            magnet = np.array(vehicle.point_in_world(p_magnet_body))
+            magnet = magnets[-1]
             offset_mm = float(np.hypot(magnet[0], magnet[1]) * 1000.0)
-            speed = float(vehicle.v_mps[2])
+            speed = float(flight.vehicle.v_mps[2])
             ok_offset = offset_mm <= CONTACT_RADIUS_MM
             ok_speed = speed < MAX_CONTACT_SPEED_MPS
             reason = (
@@ -265,37 +362,10 @@ def run_perch(
                 if ok_offset and ok_speed
                 else ("off-centre" if not ok_offset else "too-fast")
             )
-            ts.append(t)
-            magnets.append(magnet)
-            stages.append(stage)
-            phases.append(phase)
-            return PerchResult(
-                seed,
-                setup.estimator,
-                ok_offset and ok_speed,
-                reason,
-                offset_mm,
-                speed,
-                t,
-                np.array(ts),
-                np.array(magnets),
-                np.array(stages, np.int64),
-                tuple(phases),
-            )
-        ts.append(t)
-        magnets.append(np.array(vehicle.point_in_world(p_magnet_body)))
-        stages.append(stage)
-        phases.append(phase)
-    return PerchResult(
-        seed,
-        setup.estimator,
-        False,
-        "timeout",
-        math.nan,
-        math.nan,
-        math.nan,
-        np.array(ts),
-        np.array(magnets),
-        np.array(stages, np.int64),
-        tuple(phases),
-    )
+            return result(ok_offset and ok_speed, reason, offset_mm, speed, t)
+        if flight.crashed():
+            return result(False, "crash", math.nan, math.nan, math.nan)
+        if flight.pilot.state in ("landing", "landed"):
+            reason = "gave-up" if flight.controller.phase == "give-up" else "lost"
+            return result(False, reason, math.nan, math.nan, math.nan)
+    return result(False, "timeout", math.nan, math.nan, math.nan)

@@ -1,8 +1,24 @@
-"""A small quadrotor: rigid body, four motors with first-order response, and the onboard
-attitude and velocity loops of a flight controller such as the Crazyflie's.
+"""A small quadrotor: rigid body, four rotors whose speed follows its command with a first-order
+lag, the aerodynamic wrench of the air moving past it, and the onboard attitude and velocity
+loops of a flight controller such as the Crazyflie's.
 
-World frame: x, y horizontal, z up (metres). Body frame: x forward, y left, z up. Motors in
-an X: front-left, front-right, back-right, back-left. Plain numpy.
+World frame: x, y horizontal, z up (metres). Body frame: x forward, y left, z up. Rotors in
+an X: front-left, front-right, back-right, back-left; front-left and back-right turn so that
+their drag torque yaws the body positively (RotorPy's convention).
+
+Forces, body frame, with ``a`` the air's velocity relative to the body (vehicle velocity minus
+wind) and ``a_i = a + omega x r_i`` its value at rotor ``i`` (hub position ``r_i``):
+
+- thrust ``k_thrust * w_i^2`` along body z for rotor speed ``w_i`` (rad/s);
+- rotor drag (the H-force) ``-w_i * diag(k_d, k_d, k_z) a_i`` at each hub: linear in airspeed
+  and in rotor speed, as identified for the Crazyflie 2.0 by Forster (2015, ETH Zurich,
+  "System Identification of the Crazyflie 2.0 Nano Quadrocopter");
+- body (parasitic) drag ``-|a| diag(c_xy, c_xy, c_z) a`` at the centre of mass;
+- the ceiling effect near the plate (thrust gain ``1 / (1 - (r / 4d)^2)``).
+
+This is the wrench of RotorPy's ``Multirotor`` (Folk et al., 2023) without flapping and
+translational lift, which RotorPy's own Crazyflie parameters leave at zero; a test flies both
+with the same rotor commands and wind.
 """
 
 from __future__ import annotations
@@ -29,10 +45,18 @@ class VehicleConfigError(PerchposeError):
 class QuadrotorParams:
     """Defaults: a Crazyflie 2.1 carrying an FPV camera and a magnet (39 g, as in the paper).
 
-    inertia_kg_m2 : diagonal of the inertia tensor. arm_m : motor offset along body x and y.
-    max_thrust_n : per motor. motor_tau_s : first-order motor time constant.
-    yaw_moment_m : reaction torque per newton of thrust. drag_n_s_per_m : linear drag.
-    prop_radius_m : for the ceiling effect.
+    inertia_kg_m2 : diagonal of the inertia tensor. arm_m : rotor hub offset along body x and
+    y. max_thrust_n : per rotor. motor_tau_s : first-order time constant of the rotor speed.
+    k_thrust : thrust per squared rotor speed, N/(rad/s)^2. yaw_moment_m : drag torque per
+    newton of thrust. rotor_drag_kg_per_rad, inflow_drag_kg_per_rad : the H-force's in-plane
+    and axial coefficients (k_d, k_z), N per (m/s of airspeed x rad/s of rotor speed).
+    body_drag_n_per_mps2 : quadratic body drag along body x/y and z. prop_radius_m : for the
+    ceiling effect.
+
+    k_thrust, yaw_moment_m (k_m / k_thrust), k_d and k_z are RotorPy's Crazyflie values
+    (k_d, k_z from Forster 2015). Neither source identifies the body drag of a Crazyflie; the
+    default is 0.5 rho C_d A with C_d = 1 and the side (15 cm^2) and top (30 cm^2) areas of
+    the airframe with its camera and magnet: it matters only at the strongest winds.
     """
 
     mass_kg: float = 0.039
@@ -40,8 +64,11 @@ class QuadrotorParams:
     arm_m: float = 0.0325
     max_thrust_n: float = 0.16
     motor_tau_s: float = 0.03
-    yaw_moment_m: float = 0.006
-    drag_n_s_per_m: float = 0.01
+    k_thrust: float = 2.3e-8
+    yaw_moment_m: float = 7.8e-10 / 2.3e-8
+    rotor_drag_kg_per_rad: float = 10.2506e-7
+    inflow_drag_kg_per_rad: float = 7.553e-7
+    body_drag_n_per_mps2: tuple[float, float] = (9.2e-4, 1.8e-3)
     prop_radius_m: float = 0.0235
 
     def __post_init__(self) -> None:
@@ -49,8 +76,19 @@ class QuadrotorParams:
             raise VehicleConfigError(f"mass must be positive, got {self.mass_kg} kg")
         if not all(i > 0 for i in self.inertia_kg_m2):
             raise VehicleConfigError("every inertia must be positive")
-        if not (self.arm_m > 0 and self.motor_tau_s > 0 and self.max_thrust_n > 0):
-            raise VehicleConfigError("arm, motor time constant and max thrust must be positive")
+        if not (
+            self.arm_m > 0 and self.motor_tau_s > 0 and self.max_thrust_n > 0 and self.k_thrust > 0
+        ):
+            raise VehicleConfigError(
+                "arm, motor time constant, max thrust and thrust coefficient must be positive"
+            )
+        drags = (
+            self.rotor_drag_kg_per_rad,
+            self.inflow_drag_kg_per_rad,
+            *self.body_drag_n_per_mps2,
+        )
+        if not all(d >= 0 for d in drags):
+            raise VehicleConfigError("drag coefficients cannot be negative")
         ratio = 4 * self.max_thrust_n / (self.mass_kg * GRAVITY_MPS2)
         if ratio < 1.2:
             raise VehicleConfigError(
@@ -62,12 +100,20 @@ class QuadrotorParams:
         """Weight in newtons."""
         return self.mass_kg * GRAVITY_MPS2
 
+    @property
+    def max_rotor_speed_rad_s(self) -> float:
+        return math.sqrt(self.max_thrust_n / self.k_thrust)
+
 
 @dataclass(frozen=True)
 class OnboardGains:
     """The flight controller's loops: velocity -> attitude -> rate -> torque."""
 
     k_velocity: float = 3.0  # 1/s
+    # integral of the velocity error, 1/s^2 (horizontal, vertical), and its clamp in m/s^2: as
+    # the Crazyflie's and PX4's velocity PIDs, it trims out a steady push and the battery
+    k_velocity_i: tuple[float, float] = (0.5, 2.0)
+    max_velocity_i_mps2: float = 3.0
     max_tilt_rad: float = math.radians(20.0)
     k_attitude: float = 8.0  # 1/s
     k_rate: float = 0.004  # N m / (rad/s) per unit inertia scale
@@ -79,13 +125,13 @@ def mixer(params: QuadrotorParams) -> Array:
     """(4, 4) matrix from motor thrusts to [thrust, torque_x, torque_y, torque_z]."""
     a, k = params.arm_m, params.yaw_moment_m
     # motors: front-left (+a, +a), front-right (+a, -a), back-right (-a, -a), back-left (-a, +a)
-    # spin: FL and BR clockwise seen from above (negative yaw torque), FR and BL anticlockwise
+    # spin: FL and BR drag the body to positive yaw, FR and BL to negative
     return np.array(
         [
             [1.0, 1.0, 1.0, 1.0],
             [a, -a, -a, a],  # roll torque = sum(y_i f_i)
             [-a, -a, a, a],  # pitch torque = -sum(x_i f_i)
-            [-k, k, -k, k],
+            [k, -k, k, -k],
         ]
     )
 
@@ -96,7 +142,12 @@ Mat3 = tuple[Vec3, Vec3, Vec3]
 
 class Quadrotor:
     """The vehicle's state and its integration. ``p_m``, ``v_mps`` in the world frame;
-    ``R_world_body``; ``omega_rad_s`` in the body frame; ``thrust_n`` per motor.
+    ``R_world_body``; ``omega_rad_s`` in the body frame; ``rotor_speed_rad_s`` per rotor.
+
+    ``wind_mps`` (world frame) is the air's velocity at the vehicle; ``thrust_scale`` per rotor
+    is what each rotor gives of its nominal thrust (a mismatched motor, a sagging battery); the
+    onboard loops do not know either. ``attitude_bias`` is the error of the flight controller's
+    attitude estimate (``R_estimate = R_world_body @ attitude_bias``), which its loops follow.
 
     The state is held in Python floats and the loops are written out in scalars: they run at
     the physics rate, where numpy's per-call overhead on 3-vectors costs more than the
@@ -120,8 +171,15 @@ class Quadrotor:
         self._v: Vec3 = (0.0, 0.0, 0.0)
         self._R: Mat3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
         self._w: Vec3 = (0.0, 0.0, 0.0)
-        hover = self.params.weight_n / 4
-        self._f: tuple[float, float, float, float] = (hover, hover, hover, hover)  # in hover
+        hover = math.sqrt(self.params.weight_n / 4 / self.params.k_thrust)
+        self._rotor: tuple[float, float, float, float] = (hover, hover, hover, hover)
+        self.wind_mps: Vec3 = (0.0, 0.0, 0.0)
+        self.thrust_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+        self._bias: Mat3 | None = None
+        self._vi: Vec3 = (0.0, 0.0, 0.0)  # the onboard velocity integral, m/s^2
+        a = self.params.arm_m
+        self._hubs = ((a, a), (a, -a), (-a, -a), (-a, a))
+        self._spin = (1.0, -1.0, 1.0, -1.0)
 
     @staticmethod
     def hovering(
@@ -170,14 +228,37 @@ class Quadrotor:
         self._w = _vec3(value)
 
     @property
-    def thrust_n(self) -> Array:
-        """Thrust of each motor, newtons."""
-        return np.array(self._f)
+    def rotor_speed_rad_s(self) -> Array:
+        """Speed of each rotor, rad/s."""
+        return np.array(self._rotor)
 
-    @thrust_n.setter
-    def thrust_n(self, value: Array) -> None:
-        f = [float(c) for c in np.asarray(value, np.float64).reshape(4)]
-        self._f = (f[0], f[1], f[2], f[3])
+    @rotor_speed_rad_s.setter
+    def rotor_speed_rad_s(self, value: Array) -> None:
+        w = [float(c) for c in np.asarray(value, np.float64).reshape(4)]
+        self._rotor = (w[0], w[1], w[2], w[3])
+
+    @property
+    def thrust_n(self) -> Array:
+        """Thrust of each rotor, newtons (without the ceiling effect)."""
+        k = self.params.k_thrust
+        return np.array(
+            [k * s * w * w for s, w in zip(self.thrust_scale, self._rotor, strict=True)]
+        )
+
+    @property
+    def attitude_bias(self) -> Array:
+        """The attitude estimate's error, a rotation in the body frame."""
+        return np.eye(3) if self._bias is None else np.array(self._bias).reshape(3, 3)
+
+    @attitude_bias.setter
+    def attitude_bias(self, value: Array) -> None:
+        rows = np.asarray(value, np.float64).reshape(3, 3).tolist()
+        self._bias = (_vec3(rows[0]), _vec3(rows[1]), _vec3(rows[2]))
+
+    @property
+    def R_estimate(self) -> Array:
+        """The flight controller's attitude estimate: ``R_world_body @ attitude_bias``."""
+        return self.R_world_body @ self.attitude_bias
 
     @property
     def yaw_rad(self) -> float:
@@ -209,11 +290,10 @@ class Quadrotor:
             self._motor_commands(_vec3(v_sp_mps), float(yaw_rate_sp), _vec3(v_estimate_mps))
         )
 
-    def step(self, dt_s: float, motor_cmd_n: Array, force_world_n: Array | None = None) -> None:
-        """Advance ``dt_s`` seconds (semi-implicit Euler)."""
+    def step(self, dt_s: float, motor_cmd_n: Array) -> None:
+        """Advance ``dt_s`` seconds (semi-implicit Euler) with these thrust commands (N)."""
         c = [float(x) for x in np.asarray(motor_cmd_n, np.float64).reshape(4)]
-        force = (0.0, 0.0, 0.0) if force_world_n is None else _vec3(force_world_n)
-        self._step(dt_s, (c[0], c[1], c[2], c[3]), force)
+        self._step(dt_s, (c[0], c[1], c[2], c[3]))
 
     def fly(
         self,
@@ -222,33 +302,42 @@ class Quadrotor:
         v_sp_mps: Array,
         yaw_rate_sp: float,
         v_estimate_mps: Array,
-        forces_world_n: Array | None = None,
         stop_z_m: float | None = None,
         p_body_point_m: Array | None = None,
     ) -> int | None:
         """``n_steps`` steps of the onboard loops and the dynamics with the same setpoint and
-        velocity estimate; ``forces_world_n`` (n_steps, 3) per step. With ``stop_z_m``, stops
-        after the step on which the body point ``p_body_point_m`` reaches that height and
-        returns that step's index; otherwise returns None."""
+        velocity estimate. With ``stop_z_m``, stops after the step on which the body point
+        ``p_body_point_m`` reaches that height and returns that step's index; otherwise
+        returns None."""
         v_sp, v_est, yaw_rate = _vec3(v_sp_mps), _vec3(v_estimate_mps), float(yaw_rate_sp)
-        forces = None if forces_world_n is None else np.asarray(forces_world_n).tolist()
         point = (0.0, 0.0, 0.0) if p_body_point_m is None else _vec3(p_body_point_m)
-        zero = (0.0, 0.0, 0.0)
         for i in range(n_steps):
-            cmd = self._motor_commands(v_sp, yaw_rate, v_est)
-            self._step(dt_s, cmd, zero if forces is None else forces[i])
+            self._integrate_velocity_error(dt_s, v_sp, v_est)
+            self._step(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
             if stop_z_m is not None and self.point_in_world(point)[2] >= stop_z_m:
                 return i
         return None
+
+    def _integrate_velocity_error(self, dt_s: float, v_sp: Vec3, v_est: Vec3) -> None:
+        g = self.gains
+        k_xy, k_z = g.k_velocity_i
+        top = g.max_velocity_i_mps2
+        ix, iy, iz = self._vi
+        self._vi = (
+            min(top, max(-top, ix + dt_s * k_xy * (v_sp[0] - v_est[0]))),
+            min(top, max(-top, iy + dt_s * k_xy * (v_sp[1] - v_est[1]))),
+            min(top, max(-top, iz + dt_s * k_z * (v_sp[2] - v_est[2]))),
+        )
 
     def _motor_commands(
         self, v_sp: Vec3, yaw_rate_sp: float, v_est: Vec3
     ) -> tuple[float, float, float, float]:
         p, g = self.params, self.gains
         m = p.mass_kg
-        fx = m * g.k_velocity * (v_sp[0] - v_est[0])
-        fy = m * g.k_velocity * (v_sp[1] - v_est[1])
-        fz = m * (g.k_velocity * (v_sp[2] - v_est[2]) + GRAVITY_MPS2)
+        ix, iy, iz = self._vi
+        fx = m * (g.k_velocity * (v_sp[0] - v_est[0]) + ix)
+        fy = m * (g.k_velocity * (v_sp[1] - v_est[1]) + iy)
+        fz = m * (g.k_velocity * (v_sp[2] - v_est[2]) + iz + GRAVITY_MPS2)
         # limit the tilt of the thrust vector
         horizontal = math.hypot(fx, fy)
         max_h = max(fz, 0.1 * p.weight_n) * math.tan(g.max_tilt_rad)
@@ -257,7 +346,8 @@ class Quadrotor:
             fy *= max_h / horizontal
         norm = math.sqrt(fx * fx + fy * fy + fz * fz)
         zx, zy, zz = fx / norm, fy / norm, fz / norm
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._R
+        R = self._R if self._bias is None else _product(self._R, self._bias)
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
         yaw = math.atan2(r10, r00)
         cx, cy = math.cos(yaw), math.sin(yaw)
         # y_b = z_b x x_c, normalised; x_b = y_b x z_b: the columns of R_des
@@ -284,42 +374,61 @@ class Quadrotor:
         tau_z = g.k_yaw_rate * iz / 1.66e-5 * (yaw_rate_sp - wz) + (wx * hy - wy * hx)
         return _mixed(self._unmix_rows, (max(thrust, 0.0), tau_x, tau_y, tau_z), p.max_thrust_n)
 
-    def _step(
-        self, dt_s: float, cmd: tuple[float, float, float, float], force: Sequence[float]
-    ) -> None:
+    def _step(self, dt_s: float, cmd: tuple[float, float, float, float]) -> None:
         p = self.params
+        k_thrust, top = p.k_thrust, p.max_rotor_speed_rad_s
         alpha = min(1.0, dt_s / p.motor_tau_s)
-        f0, f1, f2, f3 = self._f
-        f0 += alpha * (cmd[0] - f0)
-        f1 += alpha * (cmd[1] - f1)
-        f2 += alpha * (cmd[2] - f2)
-        f3 += alpha * (cmd[3] - f3)
-        self._f = (f0, f1, f2, f3)
-        mx = self._mix_rows
-        thrust = (mx[0][0] * f0 + mx[0][1] * f1 + mx[0][2] * f2 + mx[0][3] * f3) * (
-            self.ceiling_factor()
-        )
-        tau_x = mx[1][0] * f0 + mx[1][1] * f1 + mx[1][2] * f2 + mx[1][3] * f3
-        tau_y = mx[2][0] * f0 + mx[2][1] * f1 + mx[2][2] * f2 + mx[2][3] * f3
-        tau_z = mx[3][0] * f0 + mx[3][1] * f1 + mx[3][2] * f2 + mx[3][3] * f3
+        rotor = [
+            w + alpha * (min(top, math.sqrt(max(0.0, f) / k_thrust)) - w)
+            for w, f in zip(self._rotor, cmd, strict=True)
+        ]
+        self._rotor = (rotor[0], rotor[1], rotor[2], rotor[3])
         R = self._R
         vx, vy, vz = self._v
-        ex, ey, ez = force[0], force[1], force[2]
+        wind = self.wind_mps
+        # the air past the body, body frame
+        dx, dy, dz = vx - wind[0], vy - wind[1], vz - wind[2]
+        ax = R[0][0] * dx + R[1][0] * dy + R[2][0] * dz
+        ay = R[0][1] * dx + R[1][1] * dy + R[2][1] * dz
+        az = R[0][2] * dx + R[1][2] * dy + R[2][2] * dz
+        wx, wy, wz = self._w
+        kd, kz = p.rotor_drag_kg_per_rad, p.inflow_drag_kg_per_rad
+        gain = self.ceiling_factor()
+        fx = fy = fz = 0.0
+        tau_x = tau_y = tau_z = 0.0
+        for (hx, hy), spin, scale, w in zip(
+            self._hubs, self._spin, self.thrust_scale, rotor, strict=True
+        ):
+            thrust = gain * scale * k_thrust * w * w
+            # H-force from the air at this hub (body velocity plus omega x r)
+            h_x = -w * kd * (ax - wz * hy)
+            h_y = -w * kd * (ay + wz * hx)
+            h_z = -w * kz * (az + wx * hy - wy * hx)
+            f_z = thrust + h_z
+            fx += h_x
+            fy += h_y
+            fz += f_z
+            tau_x += hy * f_z
+            tau_y -= hx * f_z
+            tau_z += hx * h_y - hy * h_x + spin * p.yaw_moment_m * thrust
+        c_xy, c_z = p.body_drag_n_per_mps2
+        speed = math.sqrt(ax * ax + ay * ay + az * az)
+        fx -= speed * c_xy * ax
+        fy -= speed * c_xy * ay
+        fz -= speed * c_z * az
         k = dt_s / p.mass_kg
-        drag = p.drag_n_s_per_m
-        vx += k * (R[0][2] * thrust - drag * vx + ex)
-        vy += k * (R[1][2] * thrust - drag * vy + ey)
-        vz += k * (R[2][2] * thrust - drag * vz - p.weight_n + ez)
+        vx += k * (R[0][0] * fx + R[0][1] * fy + R[0][2] * fz)
+        vy += k * (R[1][0] * fx + R[1][1] * fy + R[1][2] * fz)
+        vz += k * (R[2][0] * fx + R[2][1] * fy + R[2][2] * fz - p.weight_n)
         px, py, pz = self._p
         self._p = (px + dt_s * vx, py + dt_s * vy, pz + dt_s * vz)
         self._v = (vx, vy, vz)
         ix, iy, iz = p.inertia_kg_m2
-        wx, wy, wz = self._w
-        hx, hy, hz = ix * wx, iy * wy, iz * wz
+        hx_, hy_, hz_ = ix * wx, iy * wy, iz * wz
         wx, wy, wz = (
-            wx + dt_s * (tau_x - (wy * hz - wz * hy)) / ix,
-            wy + dt_s * (tau_y - (wz * hx - wx * hz)) / iy,
-            wz + dt_s * (tau_z - (wx * hy - wy * hx)) / iz,
+            wx + dt_s * (tau_x - (wy * hz_ - wz * hy_)) / ix,
+            wy + dt_s * (tau_y - (wz * hx_ - wx * hz_)) / iy,
+            wz + dt_s * (tau_z - (wx * hy_ - wy * hx_)) / iz,
         )
         self._w = (wx, wy, wz)
         angle = dt_s * math.sqrt(wx * wx + wy * wy + wz * wz)
@@ -334,6 +443,19 @@ def _mixed(
     t, x, y, z = wrench
     f = [min(top, max(0.0, r[0] * t + r[1] * x + r[2] * y + r[3] * z)) for r in rows]
     return (f[0], f[1], f[2], f[3])
+
+
+def _product(A: Mat3, B: Mat3) -> Mat3:
+    """A @ B for 3x3 tuples."""
+    rows = [
+        (
+            a[0] * B[0][0] + a[1] * B[1][0] + a[2] * B[2][0],
+            a[0] * B[0][1] + a[1] * B[1][1] + a[2] * B[2][1],
+            a[0] * B[0][2] + a[1] * B[1][2] + a[2] * B[2][2],
+        )
+        for a in A
+    ]
+    return (rows[0], rows[1], rows[2])
 
 
 def _vec3(value: Array | Sequence[float]) -> Vec3:

@@ -1,0 +1,130 @@
+"""``perchpose perch``: perching campaigns in simulation, one estimator and wind per cell,
+written run by run and resumable."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+from perchpose.camera import CameraModel
+from perchpose.errors import PerchposeError
+from perchpose.evaluation.perching import CampaignLog, RunRecord, write_reports
+from perchpose.sim.campaign import campaign_jobs, execute
+from perchpose.sim.disturbances import Disturbances
+from perchpose.sim.perch import ESTIMATORS, PerchResult, PerchSetup
+from perchpose.sim.wind import WIND_LEVELS
+from perchpose.target import TargetSpec
+
+TRAJECTORIES = 5
+
+
+@dataclass(frozen=True)
+class PerchCampaign:
+    """The cells of a campaign (a setup per wind and estimator) and its runs."""
+
+    setups: tuple[PerchSetup, ...]
+    runs: int
+    seed: int
+
+    @staticmethod
+    def from_options(
+        camera: CameraModel,
+        *,
+        estimators: str,
+        runs: int,
+        seed: int = 0,
+        wind: str = "none",
+        wind_mps: float | None = None,
+        gust_mps: float | None = None,
+        sweep: str | None = None,
+        disturbances: bool = True,
+    ) -> PerchCampaign:
+        """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
+        fault."""
+        names = [e.strip() for e in estimators.split(",") if e.strip()]
+        unknown = [n for n in names if n not in ESTIMATORS]
+        if unknown or not names:
+            raise PerchposeError(
+                f"--estimator: unknown {unknown or names} (choose from {', '.join(ESTIMATORS)})"
+            )
+        if len(set(names)) != len(names):
+            raise PerchposeError(f"--estimator: {estimators!r} names an estimator twice")
+        if runs < 1:
+            raise PerchposeError(f"--runs must be >= 1, got {runs}")
+        if sweep is not None and (wind_mps is not None or gust_mps is not None):
+            raise PerchposeError("--sweep wind flies the named levels: drop --wind-mps/--gust-mps")
+        base = PerchSetup(
+            camera,
+            TargetSpec.paper(),
+            estimator=names[0],
+            disturbances=Disturbances() if disturbances else Disturbances.none(),
+        )
+        winds = list(WIND_LEVELS) if sweep == "wind" else [wind]
+        setups = tuple(
+            replace(base, estimator=e, wind=w, wind_mps=wind_mps, gust_mps=gust_mps)
+            for w in winds
+            for e in names
+        )
+        return PerchCampaign(setups, runs, seed)
+
+    def fly(
+        self,
+        out: str,
+        *,
+        workers: int = 1,
+        scheduler: str | None = None,
+        resume: bool = False,
+        progress: bool = False,
+        say: Callable[[str], None] = print,
+    ) -> dict[str, object]:
+        """Fly every run not already in ``out`` (with ``resume``), writing each as it
+        finishes; then the reports. Returns the summary JSON."""
+        base = self.setups[0]
+        with CampaignLog(out, base, resume=resume) as log:
+            done = log.done
+
+            def finished(setup: PerchSetup, seed: int) -> bool:
+                level = setup.wind_level
+                key = (setup.estimator, setup.wind, level.mean_mps, level.turbulence_sigma_mps)
+                return (*key, seed) in done
+
+            jobs = campaign_jobs(list(self.setups), self.runs, self.seed, finished)
+            if resume and log.records:
+                say(f"{len(log.records)} runs kept from {log.path}; {len(jobs)} to fly")
+            cells = len(self.setups)
+            say(f"{len(jobs)} runs: {cells} cell{'s' * (cells > 1)} of {self.runs} runs")
+            trajectories: list[PerchResult] = []
+            for setup, result in execute(
+                jobs, workers=workers, scheduler=scheduler, progress=progress
+            ):
+                log.add(RunRecord.of(result, setup))
+                if (setup.estimator, setup.wind) == (base.estimator, base.wind):
+                    trajectories.append(result)
+            trajectories.sort(key=lambda r: r.seed)
+            return write_reports(log, base, trajectories[:TRAJECTORIES])
+
+
+def summary_table(content: dict[str, object]) -> str:
+    """The terminal's table: one line per wind and estimator."""
+    cells = content["cells"]
+    assert isinstance(cells, dict)
+    lines = [
+        f"{'wind':9} {'estimator':10} {'runs':>5} {'perched':>8} {'95 % interval':>15} "
+        f"{'offset p50/p95 (mm)':>20}  failures"
+    ]
+
+    def num(v: object) -> str:
+        return f"{v:.1f}" if isinstance(v, float) and math.isfinite(v) else "-"
+
+    for name, c in cells.items():
+        wind, estimator = name.split("/", 1)
+        low, high = c["success_interval_95"]
+        off = c["contact_offset_mm"]
+        fails = {k: v for k, v in c["reasons"].items() if k != "perched"}
+        lines.append(
+            f"{wind:9} {estimator:10} {c['runs']:5d} {c['success_rate']:8.1%} "
+            f"{low:6.1%} - {high:6.1%} {num(off['p50']):>9}/{num(off['p95']):<10} "
+            f"{fails or 'none'}"
+        )
+    return "\n".join(lines) + "\n"

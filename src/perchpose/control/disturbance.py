@@ -1,0 +1,61 @@
+"""A disturbance observer on the vehicle's velocity loop.
+
+The flight controller's velocity loop is taken as first order: ``dv/dt = k_v (v_sp - v) + a``,
+where ``a`` is what no one asked for (wind, a sagging battery, motors that do not match, an
+attitude estimate that is off), an acceleration in the world frame. A Luenberger observer on
+the odometry's velocity estimates ``v`` and ``a``:
+
+    dv^/dt = k_v (v_sp - v^) + a^ + L1 (v_odometry - v^)
+    da^/dt = L2 (v_odometry - v^)
+
+with both error poles at ``rate`` (``k_v + L1 = 2 rate``, ``L2 = rate^2``). The velocity
+setpoint that cancels it is ``v_cmd - a^ / k_v``. Because the observer predicts the loop's own
+lag, a commanded change of speed is not mistaken for a disturbance, which a plain integral of
+the velocity error would wind up on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+class DisturbanceObserver:
+    """Estimates the disturbance acceleration from setpoints sent and velocities flown."""
+
+    def __init__(
+        self, velocity_gain: float, rate: float, max_offset_mps: tuple[float, float, float]
+    ) -> None:
+        self.k_v = velocity_gain
+        self.l1 = max(0.0, 2.0 * rate - velocity_gain)
+        self.l2 = rate * rate
+        self.max_offset_mps = np.asarray(max_offset_mps, np.float64)
+        self.v_mps: Array | None = None
+        self.a_mps2 = np.zeros(3)
+
+    @property
+    def offset_mps(self) -> Array:
+        """The setpoint offset that cancels the disturbance (clamped)."""
+        return np.clip(-self.a_mps2 / self.k_v, -self.max_offset_mps, self.max_offset_mps)
+
+    def update(self, v_sp_mps: Array, v_odometry_mps: Array, dt_s: float) -> None:
+        """Advance ``dt_s`` with the setpoint the vehicle flew over it and the velocity it now
+        reports."""
+        v_odo = np.asarray(v_odometry_mps, np.float64)
+        if self.v_mps is None:
+            self.v_mps = v_odo.copy()
+            return
+        if dt_s <= 0:
+            return
+        error = v_odo - self.v_mps
+        dv = self.k_v * (np.asarray(v_sp_mps, np.float64) - self.v_mps) + self.a_mps2
+        self.v_mps = self.v_mps + dt_s * (dv + self.l1 * error)
+        limit = self.max_offset_mps * self.k_v
+        # anti-windup: the estimate never leaves what the clamp lets the setpoint cancel
+        self.a_mps2 = np.clip(self.a_mps2 + dt_s * self.l2 * error, -limit, limit)
+
+    def reset(self) -> None:
+        self.v_mps = None
+        self.a_mps2 = np.zeros(3)
