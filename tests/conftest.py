@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import socket
 from pathlib import Path
 
 import pytest
@@ -74,3 +75,16 @@ def approach_webcam_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def approach_fpv_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The same approach through the equidistant FPV camera."""
     return _short_approach_dir(tmp_path_factory, "fpv")
+
+
+@pytest.fixture
+def silent_scheduler(monkeypatch: pytest.MonkeyPatch) -> str:
+    """A tcp:// address on which nothing listens, and a 1 s wait for a scheduler to answer."""
+    pytest.importorskip("dask.distributed")
+    from perchpose.sim import campaign
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setattr(campaign, "SCHEDULER_TIMEOUT_S", 1)
+    return f"tcp://127.0.0.1:{port}"

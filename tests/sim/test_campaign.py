@@ -1,10 +1,7 @@
-import socket
-
 import numpy as np
 import pytest
 
 from perchpose import CameraModel, TargetSpec
-from perchpose.sim import campaign
 from perchpose.sim.campaign import SchedulerError, execute, run_campaign
 from perchpose.sim.perch import PerchSetup
 
@@ -29,13 +26,6 @@ def test_the_same_seeds_give_the_same_runs_on_a_dask_cluster(setup: PerchSetup) 
         np.testing.assert_array_equal(a.p_magnet_m, b.p_magnet_m)
 
 
-def test_a_scheduler_that_does_not_answer(
-    setup: PerchSetup, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    pytest.importorskip("dask.distributed")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    monkeypatch.setattr(campaign, "SCHEDULER_TIMEOUT_S", 1)
+def test_a_scheduler_that_does_not_answer(setup: PerchSetup, silent_scheduler: str) -> None:
     with pytest.raises(SchedulerError, match="no Dask scheduler answered"):
-        list(execute([(setup, 0)], scheduler=f"tcp://127.0.0.1:{port}"))
+        list(execute([(setup, 0)], scheduler=silent_scheduler))

@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
-from perchpose.evaluation.perching import CampaignLog, RunRecord, write_reports
+from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write_reports
 from perchpose.sim.campaign import campaign_jobs, execute
 from perchpose.sim.disturbances import Disturbances
 from perchpose.sim.perch import ESTIMATORS, PerchResult, PerchSetup
@@ -83,13 +83,9 @@ class PerchCampaign:
         base = self.setups[0]
         with CampaignLog(out, base, resume=resume) as log:
             done = log.done
-
-            def finished(setup: PerchSetup, seed: int) -> bool:
-                level = setup.wind_level
-                key = (setup.estimator, setup.wind, level.mean_mps, level.turbulence_sigma_mps)
-                return (*key, seed) in done
-
-            jobs = campaign_jobs(list(self.setups), self.runs, self.seed, finished)
+            jobs = campaign_jobs(
+                list(self.setups), self.runs, self.seed, lambda s, k: run_key(s, k) in done
+            )
             if resume and log.records:
                 say(f"{len(log.records)} runs kept from {log.path}; {len(jobs)} to fly")
             cells = len(self.setups)

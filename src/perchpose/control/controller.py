@@ -245,7 +245,7 @@ class PerchingController:
 
     @property
     def disturbance_mps(self) -> Array:
-        """The integrator's estimate of the setpoint offset the disturbances need, m/s."""
+        """The disturbance observer's setpoint offset, m/s (world frame)."""
         return self._observer.offset_mps
 
     def magnet_to_target(self, estimate: Estimate, R_world_body: Array) -> tuple[Array, float]:
@@ -372,13 +372,11 @@ class PerchingController:
         s = self.settings
         if odometry is not None:
             self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
-        if self.phase == "give-up":
-            return Command(np.zeros(3), 0.0, "give-up")
         since = self._commit_since
         if self.phase == "commit" and since is not None and t_s - since >= s.commit_timeout_s:
             self.back_off(t_s)
-            if self.phase == "give-up":
-                return Command(np.zeros(3), 0.0, "give-up")
+        if self.phase == "give-up":
+            return Command(np.zeros(3), 0.0, "give-up")
         yaw_rate = 0.0
         if usable(estimate, t_s, s.max_estimate_age_s):
             assert estimate is not None

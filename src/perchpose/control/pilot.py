@@ -258,8 +258,8 @@ class PerchingPilot:
             return self._land_step(t_s)
         if fresh:
             self._last_valid_t = t_s
-        state = self.odometry() if self.odometry is not None else None
-        odometry = None if state is None else Odometry(t_s, state[0], state[1])
+        motion = self.odometry() if self.odometry is not None else None
+        odometry = None if motion is None else Odometry(t_s, motion[0], motion[1])
         command: Command = self.controller.update(estimate, t_s, self.attitude(), odometry)
         if command.phase == "give-up":
             tries = self.controller.tries

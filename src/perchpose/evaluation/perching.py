@@ -41,6 +41,15 @@ RUN_COLUMNS = (
 )
 
 
+RunKey = tuple[str, str, float, float, int]
+
+
+def run_key(setup: PerchSetup, seed: int) -> RunKey:
+    """The key of the run ``setup`` flies with ``seed`` (``RunRecord.key`` of its record)."""
+    level = setup.wind_level
+    return (setup.estimator, setup.wind, level.mean_mps, level.turbulence_sigma_mps, seed)
+
+
 class CampaignError(PerchposeError):
     """A campaign that cannot start or go on: a resume file from another setup, a scheduler
     that does not answer."""
@@ -82,7 +91,7 @@ class RunRecord:
         )
 
     @property
-    def key(self) -> tuple[str, str, float, float, int]:
+    def key(self) -> RunKey:
         """What identifies a run: estimator, wind and seed."""
         return (
             self.estimator,
@@ -269,7 +278,7 @@ class CampaignLog:
             self.path.write_bytes(data[: data.rfind(b"\n") + 1])
 
     @property
-    def done(self) -> set[tuple[str, str, float, float, int]]:
+    def done(self) -> set[RunKey]:
         return {r.key for r in self.records}
 
     def add(self, record: RunRecord) -> None:
