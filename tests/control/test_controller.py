@@ -200,10 +200,11 @@ def test_the_last_centimetres_are_flown_on_odometry() -> None:
         t = k / 30
         c.update(_seen(s, [0.0, 0.0, 0.05], t), t, np.eye(3), _odometry(t))
     assert c.phase == "commit"
-    # the camera is too close to see; the vehicle drifts 1 cm aside: it steers back
-    blind = c.update(None, 4 / 30, np.eye(3), _odometry(4 / 30, x_m=0.01))
+    # the camera is too close to see; the vehicle drifts 5 mm aside (inside the cone's exit):
+    # it steers back
+    blind = c.update(None, 4 / 30, np.eye(3), _odometry(4 / 30, x_m=0.005))
     assert blind.phase == "commit"
-    assert blind.v_mps[0] == pytest.approx(-s.k_xy * 0.01, abs=2e-3)
+    assert blind.v_mps[0] == pytest.approx(-s.k_xy * 0.005, abs=2e-3)
     assert blind.v_mps[2] == pytest.approx(s.commit_speed_mps)
 
 
@@ -234,12 +235,23 @@ def test_a_climb_out_of_the_cone_backs_off_and_gives_up_after_its_tries() -> Non
 def test_no_final_climb_while_sliding_sideways() -> None:
     s = ControllerSettings(observer_rate=0.0)
     c = PerchingController(s)
+    # sliding at 10 cm/s, though each frame sees the target centred
     for k in range(5):
         t = k / 30
-        command = c.update(_seen(s, [0.0, 0.0, 0.05], t), t, np.eye(3), _odometry(t, vx_mps=0.1))
+        command = c.update(
+            _seen(s, [0.0, 0.0, 0.05], t), t, np.eye(3), _odometry(t, x_m=0.1 * t, vx_mps=0.1)
+        )
         assert command.phase != "commit"
-    command = c.update(_seen(s, [0.0, 0.0, 0.05], 5 / 30), 5 / 30, np.eye(3), _odometry(5 / 30))
+    # it stops and its velocity reads zero at once; the climb waits until the odometry's
+    # positions over the last speed_window_s agree (a noisy velocity alone does not decide)
+    t = 5 / 30
+    for k in range(6, 12):
+        t = k / 30
+        command = c.update(_seen(s, [0.0, 0.0, 0.05], t), t, np.eye(3), _odometry(t, x_m=0.5 / 30))
+        if command.phase == "commit":
+            break
     assert command.phase == "commit"
+    assert t - 5 / 30 >= s.speed_window_s - 1e-9
 
 
 def test_a_camera_dropout_mid_approach_holds_height_on_odometry() -> None:

@@ -142,11 +142,11 @@ def test_perch_scheduler_that_does_not_answer(
     assert f"{silent_scheduler}: no Dask scheduler answered" in capsys.readouterr().err
 
 
-def test_light_wind_needs_the_disturbance_rejection() -> None:
-    """The same eight light-wind runs (true pose): the controller as built perches them;
+def test_moderate_wind_needs_the_disturbance_rejection() -> None:
+    """The same eight moderate-wind runs (true pose): the controller as built perches them;
     without its disturbance observer, most miss or never get there."""
     base = PerchSetup(
-        CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth", wind="light"
+        CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth", wind="moderate"
     )
     built = [run_perch(base, seed) for seed in range(8)]
     plain = replace(base, controller=replace(base.controller, observer_rate=0.0))

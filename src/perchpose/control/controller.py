@@ -87,12 +87,13 @@ class ControllerSettings:
     it removes what the velocity integrator cannot see, a bias of the odometry's own velocity;
     max_integral_xy_mps : its clamp. integrate_within_m : the integral runs only while the
     lateral error is under this (the approach from a far start would wind it up).
-    capture_speed_mps : the largest sideways speed at which the final climb may start.
+    capture_speed_mps : the largest sideways speed at which the final climb may start, measured
+    over the last speed_window_s of odometry positions.
     retry_below_m : how far under the target a backed-off climb descends before aligning
     again. max_tries : failed final climbs before giving up.
     """
 
-    k_xy: float = 1.6
+    k_xy: float = 2.5
     k_z: float = 0.9
     k_yaw: float = 1.5
     max_xy_mps: float = 0.35
@@ -107,18 +108,19 @@ class ControllerSettings:
     blind_align_m: float = 0.005
     commit_frames: int = 3
     commit_exit_m: float = 0.10
-    commit_exit_lateral_m: float = 0.03
+    commit_exit_lateral_m: float = 0.008
     commit_timeout_s: float = 2.0
     max_estimate_age_s: float = 0.5
     hold_target_s: float = 1.0
-    onboard_velocity_gain: float = 3.0
-    observer_rate: float = 5.0
-    k_i_xy: float = 0.64
+    onboard_velocity_gain: float = 4.3
+    observer_rate: float = 12.0
+    k_i_xy: float = 1.5
     max_integral_xy_mps: float = 0.1
     integrate_within_m: float = 0.03
     max_disturbance_xy_mps: float = 0.6
     max_disturbance_z_mps: float = 0.3
     capture_speed_mps: float = 0.03
+    speed_window_s: float = 0.1
     retry_below_m: float = 0.15
     max_tries: int = 3
     fix_weight: float = 0.5
@@ -148,6 +150,7 @@ class ControllerSettings:
             "max_estimate_age_s",
             "hold_target_s",
             "capture_speed_mps",
+            "speed_window_s",
             "retry_below_m",
             "max_disturbance_xy_mps",
             "max_disturbance_z_mps",
@@ -318,6 +321,17 @@ class PerchingController:
             )
         self._target_t = estimate.t_s
 
+    def _sideways_mps(self, odometry: Odometry) -> float:
+        """The vehicle's sideways speed: from the odometry's positions over the last
+        ``speed_window_s`` (the position integrates the velocity, so the difference averages out
+        the velocity's own noise); the odometry's velocity before there is such a history."""
+        s = self.settings
+        then = self._position_at(odometry.t_s - s.speed_window_s)
+        if then is None or not self._track or self._track[0][0] > odometry.t_s - s.speed_window_s:
+            return float(np.hypot(odometry.v_mps[0], odometry.v_mps[1]))
+        moved = np.asarray(odometry.p_m, np.float64) - then
+        return float(np.hypot(moved[0], moved[1])) / s.speed_window_s
+
     def _held_error(
         self, t_s: float, R_world_body: Array, odometry: Odometry | None, limit_s: float
     ) -> Array | None:
@@ -440,10 +454,7 @@ class PerchingController:
                 return Command(v, yaw_rate, "retreat", d)
             self.phase = "align"
             self._commit_since = None
-        slow = (
-            odometry is None
-            or float(np.hypot(odometry.v_mps[0], odometry.v_mps[1])) < s.capture_speed_mps
-        )
+        slow = odometry is None or self._sideways_mps(odometry) < s.capture_speed_mps
         if self.phase == "commit" or (
             may_commit
             and slow

@@ -107,12 +107,19 @@ class QuadrotorParams:
 
 @dataclass(frozen=True)
 class OnboardGains:
-    """The flight controller's loops: velocity -> attitude -> rate -> torque."""
+    """The flight controller's loops: velocity -> attitude -> rate -> torque.
 
-    k_velocity: float = 3.0  # 1/s
+    The horizontal velocity gains are the Crazyflie firmware's velocity PID
+    (``position_controller_pid.c``: kp 25 deg of tilt per m/s, ki 1 deg per m), in SI: a tilt
+    of theta gives g tan(theta) of acceleration, so 25 deg per m/s is about 4.3 /s and 1 deg
+    per m about 0.17 /s^2. The same proportional gain is used vertically, with a stronger
+    integral that trims out the battery's sag.
+    """
+
+    k_velocity: float = 4.3  # 1/s
     # integral of the velocity error, 1/s^2 (horizontal, vertical), and its clamp in m/s^2: as
     # the Crazyflie's and PX4's velocity PIDs, it trims out a steady push and the battery
-    k_velocity_i: tuple[float, float] = (0.5, 2.0)
+    k_velocity_i: tuple[float, float] = (0.17, 2.0)
     max_velocity_i_mps2: float = 3.0
     max_tilt_rad: float = math.radians(20.0)
     k_attitude: float = 8.0  # 1/s
