@@ -1,3 +1,4 @@
+import itertools
 import math
 from pathlib import Path
 
@@ -261,3 +262,15 @@ def test_single_frames_up_to_two_metres(renderers: dict[str, Renderer], camera_n
         assert error <= 0.015 * z
         yaw_true = math.degrees(math.atan2(T[1, 0], T[0, 0]))
         assert abs(wrap_angle_deg(e.yaw_deg - yaw_true)) <= 1.0
+
+
+@pytest.mark.parametrize("fusion", ["covariance", "paper"])
+def test_the_stage_sequence_of_an_approach_is_pinned(approach_fpv_dir: Path, fusion: str) -> None:
+    """The stages of the rendered 3 s approach, run-length encoded: the outer marker alone, the
+    inner one glimpsed once, both, the 12-frame dropout (8 coasted frames at stage 2, then
+    none), both again, the inner marker alone at the end. Both fusions report the same."""
+    camera = CameraModel.load(approach_fpv_dir / "camera.yaml")
+    est = PerchingEstimator(camera, TargetSpec.paper(), fusion=fusion)  # type: ignore[arg-type]
+    stages = [est.update(f.image, f.t_s).stage for f in open_source(str(approach_fpv_dir))]
+    runs = [(stage, len(list(group))) for stage, group in itertools.groupby(stages)]
+    assert runs == [(1, 6), (2, 1), (1, 5), (2, 26), (0, 4), (2, 29), (3, 19)]
