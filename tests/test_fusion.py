@@ -3,15 +3,23 @@ import math
 import numpy as np
 import pytest
 
+from perchpose.detection import MarkerDetector
 from perchpose.fusion import (
     STAGE_BOTH,
     STAGE_INNER,
     STAGE_NONE,
     STAGE_OUTER,
+    CovarianceFusion,
     FusionSigmas,
+    PaperFusion,
     fuse_paper,
     stage_of,
 )
+from perchpose.geometry import facing_pose
+from perchpose.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
+from perchpose.pose import solve_marker_pose
+from perchpose.sim.render import Renderer
+from perchpose.values import MarkerPose
 
 
 def test_stages() -> None:
@@ -52,3 +60,72 @@ def test_single_marker_stages_pass_the_pose_through() -> None:
 def test_sigma_range_is_checked() -> None:
     with pytest.raises(ValueError, match="sigma_z"):
         FusionSigmas(z=1.2)
+
+
+def _measured(renderer: Renderer, T: np.ndarray) -> tuple[tuple, dict[int, MarkerPose]]:
+    """The markers of one rendered frame: detections and their per-marker poses."""
+    grey = renderer.render(T, rng=np.random.default_rng(0))
+    detections = MarkerDetector(renderer.camera, renderer.target).detect(grey)
+    poses = {
+        d.marker_index: solve_marker_pose(
+            renderer.camera, renderer.target.markers[d.marker_index], d.marker_index, d.corners_px
+        )
+        for d in detections
+    }
+    assert all(isinstance(p, MarkerPose) for p in poses.values())
+    return detections, poses  # type: ignore[return-value]
+
+
+def _advance(markers: MarkerFilters, measurements: dict[int, MarkerPose], t_s: float) -> None:
+    markers.advance({i: np.array([m.yaw_rad, *m.t_m]) for i, m in measurements.items()}, t_s)
+
+
+def test_paper_fusion_fuses_the_filtered_markers_and_coasts_on_them(
+    renderers: dict[str, Renderer],
+) -> None:
+    r = renderers["fpv"]
+    detections, measurements = _measured(r, facing_pose(0.02, -0.01, 0.5, 0.3))
+    assert set(measurements) == {0, 1}
+    markers = MarkerFilters(2, KalmanSettings())
+    fusion = PaperFusion(FusionSigmas())
+    _advance(markers, measurements, 0.0)
+    seen = fusion.fuse(0.0, detections, measurements, markers)
+    expected, _ = fuse_paper(markers.contributing({0, 1}), FusionSigmas())
+    assert seen.stage == STAGE_BOTH
+    assert seen.contributing == {0, 1}
+    assert seen.age_s == 0.0
+    np.testing.assert_allclose(seen.pose, expected)
+    _advance(markers, {}, 1 / 30)
+    coasting = fusion.fuse(1 / 30, (), {}, markers)
+    assert coasting.stage == STAGE_BOTH
+    assert coasting.age_s == pytest.approx(1 / 30)
+    assert fusion.predicted_pose(1 / 30) is None  # no filter of its own
+
+
+def test_covariance_fusion_owns_one_filter_of_the_joint_pose(
+    renderers: dict[str, Renderer],
+) -> None:
+    r = renderers["fpv"]
+    T = facing_pose(0.02, -0.01, 0.5, 0.3)
+    detections, measurements = _measured(r, T)
+    markers = MarkerFilters(2, KalmanSettings())
+    fusion = CovarianceFusion(r.camera, r.target, CovarianceFilterSettings())
+    assert fusion.predicted_pose(0.0) is None
+    _advance(markers, measurements, 0.0)
+    seen = fusion.fuse(0.0, detections, measurements, markers)
+    assert seen.stage == STAGE_BOTH
+    assert seen.age_s == 0.0
+    np.testing.assert_allclose(seen.pose[1:], T[:3, 3], atol=1e-3)
+    # a frame without markers: its own filter coasts and predicts
+    _advance(markers, {}, 1 / 30)
+    coasting = fusion.fuse(1 / 30, (), {}, markers)
+    assert coasting.stage == STAGE_BOTH
+    assert coasting.age_s == pytest.approx(1 / 30)
+    predicted = fusion.predicted_pose(2 / 30)
+    assert predicted is not None
+    np.testing.assert_allclose(predicted[1:], T[:3, 3], atol=1e-3)
+    # without the filter, a frame without markers has no pose
+    raw = CovarianceFusion(r.camera, r.target, CovarianceFilterSettings(), use_filter=False)
+    nothing = raw.fuse(1 / 30, (), {}, markers)
+    assert nothing.stage == STAGE_NONE
+    assert np.isnan(nothing.pose).all()

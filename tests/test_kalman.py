@@ -9,6 +9,7 @@ from perchpose.kalman import (
     CovarianceTrack,
     H,
     KalmanSettings,
+    MarkerFilters,
     MarkerTrack,
     PaperKalmanFilter,
     transition,
@@ -175,3 +176,19 @@ def test_bad_coasting_limit_is_rejected() -> None:
         KalmanSettings(max_coast_s=0.0)
     with pytest.raises(ValueError, match="max_coast_s"):
         CovarianceFilterSettings(max_coast_s=-1.0)
+
+
+def test_marker_filters_fuse_the_measured_markers_or_every_live_one() -> None:
+    filters = MarkerFilters(3, KalmanSettings())
+    z0, z1 = np.array([0.1, 0.0, 0.0, 1.0]), np.array([0.1, 0.01, 0.0, 1.0])
+    filters.advance({0: z0, 1: z1}, 0.0)
+    assert set(filters.contributing({0, 1})) == {0, 1}
+    filters.advance({1: z1}, 1 / 30)
+    assert set(filters.contributing({1})) == {1}  # marker 0 coasts but does not fuse
+    filters.advance({}, 2 / 30)
+    assert set(filters.contributing(set())) == {0, 1}  # nothing measured: every live filter
+    assert filters.age_s({0, 1}, 2 / 30) == pytest.approx(1 / 30)
+    predicted = filters.predicted_pose(2, 3 / 30)  # marker 2 never seen: another's prediction
+    assert predicted is not None
+    np.testing.assert_allclose(predicted[1:], z0[1:], atol=0.02)
+    assert MarkerFilters(2, KalmanSettings()).predicted_pose(0, 0.0) is None

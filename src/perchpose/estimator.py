@@ -13,10 +13,15 @@ from perchpose.camera import CameraModel
 from perchpose.consistency import DISAGREE_CHI2, disagreements
 from perchpose.detection import CornerMethod, MarkerDetector
 from perchpose.errors import TimestampError
-from perchpose.fusion import STAGE_NONE, FusionSigmas, fuse_paper
+from perchpose.fusion import (
+    STAGE_NONE,
+    CovarianceFusion,
+    Fusion,
+    FusionSigmas,
+    PaperFusion,
+)
 from perchpose.geometry import angle_diff_rad, rot_z, yaw_rad
-from perchpose.joint_pose import measurement_jacobian, solve_joint_pose
-from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, KalmanSettings, MarkerTrack
+from perchpose.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
 from perchpose.pose import solve_marker_pose
 from perchpose.target import TargetSpec
 from perchpose.values import (
@@ -79,7 +84,6 @@ class PerchingEstimator:
         if not disagree_chi2 > 0:
             raise ValueError(f"disagree_chi2 must be positive, got {disagree_chi2}")
         self.disagree_chi2 = disagree_chi2
-        self._fused = CovarianceTrack(self.covariance_filter)
         n = len(target.markers)
         self.markers = tuple(range(n)) if markers is None else tuple(sorted(set(markers)))
         if not self.markers or not all(0 <= i < n for i in self.markers):
@@ -91,23 +95,27 @@ class PerchingEstimator:
         self.sigmas = sigmas or FusionSigmas()
         self.max_reproj_px = max_reproj_px
         self.detector = MarkerDetector(camera, target, corners)
-        self._tracks = [MarkerTrack(self.kalman) for _ in target.markers]
-        self._last_R: list[Array | None] = [None] * len(target.markers)
-        self._last_t_s: float | None = None
-        self._hint: tuple[MarkerDetection, ...] = ()
+        self.reset()
+
+    def _new_fusion(self) -> Fusion:
+        if self.fusion == "covariance":
+            return CovarianceFusion(
+                self.camera, self.target, self.covariance_filter, use_filter=self.use_filter
+            )
+        return PaperFusion(self.sigmas, use_filter=self.use_filter)
 
     @property
     def reinitialised(self) -> int:
         """Times a filter restarted at a measurement its covariance called impossible."""
-        return self._fused.reinitialised + sum(tr.reinitialised for tr in self._tracks)
+        return self._fusion.reinitialised + self._markers.reinitialised
 
     def reset(self) -> None:
         """Forget all tracks (a new sequence)."""
-        self._tracks = [MarkerTrack(self.kalman) for _ in self.target.markers]
-        self._fused = CovarianceTrack(self.covariance_filter)
-        self._last_R = [None] * len(self.target.markers)
-        self._last_t_s = None
-        self._hint = ()
+        self._markers = MarkerFilters(len(self.target.markers), self.kalman)
+        self._fusion = self._new_fusion()
+        self._last_R: list[Array | None] = [None] * len(self.target.markers)
+        self._last_t_s: float | None = None
+        self._hint: tuple[MarkerDetection, ...] = ()
 
     def _check_time(self, t_s: float) -> float:
         try:
@@ -212,50 +220,15 @@ class PerchingEstimator:
     def _predicted_pose(self, marker_index: int, t: float) -> Array | None:
         """(4,) [yaw, x, y, z] the filter expects at ``t``: the fused filter's (covariance
         fusion), else the marker's own track's, else any live track's; None without one."""
-        if self.fusion == "covariance" and self._fused.alive:
-            return self._fused.predicted_pose(t)
-        tracks = [self._tracks[marker_index], *self._tracks]
-        track = next((tr for tr in tracks if tr.alive), None)
-        return None if track is None else track.predicted_pose(t)
+        predicted = self._fusion.predicted_pose(t)
+        if predicted is not None:
+            return predicted
+        return self._markers.predicted_pose(marker_index, t)
 
     def _predicted_yaw_rad(self, marker_index: int, t: float) -> float | None:
         """The yaw the filter expects at ``t`` (``_predicted_pose``)."""
         predicted = self._predicted_pose(marker_index, t)
         return None if predicted is None else float(predicted[0])
-
-    def _fuse_covariance(
-        self,
-        t: float,
-        detections: tuple[MarkerDetection, ...],
-        measurements: dict[int, MarkerPose],
-        stage: int,
-    ) -> Array:
-        """The joint pose of this frame's measured markers through the fused filter."""
-        track = self._fused
-        z: Array | None = None
-        if measurements:
-            used = tuple(d for d in detections if d.marker_index in measurements)
-            start = max(used, key=lambda d: d.side_px).marker_index
-            joint = solve_joint_pose(
-                self.camera,
-                self.target,
-                used,
-                measurements[start].T_camera_target,
-                self.covariance_filter.corner_sigma_px,
-            )
-            if joint is not None:
-                T = joint.T_camera_target
-                J = measurement_jacobian(T)
-                z = np.array([yaw_rad(T[:3, :3]), *T[:3, 3]])
-                track.measured(z, J @ joint.covariance @ J.T, t)
-        if z is None:
-            track.missed_frame(t)
-        if not self.use_filter:
-            return np.full(4, np.nan) if z is None else z
-        pose = track.pose
-        if pose is None or stage == STAGE_NONE:
-            return np.full(4, np.nan)
-        return pose
 
     def _filter_and_fuse(
         self,
@@ -266,33 +239,16 @@ class PerchingEstimator:
         clocks: tuple[float, float, float],
     ) -> Estimate:
         t0, t1, t2 = clocks
-        for i, track in enumerate(self._tracks):
-            m = measurements.get(i)
-            if m is not None:
-                track.measured(np.array([m.yaw_rad, *m.t_m]), t)
-                self._last_R[i] = m.T_camera_target[:3, :3].copy()
-            else:
-                track.missed_frame(t)
-                if not track.alive:
-                    self._last_R[i] = None
+        self._markers.advance(
+            {i: np.array([m.yaw_rad, *m.t_m]) for i, m in measurements.items()}, t
+        )
+        for i, track in enumerate(self._markers.tracks):
+            if i in measurements:
+                self._last_R[i] = measurements[i].T_camera_target[:3, :3].copy()
+            elif not track.alive:
+                self._last_R[i] = None
         self._last_t_s = t
-        if not self.use_filter:
-            poses = {i: np.array([m.yaw_rad, *m.t_m]) for i, m in measurements.items()}
-        else:
-            if measurements:
-                contributing = set(measurements)
-            else:
-                contributing = {i for i, tr in enumerate(self._tracks) if tr.alive}
-            poses = {
-                i: pose
-                for i, tr in enumerate(self._tracks)
-                if i in contributing and (pose := tr.pose) is not None
-            }
-        fused, stage = fuse_paper(poses, self.sigmas)
-        if self.fusion == "covariance":
-            fused = self._fuse_covariance(t, detections, measurements, stage)
-            if np.isnan(fused[1]):
-                stage = STAGE_NONE
+        fused = self._fusion.fuse(t, detections, measurements, self._markers)
         t3 = time.perf_counter()
         by_index = {d.marker_index: d for d in detections}
         states = tuple(
@@ -303,24 +259,21 @@ class PerchingEstimator:
                 rejected=rejected.get(i, ""),
                 filtered_pose=tr.pose,
                 missed_frames=tr.missed,
-                contributing=i in poses,
+                contributing=i in fused.contributing,
             )
-            for i, (spec, tr) in enumerate(zip(self.target.markers, self._tracks, strict=True))
+            for i, (spec, tr) in enumerate(
+                zip(self.target.markers, self._markers.tracks, strict=True)
+            )
         )
-        if self.fusion == "covariance":
-            age = self._fused.age_s(t) if self.use_filter else 0.0
-        elif measurements or not self.use_filter:
-            age = 0.0
-        else:
-            age = min((self._tracks[i].age_s(t) for i in poses), default=math.inf)
-        position = (float(fused[1]), float(fused[2]), float(fused[3]))
-        valid = stage != STAGE_NONE and bool(np.all(np.isfinite(fused)))
+        pose = fused.pose
+        position = (float(pose[1]), float(pose[2]), float(pose[3]))
+        valid = fused.stage != STAGE_NONE and bool(np.all(np.isfinite(pose)))
         return Estimate(
             t_s=t,
             valid=valid,
-            stage=stage if valid else STAGE_NONE,
+            stage=fused.stage if valid else STAGE_NONE,
             t_camera_target_m=position if valid else (math.nan, math.nan, math.nan),
-            yaw_rad=float(fused[0]) if valid else math.nan,
+            yaw_rad=float(pose[0]) if valid else math.nan,
             markers=states,
             timings=Timings(
                 detect_ms=(t1 - t0) * 1e3,
@@ -328,5 +281,5 @@ class PerchingEstimator:
                 filter_ms=(t3 - t2) * 1e3,
                 total_ms=(t3 - t0) * 1e3,
             ),
-            age_s=age if valid else math.nan,
+            age_s=fused.age_s if valid else math.nan,
         )

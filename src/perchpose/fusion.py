@@ -1,19 +1,32 @@
-"""Fusion of the per-marker poses: the paper's three stages and sigma weights.
+"""Fusion of the markers into one target pose: the paper's stages and sigma weights, and the
+joint pose with its covariance; two strategies behind one interface (``Fusion``).
 
-Stage 1: only the outer (largest) marker -> its pose. Stage 3: only inner markers -> their pose.
-Stage 2: both -> per component ``sigma * outer + (1 - sigma) * inner``, yaw on the circle.
-With more than one inner marker, the inner markers are averaged first.
+The paper's fusion (``fuse_paper``, ``PaperFusion``): stage 1, only the outer (largest) marker
+-> its pose; stage 3, only inner markers -> their pose; stage 2, both -> per component
+``sigma * outer + (1 - sigma) * inner``, yaw on the circle. With more than one inner marker,
+the inner markers are averaged first. Its inputs are the per-marker filters' poses.
+
+The covariance fusion (``CovarianceFusion``): one PnP over every corner of every marker
+measured in the frame, its covariance from the Jacobian and the corner noise, and one filter of
+the fused pose that owns its own state. Its stage is the paper's, from the markers that
+contribute, so that both report the same stages.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.geometry import weighted_circular_mean_rad
+from perchpose.camera import CameraModel
+from perchpose.geometry import weighted_circular_mean_rad, yaw_rad
+from perchpose.joint_pose import measurement_jacobian, solve_joint_pose
+from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
+from perchpose.target import TargetSpec
+from perchpose.values import MarkerDetection, MarkerPose
 
 Array = NDArray[np.float64]
 
@@ -138,3 +151,145 @@ def fit_sigma_lms(
         if abs(sigma - before) < tol:
             return sigma, epoch
     return sigma, epochs
+
+
+@dataclass(frozen=True)
+class Fused:
+    """A frame's fused pose: ``pose`` (4,) [psi_rad, x_m, y_m, z_m] (NaN when there is none),
+    the paper's ``stage``, the markers whose poses took part, and ``age_s``, the time since the
+    newest measurement behind it (0 for a measured frame)."""
+
+    pose: Array
+    stage: int
+    contributing: frozenset[int]
+    age_s: float
+
+
+class Fusion(Protocol):
+    """How a frame's markers become one pose. Each strategy owns the filter state it needs
+    beyond the per-marker filters, which the estimator advances before calling ``fuse``."""
+
+    @property
+    def reinitialised(self) -> int:
+        """Restarts of the strategy's own filter."""
+        ...
+
+    def fuse(
+        self,
+        t_s: float,
+        detections: tuple[MarkerDetection, ...],
+        measurements: dict[int, MarkerPose],
+        markers: MarkerFilters,
+    ) -> Fused:
+        """The fused pose of the frame at ``t_s``."""
+        ...
+
+    def predicted_pose(self, t_s: float) -> Array | None:
+        """[psi, x, y, z] the strategy's own filter expects at ``t_s``; None without one."""
+        ...
+
+
+def _marker_poses(
+    measurements: dict[int, MarkerPose], markers: MarkerFilters, use_filter: bool
+) -> dict[int, Array]:
+    """The poses that fuse: the filtered poses (``MarkerFilters.contributing``), or this
+    frame's raw measurements without the filter."""
+    if not use_filter:
+        return {i: np.array([m.yaw_rad, *m.t_m]) for i, m in measurements.items()}
+    return markers.contributing(set(measurements))
+
+
+class PaperFusion:
+    """The paper's fusion of the per-marker filters with fixed sigmas, by stage."""
+
+    reinitialised = 0
+
+    def __init__(self, sigmas: FusionSigmas, *, use_filter: bool = True) -> None:
+        self.sigmas = sigmas
+        self.use_filter = use_filter
+
+    def fuse(
+        self,
+        t_s: float,
+        detections: tuple[MarkerDetection, ...],
+        measurements: dict[int, MarkerPose],
+        markers: MarkerFilters,
+    ) -> Fused:
+        poses = _marker_poses(measurements, markers, self.use_filter)
+        pose, stage = fuse_paper(poses, self.sigmas)
+        age = 0.0 if measurements or not self.use_filter else markers.age_s(poses, t_s)
+        return Fused(pose, stage, frozenset(poses), age)
+
+    def predicted_pose(self, t_s: float) -> Array | None:
+        return None
+
+
+class CovarianceFusion:
+    """One PnP over every measured marker's corners, through one filter of the fused pose
+    corrected with each measurement's own covariance (``CovarianceTrack``)."""
+
+    def __init__(
+        self,
+        camera: CameraModel,
+        target: TargetSpec,
+        settings: CovarianceFilterSettings,
+        *,
+        use_filter: bool = True,
+    ) -> None:
+        self.camera = camera
+        self.target = target
+        self.settings = settings
+        self.use_filter = use_filter
+        self.track = CovarianceTrack(settings)
+
+    @property
+    def reinitialised(self) -> int:
+        return self.track.reinitialised
+
+    def predicted_pose(self, t_s: float) -> Array | None:
+        return self.track.predicted_pose(t_s) if self.track.alive else None
+
+    def _joint(
+        self, detections: tuple[MarkerDetection, ...], measurements: dict[int, MarkerPose]
+    ) -> tuple[Array, Array] | None:
+        """This frame's joint pose [psi, x, y, z] and its covariance (4, 4), or None."""
+        if not measurements:
+            return None
+        used = tuple(d for d in detections if d.marker_index in measurements)
+        start = max(used, key=lambda d: d.side_px).marker_index
+        joint = solve_joint_pose(
+            self.camera,
+            self.target,
+            used,
+            measurements[start].T_camera_target,
+            self.settings.corner_sigma_px,
+        )
+        if joint is None:
+            return None
+        T = joint.T_camera_target
+        J = measurement_jacobian(T)
+        return np.array([yaw_rad(T[:3, :3]), *T[:3, 3]]), J @ joint.covariance @ J.T
+
+    def fuse(
+        self,
+        t_s: float,
+        detections: tuple[MarkerDetection, ...],
+        measurements: dict[int, MarkerPose],
+        markers: MarkerFilters,
+    ) -> Fused:
+        poses = _marker_poses(measurements, markers, self.use_filter)
+        stage = stage_of(set(poses))
+        measured = self._joint(detections, measurements)
+        if measured is None:
+            self.track.missed_frame(t_s)
+        else:
+            self.track.measured(measured[0], measured[1], t_s)
+        pose: Array | None
+        if not self.use_filter:
+            pose = None if measured is None else measured[0]
+        else:
+            pose = self.track.pose if stage != STAGE_NONE else None
+        if pose is None:
+            return Fused(np.full(4, np.nan), STAGE_NONE, frozenset(poses), math.nan)
+        age = self.track.age_s(t_s) if self.use_filter else 0.0
+        return Fused(pose, stage, frozenset(poses), age)

@@ -351,3 +351,46 @@ class CovarianceTrack(Track):
     def measured(self, z: Array, R: Array, t_s: float) -> None:
         """A measurement z = [psi, tx, ty, tz] with covariance R (4, 4) at ``t_s``."""
         self._measure(z, R, t_s)
+
+
+class MarkerFilters:
+    """The paper's filter of each of a target's markers, advanced together frame by frame."""
+
+    def __init__(self, n_markers: int, settings: KalmanSettings) -> None:
+        self.tracks = [MarkerTrack(settings) for _ in range(n_markers)]
+
+    @property
+    def reinitialised(self) -> int:
+        """Restarts of any marker's filter at an impossible innovation."""
+        return sum(tr.reinitialised for tr in self.tracks)
+
+    def advance(self, measured: dict[int, Array], t_s: float) -> None:
+        """A frame at ``t_s``: the markers in ``measured`` (index -> [psi, tx, ty, tz]) correct
+        their filters, the others coast or are dropped."""
+        for i, track in enumerate(self.tracks):
+            z = measured.get(i)
+            if z is not None:
+                track.measured(z, t_s)
+            else:
+                track.missed_frame(t_s)
+
+    def contributing(self, measured: set[int]) -> dict[int, Array]:
+        """The filtered poses that fuse in this frame: the markers measured in it, or, in a
+        frame without measurements, every live filter (coasting)."""
+        indices = measured or {i for i, tr in enumerate(self.tracks) if tr.alive}
+        return {
+            i: pose
+            for i, tr in enumerate(self.tracks)
+            if i in indices and (pose := tr.pose) is not None
+        }
+
+    def age_s(self, indices: set[int] | dict[int, Array], t_s: float) -> float:
+        """The youngest measurement among ``indices`` (inf without one)."""
+        return min((self.tracks[i].age_s(t_s) for i in indices), default=math.inf)
+
+    def predicted_pose(self, marker_index: int, t_s: float) -> Array | None:
+        """[psi, x, y, z] the marker's own filter expects at ``t_s``, else any live filter's;
+        None without one."""
+        tracks = [self.tracks[marker_index], *self.tracks]
+        track = next((tr for tr in tracks if tr.alive), None)
+        return None if track is None else track.predicted_pose(t_s)
