@@ -329,7 +329,7 @@ def test_nothing_imports_cflib_without_the_crazyflie_link() -> None:
     import sys
 
     code = (
-        "import sys, perchpose.cli, perchpose.track, perchpose.io.crazyflie, "
+        "import sys, perchpose.cli, perchpose.app.track, perchpose.io.crazyflie, "
         "perchpose.io.mavlink; print('cflib' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -3,7 +3,7 @@ from pathlib import Path
 import numpy as np
 
 from perchpose import CameraModel
-from perchpose.demo import run_demo
+from perchpose.app.demo import run_demo
 from perchpose.evaluation.metrics import format_stage_table
 
 

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from perchpose import CameraModel, TargetSpec
+from perchpose.app.track import track
 from perchpose.evaluation.metrics import frame_errors
 from perchpose.io.sinks import read_track_csv
-from perchpose.track import track
 
 
 @pytest.fixture(scope="module")

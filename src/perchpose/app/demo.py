@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from perchpose.app.track import TrackSummary, track
 from perchpose.camera import CameraModel
 from perchpose.evaluation.metrics import FrameErrors, StageRow, frame_errors, stage_table
 from perchpose.evaluation.plots import kalman_figure
@@ -16,7 +17,6 @@ from perchpose.io.sinks import read_track_csv
 from perchpose.sim.scenarios import approach
 from perchpose.sim.sequence import write_sequence
 from perchpose.target import TargetSpec
-from perchpose.track import TrackSummary, track
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,29 @@
+"""``perchpose board``: a printable ChArUco calibration board."""
+
+from __future__ import annotations
+
+import click
+
+from perchpose.cli.common import board_options, board_spec
+from perchpose.cli.group import group
+
+
+@group.command()
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Output file: .svg, .pdf or .png.",
+)
+@board_options
+@click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
+def board(
+    out: str, squares: str, square_mm: float, marker_mm: float, dictionary: str, dpi: int
+) -> None:
+    """Write a printable ChArUco calibration board at true scale."""
+    from perchpose.printable import write_board_sheet
+
+    spec = board_spec(squares, square_mm, marker_mm, dictionary)
+    path = write_board_sheet(spec, out, dpi=dpi)
+    click.echo(f"wrote {path} ({spec.describe()}): print at 100 % and glue it flat")

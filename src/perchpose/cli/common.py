@@ -1,0 +1,77 @@
+"""What the commands share: loading a camera or target from an option, the options themselves,
+and a warning line on stderr."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import click
+
+from perchpose.camera import CameraModel
+from perchpose.target import TargetSpec
+
+if TYPE_CHECKING:
+    from perchpose.calibration import CharucoBoardSpec
+
+
+def load_camera(value: str) -> CameraModel:
+    """A camera file, or ``preset:NAME``."""
+    if value.startswith("preset:"):
+        return CameraModel.preset(value.split(":", 1)[1])
+    return CameraModel.load(value)
+
+
+def load_target(value: str | None) -> TargetSpec:
+    """A target file, or the paper's target."""
+    return TargetSpec.paper() if value is None else TargetSpec.load(value)
+
+
+def warn(message: str) -> None:
+    """One line on stderr."""
+    click.echo(f"perchpose: {message}", err=True)
+
+
+CAMERA_HELP = "ROS camera_info or OpenCV YAML; or preset:webcam, preset:fpv, preset:fpv_wide"
+target_option = click.option(
+    "--target", "target_file", default=None, help="Target YAML (default: the paper's)."
+)
+camera_option_fpv = click.option(
+    "--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP
+)
+
+
+def board_options(command: Callable[..., None]) -> Callable[..., None]:
+    """The ChArUco board options shared by ``board`` and ``calibrate``."""
+    options = [
+        click.option(
+            "--squares", default="5x7", show_default=True, help="Squares across x down, e.g. 5x7."
+        ),
+        click.option(
+            "--square-mm",
+            default=40.0,
+            show_default=True,
+            help="Side of a square, mm (measure the print).",
+        ),
+        click.option("--marker-mm", default=20.0, show_default=True, help="Side of a marker, mm."),
+        click.option(
+            "--dictionary",
+            default="DICT_6X6_250",
+            show_default=True,
+            help="OpenCV ArUco dictionary of the markers.",
+        ),
+    ]
+    for option in reversed(options):
+        command = option(command)
+    return command
+
+
+def board_spec(
+    squares: str, square_mm: float, marker_mm: float, dictionary: str
+) -> CharucoBoardSpec:
+    """The board the ``board_options`` describe (imported late: OpenCV's ArUco module)."""
+    from perchpose.calibration import CharucoBoardSpec
+
+    return CharucoBoardSpec(
+        CharucoBoardSpec.parse_squares(squares), square_mm, marker_mm, dictionary
+    )

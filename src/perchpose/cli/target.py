@@ -1,0 +1,35 @@
+"""``perchpose target``: the printable target."""
+
+from __future__ import annotations
+
+import click
+
+from perchpose.cli.common import load_target, target_option
+from perchpose.cli.group import group
+
+
+@group.command()
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Output file: .svg, .pdf or .png.",
+)
+@target_option
+@click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
+@click.option(
+    "--save-spec",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Also write the target's YAML specification here.",
+)
+def target(out: str, target_file: str | None, dpi: int, save_spec: str | None) -> None:
+    """Write the printable target at true scale, with a 100 mm scale bar."""
+    from perchpose.printable import write_target_sheet
+
+    spec = load_target(target_file)
+    path = write_target_sheet(spec, out, dpi=dpi)
+    if save_spec:
+        spec.save(save_spec)
+    click.echo(f"wrote {path}: print at 100 % and check that the scale bar measures 100 mm")

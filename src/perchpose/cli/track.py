@@ -1,0 +1,166 @@
+"""``perchpose track``: the target in a folder, video or camera, and the vehicle links that
+fly on it."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import click
+
+from perchpose.cli.common import CAMERA_HELP, load_camera, load_target, target_option, warn
+from perchpose.cli.group import group
+from perchpose.target import TargetSpec
+
+
+@contextmanager
+def _vehicle_links(
+    target: TargetSpec,
+    mavlink_url: str | None,
+    mavlink_frame: str,
+    crazyflie_uri: str | None,
+    mount_file: str | None,
+) -> Iterator[list[Callable[[Any, float], None]]]:
+    """The per-frame hooks of the requested vehicle links; lands and closes them at the end."""
+    from perchpose.control import ControllerSettings, PerchingController, load_T_body_camera
+
+    T_body_camera = load_T_body_camera(mount_file) if mount_file else None
+    hooks: list[Callable[[Any, float], None]] = []
+    closers: list[Callable[[], None]] = []
+    pilot = None
+    try:
+        if mavlink_url is not None:
+            from perchpose.io.mavlink import LandingTargetSink
+
+            sink = LandingTargetSink(
+                mavlink_url,
+                frame=mavlink_frame,
+                T_body_camera=T_body_camera,
+                target=target,
+                report=warn,
+            )
+            closers.append(sink.close)
+            hooks.append(sink)
+        if crazyflie_uri is not None:
+            from perchpose.io.crazyflie import connect
+
+            # cflib logs its connection failures with tracebacks; the error below says it once
+            logging.getLogger("cflib").addHandler(logging.NullHandler())
+            link = connect(crazyflie_uri, report=warn)
+            closers.append(link.close)
+            settings = (
+                ControllerSettings()
+                if T_body_camera is None
+                else ControllerSettings(T_body_camera=T_body_camera)
+            )
+            pilot = link.pilot(controller=PerchingController(settings))
+            hooks.append(pilot)
+        try:
+            yield hooks
+        finally:
+            if pilot is not None:  # source ended, an error, or Ctrl-C: land
+                pilot.abort(pilot.last_t_s, "tracking ended")
+                pilot.land()
+    finally:
+        for close in reversed(closers):
+            close()
+
+
+@group.command()
+@click.argument("source")
+@click.option("--camera", "camera_file", required=True, help=CAMERA_HELP)
+@target_option
+@click.option(
+    "--fps",
+    default=None,
+    type=float,
+    help="Frame rate for t_s = frame / fps (default 30; a video's own rate).",
+)
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Pose file: .csv or .jsonl.",
+)
+@click.option(
+    "--overlay",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Also write an overlay video (.mp4 or .avi).",
+)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option(
+    "--mavlink",
+    "mavlink_url",
+    default=None,
+    help="Send LANDING_TARGET over this pymavlink connection, e.g. udpout:127.0.0.1:14550 "
+    "or /dev/ttyUSB0,57600.",
+)
+@click.option(
+    "--mavlink-frame",
+    type=click.Choice(["body_frd", "local_ned"]),
+    default="body_frd",
+    show_default=True,
+    help="LANDING_TARGET frame: body_frd (ArduPilot) or local_ned (PX4; uses the vehicle's "
+    "ATTITUDE and LOCAL_POSITION_NED).",
+)
+@click.option(
+    "--crazyflie",
+    "crazyflie_uri",
+    default=None,
+    help="Fly a Crazyflie onto the target with the perching controller, e.g. "
+    "radio://0/80/2M/E7E7E7E7E7.",
+)
+@click.option(
+    "--mount",
+    "mount_file",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="YAML with T_body_camera (4x4, body x forward, y left, z up); default: camera on top "
+    "looking up.",
+)
+def track(
+    source: str,
+    camera_file: str,
+    target_file: str | None,
+    fps: float | None,
+    out: str,
+    overlay: str | None,
+    quiet: bool,
+    mavlink_url: str | None,
+    mavlink_frame: str,
+    crazyflie_uri: str | None,
+    mount_file: str | None,
+) -> None:
+    """Track the target in SOURCE: a folder of images, a glob, a video file or a camera index.
+
+    With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
+    """
+    from perchpose.app.track import track as run_track
+    from perchpose.io.overlay import check_overlay_path
+
+    cam = load_camera(camera_file)
+    spec = load_target(target_file)
+    if overlay is not None:
+        check_overlay_path(overlay)  # before any vehicle link takes over
+    with _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks:
+        summary = run_track(
+            source,
+            cam,
+            spec,
+            out,
+            fps=fps,
+            overlay=overlay,
+            progress=not quiet and sys.stderr.isatty(),
+            on_frame=hooks,
+        )
+    stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
+    click.echo(
+        f"{summary.frames} frames, {summary.valid} valid ({stages}), "
+        f"{summary.bad_frames} unreadable; {summary.mean_ms:.1f} ms per frame; "
+        f"wrote {summary.out}"
+    )
