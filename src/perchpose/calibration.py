@@ -200,21 +200,12 @@ def coverage_grid(corners_px: Array, size: tuple[int, int], cells: int = 10) -> 
     return grid
 
 
-def calibrate(
-    images: Iterable[tuple[str, NDArray[np.uint8]]],
-    board: CharucoBoardSpec,
-    model: DistortionModel = "plumb_bob",
-    name: str = "camera",
-) -> CalibrationResult:
-    """Calibrate from (name, image) pairs showing ``board``.
-
-    Views where the board is missing, has fewer than 6 corners, collinear corners, or corners
-    that no board of these parameters could give are rejected with a reason. Raises
-    CalibrationError when images differ in size, when no image shows the board, or when fewer
-    views than the model needs remain.
-    """
-    if model not in ("plumb_bob", "equidistant"):
-        raise CalibrationError(f"unknown model {model!r} (plumb_bob or equidistant)")
+def _collect_views(
+    images: Iterable[tuple[str, NDArray[np.uint8]]], board: CharucoBoardSpec
+) -> tuple[list[BoardView], dict[str, str], tuple[int, int], bool]:
+    """The views that show the board, the others with the reason, the image size, and whether
+    any image showed a marker of the board's dictionary. Raises CalibrationError for images of
+    different sizes or none at all."""
     views: list[BoardView] = []
     rejected: dict[str, str] = {}
     size: tuple[int, int] | None = None
@@ -238,6 +229,25 @@ def calibrate(
         views.append(found)
     if size is None:
         raise CalibrationError("no images to calibrate from")
+    return views, rejected, size, saw_markers
+
+
+def calibrate(
+    images: Iterable[tuple[str, NDArray[np.uint8]]],
+    board: CharucoBoardSpec,
+    model: DistortionModel = "plumb_bob",
+    name: str = "camera",
+) -> CalibrationResult:
+    """Calibrate from (name, image) pairs showing ``board``.
+
+    Views where the board is missing, has fewer than 6 corners, collinear corners, or corners
+    that no board of these parameters could give are rejected with a reason. Raises
+    CalibrationError when images differ in size, when no image shows the board, or when fewer
+    views than the model needs remain.
+    """
+    if model not in ("plumb_bob", "equidistant"):
+        raise CalibrationError(f"unknown model {model!r} (plumb_bob or equidistant)")
+    views, rejected, size, saw_markers = _collect_views(images, board)
     if not saw_markers:
         raise CalibrationError(
             f"no marker of {board.dictionary} found in any of the {len(rejected)} images: "

@@ -71,7 +71,7 @@ class EdgeFitSettings:
     own_levels_from_px: float = 80.0
 
 
-def _phi_pdf(u: Array) -> tuple[Array, Array]:
+def normal_cdf_pdf(u: Array) -> tuple[Array, Array]:
     """Standard normal CDF and density of ``u`` (the CDF via Abramowitz and Stegun 7.1.26,
     which shares its exponential with the density)."""
     z = np.abs(u) * (1.0 / _SQRT2)
@@ -112,10 +112,104 @@ def _pixel_step(t: Array, sigma: float) -> tuple[Array, Array, Array]:
     the edge projects onto its normal as a trapezoid of the same variance, 1/12.)"""
     a = (t + 0.5) * (1.0 / sigma)
     b = (t - 0.5) * (1.0 / sigma)
-    cdf_a, pdf_a = _phi_pdf(a)
-    cdf_b, pdf_b = _phi_pdf(b)
+    cdf_a, pdf_a = normal_cdf_pdf(a)
+    cdf_b, pdf_b = normal_cdf_pdf(b)
     value = sigma * (a * cdf_a + pdf_a - b * cdf_b - pdf_b)
     return value, cdf_a - cdf_b, sigma * (pdf_a - pdf_b)
+
+
+def _first_blur_px(values: Array, offsets: Array, contrast: float) -> float:
+    """A first guess of the optical blur sigma (px) from the profiles' steepest rise."""
+    # the blur from the steepest rise between samples h apart, which for an edge midway
+    # between them is b * erf(h / (2 sqrt(2) sigma))
+    h = float(offsets[1] - offsets[0])
+    rise = float(np.mean(np.max(np.diff(values, axis=1), axis=1))) / contrast
+    sigma0 = _blur_from_rise(min(rise, 0.999), h) if rise > 0 else 1.0
+    # that sigma holds the pixel's square (variance 1/12) and, from the interpolation, about
+    # as much again
+    sigma0 = math.sqrt(max(sigma0 * sigma0 - 1.0 / 6.0, _MIN_BLUR_PX**2))
+    return min(_MAX_BLUR_PX, max(_MIN_BLUR_PX, sigma0))
+
+
+def _surround_terms(
+    surround: _Surround, offsets: Array, sigma_px: float
+) -> tuple[Array | None, Array | None, Array | None]:
+    """(white inside, border's inner edge, margin's end), each (K, 1) or None where the blur
+    of ``sigma_px`` does not reach it from the profiles' ends at ``offsets``."""
+    white = inner = margin = None
+    beyond = _BEYOND_REACH_SIGMAS * sigma_px + 0.5
+    reach_in = surround.border_px < -float(offsets[0]) + beyond
+    if np.any(reach_in & (surround.white_inside > 0)):
+        white = np.where(reach_in, surround.white_inside, 0.0)[:, None]
+        inner = surround.border_px[:, None]
+    near = surround.margin_px < float(offsets[-1]) + beyond
+    if np.any(near):
+        margin = np.where(near, surround.margin_px, 1e6)[:, None]
+    return white, inner, margin
+
+
+def _level_design(
+    n_profiles: int, groups: NDArray[np.intp] | None, along: Array | None
+) -> tuple[Array, int]:
+    """The levels' design W (R, K): a profile's dark level is W[:, k] . a_q, its contrast
+    W[:, k] . b_q (one pair per group, and with ``along`` a slope along the side each); and
+    the number of groups."""
+    g_of = np.zeros(n_profiles, np.intp) if groups is None else groups
+    n_groups = int(g_of.max()) + 1
+    member = (g_of[None, :] == np.arange(n_groups)[:, None]).astype(np.float64)  # (Q, K)
+    W = member if along is None else np.vstack([member, member * along[None, :]])
+    return W, n_groups
+
+
+def _shared_and_own_step(
+    J_d: Array, G: Array, r: Array, W: Array, extra: list[Array], M: int
+) -> tuple[Array, Array] | None:
+    """One Gauss-Newton step of the edge model: (the shared parameters' step: levels, contrasts
+    and ``extra``; each profile's own edge step), or None when the equations are singular.
+    ``J_d`` (K, M): the model's derivative by each profile's edge; ``G`` (K, M): the blurred
+    step; ``r`` (K, M): the residuals; ``W`` (R, K): the levels' design; ``M`` the samples
+    per profile the levels are weighed with."""
+    n_levels = W.shape[0]
+    # Gauss-Newton on every d_k, the levels of each group and the extras: each d_k touches
+    # only its own profile and each level only its group's, so the normal equations are
+    # assembled from per-profile sums and solved through the shared parameters' Schur
+    # complement
+    D = (J_d * J_d).sum(axis=1) + 1e-12  # (K,)
+    g_d = (J_d * r).sum(axis=1)
+    rows_G, rows_GG = G.sum(axis=1), (G * G).sum(axis=1)
+    C = np.concatenate(
+        [
+            W.T * J_d.sum(axis=1)[:, None],
+            W.T * (J_d * G).sum(axis=1)[:, None],
+            np.stack([(J_d * x).sum(axis=1) for x in extra], axis=1),
+        ],
+        axis=1,
+    )  # (K, P)
+    x_rows = [x.sum(axis=1) for x in extra]
+    xG_rows = [(x * G).sum(axis=1) for x in extra]
+    Q, P = n_levels, 2 * n_levels + len(extra)
+    E = np.zeros((P, P))
+    E[:Q, :Q] = (W * float(M)) @ W.T
+    E[:Q, Q : 2 * Q] = E[Q : 2 * Q, :Q] = (W * rows_G) @ W.T
+    E[Q : 2 * Q, Q : 2 * Q] = (W * rows_GG) @ W.T
+    for i, (xi, ri, rgi) in enumerate(zip(extra, x_rows, xG_rows, strict=True)):
+        E[:Q, 2 * Q + i] = E[2 * Q + i, :Q] = W @ ri
+        E[Q : 2 * Q, 2 * Q + i] = E[2 * Q + i, Q : 2 * Q] = W @ rgi
+        for j in range(i, len(extra)):
+            E[2 * Q + i, 2 * Q + j] = E[2 * Q + j, 2 * Q + i] = float((xi * extra[j]).sum())
+    g = np.concatenate(
+        [
+            W @ r.sum(axis=1),
+            W @ (G * r).sum(axis=1),
+            [float((x * r).sum()) for x in extra],
+        ]
+    )
+    S = E - (C / D[:, None]).T @ C
+    try:
+        step = np.linalg.solve(S, g - C.T @ (g_d / D))
+    except np.linalg.LinAlgError:
+        return None
+    return step, (g_d - C @ step) / D
 
 
 def _fit_side(
@@ -152,35 +246,15 @@ def _fit_side(
     hi = float(values[:, -max(1, M // 4) :].mean())
     if not hi - lo > 4.0:
         return None
-    g_of = np.zeros(values.shape[0], np.intp) if groups is None else groups
-    n_groups = int(g_of.max()) + 1
-    member = (g_of[None, :] == np.arange(n_groups)[:, None]).astype(np.float64)  # (Q, K)
-    # the levels' design (R, K): a profile's dark level is W[:, k] . a_q, its contrast
-    # W[:, k] . b_q
-    W = member if along is None else np.vstack([member, member * along[None, :]])
+    W, n_groups = _level_design(values.shape[0], groups, along)
     n_levels = W.shape[0]
     a_q = np.concatenate([np.full(n_groups, lo), np.zeros(n_levels - n_groups)])
     b_q = np.concatenate([np.full(n_groups, hi - lo), np.zeros(n_levels - n_groups)])
     d = _midpoint_crossings(values, offsets, lo + 0.5 * (hi - lo))
-    # the blur from the steepest rise between samples h apart, which for an edge midway
-    # between them is b * erf(h / (2 sqrt(2) sigma))
-    h = float(offsets[1] - offsets[0])
-    rise = float(np.mean(np.max(np.diff(values, axis=1), axis=1))) / (hi - lo)
-    sigma0 = _blur_from_rise(min(rise, 0.999), h) if rise > 0 else 1.0
-    # that sigma holds the pixel's square (variance 1/12) and, from the interpolation, about
-    # as much again
-    sigma0 = math.sqrt(max(sigma0 * sigma0 - 1.0 / 6.0, _MIN_BLUR_PX**2))
-    drop, log_sigma = 0.0, math.log(min(_MAX_BLUR_PX, max(_MIN_BLUR_PX, sigma0)))
+    drop, log_sigma = 0.0, math.log(_first_blur_px(values, offsets, hi - lo))
     white = inner = margin = None
     if surround is not None:
-        beyond = _BEYOND_REACH_SIGMAS * math.exp(log_sigma) + 0.5
-        reach_in = surround.border_px < -float(offsets[0]) + beyond
-        if np.any(reach_in & (surround.white_inside > 0)):
-            white = np.where(reach_in, surround.white_inside, 0.0)[:, None]
-            inner = surround.border_px[:, None]
-        near = surround.margin_px < float(offsets[-1]) + beyond
-        if np.any(near):
-            margin = np.where(near, surround.margin_px, 1e6)[:, None]
+        white, inner, margin = _surround_terms(surround, offsets, math.exp(log_sigma))
     at, data = pixels
     for _ in range(iterations):
         sigma = math.exp(log_sigma)
@@ -205,46 +279,10 @@ def _fit_side(
             extra.append(-F3)
         extra.append(J_s)
         r = model - data
-        # Gauss-Newton on every d_k, the levels of each group and the extras: each d_k touches
-        # only its own profile and each level only its group's, so the normal equations are
-        # assembled from per-profile sums and solved through the shared parameters' Schur
-        # complement
-        D = (J_d * J_d).sum(axis=1) + 1e-12  # (K,)
-        g_d = (J_d * r).sum(axis=1)
-        rows_G, rows_GG = G.sum(axis=1), (G * G).sum(axis=1)
-        C = np.concatenate(
-            [
-                W.T * J_d.sum(axis=1)[:, None],
-                W.T * (J_d * G).sum(axis=1)[:, None],
-                np.stack([(J_d * x).sum(axis=1) for x in extra], axis=1),
-            ],
-            axis=1,
-        )  # (K, P)
-        x_rows = [x.sum(axis=1) for x in extra]
-        xG_rows = [(x * G).sum(axis=1) for x in extra]
-        Q, P = n_levels, 2 * n_levels + len(extra)
-        E = np.zeros((P, P))
-        E[:Q, :Q] = (W * float(M)) @ W.T
-        E[:Q, Q : 2 * Q] = E[Q : 2 * Q, :Q] = (W * rows_G) @ W.T
-        E[Q : 2 * Q, Q : 2 * Q] = (W * rows_GG) @ W.T
-        for i, (xi, ri, rgi) in enumerate(zip(extra, x_rows, xG_rows, strict=True)):
-            E[:Q, 2 * Q + i] = E[2 * Q + i, :Q] = W @ ri
-            E[Q : 2 * Q, 2 * Q + i] = E[2 * Q + i, Q : 2 * Q] = W @ rgi
-            for j in range(i, len(extra)):
-                E[2 * Q + i, 2 * Q + j] = E[2 * Q + j, 2 * Q + i] = float((xi * extra[j]).sum())
-        g = np.concatenate(
-            [
-                W @ r.sum(axis=1),
-                W @ (G * r).sum(axis=1),
-                [float((x * r).sum()) for x in extra],
-            ]
-        )
-        S = E - (C / D[:, None]).T @ C
-        try:
-            step = np.linalg.solve(S, g - C.T @ (g_d / D))
-        except np.linalg.LinAlgError:
+        solved = _shared_and_own_step(J_d, G, r, W, extra, M)
+        if solved is None:
             return None
-        step_d = (g_d - C @ step) / D
+        step, step_d = solved
         d = d - np.clip(step_d, -1.0, 1.0)
         a_q = a_q - step[:n_levels]
         b_q = b_q - step[n_levels : 2 * n_levels]
@@ -352,6 +390,76 @@ class EdgeFit:
     blur_px: float
 
 
+@dataclass(frozen=True)
+class _Profiles:
+    """Points along a marker's four sides (4K, flattened side by side) in the normalised plane
+    (``p_n``) and in pixels (``p_px``), the normalised steps along and across each side
+    (``step_n``, ``perp_n``) and their images (``q_px``, ``r_px``: ``p_n`` plus each step), and
+    each point's outward unit normal in the image (``normal``)."""
+
+    p_n: Array
+    step_n: Array
+    perp_n: Array
+    p_px: Array
+    q_px: Array
+    r_px: Array
+    normal: Array
+
+    @staticmethod
+    def along_sides(
+        camera: CameraModel, corners_px: Array, xy: Array, t: Array
+    ) -> _Profiles | None:
+        """Points at fractions ``t`` (K,) of each side from normalised corners ``xy``; None
+        where one does not project."""
+        K = len(t)
+        a_n = xy[:, None, :]
+        b_n = xy[[1, 2, 3, 0]][:, None, :]
+        p_n = (a_n + t[None, :, None] * (b_n - a_n)).reshape(-1, 2)
+        step_n = np.repeat((xy[[1, 2, 3, 0]] - xy) * 1e-3, K, axis=0)
+        perp_n = np.stack([-step_n[:, 1], step_n[:, 0]], 1)
+        ones = np.ones((4 * K, 1))
+        all_px, ok = camera.project(
+            np.vstack([np.hstack([p, ones]) for p in (p_n, p_n + step_n, p_n + perp_n)])
+        )
+        if not np.all(ok):
+            return None
+        p_px, q_px, r_px = all_px[: 4 * K], all_px[4 * K : 8 * K], all_px[8 * K :]
+        tangent = q_px - p_px
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        normal = np.stack([tangent[:, 1], -tangent[:, 0]], 1)
+        outward = np.sign((normal * (p_px - corners_px.mean(axis=0))).sum(axis=1))[:, None]
+        normal = normal * np.where(outward == 0, 1.0, outward)
+        return _Profiles(p_n, step_n, perp_n, p_px, q_px, r_px, normal)
+
+    def edge_points_n(self, d_px: Array) -> Array:
+        """The edge points (4K, 2) in the normalised plane, ``d_px`` along each normal (NaN:
+        none), through the lens model's local Jacobian at each point (the offsets are a pixel
+        or two: the linearisation error is far below 1e-3 px)."""
+        shift_px = np.nan_to_num(d_px)[:, None] * self.normal
+        b1, b2 = self.q_px - self.p_px, self.r_px - self.p_px  # images of step_n and perp_n
+        det = b1[:, 0] * b2[:, 1] - b1[:, 1] * b2[:, 0]
+        c1 = (shift_px[:, 0] * b2[:, 1] - shift_px[:, 1] * b2[:, 0]) / det
+        c2 = (b1[:, 0] * shift_px[:, 1] - b1[:, 1] * shift_px[:, 0]) / det
+        edge_n: Array = self.p_n + c1[:, None] * self.step_n + c2[:, None] * self.perp_n
+        return edge_n
+
+
+def _corners_of_lines(camera: CameraModel, normals: Array, line_offsets: Array) -> Array | None:
+    """The four corners (pixels) where the fitted side lines meet; None where two are
+    parallel or a corner does not project."""
+    # corner i joins side i - 1 (from corner i - 1) and side i (to corner i + 1)
+    previous = [3, 0, 1, 2]
+    A = np.stack([normals[previous], normals], axis=1)  # (4, 2, 2)
+    if np.any(np.abs(np.linalg.det(A)) < 1e-12):
+        return None
+    refined_n = np.linalg.solve(A, np.stack([line_offsets[previous], line_offsets], 1)[..., None])
+    refined_n = refined_n[..., 0]
+    refined_px, ok = camera.project(np.hstack([refined_n, np.ones((4, 1))]))
+    if not np.all(ok):
+        return None
+    return np.asarray(refined_px, np.float64)
+
+
 def fit_marker_edges(
     grey: NDArray[np.uint8],
     corners_px: Array,
@@ -382,23 +490,10 @@ def fit_marker_edges(
     # K points along each side, all four sides at once: (4, K) -> flattened (4K,)
     K = int(min(cfg.max_profiles, max(4.0, float(sides_px.min()) / 2.0)))
     t = np.linspace(cfg.trim, 1.0 - cfg.trim, K)
-    a_n = xy[:, None, :]
-    b_n = xy[[1, 2, 3, 0]][:, None, :]
-    p_n = (a_n + t[None, :, None] * (b_n - a_n)).reshape(-1, 2)
-    step_n = np.repeat((xy[[1, 2, 3, 0]] - xy) * 1e-3, K, axis=0)
-    perp_n = np.stack([-step_n[:, 1], step_n[:, 0]], 1)
-    ones = np.ones((4 * K, 1))
-    all_px, ok = camera.project(
-        np.vstack([np.hstack([p, ones]) for p in (p_n, p_n + step_n, p_n + perp_n)])
-    )
-    if not np.all(ok):
+    profiles = _Profiles.along_sides(camera, corners, xy, t)
+    if profiles is None:
         return None
-    p_px, q_px, r_px = all_px[: 4 * K], all_px[4 * K : 8 * K], all_px[8 * K :]
-    tangent = q_px - p_px
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    normal = np.stack([tangent[:, 1], -tangent[:, 0]], 1)
-    outward = np.sign((normal * (p_px - corners.mean(axis=0))).sum(axis=1))[:, None]
-    normal = normal * np.where(outward == 0, 1.0, outward)
+    p_px, normal = profiles.p_px, profiles.normal
     samples = p_px[:, None, :] + offsets[None, :, None] * normal[:, None, :]
     values = _bilinear(grey, samples)
     # the fit's data: the pixel nearest each sample, at its own offset across the edge
@@ -435,28 +530,11 @@ def fit_marker_edges(
     d[rows], optical_blur_px = fit
     blur_px = math.sqrt(optical_blur_px**2 + 1.0 / 12.0)
     good = np.isfinite(d) & (d > -reach_in) & (d < reach_out)
-    # the edge points in the normalised plane, through the lens model's local Jacobian at each
-    # sample (the offsets are a pixel or two: the linearisation error is far below 1e-3 px)
-    shift_px = np.nan_to_num(d)[:, None] * normal
-    b1, b2 = q_px - p_px, r_px - p_px  # images of step_n and perp_n
-    det = b1[:, 0] * b2[:, 1] - b1[:, 1] * b2[:, 0]
-    c1 = (shift_px[:, 0] * b2[:, 1] - shift_px[:, 1] * b2[:, 0]) / det
-    c2 = (b1[:, 0] * shift_px[:, 1] - b1[:, 1] * shift_px[:, 0]) / det
-    edge_n = p_n + c1[:, None] * step_n + c2[:, None] * perp_n
+    edge_n = profiles.edge_points_n(d)
     fitted = _lines_tls(edge_n.reshape(4, K, 2), good.reshape(4, K))
-    if fitted is None:
+    refined_px = None if fitted is None else _corners_of_lines(camera, *fitted)
+    if refined_px is None or (
+        np.max(np.linalg.norm(refined_px - corners, axis=1)) > cfg.max_shift_cells * cell_px
+    ):
         return None
-    normals, line_offsets = fitted
-    # corner i joins side i - 1 (from corner i - 1) and side i (to corner i + 1)
-    previous = [3, 0, 1, 2]
-    A = np.stack([normals[previous], normals], axis=1)  # (4, 2, 2)
-    if np.any(np.abs(np.linalg.det(A)) < 1e-12):
-        return None
-    refined_n = np.linalg.solve(A, np.stack([line_offsets[previous], line_offsets], 1)[..., None])
-    refined_n = refined_n[..., 0]
-    refined_px, ok = camera.project(np.hstack([refined_n, np.ones((4, 1))]))
-    if not np.all(ok):
-        return None
-    if np.max(np.linalg.norm(refined_px - corners, axis=1)) > cfg.max_shift_cells * cell_px:
-        return None
-    return EdgeFit(np.asarray(refined_px, np.float64), blur_px)
+    return EdgeFit(refined_px, blur_px)

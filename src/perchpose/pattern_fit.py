@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.corners import _phi_pdf
+from perchpose.corners import normal_cdf_pdf
 from perchpose.target import TargetSpec
 
 Array = NDArray[np.float64]
@@ -175,7 +175,7 @@ def _bands(x: Array, lines: Array, s: Array) -> tuple[Array, Array, Array]:
     """Blurred coverage (P, N) of the N bands between ``lines`` at positions ``x`` (P,) for
     blurs ``s`` (P,), and its derivatives in x and in log s."""
     z = (x[:, None] - lines[None, :]) * (1.0 / s)[:, None]
-    cdf, pdf = _phi_pdf(z)
+    cdf, pdf = normal_cdf_pdf(z)
     cover = cdf[:, :-1] - cdf[:, 1:]
     d_x = (pdf[:, :-1] - pdf[:, 1:]) / s[:, None]
     pz = pdf * z

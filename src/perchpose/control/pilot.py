@@ -245,7 +245,6 @@ class PerchingPilot:
     def update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         """One frame: the estimate (None, not valid or too old: no target) at time ``t_s``."""
         self.last_t_s = t_s
-        s = self.settings
         limit_s = self.controller.settings.max_estimate_age_s
         fresh = usable(estimate, t_s, limit_s)
         if self.state == "waiting":
@@ -261,6 +260,11 @@ class PerchingPilot:
         motion = self.odometry() if self.odometry is not None else None
         odometry = None if motion is None else Odometry(t_s, motion[0], motion[1])
         command: Command = self.controller.update(estimate, t_s, self.attitude(), odometry)
+        return self._follow(command, t_s)
+
+    def _follow(self, command: Command, t_s: float) -> PilotStep:
+        """The state the controller's command leads to, and the setpoint sent in it."""
+        s = self.settings
         if command.phase == "give-up":
             tries = self.controller.tries
             self._start_landing(t_s, f"gave up after {tries} final climbs without contact")
