@@ -7,9 +7,7 @@ pinhole rectification of the image and maps the corners it finds back through th
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any, Literal
 
 import cv2
@@ -19,6 +17,7 @@ from numpy.typing import NDArray
 from perchpose.camera import CameraModel
 from perchpose.corners import EdgeFit, fit_marker_edges
 from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
+from perchpose.rectification import Rectification
 from perchpose.target import TargetSpec, aruco_dictionary
 from perchpose.values import MarkerDetection, quad_side_px
 
@@ -26,10 +25,6 @@ Array = NDArray[np.float64]
 
 # A lens that moves the image border this far from its pinhole position gets the rectified pass.
 RECTIFY_ABOVE_PX = 6.0
-# Half the horizontal field of view the rectified image covers, and its largest size relative to
-# the original image.
-RECTIFIED_HALF_FOV_DEG = 60.0
-RECTIFIED_MAX_SCALE = 1.5
 # Found in both passes, a marker this large in the original image is taken from the rectified
 # pass (its edges are curved in the original); a smaller one from the original image.
 CURVED_SIDE_PX = 40.0
@@ -143,44 +138,6 @@ def refine_corners(grey: NDArray[np.uint8], corners_px: Array, cells: int) -> Ar
     return out
 
 
-@dataclass(frozen=True)
-class _Rectification:
-    maps: tuple[NDArray[np.float32], NDArray[np.float32]]
-    K_rect: Array
-
-
-def rectification(
-    camera: CameraModel,
-) -> tuple[tuple[NDArray[np.float32], NDArray[np.float32]], Array]:
-    """Remap tables from the original image to a pinhole view, and that view's K.
-
-    The view is up to 1.5 times the image's size and spans up to +/-60 deg horizontally, with
-    the camera's own focal length where that fits. Computed once per camera and cached on it.
-    """
-    cached = camera._cache.get("rectification")
-    if isinstance(cached, _Rectification):
-        return cached.maps, cached.K_rect
-    w0, h0 = camera.size
-    w = int(round(w0 * RECTIFIED_MAX_SCALE))
-    h = int(round(h0 * RECTIFIED_MAX_SCALE))
-    f = min(camera.focal_px, (w / 2.0) / math.tan(math.radians(RECTIFIED_HALF_FOV_DEG)))
-    K_rect = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    rays = np.stack([(u - K_rect[0, 2]) / f, (v - K_rect[1, 2]) / f, np.ones_like(u)], -1)
-    rays = rays.reshape(-1, 3) / np.linalg.norm(rays.reshape(-1, 3), axis=1, keepdims=True)
-    uv, ok = camera.project(rays)
-    inside = ok & (uv[:, 0] > -1) & (uv[:, 0] < w0) & (uv[:, 1] > -1) & (uv[:, 1] < h0)
-    # a lens polynomial can fold rays from outside its field back into the image:
-    # keep only pixels whose ray comes back unchanged
-    back = camera.pixel_rays(uv[inside])
-    inside[np.flatnonzero(inside)] = np.sum(back * rays[inside], axis=1) > np.cos(1e-3)
-    uv[~inside] = -10.0
-    map_xy = uv.reshape(h, w, 2).astype(np.float32)
-    maps = (np.ascontiguousarray(map_xy[..., 0]), np.ascontiguousarray(map_xy[..., 1]))
-    camera._cache["rectification"] = _Rectification(maps, K_rect)
-    return maps, K_rect
-
-
 def target_dictionaries(
     target: TargetSpec,
 ) -> tuple[list[cv2.aruco.Dictionary], list[list[int]]]:
@@ -232,7 +189,6 @@ class MarkerDetector:
         self._margins = [target.white_margin_cells(i) for i in range(len(target.markers))]
         self._patterns = [printed_pattern(target, i) for i in range(len(target.markers))]
         self.pattern_settings = PatternFitSettings()
-        self._K_rect: Array | None = None
 
     def detect(
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
@@ -333,10 +289,10 @@ class MarkerDetector:
     ) -> list[MarkerDetection]:
         """Markers found by the tracking detector in windows of the rectified view around the
         predicted ``quads`` (original pixels), with corners mapped back to the original."""
-        maps = self._rectify_maps()
+        maps = self._rectification.maps
         out = []
         for quad in quads:
-            rectified = self._to_rectified(quad)
+            rectified = self._rectification.to_rectified(quad)
             box = self._rectified_box(rectified, maps[0].shape)
             if box is None:
                 continue
@@ -370,7 +326,7 @@ class MarkerDetector:
             found = self._detect_pass(grey, "raw")
         if not self.rectify:
             return tuple(found[i] for i in sorted(found))
-        maps = self._rectify_maps()
+        maps = self._rectification.maps
         if not found:
             rect = np.asarray(cv2.remap(grey, *maps, interpolation=cv2.INTER_LINEAR), np.uint8)
             rectified = self._detect_pass(rect, "rectified")
@@ -388,21 +344,14 @@ class MarkerDetector:
                 found[det.marker_index] = MarkerDetection(det.marker_index, mapped, "rectified")
         return tuple(found[i] for i in sorted(found))
 
-    def _to_rectified(self, corners_px: Array) -> Array:
-        """Pixels of the original image -> pixels of the rectified view."""
-        assert self._K_rect is not None  # set with the maps
-        xy = self.camera.normalize(corners_px)
-        return np.asarray(xy * self._K_rect[0, 0] + self._K_rect[:2, 2], np.float64)
-
     def _rectified_windows(
         self, found: dict[int, MarkerDetection]
     ) -> list[tuple[int, int, int, int]]:
         """Windows (x0, y0, x1, y1) of the rectified view to search: around each large found
         marker, and around where the plane through a found marker puts each missing one."""
-        assert self._K_rect is not None
-        h, w = self._rectify_maps()[0].shape
+        h, w = self._rectification.size
         reference = max(found.values(), key=lambda d: d.side_px)
-        ref_rect = self._to_rectified(reference.corners_px)
+        ref_rect = self._rectification.to_rectified(reference.corners_px)
         ref_plane = self.target.markers[reference.marker_index].corners_target_m[:, :2]
         H, _ = cv2.findHomography(ref_plane, ref_rect)
         windows = []
@@ -411,7 +360,7 @@ class MarkerDetector:
             if det is not None and det.side_px < CURVED_SIDE_PX:
                 continue
             if det is not None:
-                quad = self._to_rectified(det.corners_px)
+                quad = self._rectification.to_rectified(det.corners_px)
             elif H is not None:
                 quad = np.asarray(
                     cv2.perspectiveTransform(marker.corners_target_m[:, :2].reshape(-1, 1, 2), H),
@@ -532,19 +481,14 @@ class MarkerDetector:
             candidates.setdefault(index, []).append(det)
         return one_target(self.target, candidates)
 
-    def _rectify_maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        maps, K_rect = rectification(self.camera)
-        self._K_rect = K_rect
-        return maps
+    @property
+    def _rectification(self) -> Rectification:
+        """The camera's pinhole view (``perchpose.rectification``: built once per camera)."""
+        return Rectification.of(self.camera)
 
     def _unrectify(self, corners_rect_px: Array) -> Array | None:
-        assert self._K_rect is not None  # set together with the maps
-        K = self._K_rect
-        rays = np.concatenate(
-            [(corners_rect_px - K[:2, 2]) / K[0, 0], np.ones((corners_rect_px.shape[0], 1))], 1
-        )
-        uv, ok = self.camera.project(rays)
-        if not bool(np.all(ok)):
+        uv, ok = self._rectification.to_original(corners_rect_px)
+        if not ok:
             return None
         # the rectified view reaches past the image, where it is black: a marker running out
         # of the image closes there into a quad that is not the marker (OpenCV's own

@@ -183,6 +183,171 @@ def _bands(x: Array, lines: Array, s: Array) -> tuple[Array, Array, Array]:
     return cover, d_x, d_log_s
 
 
+@dataclass(frozen=True)
+class _MarkerPlane:
+    """The marker's frame in the normalised image plane: ``q = (xy - centre) / scale``."""
+
+    camera: CameraModel
+    centre: Array
+    scale: float
+
+    def q_of(self, px: Array) -> Array:
+        q: Array = (self.camera.normalize(px) - self.centre) / self.scale
+        return q
+
+    def to_pixels(self, homography: Array, uv: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """Pixels of marker points ``uv`` (cells) under q -> (u, v) ``homography``."""
+        inverse = _inverse(homography)
+        if inverse is None:
+            return np.full((len(uv), 2), np.nan), np.zeros(len(uv), bool)
+        qx, qy, _ = _apply(inverse, uv)
+        plane = np.stack(
+            [qx * self.scale + self.centre[0], qy * self.scale + self.centre[1], np.ones_like(qx)],
+            1,
+        )
+        return self.camera.project(plane)
+
+    def blur_jacobian(self, mid_px: Array) -> tuple[tuple[float, float], tuple[float, float]]:
+        """d(qx, qy)/d(pixel x) and d(qx, qy)/d(pixel y) at ``mid_px``: the lens model's
+        pixel-to-q Jacobian, taken at the marker's centre (it changes by well under 1 % across
+        a marker this small, and only scales the blur)."""
+        ends = self.camera.normalize(np.array([mid_px, mid_px + [0.5, 0.0], mid_px + [0.0, 0.5]]))
+        d_x = (ends[1] - ends[0]) * (2.0 / self.scale)
+        d_y = (ends[2] - ends[0]) * (2.0 / self.scale)
+        return (float(d_x[0]), float(d_x[1])), (float(d_y[0]), float(d_y[1]))
+
+
+def _fitted_pixels(
+    grey: NDArray[np.uint8],
+    plane: _MarkerPlane,
+    g: Array,
+    pattern: PrintedPattern,
+    out_cells: float,
+) -> tuple[Array, Array, Array] | None:
+    """The pixels fitted (P, 2), their marker-plane points q (P, 2) and grey values (P,):
+    those whose centres fall within ``out_cells`` of the marker (and on the sheet), from a box
+    around the region's outline; None when too few."""
+    n = pattern.n_cells
+    out = np.array([min(out_cells, 0.9 * s) for s in pattern.sheet_cells])  # top right ...
+    lo_u, hi_u, lo_v, hi_v = -out[3], n + out[1], -out[0], n + out[2]
+    outline_uv = np.array(
+        [[lo_u, lo_v], [hi_u, lo_v], [hi_u, hi_v], [lo_u, hi_v]]
+        + [[(lo_u + hi_u) / 2, lo_v], [hi_u, (lo_v + hi_v) / 2]]
+        + [[(lo_u + hi_u) / 2, hi_v], [lo_u, (lo_v + hi_v) / 2]]
+    )
+    outline_px, ok = plane.to_pixels(g, outline_uv)
+    if not np.all(ok):
+        return None
+    h_img, w_img = grey.shape[:2]
+    x0 = max(0, int(math.floor(outline_px[:, 0].min())) - 1)
+    y0 = max(0, int(math.floor(outline_px[:, 1].min())) - 1)
+    x1 = min(w_img - 1, int(math.ceil(outline_px[:, 0].max())) + 1)
+    y1 = min(h_img - 1, int(math.ceil(outline_px[:, 1].max())) + 1)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    gx, gy = np.meshgrid(
+        np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64)
+    )
+    px = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    q = plane.q_of(px)
+    u, v, _ = _apply(g, q)
+    inside = np.isfinite(u) & (u > lo_u) & (u < hi_u) & (v > lo_v) & (v < hi_v)
+    if np.count_nonzero(inside) < 4 * n * n:
+        return None
+    px, q = px[inside], q[inside]
+    values = grey[px[:, 1].astype(np.intp), px[:, 0].astype(np.intp)].astype(np.float64)
+    return px, q, values
+
+
+@dataclass(frozen=True)
+class _BlurredBands:
+    """The pattern's bands at each pixel under homography g and blur: positions (u, v) and the
+    homography's denominator w, and each axis's blurred band coverage with its derivatives in
+    position and in log sigma (``_bands``)."""
+
+    u: Array
+    v: Array
+    w: Array
+    cov_u: Array
+    du_u: Array
+    dls_u: Array
+    cov_v: Array
+    dv_v: Array
+    dls_v: Array
+
+    @staticmethod
+    def at(
+        g: Array,
+        q: Array,
+        sigma: float,
+        q_per_px: tuple[tuple[float, float], tuple[float, float]],
+        pattern: PrintedPattern,
+    ) -> _BlurredBands:
+        (qx_px, qy_px), (qx_py, qy_py) = q_per_px
+        u, v, w = _apply(g, q)
+        # d(u, v)/dq, then to pixels: the blur's width along u and along v
+        a_ux, a_uy = (g[0] - u * g[6]) / w, (g[1] - u * g[7]) / w  # d(u, v)/dq
+        a_vx, a_vy = (g[3] - v * g[6]) / w, (g[4] - v * g[7]) / w
+        s_u = sigma * np.hypot(a_ux * qx_px + a_uy * qy_px, a_ux * qx_py + a_uy * qy_py)
+        s_v = sigma * np.hypot(a_vx * qx_px + a_vy * qy_px, a_vx * qx_py + a_vy * qy_py)
+        cov_u, du_u, dls_u = _bands(u, pattern.lines_u, s_u)
+        cov_v, dv_v, dls_v = _bands(v, pattern.lines_v, s_v)
+        return _BlurredBands(u, v, w, cov_u, du_u, dls_u, cov_v, dv_v, dls_v)
+
+    def model_and_jacobian(
+        self, q: Array, basis: list[Array], levels: list[float]
+    ) -> tuple[Array, Array]:
+        """The modelled grey (P,) and its Jacobian (P, 9 + B) in the homography's 8 entries,
+        log sigma and the B grey levels."""
+        u, v, w = self.u, self.v, self.w
+        # each pixel's blurred cover of each basis (all non-off-sheet, white, off-sheet)
+        by_v = np.stack([self.cov_v @ b for b in basis])  # (B, P, Nu)
+        cover = np.einsum("bpi,pi->bp", by_v, self.cov_u)
+        level = np.asarray(levels)
+        rows_v = np.tensordot(level, by_v, 1)  # (P, Nu)
+        rows_u = self.cov_u @ np.tensordot(level, np.stack(basis), 1).T  # (P, Nv)
+        model = level @ cover
+        dm_du = np.einsum("pi,pi->p", rows_v, self.du_u)
+        dm_dv = np.einsum("pj,pj->p", rows_u, self.dv_v)
+        dm_dls = np.einsum("pi,pi->p", rows_v, self.dls_u) + np.einsum(
+            "pj,pj->p", rows_u, self.dls_v
+        )
+        qx, qy = q[:, 0], q[:, 1]
+        J = np.empty((q.shape[0], 9 + len(basis)))
+        J[:, 0] = dm_du * qx / w
+        J[:, 1] = dm_du * qy / w
+        J[:, 2] = dm_du / w
+        J[:, 3] = dm_dv * qx / w
+        J[:, 4] = dm_dv * qy / w
+        J[:, 5] = dm_dv / w
+        J[:, 6] = -(dm_du * u + dm_dv * v) * qx / w
+        J[:, 7] = -(dm_du * u + dm_dv * v) * qy / w
+        J[:, 8] = dm_dls
+        J[:, 9:] = cover.T
+        return model, J
+
+
+def _start(corners: Array, camera: CameraModel, n: int) -> tuple[_MarkerPlane, Array] | None:
+    """The marker's plane and the homography from it to the cells square, from the corners;
+    None where they do not give one."""
+    xy = camera.normalize(corners)
+    if not np.all(np.isfinite(xy)):
+        return None
+    scale = float(np.mean(np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1))) / n
+    if not scale > 0:
+        return None
+    centre = xy.mean(axis=0)
+    try:
+        g = _homography((xy - centre) / scale, _square(n))
+    except np.linalg.LinAlgError:
+        return None
+    return _MarkerPlane(camera, centre, scale), g
+
+
+def _square(n: int) -> Array:
+    return np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
+
+
 def refine_corners_pattern(
     grey: NDArray[np.uint8],
     corners_px: Array,
@@ -198,112 +363,28 @@ def refine_corners_pattern(
     cfg = settings or PatternFitSettings()
     corners = np.asarray(corners_px, np.float64).reshape(4, 2)
     n = pattern.n_cells
-    xy = camera.normalize(corners)
-    if not np.all(np.isfinite(xy)):
-        return None
-    centre = xy.mean(axis=0)
     cell_px = _px_per_cell(corners, n)
-    scale = float(np.mean(np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1))) / n
-    if not scale > 0:
+    started = _start(corners, camera, n)
+    region = None if started is None else _fitted_pixels(grey, *started, pattern, cfg.out_cells)
+    if started is None or region is None:
         return None
-    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
-    try:
-        g = _homography((xy - centre) / scale, square)
-    except np.linalg.LinAlgError:
-        return None
-
-    def to_pixels(homography: Array, uv: Array) -> tuple[Array, NDArray[np.bool_]]:
-        """Pixels of marker points ``uv`` (cells) under q -> (u, v) ``homography``."""
-        inverse = _inverse(homography)
-        if inverse is None:
-            return np.full((len(uv), 2), np.nan), np.zeros(len(uv), bool)
-        qx, qy, _ = _apply(inverse, uv)
-        plane = np.stack([qx * scale + centre[0], qy * scale + centre[1], np.ones_like(qx)], 1)
-        return camera.project(plane)
-
-    # the fitted pixels: those whose centres fall within out_cells of the marker (and on the
-    # sheet), from a box around the region's outline
-    out = np.array([min(cfg.out_cells, 0.9 * s) for s in pattern.sheet_cells])  # top right ...
-    lo_u, hi_u, lo_v, hi_v = -out[3], n + out[1], -out[0], n + out[2]
-    outline_uv = np.array(
-        [[lo_u, lo_v], [hi_u, lo_v], [hi_u, hi_v], [lo_u, hi_v]]
-        + [[(lo_u + hi_u) / 2, lo_v], [hi_u, (lo_v + hi_v) / 2]]
-        + [[(lo_u + hi_u) / 2, hi_v], [lo_u, (lo_v + hi_v) / 2]]
-    )
-    outline_px, ok = to_pixels(g, outline_uv)
-    if not np.all(ok):
-        return None
-    h_img, w_img = grey.shape[:2]
-    x0 = max(0, int(math.floor(outline_px[:, 0].min())) - 1)
-    y0 = max(0, int(math.floor(outline_px[:, 1].min())) - 1)
-    x1 = min(w_img - 1, int(math.ceil(outline_px[:, 0].max())) + 1)
-    y1 = min(h_img - 1, int(math.ceil(outline_px[:, 1].max())) + 1)
-    if x1 <= x0 or y1 <= y0:
-        return None
-    gx, gy = np.meshgrid(
-        np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64)
-    )
-    px = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    q = (camera.normalize(px) - centre) / scale
-    u, v, _ = _apply(g, q)
-    inside = np.isfinite(u) & (u > lo_u) & (u < hi_u) & (v > lo_v) & (v < hi_v)
-    if np.count_nonzero(inside) < 4 * n * n:
-        return None
-    px, q = px[inside], q[inside]
-    values = grey[px[:, 1].astype(np.intp), px[:, 0].astype(np.intp)].astype(np.float64)
-    # the lens model's pixel-to-q Jacobian, taken at the marker's centre: it changes by well
-    # under 1 % across a marker this small, and only scales the blur
-    mid_px = corners.mean(axis=0)
-    ends = camera.normalize(np.array([mid_px, mid_px + [0.5, 0.0], mid_px + [0.0, 0.5]]))
-    (qx_px, qy_px), (qx_py, qy_py) = (
-        (ends[1] - ends[0]) * (2.0 / scale),
-        (ends[2] - ends[0]) * (2.0 / scale),
-    )
-
+    plane, g = started
+    _, q, values = region
+    q_per_px = plane.blur_jacobian(corners.mean(axis=0))
     code = pattern.code
     basis = [(code != _OFF_SHEET).astype(np.float64), (code == _WHITE).astype(np.float64)]
     off = (code == _OFF_SHEET).astype(np.float64)
     levels = [float(np.percentile(values, 10)), 0.0]
     levels[1] = float(np.percentile(values, 90)) - levels[0]
     log_sigma = math.log(min(cfg.max_blur_px, max(cfg.min_blur_px, blur_px)))
-    lines_u, lines_v = pattern.lines_u, pattern.lines_v
     for it in range(cfg.iterations):
-        sigma = math.exp(log_sigma)
-        u, v, w = _apply(g, q)
-        # d(u, v)/dq, then to pixels: the blur's width along u and along v
-        a_ux, a_uy = (g[0] - u * g[6]) / w, (g[1] - u * g[7]) / w  # d(u, v)/dq
-        a_vx, a_vy = (g[3] - v * g[6]) / w, (g[4] - v * g[7]) / w
-        s_u = sigma * np.hypot(a_ux * qx_px + a_uy * qy_px, a_ux * qx_py + a_uy * qy_py)
-        s_v = sigma * np.hypot(a_vx * qx_px + a_vy * qy_px, a_vx * qx_py + a_vy * qy_py)
-        cov_u, du_u, dls_u = _bands(u, lines_u, s_u)
-        cov_v, dv_v, dls_v = _bands(v, lines_v, s_v)
+        bands = _BlurredBands.at(g, q, math.exp(log_sigma), q_per_px, pattern)
         if it == 0:
-            near_off = np.einsum("pi,pi->p", cov_v @ off, cov_u)
+            near_off = np.einsum("pi,pi->p", bands.cov_v @ off, bands.cov_u)
             if float(near_off.max()) > 1e-3:
                 basis.append(off)
                 levels.append(levels[0])
-        # each pixel's blurred cover of each basis (all non-off-sheet, white, off-sheet)
-        by_v = np.stack([cov_v @ b for b in basis])  # (B, P, Nu)
-        cover = np.einsum("bpi,pi->bp", by_v, cov_u)
-        level = np.asarray(levels)
-        rows_v = np.tensordot(level, by_v, 1)  # (P, Nu)
-        rows_u = cov_u @ np.tensordot(level, np.stack(basis), 1).T  # (P, Nv)
-        model = level @ cover
-        dm_du = np.einsum("pi,pi->p", rows_v, du_u)
-        dm_dv = np.einsum("pj,pj->p", rows_u, dv_v)
-        dm_dls = np.einsum("pi,pi->p", rows_v, dls_u) + np.einsum("pj,pj->p", rows_u, dls_v)
-        qx, qy = q[:, 0], q[:, 1]
-        J = np.empty((q.shape[0], 9 + len(basis)))
-        J[:, 0] = dm_du * qx / w
-        J[:, 1] = dm_du * qy / w
-        J[:, 2] = dm_du / w
-        J[:, 3] = dm_dv * qx / w
-        J[:, 4] = dm_dv * qy / w
-        J[:, 5] = dm_dv / w
-        J[:, 6] = -(dm_du * u + dm_dv * v) * qx / w
-        J[:, 7] = -(dm_du * u + dm_dv * v) * qy / w
-        J[:, 8] = dm_dls
-        J[:, 9:] = cover.T
+        model, J = bands.model_and_jacobian(q, basis, levels)
         r = model - values
         try:
             step = np.linalg.solve(J.T @ J + 1e-9 * np.eye(J.shape[1]), J.T @ r)
@@ -319,7 +400,7 @@ def refine_corners_pattern(
     sigma = math.exp(log_sigma)
     if not (cfg.min_blur_px < sigma < cfg.max_blur_px) or not levels[1] > 0:
         return None
-    refined, ok = to_pixels(g, square)
+    refined, ok = plane.to_pixels(g, _square(n))
     if not np.all(ok) or not np.all(np.isfinite(refined)):
         return None
     if np.max(np.linalg.norm(refined - corners, axis=1)) > cfg.max_shift_cells * cell_px:

@@ -14,7 +14,7 @@ from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
 from perchpose.io.sinks import PoseWriter, estimate_row
-from perchpose.io.sources import open_source
+from perchpose.io.sources import Frame, open_source
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
@@ -31,6 +31,58 @@ class TrackSummary:
     out: Path
 
 
+class _Tally:
+    """Counts of a tracking run as its frames come."""
+
+    def __init__(self) -> None:
+        self.frames = self.valid = self.bad = 0
+        self.stage_counts = {0: 0, 1: 0, 2: 0, 3: 0}
+        self.total_ms = 0.0
+
+    def add(self, estimate: Estimate | None, error: str) -> None:
+        self.frames += 1
+        self.bad += int(bool(error))
+        if estimate is not None:
+            self.valid += int(estimate.valid)
+            self.stage_counts[estimate.stage] += 1
+            self.total_ms += estimate.timings.total_ms
+        else:
+            self.stage_counts[0] += 1
+
+    def summary(self, out: Path) -> TrackSummary:
+        processed = max(1, self.frames - self.bad)
+        return TrackSummary(
+            self.frames,
+            self.valid,
+            self.bad,
+            self.stage_counts,
+            self.total_ms / processed,
+            out,
+        )
+
+
+class _Overlay:
+    """The overlay video, opened at the first readable frame (its size)."""
+
+    def __init__(self, path: str | Path | None, fps: float, camera: CameraModel) -> None:
+        self.path, self.fps, self.camera = path, fps, camera
+        self.video: OverlayWriter | None = None
+
+    def write(self, frame: Frame, estimate: Estimate | None) -> None:
+        if self.path is None or frame.image is None:
+            return
+        if self.video is None:
+            h, w = frame.image.shape[:2]
+            self.video = OverlayWriter(self.path, self.fps, (w, h))
+        self.video.write(
+            draw_overlay(frame.image, estimate, self.camera, note=f"t {frame.t_s:.2f} s")
+        )
+
+    def close(self) -> None:
+        if self.video is not None:
+            self.video.close()
+
+
 def track(
     source: str,
     camera: CameraModel,
@@ -40,27 +92,22 @@ def track(
     fps: float | None = None,
     overlay: str | Path | None = None,
     progress: bool = True,
-    warn: Callable[[str], None] | None = None,
     on_frame: Sequence[Callable[[Estimate | None, float], None]] = (),
-    estimator: PerchingEstimator | None = None,
 ) -> TrackSummary:
     """Run the estimator over every frame of ``source`` and write one row per frame to ``out``.
 
-    A frame that cannot be read or has the wrong size gets an invalid row and a warning; the run
-    goes on. The first frame having a size other than the calibration's is an error, since then
-    every frame would be. Each of ``on_frame`` (vehicle links) is called once per frame with the
-    estimate (None for an unreadable frame) and the frame's time.
+    A frame that cannot be read or has the wrong size gets an invalid row and a warning on
+    stderr; the run goes on. The first frame having a size other than the calibration's is an
+    error, since then every frame would be. Each of ``on_frame`` (vehicle links) is called once
+    per frame with the estimate (None for an unreadable frame) and the frame's time.
     """
     if overlay is not None:
         check_overlay_path(overlay)
     frames = open_source(source, fps)
-    est = estimator or PerchingEstimator(camera, target)
-    say = warn or (lambda msg: print(f"warning: {msg}", file=sys.stderr))
+    video = _Overlay(overlay, frames.fps, camera)
+    est = PerchingEstimator(camera, target)
     writer = PoseWriter(out, target)
-    video: OverlayWriter | None = None
-    n = valid = bad = 0
-    stage_counts = {0: 0, 1: 0, 2: 0, 3: 0}
-    total_ms = 0.0
+    tally = _Tally()
     first_good = True
     try:
         bar = tqdm(
@@ -73,7 +120,6 @@ def track(
             leave=False,
         )
         for frame in bar:
-            n += 1
             estimate: Estimate | None = None
             error = frame.error
             if frame.image is not None:
@@ -86,29 +132,15 @@ def track(
                     error = str(exc)
                 first_good = False
             if error:
-                bad += 1
-                say(error)
+                print(f"warning: {error}", file=sys.stderr)
             writer.write(estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file))
-            if estimate is not None:
-                valid += int(estimate.valid)
-                stage_counts[estimate.stage] += 1
-                total_ms += estimate.timings.total_ms
-            else:
-                stage_counts[0] += 1
+            tally.add(estimate, error)
             for hook in on_frame:
                 hook(estimate, frame.t_s)
-            if overlay is not None and frame.image is not None:
-                if video is None:
-                    h, w = frame.image.shape[:2]
-                    video = OverlayWriter(overlay, frames.fps, (w, h))
-                video.write(
-                    draw_overlay(frame.image, estimate, camera, note=f"t {frame.t_s:.2f} s")
-                )
+            video.write(frame, estimate)
     finally:
         writer.close()
-        if video is not None:
-            video.close()
-    if n == 0:
+        video.close()
+    if tally.frames == 0:
         raise PerchposeError(f"{frames.description}: the source gave no frames")
-    processed = max(1, n - bad)
-    return TrackSummary(n, valid, bad, stage_counts, total_ms / processed, Path(out))
+    return tally.summary(Path(out))

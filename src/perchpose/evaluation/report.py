@@ -18,8 +18,8 @@ from tqdm import tqdm
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
 from perchpose.evaluation import experiments as ex
-from perchpose.evaluation.bound import bound_markdown, bound_rows
-from perchpose.evaluation.corner_accuracy import corner_accuracy, corners_markdown
+from perchpose.evaluation.bound import BoundRow, bound_markdown, bound_rows
+from perchpose.evaluation.corner_accuracy import CornerRow, corner_accuracy, corners_markdown
 from perchpose.evaluation.fusion_data import write_fusion_csv
 from perchpose.evaluation.plots import (
     ablation_figure,
@@ -28,7 +28,7 @@ from perchpose.evaluation.plots import (
     ranges_figure,
 )
 from perchpose.sim.render import ImageQuality, Renderer
-from perchpose.sim.scenarios import approach
+from perchpose.sim.scenarios import Scenario, approach
 from perchpose.target import TargetSpec
 
 RANGE_DISTANCES_CM = (3, 4, 5, 6, 8, 10, 12, 15, 18, 22, 27, 33, 40, 50, 60, 75, 90, 110, 130,
@@ -139,52 +139,35 @@ def _row_dict(row: ex.StaticRow) -> dict[str, Any]:
     return d
 
 
-def run_paper_evaluation(
-    out_dir: str | Path,
-    camera: CameraModel | None = None,
-    *,
-    quick: bool = False,
-    seed: int = 0,
-    quality_name: str = "analog_fpv",
-    progress: bool = True,
-    say: Callable[[str], None] = print,
-) -> EvaluationResult:
-    """Run every experiment of the paper on rendered frames of ``camera`` (default: the
-    ``fpv`` preset, a 640x480 equidistant FPV lens like the paper's) and write the report."""
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PerchposeError(f"{out}: cannot create folder ({exc.strerror})") from exc
-    cam = camera or CameraModel.preset("fpv")
+@dataclass(frozen=True)
+class _Outcomes:
+    """What the experiments found, before anything is written."""
+
+    curves: list[ex.RangeCurve]
+    t1: list[ex.StaticRow]
+    t2: list[ex.StaticRow]
+    moves_run: ex.SequenceRun
+    drop: ex.DropoutResult
+    samples: ex.FusionSamples
+    fit: ex.FusionFit | None
+    approach_scenario: Scenario
+    ablations: list[ex.AblationRow]
+    bounds: list[BoundRow]
+    corner_rows: list[CornerRow]
+
+
+def _run_experiments(
+    cam: CameraModel,
+    quality_name: str,
+    plan: EvalPlan,
+    seeds: dict[str, int],
+    tick: Callable[[int], None],
+    say: Callable[[str], None],
+) -> _Outcomes:
+    """Every experiment of the paper, in order, on rendered frames of ``cam``."""
     target = TargetSpec.paper()
     quality = ImageQuality.preset(quality_name)
-    plan = EvalPlan.make(quick)
     renderer = Renderer(cam, target)
-    started = time.perf_counter()
-    bar = tqdm(
-        total=plan.renders(),
-        desc="evaluate",
-        unit="frame",
-        disable=not progress,
-        file=sys.stderr,
-        leave=False,
-    )
-
-    def tick(n: int) -> None:
-        bar.update(n)
-
-    seeds = {
-        "ranges": seed,
-        "table1": seed + 1,
-        "table2": seed + 2,
-        "moves": seed + 3,
-        "fusion": seed + 4,
-        "approach": seed + 5,
-        "corners": seed + 6,
-        "bound": seed + 7,
-    }
-
     say("detection ranges")
     curves = [
         ex.detection_ranges(
@@ -223,7 +206,6 @@ def run_paper_evaluation(
         tick,
     )
     fit = ex.fit_fusion(samples) if samples.truth.shape[0] >= 2 else None
-    write_fusion_csv(out / "fusion_data.csv", samples)
     say("ablations on an approach")
     appr = approach(duration_s=plan.approach_s, dropouts=(), quality=quality)
     appr_frames = ex.render_scenario(renderer, appr, np.random.default_rng(seeds["approach"]), tick)
@@ -257,10 +239,18 @@ def run_paper_evaluation(
         np.random.default_rng(seeds["corners"]),
         tick,
     )
-    bar.close()
-    elapsed = time.perf_counter() - started
+    return _Outcomes(
+        curves, t1, t2, moves_run, drop, samples, fit, appr, ablations, bounds, corner_rows
+    )
 
-    # ----------------------------------------------------------------- figures
+
+def _write_figures(
+    out: Path, cam: CameraModel, quality_name: str, plan: EvalPlan, o: _Outcomes
+) -> None:
+    """ranges.png, kalman.png, ablation.png and (with a fit) fusion.png."""
+    target = TargetSpec.paper()
+    curves, moves_run, ablations, fit = o.curves, o.moves_run, o.ablations, o.fit
+    appr = o.approach_scenario
     ranges_figure(
         str(out / "ranges.png"),
         [(f"{c.quality} images, {cam.name} camera", c.distances_cm, c.probability) for c in curves],
@@ -300,20 +290,21 @@ def run_paper_evaluation(
             [ex.PAPER_SIGMAS[n] for n in names],
         )
 
-    # ----------------------------------------------------------------- results.json
+
+def _results(
+    o: _Outcomes,
+    cam: CameraModel,
+    quality_name: str,
+    plan: EvalPlan,
+    config: dict[str, Any],
+) -> dict[str, Any]:
+    """results.json's content: ``config`` (the run's settings) and every experiment's
+    numbers beside the paper's."""
+    curves, t1, t2, drop, fit, ablations = o.curves, o.t1, o.t2, o.drop, o.fit, o.ablations
+    corner_rows, bounds = o.corner_rows, o.bounds
     headline = curves[-1]
     results: dict[str, Any] = {
-        "config": {
-            "camera": cam.to_ros_dict(),
-            "quality": quality_name,
-            "quality_settings": asdict(quality),
-            "quick": quick,
-            "seed": seed,
-            "seeds": seeds,
-            "plan": asdict(plan),
-            "renders": plan.renders(),
-            "elapsed_s": elapsed,
-        },
+        "config": config,
         "ranges": {
             **{
                 name: {"z_max_cm": headline.z_max_cm(name), "z_min_cm": headline.z_min_cm(name)}
@@ -361,48 +352,85 @@ def run_paper_evaluation(
             for r in bounds
         ],
     }
-    results = _clean(results)
+    return results
+
+
+def run_paper_evaluation(
+    out_dir: str | Path,
+    camera: CameraModel | None = None,
+    *,
+    quick: bool = False,
+    seed: int = 0,
+    quality_name: str = "analog_fpv",
+    progress: bool = True,
+    say: Callable[[str], None] = print,
+) -> EvaluationResult:
+    """Run every experiment of the paper on rendered frames of ``camera`` (default: the
+    ``fpv`` preset, a 640x480 equidistant FPV lens like the paper's) and write the report."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PerchposeError(f"{out}: cannot create folder ({exc.strerror})") from exc
+    cam = camera or CameraModel.preset("fpv")
+    quality = ImageQuality.preset(quality_name)
+    plan = EvalPlan.make(quick)
+    started = time.perf_counter()
+    bar = tqdm(
+        total=plan.renders(),
+        desc="evaluate",
+        unit="frame",
+        disable=not progress,
+        file=sys.stderr,
+        leave=False,
+    )
+
+    def tick(n: int) -> None:
+        bar.update(n)
+
+    seeds = {
+        "ranges": seed,
+        "table1": seed + 1,
+        "table2": seed + 2,
+        "moves": seed + 3,
+        "fusion": seed + 4,
+        "approach": seed + 5,
+        "corners": seed + 6,
+        "bound": seed + 7,
+    }
+
+    outcomes = _run_experiments(cam, quality_name, plan, seeds, tick, say)
+    bar.close()
+    elapsed = time.perf_counter() - started
+    write_fusion_csv(out / "fusion_data.csv", outcomes.samples)
+    _write_figures(out, cam, quality_name, plan, outcomes)
+    config = {
+        "camera": cam.to_ros_dict(),
+        "quality": quality_name,
+        "quality_settings": asdict(quality),
+        "quick": quick,
+        "seed": seed,
+        "seeds": seeds,
+        "plan": asdict(plan),
+        "renders": plan.renders(),
+        "elapsed_s": elapsed,
+    }
+    results = _clean(_results(outcomes, cam, quality_name, plan, config))
     (out / "results.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
     report = out / "report.md"
     report.write_text(
-        _markdown(results, cam, quality_name, curves, t1, t2, drop, fit, ablations, plan, elapsed)
-        + corners_markdown(corner_rows)
-        + bound_markdown(bounds),
+        _markdown(results, cam, quality_name, outcomes, plan, elapsed)
+        + corners_markdown(outcomes.corner_rows)
+        + bound_markdown(outcomes.bounds),
         encoding="utf-8",
     )
     return EvaluationResult(out, report, results)
 
 
-def _markdown(
-    results: dict[str, Any],
-    cam: CameraModel,
-    quality_name: str,
-    curves: list[ex.RangeCurve],
-    t1: list[ex.StaticRow],
-    t2: list[ex.StaticRow],
-    drop: ex.DropoutResult,
-    fit: ex.FusionFit | None,
-    ablations: list[ex.AblationRow],
-    plan: EvalPlan,
-    elapsed: float,
-) -> str:
+def _md_ranges(o: _Outcomes, plan: EvalPlan) -> list[str]:
+    """Detection ranges: report.md's section."""
+    curves = o.curves
     L: list[str] = []
-    cfg = results["config"]
-    L += ["# perchpose: the paper's experiments on rendered frames", ""]
-    L += [
-        f"Camera `{cam.name}`: {cam.width_px}x{cam.height_px}, model `{cam.model}`, "
-        f"fx {cam.K[0, 0]:.1f} px, fy {cam.K[1, 1]:.1f} px, cx {cam.K[0, 2]:.1f}, "
-        f"cy {cam.K[1, 2]:.1f}, distortion {np.round(cam.dist, 5).tolist()}.",
-        f"Images for the tables, the dropout, the fusion fit and the ablations: `{quality_name}` "
-        f"({', '.join(f'{k} {v}' for k, v in cfg['quality_settings'].items())}).",
-        f"Target: the paper's (DICT_4X4_1000 id 997, 150 mm; DICT_ARUCO_ORIGINAL id 5, 25 mm). "
-        f"Seed {cfg['seed']} (per experiment: {cfg['seeds']}); "
-        f"{'quick' if cfg['quick'] else 'full'} "
-        f"run, {cfg['renders']} rendered frames, {elapsed:.0f} s. The same seed gives the same "
-        "numbers.",
-        "",
-    ]
-    # ranges
     L += [
         "## Detection ranges",
         "",
@@ -427,7 +455,13 @@ def _markdown(
         "![detection probability](ranges.png)",
         "",
     ]
-    # table 1
+    return L
+
+
+def _md_tables(o: _Outcomes, plan: EvalPlan) -> list[str]:
+    """Tables 1 and 2: report.md's section."""
+    t1, t2 = o.t1, o.t2
+    L: list[str] = []
     L += [
         "## Table 1: position (cm)",
         "",
@@ -462,7 +496,13 @@ def _markdown(
             f"| {r.actual[3]:.0f} | {q[1]} | {q[2]} | {_fmt(r.estimated[3])} | "
             f"{_fmt(r.error[3])} | {_fmt(r.peak_to_peak[3])} | {_fmt(r.max_abs_error[3])} |"
         )
-    # dropout
+    return L
+
+
+def _md_dropout(o: _Outcomes, plan: EvalPlan) -> list[str]:
+    """The Kalman filter across a dropout: report.md's section."""
+    drop = o.drop
+    L: list[str] = []
     L += [
         "",
         "## Kalman filter across a dropout",
@@ -481,7 +521,13 @@ def _markdown(
         "![Kalman filter](kalman.png)",
         "",
     ]
-    # fusion
+    return L
+
+
+def _md_fusion(o: _Outcomes, plan: EvalPlan) -> list[str]:
+    """The fusion coefficients: report.md's section."""
+    fit = o.fit
+    L: list[str] = []
     L += ["## Fusion coefficients", ""]
     if fit is None:
         L += ["Too few frames had both markers measured to fit the coefficients.", ""]
@@ -513,7 +559,13 @@ def _markdown(
             "![fusion fit](fusion.png)",
             "",
         ]
-    # ablations
+    return L
+
+
+def _md_ablations(o: _Outcomes, plan: EvalPlan) -> list[str]:
+    """The ablations on an approach: report.md's section."""
+    ablations = o.ablations
+    L: list[str] = []
     L += [
         "## Ablations on an approach",
         "",
@@ -534,4 +586,33 @@ def _markdown(
             f"{_fmt(a.max_jump_cm)} | {_fmt(a.handover_jump_cm)} | {a.flips} |"
         )
     L += ["", "![error against distance](ablation.png)", ""]
+    return L
+
+
+def _markdown(
+    results: dict[str, Any],
+    cam: CameraModel,
+    quality_name: str,
+    o: _Outcomes,
+    plan: EvalPlan,
+    elapsed: float,
+) -> str:
+    L: list[str] = []
+    cfg = results["config"]
+    L += ["# perchpose: the paper's experiments on rendered frames", ""]
+    L += [
+        f"Camera `{cam.name}`: {cam.width_px}x{cam.height_px}, model `{cam.model}`, "
+        f"fx {cam.K[0, 0]:.1f} px, fy {cam.K[1, 1]:.1f} px, cx {cam.K[0, 2]:.1f}, "
+        f"cy {cam.K[1, 2]:.1f}, distortion {np.round(cam.dist, 5).tolist()}.",
+        f"Images for the tables, the dropout, the fusion fit and the ablations: `{quality_name}` "
+        f"({', '.join(f'{k} {v}' for k, v in cfg['quality_settings'].items())}).",
+        f"Target: the paper's (DICT_4X4_1000 id 997, 150 mm; DICT_ARUCO_ORIGINAL id 5, 25 mm). "
+        f"Seed {cfg['seed']} (per experiment: {cfg['seeds']}); "
+        f"{'quick' if cfg['quick'] else 'full'} "
+        f"run, {cfg['renders']} rendered frames, {elapsed:.0f} s. The same seed gives the same "
+        "numbers.",
+        "",
+    ]
+    for section in (_md_ranges, _md_tables, _md_dropout, _md_fusion, _md_ablations):
+        L += section(o, plan)
     return "\n".join(L)

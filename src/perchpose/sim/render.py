@@ -352,6 +352,14 @@ class Renderer(Generic[P]):
                 img[y0:y1, x0:x1] = _bin(light, n)
             for occ in occluders:
                 cv2.fillPoly(img, [np.round(occ.polygon_px).astype(np.int32)], float(occ.grey))
+        return self._degrade(img, q, rng)
+
+    def _degrade(
+        self, img: NDArray[np.float32], q: ImageQuality, rng: np.random.Generator | None
+    ) -> NDArray[np.uint8]:
+        """What happens to the light after the lens: vignetting, motion blur, sensor noise,
+        8-bit quantisation and JPEG."""
+        w, h = self.camera.size
         if q.vignetting > 0:
             img *= 1.0 - np.float32(q.vignetting) * self._vignette_map()
         if q.motion_blur_px >= 1.0:
