@@ -193,13 +193,6 @@ class TargetSpec:
         """Distinct dictionary names, in marker order."""
         return tuple(dict.fromkeys(m.dictionary for m in self.markers))
 
-    def index_of(self, dictionary: str, marker_id: int) -> int | None:
-        """Index of the marker (dictionary, id) in ``markers``, or None if not in the target."""
-        for i, m in enumerate(self.markers):
-            if m.dictionary == dictionary and m.marker_id == marker_id:
-                return i
-        return None
-
     @property
     def sheet_half_extent_m(self) -> float:
         """Half side of the printed square (largest marker plus quiet zone), metres."""
