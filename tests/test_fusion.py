@@ -1,9 +1,12 @@
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from perchpose.detection import MarkerDetector
+from perchpose.errors import FusionFileError
 from perchpose.fusion import (
     STAGE_BOTH,
     STAGE_INNER,
@@ -129,3 +132,33 @@ def test_covariance_fusion_owns_one_filter_of_the_joint_pose(
     nothing = raw.fuse(1 / 30, (), {}, markers)
     assert nothing.stage == STAGE_NONE
     assert np.isnan(nothing.pose).all()
+
+
+def test_weights_load_from_the_file_fit_fusion_writes(tmp_path: Path) -> None:
+    path = tmp_path / "fit.json"
+    sigmas = FusionSigmas(x=0.3, y=0.4, z=0.9, yaw=1.0)
+    path.write_text(json.dumps({**sigmas.to_dict(), "samples": 12}))
+    assert FusionSigmas.load(path) == sigmas
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ('{"x": 0.3, "y": 0.4, "z": 0.9}', "missing yaw"),
+        ('{"x": 0.3, "y": 0.4, "z": 1.2, "yaw": 0.5}', "sigma_z must be in"),
+        ('{"x": "0.3", "y": 0.4, "z": 0.9, "yaw": 0.5}', "x must be a number"),
+        ('{"sigma_x": 0.3}', "missing x, y, z, yaw"),
+        ("[0.3, 0.4]", "expected an object"),
+        ("not json", "not a JSON file"),
+    ],
+)
+def test_bad_weight_files_name_the_file_and_the_field(
+    tmp_path: Path, content: str, message: str
+) -> None:
+    path = tmp_path / "fit.json"
+    path.write_text(content)
+    with pytest.raises(FusionFileError, match=message) as caught:
+        FusionSigmas.load(path)
+    assert str(path) in str(caught.value)
+    with pytest.raises(FusionFileError, match="file not found"):
+        FusionSigmas.load(tmp_path / "none.json")

@@ -52,3 +52,18 @@ def test_identical_markers_cannot_be_fitted() -> None:
         fit_sigma_least_squares(x, x, x + 1)
     with pytest.raises(ValueError, match="not determined"):
         fit_sigma_lms(x, x, x + 1)
+
+
+def test_both_fits_hold_sigma_to_a_weighted_mean() -> None:
+    """Errors of the same sign, the inner marker's three times the outer's: the unconstrained
+    optimum is sigma = 1.5, which would extrapolate past the outer marker; the paper's fusion
+    takes weights in [0, 1], and both fits give the constrained optimum, 1."""
+    rng = np.random.default_rng(4)
+    truth = rng.uniform(-20, 20, 500)
+    error = rng.normal(0, 1.0, 500)
+    outer, inner = truth + error, truth + 3.0 * error
+    assert fit_sigma_least_squares(outer, inner, truth) == 1.0
+    lms, _ = fit_sigma_lms(outer, inner, truth)
+    assert lms == 1.0
+    # and the other side: the outer marker the worse one by far
+    assert fit_sigma_least_squares(inner, outer, truth) == 0.0

@@ -41,6 +41,11 @@ class LinkError(PerchposeError):
     malformed connection string, or a frame the link cannot serve."""
 
 
+class FusionFileError(PerchposeError):
+    """A fusion weights file (``fit-fusion --json``) that cannot be read or holds weights the
+    paper's fusion cannot use."""
+
+
 class ControllerConfigError(PerchposeError):
     """Controller or pilot settings that cannot work (negative limits, an unstable loop), or a
     mounting file that cannot be read."""

@@ -14,14 +14,17 @@ contribute, so that both report the same stages.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
+from perchpose.errors import FusionFileError
 from perchpose.geometry import weighted_circular_mean_rad, yaw_rad
 from perchpose.joint_pose import measurement_jacobian, solve_joint_pose
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
@@ -31,6 +34,7 @@ from perchpose.values import MarkerDetection, MarkerPose
 Array = NDArray[np.float64]
 
 STAGE_NONE, STAGE_OUTER, STAGE_BOTH, STAGE_INNER = 0, 1, 2, 3
+SIGMA_FIELDS = ("x", "y", "z", "yaw")
 
 
 @dataclass(frozen=True)
@@ -51,6 +55,40 @@ class FusionSigmas:
     def as_array(self) -> Array:
         """(4,) [sigma_yaw, sigma_x, sigma_y, sigma_z] in the filter's state order."""
         return np.array([self.yaw, self.x, self.y, self.z])
+
+    def to_dict(self) -> dict[str, float]:
+        """The weights by field name, as ``fit-fusion --json`` writes them."""
+        return {name: float(getattr(self, name)) for name in SIGMA_FIELDS}
+
+    @staticmethod
+    def load(path: str | Path) -> FusionSigmas:
+        """The weights of a JSON file with the fields ``x``, ``y``, ``z`` and ``yaw`` at its top
+        level (what ``perchpose fit-fusion --json`` writes; other keys are ignored). Raises
+        ``FusionFileError`` naming the file and the field at fault."""
+        try:
+            content = json.loads(Path(path).read_text(encoding="utf-8"))
+        except FileNotFoundError as exc:
+            raise FusionFileError(f"{path}: file not found") from exc
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise FusionFileError(f"{path}: not a JSON file of fusion weights ({exc})") from exc
+        if not isinstance(content, dict):
+            raise FusionFileError(f"{path}: expected an object with x, y, z and yaw")
+        missing = [name for name in SIGMA_FIELDS if name not in content]
+        if missing:
+            raise FusionFileError(
+                f"{path}: missing {', '.join(missing)} (write the file with "
+                "'perchpose fit-fusion DATA --json FILE')"
+            )
+        values = {}
+        for name in SIGMA_FIELDS:
+            value = content[name]
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise FusionFileError(f"{path}: {name} must be a number, got {value!r}")
+            values[name] = float(value)
+        try:
+            return FusionSigmas(**values)
+        except ValueError as exc:
+            raise FusionFileError(f"{path}: {exc}") from exc
 
 
 def stage_of(indices: set[int] | frozenset[int]) -> int:
@@ -107,17 +145,22 @@ def _residual_pair(outer: Array, inner: Array, truth: Array, circular: bool) -> 
 def fit_sigma_least_squares(
     outer: Array, inner: Array, truth: Array, circular: bool = False
 ) -> float:
-    """Closed-form sigma minimising the mean of (sigma*outer + (1-sigma)*inner - truth)^2.
+    """Closed-form sigma in [0, 1] minimising the mean of
+    (sigma*outer + (1-sigma)*inner - truth)^2.
 
     outer, inner, truth : (N,) one component, same unit (radians if ``circular``).
-    Writing the fused value as inner + sigma * (outer - inner), the minimiser is
-    sum(d * r) / sum(d * d) with d = outer - inner and r = truth - inner.
+    Writing the fused value as inner + sigma * (outer - inner), the unconstrained minimiser is
+    sum(d * r) / sum(d * d) with d = outer - inner and r = truth - inner. The paper's fusion
+    is a weighted mean of the two markers, so sigma is held to [0, 1] (``FusionSigmas``); the
+    error is a convex quadratic in sigma, so the constrained minimiser is the unconstrained
+    one clipped to that range (noise can put it just past 1 when the outer marker is far the
+    better one).
     """
     d, r = _residual_pair(outer, inner, truth, circular)
     denominator = float(np.sum(d * d))
     if denominator <= 0.0:
         raise ValueError("the two markers agree exactly: sigma is not determined")
-    return float(np.sum(d * r) / denominator)
+    return min(1.0, max(0.0, float(np.sum(d * r) / denominator)))
 
 
 def fit_sigma_lms(
@@ -135,7 +178,8 @@ def fit_sigma_lms(
     One normalised LMS update per sample, e(n) = truth - fused, sigma += step * e * d / mean(d^2),
     over the data in order for up to ``epochs`` passes, stopping when a pass moves sigma by less
     than ``tol``. Returns (sigma, passes used). The step is normalised by the data's power so the
-    same ``step`` works in centimetres and radians.
+    same ``step`` works in centimetres and radians. Each pass ends projected onto [0, 1] (as
+    ``fit_sigma_least_squares``), so both fits give weights ``FusionSigmas`` takes.
     """
     d, r = _residual_pair(outer, inner, truth, circular)
     power = float(np.mean(d * d))
@@ -148,6 +192,7 @@ def fit_sigma_lms(
         for dn, rn in zip(d, r, strict=True):
             e = rn - sigma * dn
             sigma += mu * e * dn
+        sigma = min(1.0, max(0.0, sigma))
         if abs(sigma - before) < tol:
             return sigma, epoch
     return sigma, epochs

@@ -4,7 +4,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from perchpose import CameraModel, TargetSpec
+from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.app.track import track
 from perchpose.evaluation.metrics import frame_errors
 from perchpose.io.sinks import read_track_csv
@@ -20,7 +20,7 @@ def tracked(
     for name, folder in (("webcam", approach_webcam_dir), ("fpv", approach_fpv_dir)):
         poses = out / f"{name}.csv"
         camera = CameraModel.load(folder / "camera.yaml")
-        track(str(folder), camera, TargetSpec.paper(), poses, progress=False)
+        track(str(folder), PerchingEstimator(camera, TargetSpec.paper()), poses, progress=False)
         result[name] = (poses, folder)
     return result
 

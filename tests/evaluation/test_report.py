@@ -7,7 +7,8 @@ import pytest
 from perchpose.cli import main
 from perchpose.evaluation.fusion_data import load_fusion_samples
 from perchpose.evaluation.report import EvalPlan
-from perchpose.fusion import fit_sigma_lms
+from perchpose.fusion import FusionSigmas, fit_sigma_lms
+from perchpose.io.sinks import read_track_csv
 
 
 @pytest.fixture(scope="module")
@@ -87,6 +88,53 @@ def test_fit_fusion_reads_the_evaluation_data(
     expected = json.loads((quick_run / "results.json").read_text())["fusion_fit"]
     # the CSV keeps 5 decimals of each measurement
     assert fitted["least_squares"] == pytest.approx(expected["least_squares"], abs=1e-3)
+    # the weights are the least-squares fit under the names FusionSigmas takes, and load
+    sigmas = FusionSigmas.load(out)
+    assert sigmas.z == pytest.approx(fitted["least_squares"]["sigma_z"])
+    assert all(0.0 <= v <= 1.0 for v in sigmas.to_dict().values())
+
+
+def test_fitted_weights_fly_in_track(
+    quick_run: Path, approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """fit-fusion's JSON goes straight into track --sigmas, which fuses with the paper's
+    fusion and those weights; a bad weights file is one line and exit code 2."""
+    fit = tmp_path / "fit.json"
+    assert main(["fit-fusion", str(quick_run / "fusion_data.csv"), "--json", str(fit)]) == 0
+    assert "--sigmas" in capsys.readouterr().out
+    camera = str(approach_fpv_dir / "camera.yaml")
+    args = ["track", str(approach_fpv_dir), "--camera", camera, "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "fitted.csv"), "--sigmas", str(fit)]) == 0
+    assert main([*args, "--out", str(tmp_path / "joint.csv")]) == 0
+    fitted = read_track_csv(tmp_path / "fitted.csv")
+    default = read_track_csv(tmp_path / "joint.csv")
+    assert len(fitted) == len(default) > 60
+    assert sum(r["valid"] == "1" for r in fitted) > 60
+    # stage 2 frames fuse both markers with other weights than the joint pose: they differ
+    both = [(a, b) for a, b in zip(fitted, default, strict=True) if a["stage"] == "2"]
+    assert any(a["z_cm"] != b["z_cm"] for a, b in both)
+    capsys.readouterr()
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"x": 0.3, "y": 0.4, "z": 1.5, "yaw": 0.5}')
+    assert main([*args, "--out", str(tmp_path / "bad.csv"), "--sigmas", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert str(bad) in err[0]
+
+
+def test_fit_fusion_on_a_track_file_asks_for_the_truth(
+    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    poses = tmp_path / "poses.csv"
+    camera = str(approach_fpv_dir / "camera.yaml")
+    assert (
+        main(["track", str(approach_fpv_dir), "--camera", camera, "--quiet", "--out", str(poses)])
+        == 0
+    )
+    assert main(["fit-fusion", str(poses)]) == 2
+    assert "--truth" in capsys.readouterr().err
+    truth = str(approach_fpv_dir / "truth.csv")
+    assert main(["fit-fusion", str(poses), "--truth", truth]) == 0
 
 
 def test_fit_fusion_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

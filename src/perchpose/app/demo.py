@@ -11,6 +11,7 @@ import numpy as np
 
 from perchpose.app.track import TrackSummary, track
 from perchpose.camera import CameraModel
+from perchpose.estimator import PerchingEstimator
 from perchpose.evaluation.metrics import FrameErrors, StageRow, frame_errors, stage_table
 from perchpose.evaluation.plots import kalman_figure
 from perchpose.io.sinks import read_track_csv
@@ -60,7 +61,12 @@ def run_demo(
     poses = out / "poses.csv"
     overlay = out / "overlay.mp4"
     summary = track(
-        str(frames_dir), cam, target, poses, fps=30.0, overlay=overlay, progress=progress
+        str(frames_dir),
+        PerchingEstimator(cam, target),
+        poses,
+        fps=30.0,
+        overlay=overlay,
+        progress=progress,
     )
     track_rows = read_track_csv(poses)
     truth_rows = read_track_csv(frames_dir / "truth.csv")

@@ -15,7 +15,6 @@ from perchpose.estimator import PerchingEstimator
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
 from perchpose.io.sinks import PoseWriter, estimate_row
 from perchpose.io.sources import Frame, open_source
-from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
 
@@ -85,8 +84,7 @@ class _Overlay:
 
 def track(
     source: str,
-    camera: CameraModel,
-    target: TargetSpec,
+    estimator: PerchingEstimator,
     out: str | Path,
     *,
     fps: float | None = None,
@@ -94,7 +92,8 @@ def track(
     progress: bool = True,
     on_frame: Sequence[Callable[[Estimate | None, float], None]] = (),
 ) -> TrackSummary:
-    """Run the estimator over every frame of ``source`` and write one row per frame to ``out``.
+    """Run ``estimator`` (its camera and target) over every frame of ``source`` and write one
+    row per frame to ``out``.
 
     A frame that cannot be read or has the wrong size gets an invalid row and a warning on
     stderr; the run goes on. The first frame having a size other than the calibration's is an
@@ -104,8 +103,8 @@ def track(
     if overlay is not None:
         check_overlay_path(overlay)
     frames = open_source(source, fps)
+    camera, target = estimator.camera, estimator.target
     video = _Overlay(overlay, frames.fps, camera)
-    est = PerchingEstimator(camera, target)
     writer = PoseWriter(out, target)
     tally = _Tally()
     first_good = True
@@ -125,7 +124,7 @@ def track(
             if frame.image is not None:
                 try:
                     grey = camera.check_image(frame.image, f"{frames.description}: {frame.name}")
-                    estimate = est.update(grey, frame.t_s)
+                    estimate = estimator.update(grey, frame.t_s)
                 except ImageError as exc:
                     if first_good:
                         raise

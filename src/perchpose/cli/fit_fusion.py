@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 from perchpose.cli.group import group
@@ -24,7 +22,7 @@ from perchpose.errors import PerchposeError
     "json_out",
     default=None,
     type=click.Path(dir_okay=False),
-    help="Also write the fitted sigmas as JSON.",
+    help="Also write the fitted weights as JSON (for track --sigmas).",
 )
 def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
     """Fit the fusion sigmas from labelled data (least squares and the paper's LMS).
@@ -32,18 +30,16 @@ def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
     DATA has columns true_x_cm, true_y_cm, true_z_cm, true_yaw_deg and each marker's raw
     measurement m0_* (outer) and m1_* (inner); or it is a track file and --truth gives the
     truth.csv of the same frames."""
-    import json
-
     from perchpose.evaluation.experiments import COMPONENT_NAMES, PAPER_SIGMAS
     from perchpose.evaluation.experiments import fit_fusion as fit
-    from perchpose.evaluation.fusion_data import load_fusion_samples
+    from perchpose.evaluation.fusion_data import load_fusion_samples, write_fusion_fit
 
     samples = load_fusion_samples(data, truth_file)
     try:
         result = fit(samples)
     except ValueError as exc:
         raise PerchposeError(f"{data}: {exc}") from exc
-    click.echo(f"{result.samples} frames with truth and both markers")
+    click.echo(f"{result.samples} frames with truth and both markers (weights held to [0, 1])")
     click.echo(f"{'':10} {'least sq.':>10} {'LMS':>10} {'paper':>10}")
     for name in COMPONENT_NAMES:
         click.echo(
@@ -51,14 +47,5 @@ def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
             f"{PAPER_SIGMAS[name]:10.3f}"
         )
     if json_out:
-        Path(json_out).write_text(
-            json.dumps(
-                {
-                    "least_squares": result.least_squares,
-                    "lms": result.lms,
-                    "samples": result.samples,
-                },
-                indent=2,
-            ),
-            encoding="utf-8",
-        )
+        write_fusion_fit(json_out, result)
+        click.echo(f"wrote {json_out}: use it with 'perchpose track ... --sigmas {json_out}'")

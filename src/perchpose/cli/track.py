@@ -123,6 +123,14 @@ def _vehicle_links(
     help="YAML with T_body_camera (4x4, body x forward, y left, z up); default: camera on top "
     "looking up.",
 )
+@click.option(
+    "--sigmas",
+    "sigmas_file",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Fuse the markers with the paper's fusion and these weights (the JSON that "
+    "'fit-fusion --json' writes) instead of the joint pose.",
+)
 def track(
     source: str,
     camera_file: str,
@@ -135,23 +143,30 @@ def track(
     mavlink_frame: str,
     crazyflie_uri: str | None,
     mount_file: str | None,
+    sigmas_file: str | None,
 ) -> None:
     """Track the target in SOURCE: a folder of images, a glob, a video file or a camera index.
 
     With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
     """
     from perchpose.app.track import track as run_track
+    from perchpose.estimator import PerchingEstimator
+    from perchpose.fusion import FusionSigmas
     from perchpose.io.overlay import check_overlay_path
 
     cam = load_camera(camera_file)
     spec = load_target(target_file)
+    if sigmas_file is None:
+        estimator = PerchingEstimator(cam, spec)
+    else:
+        sigmas = FusionSigmas.load(sigmas_file)
+        estimator = PerchingEstimator(cam, spec, fusion="paper", sigmas=sigmas)
     if overlay is not None:
         check_overlay_path(overlay)  # before any vehicle link takes over
     with _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks:
         summary = run_track(
             source,
-            cam,
-            spec,
+            estimator,
             out,
             fps=fps,
             overlay=overlay,

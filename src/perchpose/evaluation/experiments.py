@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from perchpose.detection import CornerMethod, MarkerDetector
 from perchpose.estimator import PerchingEstimator
-from perchpose.fusion import fit_sigma_least_squares, fit_sigma_lms
+from perchpose.fusion import FusionSigmas, fit_sigma_least_squares, fit_sigma_lms
 from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
 from perchpose.pose import rotation_angle_rad
 from perchpose.sim.render import ImageQuality, Renderer
@@ -441,6 +441,13 @@ class FusionFit:
     lms: dict[str, float]
     lms_passes: dict[str, int]
     samples: int
+
+    def sigmas(self, method: str = "least_squares") -> FusionSigmas:
+        """The fitted weights (``least_squares`` or ``lms``) as the paper's fusion takes them."""
+        fitted = self.least_squares if method == "least_squares" else self.lms
+        return FusionSigmas(
+            x=fitted["sigma_x"], y=fitted["sigma_y"], z=fitted["sigma_z"], yaw=fitted["sigma_yaw"]
+        )
 
 
 def fusion_samples(

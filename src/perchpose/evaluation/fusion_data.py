@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 
 from perchpose.errors import PerchposeError
-from perchpose.evaluation.experiments import FusionSamples
+from perchpose.evaluation.experiments import FusionFit, FusionSamples
 from perchpose.io.sinks import read_track_csv
 
 COMPONENTS = ("x_cm", "y_cm", "z_cm", "yaw_deg")
@@ -70,6 +71,11 @@ def load_fusion_samples(path: str | Path, truth_path: str | Path | None = None) 
         rows = joined
         if not rows:
             raise PerchposeError(f"{p} and {tp} share no frame numbers")
+    if truth_path is None and TRUTH_COLUMNS[0] not in rows[0] and "frame" in rows[0]:
+        raise PerchposeError(
+            f"{p}: a track file has no truth columns: give the truth.csv of the same frames "
+            "with --truth"
+        )
     truth, outer, inner = [], [], []
     for n, r in enumerate(rows, start=2):
         where = f"{p}, line {n}"
@@ -83,3 +89,20 @@ def load_fusion_samples(path: str | Path, truth_path: str | Path | None = None) 
     if len(truth) < 2:
         raise PerchposeError(f"{p}: fewer than 2 rows with truth and both markers measured")
     return FusionSamples(np.array(truth), np.array(outer), np.array(inner))
+
+
+def write_fusion_fit(path: str | Path, fit: FusionFit) -> None:
+    """The fit as JSON: the least-squares weights under ``FusionSigmas``' field names at the
+    top level (``FusionSigmas.load`` and ``perchpose track --sigmas`` read them), and beside
+    them both fits under the paper's names and the number of frames."""
+    content = {
+        **fit.sigmas().to_dict(),
+        "method": "least_squares",
+        "least_squares": fit.least_squares,
+        "lms": fit.lms,
+        "samples": fit.samples,
+    }
+    try:
+        Path(path).write_text(json.dumps(content, indent=2), encoding="utf-8")
+    except OSError as exc:
+        raise PerchposeError(f"{path}: cannot write ({exc.strerror})") from exc
