@@ -197,3 +197,9 @@ class Estimate:
     def detected(self) -> tuple[int, ...]:
         """Indices of the markers measured in this frame."""
         return tuple(i for i, m in enumerate(self.markers) if m.measurement is not None)
+
+    @property
+    def predicted(self) -> bool:
+        """A valid pose that no measurement of this frame backs: the filter's prediction from
+        the newest one, ``age_s`` ago (a coasted frame of a dropout)."""
+        return self.valid and self.age_s > 0.0

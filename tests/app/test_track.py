@@ -70,6 +70,16 @@ def test_dropout_is_bridged_for_eight_frames(
     assert len(window) == 12
     assert errors.valid[window].tolist() == [True] * 8 + [False] * 4
     assert errors.valid[window[-1] + 1 : window[-1] + 4].all()
+    # the bridged frames say they are predictions, with no marker measured; frames with a
+    # marker in view say which were measured (at the end, where the marker has outgrown the
+    # image, the filter coasts again and says so)
+    rows = {int(r["frame"]): r for r in read_track_csv(poses)}
+    bridged = errors.frame[window[:8]]
+    assert all(rows[f]["predicted"] == "1" and rows[f]["measured"] == "" for f in bridged)
+    assert all(float(rows[f]["age_s"]) > 0 for f in bridged)
+    seen = errors.frame[errors.valid & ~errors.dropout & (errors.truth_stage > 0)]
+    assert all(rows[f]["predicted"] == "0" and rows[f]["measured"].startswith("m") for f in seen)
+    assert all(rows[f]["predicted"] == "" for f in errors.frame[~errors.valid])
 
 
 @pytest.mark.parametrize("camera_name", ["webcam", "fpv"])

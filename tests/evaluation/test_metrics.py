@@ -2,7 +2,12 @@ import numpy as np
 import pytest
 
 from perchpose.errors import PerchposeError
-from perchpose.evaluation.metrics import format_stage_table, frame_errors, stage_table
+from perchpose.evaluation.metrics import (
+    format_stage_table,
+    frame_errors,
+    measurement_table,
+    stage_table,
+)
 
 
 def _row(frame: int, valid: int, stage: int, x: float, yaw: float) -> dict[str, str]:
@@ -43,3 +48,17 @@ def test_errors_per_frame_and_stage() -> None:
 def test_files_without_common_frames() -> None:
     with pytest.raises(PerchposeError, match="share no frame"):
         frame_errors([_row(5, 1, 1, 0, 0)], [_row(0, 1, 1, 0, 0)])
+
+
+def test_measured_and_predicted_frames_apart() -> None:
+    truth = [_row(k, 1, 2, 10.0, 0.0) | {"dropout": "0"} for k in range(4)]
+    track = [
+        _row(0, 1, 2, 10.1, 0.0) | {"predicted": "0"},
+        _row(1, 1, 2, 10.2, 0.0) | {"predicted": "0"},
+        _row(2, 1, 2, 11.0, 0.0) | {"predicted": "1"},
+        _row(3, 0, 0, 0, 0) | {"predicted": ""},
+    ]
+    rows = measurement_table(frame_errors(track, truth))
+    assert [(r.label, r.frames) for r in rows] == [("measured", 2), ("predicted", 1)]
+    assert rows[1].max_abs_cm[0] == pytest.approx(1.0)
+    assert "predicted" in format_stage_table(rows)

@@ -12,7 +12,13 @@ import numpy as np
 from perchpose.app.track import TrackSummary, track
 from perchpose.camera import CameraModel
 from perchpose.estimator import PerchingEstimator
-from perchpose.evaluation.metrics import FrameErrors, StageRow, frame_errors, stage_table
+from perchpose.evaluation.metrics import (
+    FrameErrors,
+    StageRow,
+    frame_errors,
+    measurement_table,
+    stage_table,
+)
 from perchpose.evaluation.plots import kalman_figure
 from perchpose.io.sinks import read_track_csv
 from perchpose.sim.scenarios import approach
@@ -71,7 +77,8 @@ def run_demo(
     track_rows = read_track_csv(poses)
     truth_rows = read_track_csv(frames_dir / "truth.csv")
     errors = frame_errors(track_rows, truth_rows)
-    table = stage_table(errors)
+    # by stage, all valid frames, then measured frames against the filter's predictions
+    table = stage_table(errors) + measurement_table(errors)
     coasted = int(np.count_nonzero(errors.valid & errors.dropout))
     raw = {
         target.markers[i].label: _series(

@@ -19,7 +19,8 @@ class FrameErrors:
     """Per-frame errors (estimate - truth) of the frames both files have.
 
     frame : (N,) int. stage : (N,) int, the estimate's stage. truth_stage : (N,) int.
-    valid : (N,) bool, the estimate was valid. dropout : (N,) bool.
+    valid : (N,) bool, the estimate was valid. dropout : (N,) bool. predicted : (N,) bool, a
+    valid estimate no measurement of its frame backs (the track file's ``predicted``).
     error_cm : (N, 3) x, y, z errors in cm (NaN where not valid). yaw_error_deg : (N,) wrapped.
     z_true_cm : (N,) true distance along the optical axis.
     """
@@ -33,6 +34,7 @@ class FrameErrors:
     error_cm: Array
     yaw_error_deg: Array
     z_true_cm: Array
+    predicted: NDArray[np.bool_]
 
 
 def _f(row: dict[str, str], key: str) -> float:
@@ -66,6 +68,7 @@ def frame_errors(track_rows: list[dict[str, str]], truth_rows: list[dict[str, st
         error_cm=est[:, :3] - tru[:, :3],
         yaw_error_deg=yaw_err,
         z_true_cm=tru[:, 2],
+        predicted=np.array([r.get("predicted", "") == "1" for r, _ in matched]),
     )
 
 
@@ -80,6 +83,26 @@ class StageRow:
     max_abs_cm: tuple[float, float, float]
     median_abs_yaw_deg: float
     max_abs_yaw_deg: float
+    label: str = ""  # a group other than a stage ("measured", "predicted")
+
+
+def _row(errors: FrameErrors, sel: NDArray[np.bool_], stage: int, label: str = "") -> StageRow:
+    e = np.abs(errors.error_cm[sel])
+    y = np.abs(errors.yaw_error_deg[sel])
+
+    def trio(values: Array) -> tuple[float, float, float]:
+        return (float(values[0]), float(values[1]), float(values[2]))
+
+    return StageRow(
+        stage=stage,
+        frames=int(np.count_nonzero(sel)),
+        median_abs_cm=trio(np.median(e, axis=0)),
+        p95_abs_cm=trio(np.percentile(e, 95, axis=0)),
+        max_abs_cm=trio(np.max(e, axis=0)),
+        median_abs_yaw_deg=float(np.median(y)),
+        max_abs_yaw_deg=float(np.max(y)),
+        label=label,
+    )
 
 
 def stage_table(errors: FrameErrors) -> list[StageRow]:
@@ -87,33 +110,23 @@ def stage_table(errors: FrameErrors) -> list[StageRow]:
     rows = []
     for stage in (1, 2, 3, 0):
         sel = errors.valid & ((errors.stage == stage) if stage else np.ones_like(errors.valid))
-        if not np.any(sel):
-            continue
-        e = np.abs(errors.error_cm[sel])
-        y = np.abs(errors.yaw_error_deg[sel])
-
-        def trio(values: Array) -> tuple[float, float, float]:
-            return (float(values[0]), float(values[1]), float(values[2]))
-
-        rows.append(
-            StageRow(
-                stage=stage,
-                frames=int(np.count_nonzero(sel)),
-                median_abs_cm=trio(np.median(e, axis=0)),
-                p95_abs_cm=trio(np.percentile(e, 95, axis=0)),
-                max_abs_cm=trio(np.max(e, axis=0)),
-                median_abs_yaw_deg=float(np.median(y)),
-                max_abs_yaw_deg=float(np.max(y)),
-            )
-        )
+        if np.any(sel):
+            rows.append(_row(errors, sel, stage))
     return rows
+
+
+def measurement_table(errors: FrameErrors) -> list[StageRow]:
+    """The valid frames in two rows: those measured in their own frame, and the filter's
+    predictions (a dropout's coasted frames); a group without frames is left out."""
+    groups = (("measured", errors.valid & ~errors.predicted), ("predicted", errors.predicted))
+    return [_row(errors, sel, 0, label) for label, sel in groups if np.any(sel)]
 
 
 def format_stage_table(rows: list[StageRow]) -> str:
     """A plain-text table of ``stage_table`` rows."""
     names = {0: "all", 1: "1 outer", 2: "2 both", 3: "3 inner"}
     header = (
-        f"{'stage':<8} {'frames':>6}  {'median |err| x y z (cm)':>25}  "
+        f"{'stage':<9} {'frames':>6}  {'median |err| x y z (cm)':>25}  "
         f"{'p95 |err| x y z (cm)':>22}  {'yaw med/max (deg)':>17}"
     )
     lines = [header, "-" * len(header)]
@@ -121,7 +134,7 @@ def format_stage_table(rows: list[StageRow]) -> str:
         med = " ".join(f"{v:6.2f}" for v in r.median_abs_cm)
         p95 = " ".join(f"{v:6.2f}" for v in r.p95_abs_cm)
         lines.append(
-            f"{names[r.stage]:<8} {r.frames:>6}  {med:>25}  {p95:>22}  "
+            f"{r.label or names[r.stage]:<9} {r.frames:>6}  {med:>25}  {p95:>22}  "
             f"{r.median_abs_yaw_deg:7.2f}/{r.max_abs_yaw_deg:<7.2f}"
         )
     return "\n".join(lines)

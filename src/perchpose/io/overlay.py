@@ -67,7 +67,15 @@ def _draw_text(out: NDArray[np.uint8], estimate: Estimate | None, note: str) -> 
         lines = [
             f"x {estimate.x_cm:6.1f} cm  y {estimate.y_cm:6.1f} cm",
             f"z {estimate.z_cm:6.1f} cm  yaw {estimate.yaw_deg:6.1f} deg",
-            STAGE_NAMES.get(estimate.stage, "") + (f"  {note}" if note else ""),
+            STAGE_NAMES.get(estimate.stage, "")
+            + (
+                f", predicted {estimate.age_s * 1000:.0f} ms on"
+                if estimate.predicted
+                else (", measured " + "+".join(f"m{i}" for i in estimate.detected))
+                if estimate.detected
+                else ""
+            )
+            + (f"  {note}" if note else ""),
         ]
     h = out.shape[0]
     for i, text in enumerate(reversed(lines)):

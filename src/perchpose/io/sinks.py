@@ -27,7 +27,16 @@ def raw_columns(target: TargetSpec) -> tuple[str, ...]:
 
 def columns(target: TargetSpec) -> tuple[str, ...]:
     """All columns of a track file."""
-    return (*POSE_COLUMNS, *raw_columns(target), "total_ms", "age_s", "error", "file")
+    return (
+        *POSE_COLUMNS,
+        *raw_columns(target),
+        "total_ms",
+        "age_s",
+        "measured",
+        "predicted",
+        "error",
+        "file",
+    )
 
 
 def _num(value: float, digits: int) -> str:
@@ -44,16 +53,23 @@ def estimate_row(
 ) -> dict[str, Any]:
     """The row of one frame; ``estimate`` None for a frame that could not be processed.
     ``age_s`` is 0 for a pose measured in this frame and the age of the newest measurement
-    for a filter's prediction; ``file`` names the frame's source."""
+    for a filter's prediction; ``measured`` the markers measured in this frame (``m0+m1``: the
+    indices of the ``m{i}_*`` columns); ``predicted`` 1 for a valid pose that no measurement
+    of this frame backs (the filter coasting), 0 for a measured one; ``file`` names the
+    frame's source."""
     row: dict[str, Any] = dict.fromkeys(columns(target), "")
     row.update(frame=frame, t_s=f"{t_s:.6f}", valid=0, stage=0, error=error, file=file)
     if estimate is None:
         return row
     row.update(
-        valid=int(estimate.valid), stage=estimate.stage, total_ms=f"{estimate.timings.total_ms:.2f}"
+        valid=int(estimate.valid),
+        stage=estimate.stage,
+        total_ms=f"{estimate.timings.total_ms:.2f}",
+        measured="+".join(f"m{i}" for i in estimate.detected),
     )
     if estimate.valid:
         row.update(
+            predicted=int(estimate.predicted),
             age_s=_num(estimate.age_s, 4),
             x_cm=_num(estimate.x_cm, 4),
             y_cm=_num(estimate.y_cm, 4),
