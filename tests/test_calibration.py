@@ -1,4 +1,5 @@
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -17,13 +18,17 @@ from perchpose.cli import main
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Renderer
 
+# OpenCV's tutorial board, which the real photos show and the rendered views use
+TUTORIAL_BOARD = CharucoBoardSpec(square_mm=40.0, marker_mm=20.0)
+TUTORIAL_OPTIONS = ("--square-mm", "40", "--marker-mm", "20")
+
 
 def _photos(charuco_dir: Path) -> list[tuple[str, np.ndarray]]:
     return [(p.name, cv2.imread(str(p))) for p in sorted(charuco_dir.glob("img_0*.jpg"))]
 
 
 def test_real_photos_match_the_upstream_calibration(charuco_dir: Path) -> None:
-    result = calibrate(_photos(charuco_dir), CharucoBoardSpec())
+    result = calibrate(_photos(charuco_dir), TUTORIAL_BOARD)
     reference = CameraModel.load(charuco_dir / "tutorial_camera_charuco.yml")
     assert result.rms_px < 0.5
     assert len(result.used) == 4
@@ -73,7 +78,7 @@ def _board_views(
 )
 def test_rendered_boards_recover_the_camera(camera_name: str, z_m: tuple[float, float]) -> None:
     camera = CameraModel.preset(camera_name)
-    board = CharucoBoardSpec()
+    board = TUTORIAL_BOARD
     views, corner_noise_px = _board_views(camera, board, 18, seed=4, z_m=z_m)
     result = calibrate(views, board, camera.model)
     assert len(result.used) >= 8
@@ -88,14 +93,14 @@ def test_rendered_boards_recover_the_camera(camera_name: str, z_m: tuple[float, 
 
 def test_calibrate_command_drives_track(tmp_path: Path) -> None:
     camera = CameraModel.preset("webcam")
-    board = CharucoBoardSpec()
+    board = TUTORIAL_BOARD
     views, _ = _board_views(camera, board, 12, seed=7, z_m=(0.35, 0.55))
     folder = tmp_path / "views"
     folder.mkdir()
     for name, image in views:
         cv2.imwrite(str(folder / f"{name}.png"), image)
     out = tmp_path / "cam.yaml"
-    assert main(["calibrate", str(folder), "--out", str(out)]) == 0
+    assert main(["calibrate", str(folder), "--out", str(out), *TUTORIAL_OPTIONS]) == 0
     assert (tmp_path / "cam_report.md").read_text().count(".png | ") == 12
     assert (tmp_path / "cam_coverage.png").stat().st_size > 0
     calibrated = CameraModel.load(out)
@@ -111,7 +116,7 @@ def test_calibrate_command_drives_track(tmp_path: Path) -> None:
 
 def test_video_views_are_picked(tmp_path: Path) -> None:
     camera = CameraModel.preset("webcam")
-    board = CharucoBoardSpec()
+    board = TUTORIAL_BOARD
     views, _ = _board_views(camera, board, 10, seed=9, z_m=(0.35, 0.55))
     frames = [views[k // 3] for k in range(30)]  # each view held for 3 frames
     frames[4] = ("blank", np.full_like(views[0][1], 128))
@@ -124,21 +129,23 @@ def test_video_views_are_picked(tmp_path: Path) -> None:
     for _, image in frames:
         writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
     writer.release()
-    assert main(["calibrate", str(video), "--out", str(tmp_path / "v.yaml")]) == 0
+    assert (
+        main(["calibrate", str(video), "--out", str(tmp_path / "v.yaml"), *TUTORIAL_OPTIONS]) == 0
+    )
     assert CameraModel.load(tmp_path / "v.yaml").K[0, 0] == pytest.approx(554.0, rel=0.03)
 
 
 def test_bad_calibration_input(charuco_dir: Path, tmp_path: Path) -> None:
     photos = _photos(charuco_dir)
     with pytest.raises(CalibrationError, match="check --squares"):
-        calibrate(photos, CharucoBoardSpec(squares=(6, 8)))
+        calibrate(photos, replace(TUTORIAL_BOARD, squares=(6, 8)))
     with pytest.raises(CalibrationError, match="no marker of DICT_4X4_50"):
         calibrate(photos, CharucoBoardSpec(dictionary="DICT_4X4_50"))
     with pytest.raises(CalibrationError, match="only 2 usable views"):
-        calibrate(photos[:2], CharucoBoardSpec())
+        calibrate(photos[:2], TUTORIAL_BOARD)
     small = cv2.resize(photos[1][1], (320, 240))
     with pytest.raises(CalibrationError, match=r"img_01\.jpg: image is 320x240 but img_00\.jpg"):
-        calibrate([photos[0], ("img_01.jpg", small)], CharucoBoardSpec())
+        calibrate([photos[0], ("img_01.jpg", small)], TUTORIAL_BOARD)
     with pytest.raises(CalibrationError, match=r"marker .* < square"):
         CharucoBoardSpec(square_mm=20, marker_mm=30)
 
@@ -158,13 +165,18 @@ def test_calibrate_command_errors(
 
 
 def test_board_sheet_is_detectable_and_true_scale(tmp_path: Path) -> None:
+    """The default board: detectable, true to scale, and on a page that prints at 100 % on A4
+    (210 x 297 mm) and on Letter (216 x 279 mm)."""
     board = CharucoBoardSpec()
     assert main(["board", "--out", str(tmp_path / "b.png"), "--dpi", "200"]) == 0
     image = cv2.imread(str(tmp_path / "b.png"), cv2.IMREAD_GRAYSCALE)
     found = detect_board(board, image, "sheet")
     assert not isinstance(found, str)
     assert len(found.ids) == 24
-    # neighbouring ChArUco corners are one 40 mm square apart at 200 dpi
+    # neighbouring ChArUco corners are one 30 mm square apart at 200 dpi
     spacing = np.linalg.norm(found.corners_px[1] - found.corners_px[0])
-    assert spacing == pytest.approx(40 / 25.4 * 200, abs=1.0)
+    assert spacing == pytest.approx(30 / 25.4 * 200, abs=1.0)
+    height_mm, width_mm = (n / 200 * 25.4 for n in image.shape)
+    assert width_mm <= 210.0
+    assert height_mm <= 279.0
     assert main(["board", "--out", str(tmp_path / "b.pdf"), "--squares", "6x9"]) == 0

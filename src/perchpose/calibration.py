@@ -34,11 +34,16 @@ class CalibrationError(PerchposeError):
 @dataclass(frozen=True)
 class CharucoBoardSpec:
     """A ChArUco board: ``squares`` (columns, rows), square and marker sides in millimetres,
-    OpenCV dictionary name."""
+    OpenCV dictionary name.
+
+    The default, 5x7 squares of 30 mm with 15 mm DICT_6X6_250 markers, prints at 100 % on A4
+    and on Letter (a 170 x 260 mm sheet with its scale bar); it is OpenCV's tutorial board
+    (5x7, 40 mm, 20 mm) at three quarters. Any scale calibrates the lens (the intrinsics do not
+    depend on it); give the printed square's measured side so that board poses are true."""
 
     squares: tuple[int, int] = (5, 7)
-    square_mm: float = 40.0
-    marker_mm: float = 20.0
+    square_mm: float = 30.0
+    marker_mm: float = 15.0
     dictionary: str = "DICT_6X6_250"
     margin_mm: float = 10.0
 

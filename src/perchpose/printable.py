@@ -179,7 +179,7 @@ def write_board_sheet(board: CharucoBoardSpec, path: str | Path, dpi: int = 600)
         SHEET_MARGIN_MM,
         bar_y + 10.0,
         f"perchpose calibration board: {board.describe()}. Print at 100 %: the bar is "
-        "100 mm; measure a square and pass its size as --square-mm.",
+        "100 mm. Any scale works: measure a square and give its side as --square-mm.",
         fontsize=5.5,
         va="center",
     )

@@ -49,11 +49,11 @@ def board_options(command: Callable[..., None]) -> Callable[..., None]:
         ),
         click.option(
             "--square-mm",
-            default=40.0,
+            default=30.0,
             show_default=True,
             help="Side of a square, mm (measure the print).",
         ),
-        click.option("--marker-mm", default=20.0, show_default=True, help="Side of a marker, mm."),
+        click.option("--marker-mm", default=15.0, show_default=True, help="Side of a marker, mm."),
         click.option(
             "--dictionary",
             default="DICT_6X6_250",
