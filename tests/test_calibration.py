@@ -99,10 +99,10 @@ def test_calibrate_command_drives_track(tmp_path: Path) -> None:
     folder.mkdir()
     for name, image in views:
         cv2.imwrite(str(folder / f"{name}.png"), image)
-    out = tmp_path / "cam.yaml"
+    out = tmp_path / "cameras" / "cam.yaml"  # the folder is made
     assert main(["calibrate", str(folder), "--out", str(out), *TUTORIAL_OPTIONS]) == 0
-    assert (tmp_path / "cam_report.md").read_text().count(".png | ") == 12
-    assert (tmp_path / "cam_coverage.png").stat().st_size > 0
+    assert (tmp_path / "cameras" / "cam_report.md").read_text().count(".png | ") == 12
+    assert (tmp_path / "cameras" / "cam_coverage.png").stat().st_size > 0
     calibrated = CameraModel.load(out)
     # the calibrated camera drives the estimator on frames of the true camera
     target = TargetSpec.paper()

@@ -291,6 +291,7 @@ def test_a_bad_overlay_path_is_refused_before_the_first_frame(
     short_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "p.csv"
+    (tmp_path / "a-file").write_text("")
     code, _, err = _run(
         [
             "track",
@@ -300,10 +301,22 @@ def test_a_bad_overlay_path_is_refused_before_the_first_frame(
             "--out",
             str(out),
             "--overlay",
-            str(tmp_path / "no-such-folder" / "run.mp4"),
+            str(tmp_path / "a-file" / "run.mp4"),  # a folder that cannot be made
         ],
         capsys,
     )
     assert code == 2
-    assert "overlay folder" in _single_error_line(err)
+    assert "cannot make the folder" in _single_error_line(err)
     assert not out.exists()  # nothing ran: no vehicle link would have been opened either
+
+
+def test_track_makes_the_folders_it_writes_into(
+    short_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "runs" / "today" / "p.csv"
+    overlay = tmp_path / "videos" / "run.avi"
+    args = ["track", str(short_sequence), "--camera", str(short_sequence / "camera.yaml")]
+    code, _, _ = _run([*args, "--out", str(out), "--overlay", str(overlay)], capsys)
+    assert code == 0
+    assert out.stat().st_size > 0
+    assert overlay.stat().st_size > 0

@@ -53,6 +53,10 @@ def run_calibration(
         if not images:
             raise CalibrationError(f"{source}: no frame of {searched} searched shows the board")
     result = calibrate(images, board, model, name=out_path.stem)
+    try:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CalibrationError(f"{out_path}: cannot make its folder ({exc.strerror})") from exc
     result.camera.save(out_path)
     stem = out_path.with_suffix("")
     coverage_png = Path(f"{stem}_coverage.png")

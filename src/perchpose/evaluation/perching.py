@@ -349,6 +349,9 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
     top = next(iter(by_estimator.values()))
     first_name = next(iter(by_estimator))
     return {
+        "top_level": f"the figures at this level are the cell {first_wind}/{first_name}'s "
+        "(the first wind and estimator flown); every cell is under 'cells', every estimator "
+        f"at {first_wind} wind under 'by_estimator'",
         "estimator": first_name,
         "wind": first_wind,
         "wind_mean_mps": top["wind_mean_mps"],

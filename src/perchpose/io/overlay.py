@@ -90,15 +90,17 @@ CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
 
 
 def check_overlay_path(path: str | Path) -> Path:
-    """An overlay video path that can be written: a known suffix and an existing, writable
-    folder (checked before the first frame, so that a run with a vehicle link never fails on it
-    later)."""
+    """An overlay video path that can be written: a known suffix and a writable folder, made
+    if missing (checked before the first frame, so that a run with a vehicle link never fails
+    on it later)."""
     where = Path(path)
     if where.suffix.lower() not in CODECS:
         raise PerchposeError(f"{where}: overlay must end in .mp4, .m4v, .avi or .mkv")
     folder = where.parent if str(where.parent) else Path(".")
-    if not folder.is_dir():
-        raise PerchposeError(f"{where}: overlay folder {folder} does not exist")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PerchposeError(f"{where}: cannot make the folder {folder} ({exc.strerror})") from exc
     if not os.access(folder, os.W_OK):
         raise PerchposeError(f"{where}: overlay folder {folder} is not writable")
     return where

@@ -104,6 +104,7 @@ class PoseWriter:
         self.target = target
         self._jsonl = suffix == ".jsonl"
         try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file: IO[str] = self.path.open("w", newline="", encoding="utf-8")
         except OSError as exc:
             raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
