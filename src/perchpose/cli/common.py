@@ -3,6 +3,7 @@ and a warning line on stderr."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -36,6 +37,14 @@ CAMERA_HELP = "ROS camera_info or OpenCV YAML; or preset:webcam, preset:fpv, pre
 target_option = click.option(
     "--target", "target_file", default=None, help="Target YAML (default: the paper's)."
 )
+quiet_option = click.option("--quiet", is_flag=True, help="No progress bar.")
+
+
+def show_progress(quiet: bool) -> bool:
+    """A progress bar unless ``--quiet`` or stderr is not a terminal."""
+    return not quiet and sys.stderr.isatty()
+
+
 camera_option_fpv = click.option(
     "--camera", "camera_file", default="preset:fpv", show_default=True, help=CAMERA_HELP
 )

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
-from perchpose.cli.common import camera_option_fpv, load_camera
+from perchpose.cli.common import camera_option_fpv, load_camera, quiet_option, show_progress
 from perchpose.cli.group import group
 
 
@@ -22,7 +20,8 @@ from perchpose.cli.group import group
 @camera_option_fpv
 @click.option("--seconds", default=8.0, show_default=True, help="Length of the approach.")
 @click.option("--seed", default=0, show_default=True, help="Noise seed.")
-def demo(out: str, camera_file: str, seconds: float, seed: int) -> None:
+@quiet_option
+def demo(out: str, camera_file: str, seconds: float, seed: int, quiet: bool) -> None:
     """Render an approach with dropouts, track it and compare with the truth."""
     from perchpose.app.demo import run_demo
     from perchpose.evaluation.metrics import format_stage_table
@@ -32,7 +31,7 @@ def demo(out: str, camera_file: str, seconds: float, seed: int) -> None:
         load_camera(camera_file),
         duration_s=seconds,
         seed=seed,
-        progress=sys.stderr.isatty(),
+        progress=show_progress(quiet),
         say=click.echo,
     )
     click.echo("")

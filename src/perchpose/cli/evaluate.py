@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
-from perchpose.cli.common import camera_option_fpv, load_camera
+from perchpose.cli.common import camera_option_fpv, load_camera, quiet_option, show_progress
 from perchpose.cli.group import group
 
 
@@ -29,8 +27,9 @@ from perchpose.cli.group import group
 )
 @click.option("--quick", is_flag=True, help="A reduced run (under a minute) for smoke tests.")
 @click.option("--seed", default=0, show_default=True, help="Base seed of every experiment.")
+@quiet_option
 def evaluate(
-    experiment: str, out: str, camera_file: str, quality: str, quick: bool, seed: int
+    experiment: str, out: str, camera_file: str, quality: str, quick: bool, seed: int, quiet: bool
 ) -> None:
     """Reproduce the paper's experiments (EXPERIMENT: paper) on rendered frames."""
     from perchpose.evaluation.report import run_paper_evaluation
@@ -42,7 +41,7 @@ def evaluate(
         quick=quick,
         seed=seed,
         quality_name=quality,
-        progress=sys.stderr.isatty(),
+        progress=show_progress(quiet),
         say=lambda msg: click.echo(msg, err=True),
     )
     r = result.results

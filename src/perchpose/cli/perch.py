@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import click
 
-from perchpose.cli.common import camera_option_fpv, load_camera
+from perchpose.cli.common import camera_option_fpv, load_camera, quiet_option, show_progress
 from perchpose.cli.group import group
 
 
@@ -71,6 +70,7 @@ from perchpose.cli.group import group
     help="Run on Dask: 'local' (a LocalCluster of --workers processes) or tcp://HOST:PORT.",
 )
 @click.option("--resume", is_flag=True, help="Keep the runs already in --out; fly the rest.")
+@quiet_option
 def perch(
     runs: int,
     seed: int,
@@ -86,6 +86,7 @@ def perch(
     workers: int,
     scheduler: str | None,
     resume: bool,
+    quiet: bool,
 ) -> None:
     """Closed-loop perching in simulation from random starts 60-150 cm below the target."""
     from perchpose.app.perch import PerchCampaign, summary_table
@@ -106,7 +107,7 @@ def perch(
         workers=max(1, workers),
         scheduler=scheduler,
         resume=resume,
-        progress=sys.stderr.isatty(),
+        progress=show_progress(quiet),
         say=lambda m: click.echo(m, err=True),
     )
     click.echo(summary_table(content), nl=False)

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
-from perchpose.cli.common import camera_option_fpv, load_camera, load_target, target_option
+from perchpose.cli.common import (
+    camera_option_fpv,
+    load_camera,
+    load_target,
+    quiet_option,
+    show_progress,
+    target_option,
+)
 from perchpose.cli.group import group
 
 
@@ -28,6 +33,7 @@ from perchpose.cli.group import group
 @click.option(
     "--frames", "max_frames", default=None, type=int, help="Keep only the first N frames."
 )
+@quiet_option
 def simulate(
     scenario: str,
     camera_file: str,
@@ -36,6 +42,7 @@ def simulate(
     quality: str,
     seed: int,
     max_frames: int | None,
+    quiet: bool,
 ) -> None:
     """Render SCENARIO (approach or static) to frames, camera.yaml and truth.csv."""
     from perchpose.sim.render import ImageQuality
@@ -47,5 +54,5 @@ def simulate(
     scen = scenario_by_name(scenario, ImageQuality.preset(quality))
     if max_frames is not None:
         scen = truncated(scen, max_frames)
-    path = write_sequence(scen, cam, spec, out, seed=seed, progress=sys.stderr.isatty())
+    path = write_sequence(scen, cam, spec, out, seed=seed, progress=show_progress(quiet))
     click.echo(f"wrote {len(scen)} frames, camera.yaml and truth.csv to {path}")

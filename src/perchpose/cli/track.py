@@ -4,14 +4,21 @@ fly on it."""
 from __future__ import annotations
 
 import logging
-import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 import click
 
-from perchpose.cli.common import CAMERA_HELP, load_camera, load_target, target_option, warn
+from perchpose.cli.common import (
+    CAMERA_HELP,
+    load_camera,
+    load_target,
+    quiet_option,
+    show_progress,
+    target_option,
+    warn,
+)
 from perchpose.cli.group import group
 from perchpose.target import TargetSpec
 
@@ -92,7 +99,7 @@ def _vehicle_links(
     type=click.Path(dir_okay=False),
     help="Also write an overlay video (.mp4 or .avi).",
 )
-@click.option("--quiet", is_flag=True, help="No progress bar.")
+@quiet_option
 @click.option(
     "--mavlink",
     "mavlink_url",
@@ -170,7 +177,7 @@ def track(
             out,
             fps=fps,
             overlay=overlay,
-            progress=not quiet and sys.stderr.isatty(),
+            progress=show_progress(quiet),
             on_frame=hooks,
         )
     stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
