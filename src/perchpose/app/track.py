@@ -102,8 +102,8 @@ def track(
     """
     if overlay is not None:
         check_overlay_path(overlay)
-    frames = open_source(source, fps)
     camera, target = estimator.camera, estimator.target
+    frames = open_source(source, fps, camera.size)
     video = _Overlay(overlay, frames.fps, camera)
     writer = PoseWriter(out, target)
     tally = _Tally()

@@ -161,13 +161,17 @@ def _to_uint8(image: NDArray[Any]) -> NDArray[np.uint8]:
     return np.asarray(image, dtype=np.uint8)
 
 
-def open_source(source: str, fps: float | None = None) -> FrameSource:
+def open_source(
+    source: str, fps: float | None = None, size: tuple[int, int] | None = None
+) -> FrameSource:
     """Open ``source``: a folder of images (in natural order: ``img_2`` before ``img_10``), a
     glob (the same order), a video file, one image
     file, or a camera index such as ``0``.
 
     fps : frame rate used for t_s = index / fps where the source has no clock (default 30;
         a video file's own rate when not given).
+    size : (width, height) to ask a live camera for (the calibration's); a driver that gives
+        another size is caught at the first frame (``CameraModel.check_image``).
     """
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise SourceError(f"--fps must be a positive number, got {fps}")
@@ -176,6 +180,9 @@ def open_source(source: str, fps: float | None = None) -> FrameSource:
         capture = cv2.VideoCapture(int(source))
         if not capture.isOpened():
             raise SourceError(f"camera {source}: cannot be opened")
+        if size is not None:
+            capture.set(cv2.CAP_PROP_FRAME_WIDTH, float(size[0]))
+            capture.set(cv2.CAP_PROP_FRAME_HEIGHT, float(size[1]))
         return VideoSource(capture, rate, f"camera {source}", live=True)
     path = Path(source)
     if any(ch in source for ch in "*?["):
