@@ -188,6 +188,11 @@ class TargetSpec:
         """The largest marker."""
         return self.markers[0]
 
+    def marker_name(self, index: int) -> str:
+        """How figures name marker ``index``: ``m0 (outer)`` for the largest, ``m1 (inner)``
+        and so on for the ones printed inside it (the track file's ``m{i}_*`` columns)."""
+        return f"m{index} ({'outer' if index == 0 else 'inner'})"
+
     @property
     def dictionaries(self) -> tuple[str, ...]:
         """Distinct dictionary names, in marker order."""

@@ -36,3 +36,16 @@ def test_overlay_video_round_trip(tmp_path: Path) -> None:
     cap.release()
     with pytest.raises(PerchposeError, match="overlay must end in"):
         OverlayWriter(tmp_path / "o.gif", 30.0, (64, 48))
+
+
+def test_an_mp4_overlay_says_its_codec_and_prints_nothing(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """H.264 where OpenCV's FFmpeg can encode it, else MPEG-4 Part 2; trying H.264 where it
+    cannot leaves no FFmpeg lines on the terminal."""
+    writer = OverlayWriter(tmp_path / "run.mp4", 30.0, (64, 48))
+    writer.write(np.zeros((48, 64, 3), np.uint8))
+    writer.close()
+    assert writer.codec in ("avc1", "mp4v")
+    assert (tmp_path / "run.mp4").stat().st_size > 0
+    assert capfd.readouterr().err == ""

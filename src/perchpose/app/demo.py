@@ -81,7 +81,7 @@ def run_demo(
     table = stage_table(errors) + measurement_table(errors)
     coasted = int(np.count_nonzero(errors.valid & errors.dropout))
     raw = {
-        target.markers[i].label: _series(
+        target.marker_name(i): _series(
             track_rows, (f"m{i}_x_cm", f"m{i}_y_cm", f"m{i}_z_cm", f"m{i}_yaw_deg")
         )
         for i in range(len(target.markers))

@@ -256,7 +256,7 @@ def _write_figures(
         [(f"{c.quality} images, {cam.name} camera", c.distances_cm, c.probability) for c in curves],
         {"z1": 115.0, "z2": 25.0, "z3": 15.0},
     )
-    raw = {target.markers[i].label: v for i, v in moves_run.raw.items()}
+    raw = {target.marker_name(i): v for i, v in moves_run.raw.items()}
     kalman_figure(
         str(out / "kalman.png"),
         moves_run.t_s,

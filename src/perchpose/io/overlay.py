@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -87,6 +89,7 @@ def _draw_text(out: NDArray[np.uint8], estimate: Estimate | None, note: str) -> 
 
 
 CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
+H264_SUFFIXES = (".mp4", ".m4v")
 
 
 def check_overlay_path(path: str | Path) -> Path:
@@ -106,14 +109,44 @@ def check_overlay_path(path: str | Path) -> Path:
     return where
 
 
+@contextmanager
+def _native_stderr_silenced() -> Iterator[None]:
+    """Native libraries' writes to stderr (FFmpeg's log of an encoder it cannot open) go
+    nowhere while this lasts; Python's own stderr is untouched."""
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 class OverlayWriter:
-    """Writes BGR frames to an MP4 (``mp4v``) or AVI (``MJPG``) file."""
+    """Writes BGR frames to an MP4 or AVI (``MJPG``) file. An MP4 is H.264 (``avc1``, which
+    browsers play) where OpenCV's FFmpeg has an H.264 encoder, else MPEG-4 Part 2 (``mp4v``,
+    which media players play and browsers mostly do not); ``codec`` says which."""
 
     def __init__(self, path: str | Path, fps: float, size: tuple[int, int]) -> None:
         self.path = check_overlay_path(path)
-        fourcc = cv2.VideoWriter.fourcc(*CODECS[self.path.suffix.lower()])
         rate = fps if math.isfinite(fps) and fps > 0 else 30.0
-        self._writer = cv2.VideoWriter(str(self.path), fourcc, rate, size)
+        suffix = self.path.suffix.lower()
+        self._writer = cv2.VideoWriter()
+        self.codec = CODECS[suffix]
+        if suffix in H264_SUFFIXES:
+            with _native_stderr_silenced():
+                h264 = self._writer.open(
+                    str(self.path), cv2.VideoWriter.fourcc(*"avc1"), rate, size
+                )
+            if h264:
+                self.codec = "avc1"
+        if not self._writer.isOpened():
+            self._writer.open(str(self.path), cv2.VideoWriter.fourcc(*self.codec), rate, size)
         if not self._writer.isOpened():
             raise PerchposeError(f"{self.path}: cannot open a video writer")
         self.size = size
