@@ -164,6 +164,17 @@ def test_calibrate_command_errors(
     assert "--squares must look like 5x7" in capsys.readouterr().err
 
 
+def test_a_still_board_gives_one_view_not_many() -> None:
+    """Four distinct views, each held for eight frames: four views come back, not thirty
+    near-copies (which would hide the few-views warning)."""
+    camera = CameraModel.preset("webcam")
+    views, _ = _board_views(camera, TUTORIAL_BOARD, 4, seed=11, z_m=(0.35, 0.55))
+    frames = [views[k // 8] for k in range(32)]
+    picked, searched = select_views(frames, TUTORIAL_BOARD, max_views=30)
+    assert searched == 32
+    assert sorted(name for name, _ in picked) == sorted(name for name, _ in views)
+
+
 def test_board_sheet_is_detectable_and_true_scale(tmp_path: Path) -> None:
     """The default board: detectable, true to scale, and on a page that prints at 100 % on A4
     (210 x 297 mm) and on Letter (216 x 279 mm)."""

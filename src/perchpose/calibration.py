@@ -358,21 +358,40 @@ def _solve(
     return camera, per_view, rms_all
 
 
+# two views whose common board corners lie this far apart at the median (a fraction of the
+# image diagonal: about 16 px at 640x480) or closer show the board in the same pose
+SAME_VIEW_FRACTION = 0.02
+
+
+def view_distance(a: BoardView, b: BoardView, diagonal_px: float) -> float:
+    """How far apart two views put the board: the median distance between the corners both
+    saw, over the image diagonal (1 when they share none). It grows with the board's move,
+    its scale and its tilt alike."""
+    common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    if common.size == 0:
+        return 1.0
+    moved = np.linalg.norm(a.corners_px[ia] - b.corners_px[ib], axis=1)
+    return float(np.median(moved)) / diagonal_px
+
+
 def select_views(
     frames: Iterable[tuple[str, NDArray[np.uint8]]],
     board: CharucoBoardSpec,
     max_views: int = 30,
     stride: int = 1,
 ) -> tuple[list[tuple[str, NDArray[np.uint8]]], int]:
-    """Pick sharp, well-spread views of the board from a video's frames.
+    """Pick sharp, distinct views of the board from a video's frames.
 
     Every ``stride``-th frame is searched; frames with the board whose sharpness (variance of
     the Laplacian over the board) is at least half the median are candidates; from them, the
-    sharpest first, then repeatedly the one farthest (board centre and size in the image) from
-    those already picked. Returns the views and how many frames were searched.
+    sharpest first, then repeatedly the one farthest (``view_distance``) from those already
+    picked, while it differs from all of them by more than ``SAME_VIEW_FRACTION``: a video
+    that holds the board still gives one view, not many copies of it. Returns the views and
+    how many frames were searched.
     """
-    candidates: list[tuple[str, NDArray[np.uint8], Array, float]] = []
+    candidates: list[tuple[str, NDArray[np.uint8], BoardView, float]] = []
     searched = 0
+    diagonal = 1.0
     for k, (name, image) in enumerate(frames):
         if k % max(1, stride):
             continue
@@ -381,24 +400,27 @@ def select_views(
         if isinstance(view, str):
             continue
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        h, w = grey.shape
+        diagonal = math.hypot(*grey.shape)
         x0, y0 = np.floor(view.corners_px.min(axis=0)).astype(int)
         x1, y1 = np.ceil(view.corners_px.max(axis=0)).astype(int)
         patch = grey[max(0, y0) : y1 + 1, max(0, x0) : x1 + 1]
         sharpness = float(cv2.Laplacian(patch, cv2.CV_64F).var()) if patch.size else 0.0
-        centre = view.corners_px.mean(axis=0) / np.array([w, h])
-        extent = math.sqrt(max(1.0, float((x1 - x0) * (y1 - y0)))) / math.hypot(w, h)
-        candidates.append((name, image, np.array([centre[0], centre[1], 2.0 * extent]), sharpness))
+        candidates.append((name, image, view, sharpness))
     if not candidates:
         return [], searched
     floor = 0.5 * float(np.median([c[3] for c in candidates]))
     pool = [c for c in candidates if c[3] >= floor]
     picked = [max(pool, key=lambda c: c[3])]
-    while len(picked) < min(max_views, len(pool)):
-        chosen = np.stack([p[2] for p in picked])
+    nearest = {id(c): view_distance(c[2], picked[0][2], diagonal) for c in pool}
+    while len(picked) < max_views:
         best = max(
             (c for c in pool if all(c is not p for p in picked)),
-            key=lambda c: float(np.min(np.linalg.norm(chosen - c[2], axis=1))),
+            key=lambda c: nearest[id(c)],
+            default=None,
         )
+        if best is None or nearest[id(best)] <= SAME_VIEW_FRACTION:
+            break
         picked.append(best)
+        for c in pool:
+            nearest[id(c)] = min(nearest[id(c)], view_distance(c[2], best[2], diagonal))
     return [(c[0], c[1]) for c in picked], searched
