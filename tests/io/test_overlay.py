@@ -23,6 +23,9 @@ def test_overlay_draws_outlines_axes_and_text(renderers: dict[str, Renderer]) ->
     assert red.sum() > 20  # x axes
     text_band = out[440:, :300]
     assert np.any(np.all(text_band == 255, axis=2))
+    # the text is drawn once, white on a darkened box: no second, black copy (a thicker
+    # Hershey text advances further per glyph and read as a doubled, offset line)
+    assert not np.any(np.all(text_band < 8, axis=2))
 
 
 def test_overlay_video_round_trip(tmp_path: Path) -> None:

@@ -79,13 +79,17 @@ def _draw_text(out: NDArray[np.uint8], estimate: Estimate | None, note: str) -> 
             )
             + (f"  {note}" if note else ""),
         ]
-    h = out.shape[0]
+    # white text on a darkened box: an outline drawn as thicker text would not sit under it
+    # (OpenCV's Hershey glyphs advance further the thicker they are, which reads as doubled)
+    h, w = out.shape[:2]
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.55
+    width = max(cv2.getTextSize(text, font, scale, 1)[0][0] for text in lines)
+    top = max(0, h - 10 - 20 * (len(lines) - 1) - 16)
+    box = out[top : h - 4, 4 : min(w, 16 + width)]
+    box[:] = (box * 0.45).astype(np.uint8)
     for i, text in enumerate(reversed(lines)):
         y = h - 10 - 20 * i
-        cv2.putText(out, text, (10, y), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(
-            out, text, (10, y), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA
-        )
+        cv2.putText(out, text, (10, y), font, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
