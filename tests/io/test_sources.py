@@ -68,11 +68,14 @@ def test_bad_sources(tmp_path: Path, make: object, message: str) -> None:
         open_source(str(make(tmp_path)))  # type: ignore[operator]
 
 
-def test_not_a_video(tmp_path: Path) -> None:
+def test_not_a_video(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """One error from perchpose, and no FFmpeg line ("moov atom not found") before it."""
     path = tmp_path / "clip.mp4"
     path.write_bytes(b"garbage" * 10)
+    capfd.readouterr()
     with pytest.raises(SourceError, match="not a readable video"):
         open_source(str(path))
+    assert capfd.readouterr().err == ""
 
 
 def test_bad_fps() -> None:

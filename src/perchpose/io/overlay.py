@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -14,6 +12,7 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
+from perchpose.io.native import native_stderr_silenced
 from perchpose.values import Estimate
 
 GREEN = (0, 200, 0)
@@ -113,24 +112,6 @@ def check_overlay_path(path: str | Path) -> Path:
     return where
 
 
-@contextmanager
-def _native_stderr_silenced() -> Iterator[None]:
-    """Native libraries' writes to stderr (FFmpeg's log of an encoder it cannot open) go
-    nowhere while this lasts; Python's own stderr is untouched."""
-    try:
-        saved = os.dup(2)
-    except OSError:
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 class OverlayWriter:
     """Writes BGR frames to an MP4 or AVI (``MJPG``) file. An MP4 is H.264 (``avc1``, which
     browsers play) where OpenCV's FFmpeg has an H.264 encoder, else MPEG-4 Part 2 (``mp4v``,
@@ -143,7 +124,7 @@ class OverlayWriter:
         self._writer = cv2.VideoWriter()
         self.codec = CODECS[suffix]
         if suffix in H264_SUFFIXES:
-            with _native_stderr_silenced():
+            with native_stderr_silenced():
                 h264 = self._writer.open(
                     str(self.path), cv2.VideoWriter.fourcc(*"avc1"), rate, size
                 )

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import SourceError
+from perchpose.io.native import native_stderr_silenced
 
 IMAGE_SUFFIXES = frozenset(
     {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
@@ -91,7 +92,8 @@ class VideoSource(FrameSource):
         t0 = time.monotonic()
         try:
             while True:
-                ok, image = self.capture.read()
+                with native_stderr_silenced():
+                    ok, image = self.capture.read()
                 if not ok or image is None:
                     if self.live or self.count is None or i >= self.count:
                         break
@@ -177,7 +179,8 @@ def open_source(
         raise SourceError(f"--fps must be a positive number, got {fps}")
     rate = fps or 30.0
     if source.isdigit():
-        capture = cv2.VideoCapture(int(source))
+        with native_stderr_silenced():
+            capture = cv2.VideoCapture(int(source))
         if not capture.isOpened():
             raise SourceError(f"camera {source}: cannot be opened")
         if size is not None:
@@ -204,7 +207,8 @@ def open_source(
         raise SourceError(f"{path}: no such file or folder")
     if path.suffix.lower() in IMAGE_SUFFIXES:
         return ImageFilesSource([path], rate, str(path))
-    capture = cv2.VideoCapture(str(path))
+    with native_stderr_silenced():
+        capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise SourceError(f"{path}: not a readable video or image file")
     if fps is None:
