@@ -18,14 +18,14 @@ import cv2
 import numpy as np
 
 from perchpose import CameraModel, TargetSpec
-from perchpose.detection import _detector_parameters, target_dictionaries
 from perchpose.geometry import facing_pose
+from perchpose.quads import detector_parameters, target_dictionaries
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.target import aruco_dictionary
 
 
 def detector(dictionaries: list[cv2.aruco.Dictionary]) -> cv2.aruco.ArucoDetector:
-    d = cv2.aruco.ArucoDetector(dictionaries[0], _detector_parameters())
+    d = cv2.aruco.ArucoDetector(dictionaries[0], detector_parameters())
     d.setDictionaries(dictionaries)
     return d
 

@@ -44,11 +44,11 @@ def test_large_marker_on_a_fisheye_comes_from_the_rectified_pass(
     assert truth is not None
     assert np.max(np.linalg.norm(outer.corners_px - truth, axis=1)) < 0.5
     # the plain pass on the curved image returns a quad pulled several pixels inwards
-    corners, ids, _, dict_indices = detector._search.detector.detectMarkersMultiDict(image)
+    corners, ids, _, dict_indices = detector.quads.search.detector.detectMarkersMultiDict(image)
     raw = [
         c
         for c, i, d in zip(corners, ids.reshape(-1), dict_indices.reshape(-1), strict=True)
-        if detector._dict_marker_index[d][i] == 0
+        if detector.quads.dict_marker_index[d][i] == 0
     ]
     if raw:
         assert np.max(np.linalg.norm(raw[0].reshape(4, 2) - truth, axis=1)) > 2.0

@@ -1,0 +1,62 @@
+"""Corners fitted to the image, starting from a found quad: from the marker's four border edges
+through the lens model (``perchpose.corners``), and for a marker whose cells span only a few
+blur widths from its whole printed pattern (``perchpose.pattern_fit``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.corners import EdgeFit, fit_marker_edges
+from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
+from perchpose.target import TargetSpec
+from perchpose.values import MarkerDetection
+
+
+class CornerFitter:
+    """Fits the corners of the markers of ``target`` in grey images of ``camera``; what is
+    printed around each marker (its cells, its white margin, its printed pattern) comes from
+    the target and is prepared once."""
+
+    def __init__(self, camera: CameraModel, target: TargetSpec) -> None:
+        self.camera = camera
+        self.target = target
+        self.margins = [target.white_margin_cells(i) for i in range(len(target.markers))]
+        self.patterns = [printed_pattern(target, i) for i in range(len(target.markers))]
+        self.pattern_settings = PatternFitSettings()
+
+    def fit_corners(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
+        """``det`` with corners fitted to the image, or None if no fit succeeds: from the
+        marker's four border edges; for a marker whose cells span only a few blur widths,
+        where the one-edge model pulls corners inwards, from its whole printed pattern,
+        starting from the edges' corners."""
+        i = det.marker_index
+        cells = self.target.markers[i].cells
+        edges = self.fit_edges(grey, det)
+        corners = None if edges is None else edges.corners_px
+        pattern = self.patterns[i]
+        if pattern is not None and self.pattern_settings.applies(
+            det.side_px, cells.shape[0], None if edges is None else edges.blur_px
+        ):
+            start = det.corners_px if edges is None else edges.corners_px
+            blur = 1.0 if edges is None else edges.blur_px
+            fitted = refine_corners_pattern(
+                grey, start, self.camera, pattern, self.pattern_settings, blur
+            )
+            corners = fitted if fitted is not None else corners
+        return (
+            None if corners is None else MarkerDetection(det.marker_index, corners, det.image_pass)
+        )
+
+    def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> EdgeFit | None:
+        """The edge fit alone of ``det`` (with the marker's cells and white margin), or None
+        if it fails."""
+        i = det.marker_index
+        return fit_marker_edges(
+            grey,
+            det.corners_px,
+            self.camera,
+            self.target.markers[i].cells,
+            margin_cells=self.margins[i],
+        )

@@ -1,0 +1,110 @@
+"""Where to search: windows of the image (or of its rectified view) around where the previous
+frame's markers were and where the target's plane puts the others, so that tracking passes
+look at a part of the frame, not all of it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.rectification import Rectification
+from perchpose.target import TargetSpec
+from perchpose.values import MarkerDetection
+
+Array = NDArray[np.float64]
+Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (x1, y1 exclusive)
+
+
+def _plane_quad(target: TargetSpec, index: int, H: NDArray[Any]) -> Array:
+    """Marker ``index``'s corners under the homography ``H`` from the target's plane (m)."""
+    corners_m = target.markers[index].corners_target_m[:, :2].reshape(-1, 1, 2)
+    return np.asarray(cv2.perspectiveTransform(corners_m, H), np.float64).reshape(4, 2)
+
+
+def predicted_quads(target: TargetSpec, hint: tuple[MarkerDetection, ...]) -> dict[int, Array]:
+    """Where each marker should be: the hinted markers where they were, the others where
+    the plane through the largest hinted marker puts them."""
+    quads = {d.marker_index: d.corners_px for d in hint}
+    reference = max(hint, key=lambda d: d.side_px)
+    plane = target.markers[reference.marker_index].corners_target_m[:, :2]
+    H, _ = cv2.findHomography(plane, reference.corners_px)
+    if H is not None:
+        for index in range(len(target.markers)):
+            if index not in quads:
+                quads[index] = _plane_quad(target, index, H)
+    return {i: q for i, q in quads.items() if np.all(np.isfinite(q))}
+
+
+def padded_box(
+    quads: list[Array], shape: tuple[int, ...], pad_fraction: float, pad_px: float
+) -> Box | None:
+    """The box around ``quads`` padded by a fraction of their extent plus ``pad_px``, clipped
+    to ``shape``; None if under 16 px either way."""
+    h, w = shape[:2]
+    points = np.concatenate(quads)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    pad = pad_fraction * float(np.max(hi - lo)) + pad_px
+    x0, y0 = int(max(0, np.floor(lo[0] - pad))), int(max(0, np.floor(lo[1] - pad)))
+    x1, y1 = int(min(w, np.ceil(hi[0] + pad))), int(min(h, np.ceil(hi[1] + pad)))
+    if x1 - x0 < 16 or y1 - y0 < 16:
+        return None
+    return (x0, y0, x1, y1)
+
+
+def tracking_window(shape: tuple[int, ...], quads: dict[int, Array]) -> Box | None:
+    """A window of the image around the predicted ``quads`` (``predicted_quads``), or None
+    when it would cover most of the image anyway."""
+    if not quads:
+        return None
+    box = padded_box(list(quads.values()), shape, 0.5, 16.0)
+    h, w = shape[:2]
+    if box is None or (box[2] - box[0]) * (box[3] - box[1]) > 0.6 * w * h:
+        return None
+    return box
+
+
+def rectified_box(quad: Array, shape: tuple[int, ...]) -> Box | None:
+    """A window of the rectified view around ``quad`` (rectified pixels), padded by 0.3 of its
+    extent plus 8 px, or None if not finite or under 16 px."""
+    if not np.all(np.isfinite(quad)):
+        return None
+    h, w = shape[:2]
+    lo, hi = quad.min(axis=0), quad.max(axis=0)
+    pad = 0.3 * float(np.max(hi - lo)) + 8.0
+    x0, y0 = (int(max(0, np.floor(v - pad))) for v in lo)
+    x1 = int(min(w, np.ceil(hi[0] + pad)))
+    y1 = int(min(h, np.ceil(hi[1] + pad)))
+    return (x0, y0, x1, y1) if x1 - x0 >= 16 and y1 - y0 >= 16 else None
+
+
+def rectified_windows(
+    rectification: Rectification,
+    target: TargetSpec,
+    found: dict[int, MarkerDetection],
+    curved_side_px: float,
+) -> list[Box]:
+    """Windows of the rectified view to search: around each found marker of
+    ``curved_side_px`` or more (its edges curved in the original), and around where the plane
+    through the largest found marker puts each missing one."""
+    reference = max(found.values(), key=lambda d: d.side_px)
+    ref_rect = rectification.to_rectified(reference.corners_px)
+    ref_plane = target.markers[reference.marker_index].corners_target_m[:, :2]
+    H, _ = cv2.findHomography(ref_plane, ref_rect)
+    windows = []
+    for index in range(len(target.markers)):
+        det = found.get(index)
+        if det is not None and det.side_px < curved_side_px:
+            continue
+        if det is not None:
+            quad = rectification.to_rectified(det.corners_px)
+        elif H is not None:
+            quad = _plane_quad(target, index, H)
+        else:
+            continue
+        window = rectified_box(quad, rectification.size)
+        if window is not None:
+            windows.append(window)
+    return windows
