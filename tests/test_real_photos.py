@@ -16,7 +16,7 @@ from perchpose.geometry import wrap_angle_deg, yaw_rad
 @pytest.mark.parametrize("photo", ["img_00.jpg", "img_01.jpg", "img_02.jpg", "img_03.jpg"])
 def test_board_markers_agree_with_the_board_pose(charuco_dir: Path, photo: str) -> None:
     camera = CameraModel.load(charuco_dir / "tutorial_camera_charuco.yml")
-    board = CharucoBoardSpec()
+    board = CharucoBoardSpec(square_mm=40.0, marker_mm=20.0)  # OpenCV's tutorial board
     image = cv2.imread(str(charuco_dir / photo))
     view = detect_board(board, image, photo)
     assert not isinstance(view, str)
