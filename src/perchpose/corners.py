@@ -515,15 +515,18 @@ def fit_marker_edges(
     if float(sides_px.min()) >= cfg.own_levels_from_px:
         sides = np.repeat(np.arange(4), K)[rows]
         along = np.tile(2.0 * t - 1.0, 4)[rows]
-    fit = _fit_side(
-        values[rows],
-        offsets,
-        cfg.iterations,
-        (pixel_offsets[rows], pixel_values[rows]),
-        surround,
-        sides,
-        along,
-    )
+    # a fit that diverges on a poor profile overflows on its way; its result is checked
+    # (finite edges, positive contrast) and refused, so numpy's warnings would only be noise
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        fit = _fit_side(
+            values[rows],
+            offsets,
+            cfg.iterations,
+            (pixel_offsets[rows], pixel_values[rows]),
+            surround,
+            sides,
+            along,
+        )
     if fit is None:
         return None
     d = np.full(4 * K, np.nan)
