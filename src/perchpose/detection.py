@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.corners import EdgeFit
-from perchpose.pattern_fit import PatternFitSettings
 from perchpose.quads import QuadFinder, QuadPass, refine_corners, target_dictionaries
 from perchpose.rectification import Rectification
 from perchpose.refinement import CornerFitter
@@ -72,11 +71,6 @@ class MarkerDetector:
         self.quads = QuadFinder(target, max(camera.size))
         self.fitter = CornerFitter(camera, target)
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
-
-    @property
-    def pattern_settings(self) -> PatternFitSettings:
-        """The pattern fit's settings (``CornerFitter.pattern_settings``)."""
-        return self.fitter.pattern_settings
 
     def detect(
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()

@@ -47,7 +47,7 @@ class FusionSigmas:
     yaw: float = 0.469
 
     def __post_init__(self) -> None:
-        for name in ("x", "y", "z", "yaw"):
+        for name in SIGMA_FIELDS:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 <= value <= 1.0):
                 raise ValueError(f"sigma_{name} must be in [0, 1], got {value}")

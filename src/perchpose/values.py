@@ -199,6 +199,12 @@ class Estimate:
         return tuple(i for i, m in enumerate(self.markers) if m.measurement is not None)
 
     @property
+    def measured_label(self) -> str:
+        """The markers measured in this frame as the track file names them: ``m0+m1``, ``m1``,
+        or empty."""
+        return "+".join(f"m{i}" for i in self.detected)
+
+    @property
     def predicted(self) -> bool:
         """A valid pose that no measurement of this frame backs: the filter's prediction from
         the newest one, ``age_s`` ago (a coasted frame of a dropout)."""

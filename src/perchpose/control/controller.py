@@ -327,7 +327,7 @@ class PerchingController:
         the velocity's own noise); the odometry's velocity before there is such a history."""
         s = self.settings
         then = self._position_at(odometry.t_s - s.speed_window_s)
-        if then is None or not self._track or self._track[0][0] > odometry.t_s - s.speed_window_s:
+        if then is None:
             return float(np.hypot(odometry.v_mps[0], odometry.v_mps[1]))
         moved = np.asarray(odometry.p_m, np.float64) - then
         return float(np.hypot(moved[0], moved[1])) / s.speed_window_s

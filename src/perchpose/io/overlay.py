@@ -61,6 +61,14 @@ def _draw_axes(
         cv2.line(out, o, end, colour, 2, cv2.LINE_AA)
 
 
+def _evidence(estimate: Estimate) -> str:
+    """What a valid pose rests on: the markers this frame measured, or the filter's
+    prediction and how far ahead of its newest measurement."""
+    if estimate.predicted:
+        return f", predicted {estimate.age_s * 1000:.0f} ms on"
+    return f", measured {estimate.measured_label}" if estimate.detected else ""
+
+
 def _draw_text(out: NDArray[np.uint8], estimate: Estimate | None, note: str) -> None:
     if estimate is None or not estimate.valid:
         lines = [note or "no estimate"]
@@ -69,13 +77,7 @@ def _draw_text(out: NDArray[np.uint8], estimate: Estimate | None, note: str) -> 
             f"x {estimate.x_cm:6.1f} cm  y {estimate.y_cm:6.1f} cm",
             f"z {estimate.z_cm:6.1f} cm  yaw {estimate.yaw_deg:6.1f} deg",
             STAGE_NAMES.get(estimate.stage, "")
-            + (
-                f", predicted {estimate.age_s * 1000:.0f} ms on"
-                if estimate.predicted
-                else (", measured " + "+".join(f"m{i}" for i in estimate.detected))
-                if estimate.detected
-                else ""
-            )
+            + _evidence(estimate)
             + (f"  {note}" if note else ""),
         ]
     # white text on a darkened box: an outline drawn as thicker text would not sit under it

@@ -65,7 +65,7 @@ def estimate_row(
         valid=int(estimate.valid),
         stage=estimate.stage,
         total_ms=f"{estimate.timings.total_ms:.2f}",
-        measured="+".join(f"m{i}" for i in estimate.detected),
+        measured=estimate.measured_label,
     )
     if estimate.valid:
         row.update(
