@@ -4,20 +4,14 @@ from __future__ import annotations
 
 import click
 
-from perchpose.cli.common import board_options, board_spec
+from perchpose.cli.common import board_options, board_spec, dpi_option, sheet_out_option
 from perchpose.cli.group import group
 
 
 @group.command()
-@click.option(
-    "--out",
-    "out",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Output file: .svg, .pdf or .png.",
-)
+@sheet_out_option
 @board_options
-@click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
+@dpi_option
 def board(
     out: str, squares: str, square_mm: float, marker_mm: float, dictionary: str, dpi: int
 ) -> None:

@@ -38,6 +38,15 @@ target_option = click.option(
     "--target", "target_file", default=None, help="Target YAML (default: the paper's)."
 )
 quiet_option = click.option("--quiet", is_flag=True, help="No progress bar.")
+# a printable sheet (the target, a calibration board): where, and a PNG's resolution
+sheet_out_option = click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Output file: .svg, .pdf or .png.",
+)
+dpi_option = click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
 
 
 def show_progress(quiet: bool) -> bool:

@@ -4,20 +4,14 @@ from __future__ import annotations
 
 import click
 
-from perchpose.cli.common import load_target, target_option
+from perchpose.cli.common import dpi_option, load_target, sheet_out_option, target_option
 from perchpose.cli.group import group
 
 
 @group.command()
-@click.option(
-    "--out",
-    "out",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Output file: .svg, .pdf or .png.",
-)
+@sheet_out_option
 @target_option
-@click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
+@dpi_option
 @click.option(
     "--save-spec",
     default=None,
