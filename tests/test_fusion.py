@@ -80,7 +80,7 @@ def _measured(renderer: Renderer, T: np.ndarray) -> tuple[tuple, dict[int, Marke
 
 
 def _advance(markers: MarkerFilters, measurements: dict[int, MarkerPose], t_s: float) -> None:
-    markers.advance({i: np.array([m.yaw_rad, *m.t_m]) for i, m in measurements.items()}, t_s)
+    markers.advance({i: m.filter_z for i, m in measurements.items()}, t_s)
 
 
 def test_paper_fusion_fuses_the_filtered_markers_and_coasts_on_them(

@@ -239,9 +239,7 @@ class PerchingEstimator:
         clocks: tuple[float, float, float],
     ) -> Estimate:
         t0, t1, t2 = clocks
-        self._markers.advance(
-            {i: np.array([m.yaw_rad, *m.t_m]) for i, m in measurements.items()}, t
-        )
+        self._markers.advance({i: m.filter_z for i, m in measurements.items()}, t)
         for i, track in enumerate(self._markers.tracks):
             if i in measurements:
                 self._last_R[i] = measurements[i].T_camera_target[:3, :3].copy()

@@ -240,7 +240,7 @@ def _marker_poses(
     """The poses that fuse: the filtered poses (``MarkerFilters.contributing``), or this
     frame's raw measurements without the filter."""
     if not use_filter:
-        return {i: np.array([m.yaw_rad, *m.t_m]) for i, m in measurements.items()}
+        return {i: m.filter_z for i, m in measurements.items()}
     return markers.contributing(set(measurements))
 
 

@@ -72,6 +72,11 @@ class MarkerPose:
         """Target centre in the camera frame, (3,) metres."""
         return self.T_camera_target[:3, 3]
 
+    @property
+    def filter_z(self) -> Array:
+        """The pose as the filters measure it: (4,) [psi_rad, x_m, y_m, z_m]."""
+        return np.array([self.yaw_rad, *self.t_m])
+
 
 @dataclass(frozen=True)
 class PoseFailure:
