@@ -1,3 +1,4 @@
+import json
 import signal
 import subprocess
 import sys
@@ -320,3 +321,44 @@ def test_track_makes_the_folders_it_writes_into(
     assert code == 0
     assert out.stat().st_size > 0
     assert overlay.stat().st_size > 0
+
+
+def test_bench_times_a_rendered_approach(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "results" / "bench.json"
+    code, text, _ = _run(
+        [
+            "bench",
+            "--camera",
+            "preset:webcam",
+            "--frames",
+            "4",
+            "--repeat",
+            "1",
+            "--quiet",
+            "--json",
+            str(out),
+        ],
+        capsys,
+    )
+    assert code == 0
+    assert "opencv" in text
+    assert "perchpose-cold" in text
+    data = json.loads(out.read_text())
+    assert data["frames"] == 4
+    assert data["methods"]["perchpose"]["ratio_to_opencv"]["p50"] > 0
+
+
+def test_bench_refuses_a_source_without_its_calibration(
+    short_sequence: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, _, err = _run(["bench", str(short_sequence)], capsys)
+    assert code == 2
+    assert "--camera" in _single_error_line(err)
+    code, _, err = _run(
+        ["bench", str(short_sequence / "missing"), "--camera", str(short_sequence / "camera.yaml")],
+        capsys,
+    )
+    assert code == 2
+    assert "missing" in _single_error_line(err)

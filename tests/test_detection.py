@@ -194,3 +194,67 @@ def test_two_copies_in_view_are_never_fused(webcam: CameraModel, paper_target: T
     alone = np.full((480, 640), 90, np.uint8)
     _paste(alone, sheet, turned)
     assert {d.marker_index for d in detector.detect(alone)} == {0, 1}
+
+
+def test_a_small_marker_beside_a_large_one_skips_the_pattern_fit(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """At 90 cm through the webcam the outer marker spans about 90 px and the inner one 15 px:
+    with ``pattern_beside_ratio`` the inner keeps its edge-fitted corners (no pattern fit),
+    which stay within a tenth of a pixel of the pattern-fitted ones."""
+    from perchpose import refinement
+
+    calls: list[float] = []
+    fit = refinement.refine_corners_pattern
+
+    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(1.0)
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(refinement, "refine_corners_pattern", counted)
+    r = renderers["webcam"]
+    T = facing_pose(0.01, -0.02, 0.9, 0.4)
+    image = r.render(T, rng=np.random.default_rng(2))
+    full = {d.marker_index: d for d in MarkerDetector(r.camera, r.target).detect(image)}
+    assert len(calls) == 1
+    assert full[1].side_px < 20
+    assert full[0].side_px > 80
+    skipping = MarkerDetector(r.camera, r.target, pattern_beside_ratio=4.0)
+    skipped = {d.marker_index: d for d in skipping.detect(image)}
+    assert len(calls) == 1
+    assert np.array_equal(skipped[0].corners_px, full[0].corners_px)
+    assert not np.array_equal(skipped[1].corners_px, full[1].corners_px)
+    assert np.max(np.abs(skipped[1].corners_px - full[1].corners_px)) < 0.1
+
+
+def test_glare_around_a_target_in_shadow_is_clipped_away(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Under the harsh preset the surround saturates and the sheet's white margin thresholds
+    as dark beside it: no quad closes in the frame as it is. The clipped search finds the outer
+    marker, and its corners (fitted to the frame itself) sit where the geometry puts them."""
+    from perchpose import detection
+    from perchpose.sim.render import ImageQuality
+
+    r = renderers["fpv"]
+    T = facing_pose(0.03, -0.02, 1.0, 0.7)
+    image = r.render(T, ImageQuality.preset("harsh"), np.random.default_rng(1))
+    assert detection.has_glare(image)
+    truth = r.corners_px(T)[0]
+    assert truth is not None
+    detector = MarkerDetector(r.camera, r.target)
+    found = {d.marker_index: d for d in detector.detect(image)}
+    assert 0 in found
+    assert np.max(np.abs(found[0].corners_px - truth)) < 0.5
+    # the same frame without the clipped search: nothing
+    monkeypatch.setattr(detection, "has_glare", lambda grey: False)
+    assert MarkerDetector(r.camera, r.target).detect(image) == ()
+
+
+def test_without_glare_the_frame_is_searched_as_it_is(renderers: dict[str, Renderer]) -> None:
+    from perchpose import detection
+
+    r = renderers["fpv"]
+    image = r.render(facing_pose(0.0, 0.0, 0.5), rng=np.random.default_rng(0))
+    assert not detection.has_glare(image)
+    assert detection.has_glare(np.full((480, 640), 255, np.uint8))

@@ -73,6 +73,12 @@ def test_estimate_carries_markers_and_timings(renderers: dict[str, Renderer]) ->
         assert m.contributing
         assert m.measurement.reproj_rms_px < 1.0
     assert e.timings.total_ms >= e.timings.detect_ms > 0
+    assert e.timings.corners_ms > 0
+    assert e.timings.fuse_ms > 0
+    stages = [e.timings.stage_ms(stage) for stage in e.timings.STAGES]
+    assert min(stages) >= 0
+    # the stages partition the update: each clock reading ends one and starts the next
+    assert sum(stages) == pytest.approx(e.timings.total_ms, abs=1e-6)
 
 
 def _through_a_dropout(

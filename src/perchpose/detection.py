@@ -10,6 +10,8 @@ back through the lens model.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Iterable
 from typing import Literal
 
 import cv2
@@ -33,6 +35,7 @@ from perchpose.windows import (
 
 __all__ = [
     "CORNER_METHODS",
+    "PATTERN_BESIDE_RATIO",
     "CornerMethod",
     "MarkerDetector",
     "refine_corners",
@@ -51,26 +54,54 @@ CORNER_METHODS: tuple[CornerMethod, ...] = ("edges", "subpix")
 # A hinted marker under this side may drop out of tracking without sending the frame to the
 # full search; the tracking pass adds OpenCV's 3 px threshold window for such markers.
 SMALL_MARKER_SIDE_PX = 20.0
+# Glare: a frame with at least GLARE_FRACTION of its pixels at GLARE_LEVEL or above has its
+# quads searched in copies clipped at these levels (tried in this order, one a frame): a
+# level between the black border's grey and the white margin's works, and these cover white
+# margins from about 50 to 230 grey levels.
+GLARE_LEVEL = 250
+GLARE_FRACTION = 0.05
+GLARE_CLIP_LEVELS = (108, 72, 162, 48, 224)
+# A marker this many times smaller than another whose corners were fitted in the same frame
+# may go without the pattern fit (``MarkerDetector(pattern_beside_ratio=...)``).
+PATTERN_BESIDE_RATIO = 4.0
+
+
+def has_glare(grey: NDArray[np.uint8]) -> bool:
+    """Whether ``grey`` has a large saturated area (``GLARE_FRACTION`` of its pixels)."""
+    bright = int(np.count_nonzero(grey >= GLARE_LEVEL))
+    return bright >= GLARE_FRACTION * grey.size
 
 
 class MarkerDetector:
     """Finds the markers of ``target`` in grey images of ``camera``.
 
     All dictionaries of the target are searched in one ``detectMarkersMultiDict`` pass; ids that
-    are not the target's (dictionary, id) pairs are ignored.
+    are not the target's (dictionary, id) pairs are ignored. ``pattern_beside_ratio``: a marker
+    that many times smaller than another whose corners were fitted in the same frame keeps its
+    edge-fitted corners without the pattern fit (None: every small marker gets it).
     """
 
     def __init__(
-        self, camera: CameraModel, target: TargetSpec, corners: CornerMethod = "edges"
+        self,
+        camera: CameraModel,
+        target: TargetSpec,
+        corners: CornerMethod = "edges",
+        pattern_beside_ratio: float | None = None,
     ) -> None:
         if corners not in CORNER_METHODS:
             raise ValueError(f"corners must be one of {', '.join(CORNER_METHODS)}, got {corners!r}")
         self.camera = camera
         self.target = target
         self.corners = corners
+        self.pattern_beside_ratio = pattern_beside_ratio
         self.quads = QuadFinder(target, max(camera.size))
         self.fitter = CornerFitter(camera, target)
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
+        # seconds spent fitting corners during the last ``detect``
+        self.corners_s = 0.0
+        # glare: the clip level that found the markers last, the last level of the ladder tried
+        self._clip_level: int | None = None
+        self._next_level = -1
 
     def detect(
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
@@ -80,25 +111,80 @@ class MarkerDetector:
         hint : the previous frame's detections (see ``_find``). With ``corners="edges"`` (the
         default) each marker's corners are then refitted from its four border edges through
         the lens model (``perchpose.corners``); ``"subpix"`` keeps the ``cornerSubPix`` corners.
+
+        Glare: where a large part of the frame is saturated (a bright sky or lamps around a
+        target in shadow), the adaptive threshold sees the sheet's white margin as dark next to
+        the surround and no quad closes. The quads are then searched in the frame clipped at a
+        level between the sheet's black and white (corners are still fitted to the frame
+        itself): the level that found the markers last, and while none does, one more level of
+        ``GLARE_CLIP_LEVELS`` per frame (so a frame costs at most two searches).
         """
+        self.corners_s = 0.0
+        glare = has_glare(grey)
+        if not glare:
+            self._clip_level = None
+        found = self._detect_clipped(grey, hint, self._clip_level)
+        if found or not glare:
+            return found
+        self._next_level = (self._next_level + 1) % len(GLARE_CLIP_LEVELS)
+        level = GLARE_CLIP_LEVELS[self._next_level]
+        found = self._detect_clipped(grey, (), level)
+        if found:
+            self._clip_level = level
+        return found
+
+    def _detect_clipped(
+        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...], clip_level: int | None
+    ) -> tuple[MarkerDetection, ...]:
+        """Quads found in ``grey`` clipped at ``clip_level`` (None: as it is), corners fitted
+        to ``grey``."""
+        seen = grey if clip_level is None else np.minimum(grey, np.uint8(clip_level))
         if self.corners == "subpix":
-            return self._find(grey, hint)
+            return self._find(seen, hint)
         if hint:
-            tracked = self._track_edges(grey, hint)
+            tracked = self._track_edges(grey, seen, hint)
             if tracked is not None:
                 return tracked
-        return tuple(self.fit_corners(grey, det) or det for det in self._find(grey, hint))
+        found = self._find(seen, hint)
+        fitted = self._fit_all(grey, found)
+        return tuple(fitted[det.marker_index] or det for det in found)
 
-    def fit_corners(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
-        """``det`` with corners fitted to the image, or None (``CornerFitter.fit_corners``)."""
-        return self.fitter.fit_corners(grey, det)
+    def fit_corners(
+        self, grey: NDArray[np.uint8], det: MarkerDetection, *, pattern: bool = True
+    ) -> MarkerDetection | None:
+        """``det`` with corners fitted to the image, or None (``CornerFitter.fit_corners``);
+        the time it takes counts in ``corners_s``."""
+        t0 = time.perf_counter()
+        try:
+            return self.fitter.fit_corners(grey, det, pattern=pattern)
+        finally:
+            self.corners_s += time.perf_counter() - t0
+
+    def _fit_all(
+        self, grey: NDArray[np.uint8], found: Iterable[MarkerDetection]
+    ) -> dict[int, MarkerDetection | None]:
+        """Each of ``found`` with corners fitted (None where no fit succeeds), the largest
+        first. With ``pattern_beside_ratio`` set, a marker that many times smaller than one
+        whose corners were fitted goes without the pattern fit."""
+        out: dict[int, MarkerDetection | None] = {}
+        largest_px = 0.0
+        for det in sorted(found, key=lambda d: -d.side_px):
+            beside = (
+                self.pattern_beside_ratio is not None
+                and det.side_px * self.pattern_beside_ratio <= largest_px
+            )
+            fitted = self.fit_corners(grey, det, pattern=not beside)
+            out[det.marker_index] = fitted
+            if fitted is not None:
+                largest_px = max(largest_px, det.side_px)
+        return out
 
     def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> EdgeFit | None:
         """The edge fit alone of ``det``, or None (``CornerFitter.fit_edges``)."""
         return self.fitter.fit_edges(grey, det)
 
     def _track_edges(
-        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
+        self, grey: NDArray[np.uint8], seen: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
     ) -> tuple[MarkerDetection, ...] | None:
         """Tracking with edge-fitted corners: one single-threshold pass over a window of the
         image (the whole image when the window would cover most of it), then the edge fit
@@ -109,21 +195,22 @@ class MarkerDetector:
         rectified view around where they are predicted. None when a marker of 20 px or more is
         still not found: the caller then runs the full search. A hinted marker under 20 px (at
         the edge of detection, where markers come and go) may drop out without one. A small
-        marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners."""
+        marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads are
+        searched in ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
         quads = predicted_quads(self.target, hint)
         small = any(quad_side_px(q) < SMALL_MARKER_SIDE_PX for q in quads.values())
         detector = self.quads.tracking_small if small else self.quads.tracking
         box = tracking_window(grey.shape, quads)
         if box is None:
-            found = self.quads.find(grey, "raw", detector=detector)
+            found = self.quads.find(seen, "raw", detector=detector)
         else:
             x0, y0, x1, y1 = box
-            found = self.quads.find(grey[y0:y1, x0:x1], "raw", (x0, y0), detector)
+            found = self.quads.find(seen[y0:y1, x0:x1], "raw", (x0, y0), detector)
         result: dict[int, MarkerDetection] = {}
         missing = [d for d in hint if d.marker_index not in found]
         required = [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
-        for index, det in found.items():
-            fitted = self.fit_corners(grey, det)
+        for index, fitted in self._fit_all(grey, found.values()).items():
+            det = found[index]
             if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
                 required.append(index)  # a curved quad too far off for the fit
             else:
@@ -131,7 +218,7 @@ class MarkerDetector:
         again = required + [d.marker_index for d in missing if d.side_px < SMALL_MARKER_SIDE_PX]
         if again and self.rectify:
             retry = [quads[i] for i in again if i in quads]
-            for det in self._rectified_tracking(grey, retry):
+            for det in self._rectified_tracking(seen, retry):
                 if det.marker_index in again and det.marker_index not in result:
                     result[det.marker_index] = self.fit_corners(grey, det) or det
         if any(index not in result for index in required):

@@ -26,23 +26,25 @@ class CornerFitter:
         self.patterns = [printed_pattern(target, i) for i in range(len(target.markers))]
         self.pattern_settings = PatternFitSettings()
 
-    def fit_corners(self, grey: NDArray[np.uint8], det: MarkerDetection) -> MarkerDetection | None:
+    def fit_corners(
+        self, grey: NDArray[np.uint8], det: MarkerDetection, *, pattern: bool = True
+    ) -> MarkerDetection | None:
         """``det`` with corners fitted to the image, or None if no fit succeeds: from the
         marker's four border edges; for a marker whose cells span only a few blur widths,
         where the one-edge model pulls corners inwards, from its whole printed pattern,
-        starting from the edges' corners."""
+        starting from the edges' corners (unless ``pattern`` is False)."""
         i = det.marker_index
         cells = self.target.markers[i].cells
         edges = self.fit_edges(grey, det)
         corners = None if edges is None else edges.corners_px
-        pattern = self.patterns[i]
-        if pattern is not None and self.pattern_settings.applies(
+        printed = self.patterns[i] if pattern else None
+        if printed is not None and self.pattern_settings.applies(
             det.side_px, cells.shape[0], None if edges is None else edges.blur_px
         ):
             start = det.corners_px if edges is None else edges.corners_px
             blur = 1.0 if edges is None else edges.blur_px
             fitted = refine_corners_pattern(
-                grey, start, self.camera, pattern, self.pattern_settings, blur
+                grey, start, self.camera, printed, self.pattern_settings, blur
             )
             corners = fitted if fitted is not None else corners
         return (

@@ -113,12 +113,25 @@ class MarkerState:
 
 @dataclass(frozen=True)
 class Timings:
-    """Wall-clock milliseconds spent in each step of one update."""
+    """Wall-clock milliseconds spent in each step of one update: finding the markers' quads
+    (``detect_ms``), fitting their corners to the image (``corners_ms``), each marker's pose
+    (``pose_ms``), the per-marker filters (``filter_ms``) and the fusion (``fuse_ms``: with the
+    covariance fusion, its joint pose and its filter)."""
 
     detect_ms: float = 0.0
     pose_ms: float = 0.0
     filter_ms: float = 0.0
     total_ms: float = 0.0
+    corners_ms: float = 0.0
+    fuse_ms: float = 0.0
+
+    STAGES = ("detect", "corners", "pose", "filter", "fuse")
+
+    def stage_ms(self, stage: str) -> float:
+        """The milliseconds of one of ``STAGES``."""
+        if stage not in self.STAGES:
+            raise ValueError(f"unknown stage {stage!r} (one of {', '.join(self.STAGES)})")
+        return float(getattr(self, f"{stage}_ms"))
 
 
 NO_POSITION = (math.nan, math.nan, math.nan)

@@ -223,3 +223,69 @@ def test_noise_bank_is_white_seeded_and_changes_per_frame(renderers: dict[str, R
     # no correlation between frames, or between neighbouring pixels
     assert abs(float(np.corrcoef(a.ravel(), b.ravel())[0, 1])) < 0.02
     assert abs(float(np.corrcoef(a[:, 1:].ravel(), a[:, :-1].ravel())[0, 1])) < 0.02
+
+
+def test_harsh_preset_saturates_the_surround_and_bleeds_over_the_sheet(
+    renderers: dict[str, Renderer],
+) -> None:
+    from dataclasses import replace
+
+    r = renderers["webcam"]
+    T = facing_pose(0.0, 0.0, 0.6)
+    harsh = ImageQuality.preset("harsh")
+    still = replace(
+        harsh,
+        noise_sigma=0.0,
+        interference=0.0,
+        jpeg_quality=None,
+        motion_blur_px=0.0,
+        rolling_shutter_px=0.0,
+        vignetting=0.0,
+    )
+    image = r.render(T, still).astype(float)
+    # the surround saturates; the sheet's printed white sits far below it
+    assert np.mean(image >= 250) > 0.5
+    centre = image[240, 320]
+    assert centre < 150
+    # glare lifts the sheet's pixels next to the bright surround, more near its edge
+    no_bloom = r.render(T, replace(still, bloom=0.0)).astype(float)
+    lifted = image - no_bloom
+    assert lifted.max() > 5
+    assert lifted[240, 320] < 1.0
+
+
+def test_rolling_shutter_shifts_rows_from_the_middle_one(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    T = facing_pose(0.0, 0.0, 0.15, 0.3)  # the sheet's edges cross every row
+    clean = ImageQuality.preset("clean")
+    from dataclasses import replace
+
+    sheared = r.render(T, replace(clean, rolling_shutter_px=8.0)).astype(float)
+    straight = r.render(T, clean).astype(float)
+    h = straight.shape[0]
+
+    def edge_x(image: NDArray[np.float64], row: int) -> float:
+        """Sub-pixel column of the strongest horizontal step in ``row``."""
+        profile = image[row]
+        step = np.abs(np.diff(profile))
+        return float(np.sum(np.arange(len(step)) * step) / np.sum(step))
+
+    rows = (60, h // 2, h - 61)
+    shifts = [edge_x(sheared, y) - edge_x(straight, y) for y in rows]
+    expected = [8.0 * (y / (h - 1) - 0.5) for y in rows]
+    assert shifts == pytest.approx(expected, abs=0.15)
+
+
+def test_interference_bands_and_streaks_are_seeded(renderers: dict[str, Renderer]) -> None:
+    r = renderers["webcam"]
+    T = facing_pose(0.0, 0.0, 2.0)
+    q = ImageQuality(noise_sigma=0.0, blur_sigma_px=0.0, interference=6.0)
+    a = r.render(T, q, np.random.default_rng(3))
+    b = r.render(T, q, np.random.default_rng(3))
+    c = r.render(T, q, np.random.default_rng(4))
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+    # rows away from the sheet: a band of about 6 levels either way around the surround
+    plain = r.render(T, ImageQuality(noise_sigma=0.0, blur_sigma_px=0.0)).astype(float)
+    rows = np.median((a.astype(float) - plain)[:, :100], axis=1)
+    assert 10.0 <= rows.max() - rows.min() <= 13.0

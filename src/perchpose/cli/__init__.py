@@ -4,6 +4,7 @@ function and printing. Errors in a user's input come back from the library as
 """
 
 from perchpose.cli import (  # noqa: F401  (each module registers its command on the group)
+    bench,
     board,
     calibrate,
     demo,

@@ -460,8 +460,9 @@ def fusion_samples(
     tick: Tick = _no_tick,
 ) -> FusionSamples:
     """The paper's protocol: random positions and headings, ``frames`` frames each, raw
-    per-marker measurements where both markers give a pose."""
-    est = PerchingEstimator(renderer.camera, renderer.target, use_filter=False)
+    per-marker measurements where both markers give a pose, as the paper's fusion takes them
+    (every small marker with its pattern fit)."""
+    est = PerchingEstimator(renderer.camera, renderer.target, use_filter=False, fusion="paper")
     truth, outer, inner, index = [], [], [], []
     for p in range(positions):
         z = float(rng.uniform(*z_range_m))

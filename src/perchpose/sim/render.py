@@ -39,6 +39,14 @@ class ImageQuality:
     noise_sigma : standard deviation of additive Gaussian sensor noise, grey levels.
     jpeg_quality : JPEG compression quality 1-100, or None for none.
     vignetting : relative darkening at the image corners (0 none, 0.4 strong).
+    bloom_sigma_px, bloom : light above the sensor's saturation (a surround brighter than the
+        printed white: lamps or sky above the plate) spreading over its neighbours, as a lens's
+        veiling glare does: that excess, blurred by a Gaussian of bloom_sigma_px and scaled by
+        bloom, is added back (0: none).
+    interference : analog interference, grey levels: horizontal bands of that amplitude at a
+        period and phase drawn per frame, and a few rows per frame streaked with bright noise.
+    rolling_shutter_px : how far the last row is shifted sideways against the first (a camera
+        turning while its rows are read out); the middle row stays where the pose puts it.
     """
 
     black_level: float = 25.0
@@ -51,10 +59,18 @@ class ImageQuality:
     noise_sigma: float = 2.0
     jpeg_quality: int | None = None
     vignetting: float = 0.0
+    bloom_sigma_px: float = 0.0
+    bloom: float = 0.0
+    interference: float = 0.0
+    rolling_shutter_px: float = 0.0
 
     @staticmethod
     def preset(name: str) -> ImageQuality:
-        """``clean``, ``default`` or ``analog_fpv`` (noise, blur, low contrast, JPEG)."""
+        """``clean``, ``default``, ``analog_fpv`` (noise, blur, low contrast, JPEG) or
+        ``harsh`` (an analog link on a moving vehicle under a bright sky: the target in shadow
+        and the auto-exposure set by the surround, which is 3 times brighter than the printed
+        white and bleeds over the sheet's edges; 5 px of motion blur, 1.3 px of optical blur,
+        noise of 8 grey levels, interference, 4 px of rolling shutter, JPEG 40)."""
         if name == "clean":
             return ImageQuality(blur_sigma_px=0.0, noise_sigma=0.0)
         if name == "default":
@@ -67,6 +83,23 @@ class ImageQuality:
                 noise_sigma=6.0,
                 jpeg_quality=70,
                 vignetting=0.3,
+            )
+        if name == "harsh":
+            return ImageQuality(
+                black_level=55.0,
+                white_level=190.0,
+                surround=3.0,
+                exposure=0.6,
+                blur_sigma_px=1.3,
+                motion_blur_px=5.0,
+                motion_angle_deg=30.0,
+                noise_sigma=8.0,
+                jpeg_quality=40,
+                vignetting=0.3,
+                bloom_sigma_px=6.0,
+                bloom=0.6,
+                interference=6.0,
+                rolling_shutter_px=4.0,
             )
         raise ValueError(f"unknown image quality preset {name!r}")
 
@@ -98,6 +131,9 @@ P = TypeVar("P", bound=PlanarPattern)
 
 
 NOISE_BANK_SEED = 20240601
+# the grey level (before quantisation) above which a sensor's pixels saturate and the excess
+# light spreads as glare (``ImageQuality.bloom``)
+SATURATION = 255.0
 
 
 @dataclass
@@ -357,16 +393,23 @@ class Renderer(Generic[P]):
     def _degrade(
         self, img: NDArray[np.float32], q: ImageQuality, rng: np.random.Generator | None
     ) -> NDArray[np.uint8]:
-        """What happens to the light after the lens: vignetting, motion blur, sensor noise,
-        8-bit quantisation and JPEG."""
+        """What happens to the light after the lens: glare, vignetting, motion blur, rolling
+        shutter, sensor noise and interference, 8-bit quantisation and JPEG."""
         w, h = self.camera.size
+        generator = rng if rng is not None else np.random.default_rng(0)
+        if q.bloom > 0 and q.bloom_sigma_px > 0:
+            excess = np.maximum(img - np.float32(SATURATION), np.float32(0.0))
+            if float(excess.max()) > 0:
+                glow = cv2.GaussianBlur(excess, (0, 0), q.bloom_sigma_px)
+                img = np.asarray(img + np.float32(q.bloom) * glow, np.float32)
         if q.vignetting > 0:
             img *= 1.0 - np.float32(q.vignetting) * self._vignette_map()
         if q.motion_blur_px >= 1.0:
             kernel = _motion_kernel(q.motion_blur_px, q.motion_angle_deg)
             img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
+        if q.rolling_shutter_px != 0:
+            img = _rolling_shutter(img, q.rolling_shutter_px)
         if q.noise_sigma > 0:
-            generator = rng if rng is not None else np.random.default_rng(0)
             if self.noise_bank:
                 bank = self._noise_bank()
                 oy, ox = int(generator.integers(0, h + 1)), int(generator.integers(0, w + 1))
@@ -380,6 +423,8 @@ class Renderer(Generic[P]):
                 cv2.setRNGSeed(int(generator.integers(1, 2**31 - 1)))
                 cv2.randn(noise, np.zeros(1), np.full(1, float(q.noise_sigma)))
                 img += noise
+        if q.interference > 0:
+            img = _interference(img, q.interference, generator)
         # round half to even and saturate, as numpy's round-and-clip would
         np.maximum(img, np.float32(0.0), out=img)
         out = np.asarray(cv2.convertScaleAbs(img), np.uint8)
@@ -445,6 +490,40 @@ def _fibonacci_lattice(count: int) -> Array:
     u = (k + 0.5) / count
     v = ((k * step) % count + 0.5) / count
     return np.stack([u, v], 1) - 0.5
+
+
+def _rolling_shutter(img: NDArray[np.float32], shift_px: float) -> NDArray[np.float32]:
+    """Each row shifted sideways in proportion to its distance from the middle row, the last
+    row ``shift_px`` from the first (bilinear; the border row repeated)."""
+    h, w = img.shape
+    rows = (np.arange(h, dtype=np.float32) / max(1, h - 1) - 0.5) * np.float32(shift_px)
+    map_x = np.arange(w, dtype=np.float32)[None, :] - rows[:, None]
+    map_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
+    return np.asarray(
+        cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+        np.float32,
+    )
+
+
+def _interference(
+    img: NDArray[np.float32], amplitude: float, rng: np.random.Generator
+) -> NDArray[np.float32]:
+    """Analog interference: horizontal bands of ``amplitude`` grey levels (a period of 20-120
+    rows, drifting phase) and 2-6 rows streaked with bright noise over part of their width."""
+    h, w = img.shape
+    period = float(rng.uniform(20.0, 120.0))
+    phase = float(rng.uniform(0.0, 2.0 * math.pi))
+    bands = amplitude * np.sin(2.0 * math.pi * np.arange(h) / period + phase)
+    out = img + bands.astype(np.float32)[:, None]
+    for _ in range(int(rng.integers(2, 7))):
+        row = int(rng.integers(0, h))
+        start = int(rng.integers(0, w))
+        length = int(rng.integers(w // 8, w // 2))
+        stop = min(w, start + length)
+        out[row, start:stop] += np.float32(4.0 * amplitude) * rng.random(stop - start).astype(
+            np.float32
+        )
+    return np.asarray(out, np.float32)
 
 
 def _motion_kernel(length_px: float, angle_deg: float) -> NDArray[np.float32]:

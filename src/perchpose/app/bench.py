@@ -1,0 +1,379 @@
+"""What a frame costs (the ``perchpose bench`` command): perchpose's pipeline against OpenCV's
+``detectMarkers`` and the paper's pipeline on the same frames, in the same run, on one thread.
+
+Each method runs over every frame, the methods taking turns frame by frame (in a rotating
+order, so none always runs on a warm cache); the whole sequence is run ``repeat`` times with
+fresh methods, and each frame's time is the least of its repeats (what the frame costs, without
+the machine's hiccups). Times are wall-clock from the frame in memory to the method's answer:
+the latency a caller sees. Ratios divide a method's percentile by the baseline's same
+percentile; the worst frame is the largest of a frame's time over the baseline's time on that
+frame.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from perchpose.camera import CameraModel
+from perchpose.errors import PerchposeError, SourceError
+from perchpose.estimator import PerchingEstimator
+from perchpose.geometry import wrap_angle_deg, yaw_rad
+from perchpose.io.sources import open_source
+from perchpose.sim.render import ImageQuality, Renderer
+from perchpose.sim.scenarios import approach, markers_in_view
+from perchpose.sim.sequence import render_frame
+from perchpose.target import TargetSpec, aruco_dictionary
+from perchpose.values import Estimate, Timings
+
+Array = NDArray[np.float64]
+
+BASELINE = "opencv"
+PERCENTILES = (50, 95, 99, 100)
+
+
+@dataclass(frozen=True)
+class BenchFrames:
+    """Grey frames to time, their capture times and, for rendered frames, the true pose of
+    the target in each (None where unknown) and whether any marker is in view."""
+
+    description: str
+    images: list[NDArray[np.uint8]]
+    t_s: list[float]
+    truth: list[Array | None]
+    in_view: list[bool]
+
+
+def rendered_frames(
+    camera: CameraModel,
+    target: TargetSpec,
+    frames: int = 240,
+    quality: ImageQuality | None = None,
+    seed: int = 0,
+    progress: bool = False,
+) -> BenchFrames:
+    """An approach from 150 cm to contact at 30 fps (the demo's, with its two dropouts),
+    rendered through ``camera``."""
+    if frames < 2:
+        raise PerchposeError(f"--frames must be at least 2, got {frames}")
+    scenario = approach(duration_s=frames / 30.0, quality=quality)
+    renderer = Renderer(camera, target)
+    rng = np.random.default_rng(seed)
+    images, truth, in_view = [], [], []
+    for i in tqdm(
+        range(len(scenario)),
+        desc="render",
+        unit="frame",
+        disable=not progress,
+        file=sys.stderr,
+        leave=False,
+    ):
+        image = render_frame(renderer, scenario, i, rng)
+        images.append(camera.check_image(image))
+        T = scenario.poses[i]
+        truth.append(T)
+        in_view.append(not scenario.dropout[i] and any(markers_in_view(camera, target, T)))
+    return BenchFrames(
+        f"rendered approach, {len(images)} frames, camera '{camera.name}'",
+        images,
+        [float(t) for t in scenario.t_s],
+        truth,
+        in_view,
+    )
+
+
+def source_frames(source: str, camera: CameraModel, max_frames: int | None = None) -> BenchFrames:
+    """Up to ``max_frames`` readable frames of a folder, glob, video or camera, read into
+    memory first (reading and decoding are not timed)."""
+    frames = open_source(source, None, camera.size)
+    images: list[NDArray[np.uint8]] = []
+    t_s: list[float] = []
+    for frame in frames:
+        if max_frames is not None and len(images) >= max_frames:
+            break
+        if frame.image is None:
+            continue
+        images.append(camera.check_image(frame.image))
+        t_s.append(frame.t_s)
+    if not images:
+        raise SourceError(f"{source}: no readable frame to time")
+    unknown: list[Array | None] = [None] * len(images)
+    return BenchFrames(
+        f"{frames.description}, {len(images)} frames", images, t_s, unknown, [True] * len(images)
+    )
+
+
+class _OpenCV:
+    """OpenCV's ``ArucoDetector.detectMarkers`` with the dictionary of the target's first
+    marker (all of it) and its SUBPIX corners: the baseline."""
+
+    description = "OpenCV detectMarkers, one dictionary, SUBPIX corners"
+
+    def __init__(self, target: TargetSpec) -> None:
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        dictionary = aruco_dictionary(target.markers[0].dictionary)
+        self.detector = cv2.aruco.ArucoDetector(dictionary, params)
+
+    def __call__(self, grey: NDArray[np.uint8], t_s: float) -> Estimate | None:
+        self.detector.detectMarkers(grey)
+        return None
+
+    def warm(self, grey: NDArray[np.uint8]) -> None:
+        self.detector.detectMarkers(grey)
+
+
+class _Pipeline:
+    """A ``PerchingEstimator``; ``cold`` forgets every frame before the next (no tracking)."""
+
+    def __init__(self, description: str, estimator: PerchingEstimator, cold: bool) -> None:
+        self.description = description
+        self.estimator = estimator
+        self.cold = cold
+
+    def __call__(self, grey: NDArray[np.uint8], t_s: float) -> Estimate | None:
+        if self.cold:
+            self.estimator.reset()
+        return self.estimator.update(grey, t_s)
+
+    def warm(self, grey: NDArray[np.uint8]) -> None:
+        """Build what is built once per camera (rectification maps, tables), then forget."""
+        self.estimator.update(grey, 0.0)
+        self.estimator.reset()
+
+
+Method = _OpenCV | _Pipeline
+
+
+def _methods(camera: CameraModel, target: TargetSpec) -> dict[str, Method]:
+    return {
+        BASELINE: _OpenCV(target),
+        "perchpose": _Pipeline(
+            "perchpose default (tracking from the previous frame)",
+            PerchingEstimator(camera, target),
+            cold=False,
+        ),
+        "perchpose-cold": _Pipeline(
+            "perchpose default, every frame searched whole (no previous frame)",
+            PerchingEstimator(camera, target),
+            cold=True,
+        ),
+        "paper": _Pipeline(
+            "the paper's pipeline (fusion paper, corners subpix)",
+            PerchingEstimator(camera, target, fusion="paper", corners="subpix"),
+            cold=False,
+        ),
+    }
+
+
+@dataclass(frozen=True)
+class MethodResult:
+    """One method's per-frame times (ms, the least of the repeats), the estimates of its last
+    repeat, and its description."""
+
+    name: str
+    description: str
+    ms: Array
+    estimates: list[Estimate | None]
+
+
+@dataclass(frozen=True)
+class BenchReport:
+    """What ``bench`` measured. ``stages_ms``: the default pipeline's per-frame time in each
+    stage (``Timings.STAGES``), the least of the repeats."""
+
+    frames: BenchFrames
+    repeat: int
+    methods: dict[str, MethodResult]
+    stages_ms: dict[str, Array] = field(repr=False)
+
+    def percentiles(self, name: str) -> dict[str, float]:
+        ms = self.methods[name].ms
+        return {_label(q): float(np.percentile(ms, q)) for q in PERCENTILES}
+
+    def ratios(self, name: str) -> dict[str, float]:
+        """The method's median, p99 and max over the baseline's, and its worst frame."""
+        mine, base = self.methods[name].ms, self.methods[BASELINE].ms
+        out = {
+            _label(q): float(np.percentile(mine, q) / np.percentile(base, q)) for q in (50, 99, 100)
+        }
+        out["worst_frame"] = float(np.max(mine / base))
+        return out
+
+    def accuracy(self, name: str) -> dict[str, float] | None:
+        """Against the rendered truth, on the frames with a marker in view: those without a
+        pose, the largest position error as a percentage of the distance, and the largest yaw
+        error (deg); None for the baseline or frames without truth."""
+        result = self.methods[name]
+        if name == BASELINE or all(T is None for T in self.frames.truth):
+            return None
+        missed = 0
+        position_pct: list[float] = []
+        yaw_deg: list[float] = []
+        for estimate, T, seen in zip(
+            result.estimates, self.frames.truth, self.frames.in_view, strict=True
+        ):
+            if T is None or estimate is None or not seen:
+                continue  # a pose coasted through a dropout is the filter's guess
+            if not estimate.valid:
+                missed += int(seen)
+                continue
+            distance = float(np.linalg.norm(T[:3, 3]))
+            error = float(np.linalg.norm(estimate.t_m - T[:3, 3]))
+            position_pct.append(100.0 * error / distance)
+            yaw_deg.append(abs(wrap_angle_deg(estimate.yaw_deg - math.degrees(yaw_rad(T[:3, :3])))))
+        return {
+            "in_view_without_pose": float(missed),
+            "max_position_error_pct": max(position_pct, default=math.nan),
+            "p95_position_error_pct": _p95(position_pct),
+            "max_yaw_error_deg": max(yaw_deg, default=math.nan),
+            "p95_yaw_error_deg": _p95(yaw_deg),
+        }
+
+    def to_json(self) -> dict[str, Any]:
+        """The report as plain JSON values."""
+        methods: dict[str, Any] = {}
+        for name, result in self.methods.items():
+            entry: dict[str, Any] = {
+                "description": result.description,
+                "ms": self.percentiles(name),
+                "mean_ms": float(np.mean(result.ms)),
+            }
+            if name != BASELINE:
+                entry["ratio_to_opencv"] = self.ratios(name)
+                entry["frames_with_pose"] = sum(
+                    1 for e in result.estimates if e is not None and e.valid
+                )
+                accuracy = self.accuracy(name)
+                if accuracy is not None:
+                    entry["accuracy"] = accuracy
+            methods[name] = entry
+        return {
+            "source": self.frames.description,
+            "frames": len(self.frames.images),
+            "repeat": self.repeat,
+            "threads": 1,
+            "baseline": BASELINE,
+            "times": "wall-clock ms from the frame in memory to the answer, least of the repeats",
+            "methods": methods,
+            "stages_ms": {
+                stage: {_label(q): float(np.percentile(ms, q)) for q in PERCENTILES}
+                for stage, ms in self.stages_ms.items()
+            },
+        }
+
+
+def _label(q: int) -> str:
+    return "max" if q == 100 else f"p{q}"
+
+
+def _p95(values: list[float]) -> float:
+    return float(np.percentile(values, 95)) if values else math.nan
+
+
+@contextmanager
+def _one_thread() -> Iterator[None]:
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(previous)
+
+
+def bench(
+    frames: BenchFrames,
+    camera: CameraModel,
+    target: TargetSpec,
+    repeat: int = 3,
+    progress: bool = False,
+    methods: Callable[[CameraModel, TargetSpec], dict[str, Method]] = _methods,
+) -> BenchReport:
+    """Time every method on every frame of ``frames``, ``repeat`` times, on one thread."""
+    if repeat < 1:
+        raise PerchposeError(f"--repeat must be at least 1, got {repeat}")
+    n = len(frames.images)
+    names = list(methods(camera, target))
+    best = {name: np.full(n, np.inf) for name in names}
+    stages = {stage: np.full(n, np.inf) for stage in Timings.STAGES}
+    last: dict[str, list[Estimate | None]] = {}
+    descriptions: dict[str, str] = {}
+    bar = tqdm(total=repeat * n, desc="bench", unit="frame", disable=not progress, file=sys.stderr)
+    with _one_thread(), bar:
+        for _ in range(repeat):
+            fresh = methods(camera, target)
+            for method in fresh.values():  # what is built once per camera is not timed
+                method.warm(frames.images[0])
+            descriptions = {name: m.description for name, m in fresh.items()}
+            last = {name: [] for name in names}
+            for k, (grey, t_s) in enumerate(zip(frames.images, frames.t_s, strict=True)):
+                turn = names[k % len(names) :] + names[: k % len(names)]
+                for name in turn:
+                    t0 = time.perf_counter()
+                    estimate = fresh[name](grey, t_s)
+                    spent_ms = (time.perf_counter() - t0) * 1e3
+                    best[name][k] = min(best[name][k], spent_ms)
+                    last[name].append(estimate)
+                    if name == "perchpose" and estimate is not None:
+                        for stage in Timings.STAGES:
+                            stages[stage][k] = min(
+                                stages[stage][k], estimate.timings.stage_ms(stage)
+                            )
+                bar.update(1)
+    return BenchReport(
+        frames,
+        repeat,
+        {name: MethodResult(name, descriptions[name], best[name], last[name]) for name in names},
+        stages,
+    )
+
+
+def format_report(report: BenchReport) -> str:
+    """The report as text: a table of the methods, then the default pipeline's stages."""
+    data = report.to_json()
+    lines = [
+        f"{data['source']}; one thread, least of {report.repeat} runs per frame",
+        "",
+        f"{'method':16s} {'p50 ms':>8s} {'p95 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} "
+        f"{'p50 x':>7s} {'p99 x':>7s} {'worst x':>8s} {'poses':>6s}",
+    ]
+    for name, entry in data["methods"].items():
+        ms = entry["ms"]
+        ratio = entry.get("ratio_to_opencv", {})
+        poses = entry.get("frames_with_pose")
+        lines.append(
+            f"{name:16s} {ms['p50']:8.2f} {ms['p95']:8.2f} {ms['p99']:8.2f} {ms['max']:8.2f} "
+            + (
+                f"{ratio['p50']:7.2f} {ratio['p99']:7.2f} {ratio['worst_frame']:8.2f} {poses:6d}"
+                if ratio
+                else f"{'1':>7s} {'1':>7s} {'1':>8s} {'-':>6s}"
+            )
+        )
+    lines += ["", "x: the method's time over OpenCV's (same percentile; worst: per frame)"]
+    lines += ["", f"perchpose by stage {'p50 ms':>10s} {'p95 ms':>8s} {'max ms':>8s}"]
+    for stage, ms in data["stages_ms"].items():
+        lines.append(f"  {stage:22s} {ms['p50']:8.2f} {ms['p95']:8.2f} {ms['max']:8.2f}")
+    accurate = {n: e["accuracy"] for n, e in data["methods"].items() if "accuracy" in e}
+    if accurate:
+        lines += [
+            "",
+            f"against the truth {'in view, no pose':>18s} {'position p95/max %':>20s} "
+            f"{'yaw p95/max deg':>16s}",
+        ]
+        for name, a in accurate.items():
+            lines.append(
+                f"  {name:16s} {int(a['in_view_without_pose']):16d} "
+                f"{a['p95_position_error_pct']:9.2f}/{a['max_position_error_pct']:<9.2f} "
+                f"{a['p95_yaw_error_deg']:7.2f}/{a['max_yaw_error_deg']:<7.2f}"
+            )
+    return "\n".join(lines)

@@ -1,0 +1,90 @@
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perchpose import CameraModel, TargetSpec
+from perchpose.app.bench import (
+    BASELINE,
+    BenchReport,
+    bench,
+    format_report,
+    rendered_frames,
+    source_frames,
+)
+from perchpose.errors import PerchposeError, SourceError
+from perchpose.values import Timings
+
+
+@pytest.fixture(scope="module")
+def report(paper_target: TargetSpec) -> BenchReport:
+    camera = CameraModel.preset("webcam")
+    frames = rendered_frames(camera, paper_target, 10)
+    return bench(frames, camera, paper_target, repeat=2)
+
+
+def test_every_method_is_timed_on_every_frame(report: BenchReport) -> None:
+    assert set(report.methods) == {BASELINE, "perchpose", "perchpose-cold", "paper"}
+    for result in report.methods.values():
+        assert result.ms.shape == (10,)
+        assert np.all(np.isfinite(result.ms))
+        assert np.all(result.ms > 0)
+        assert len(result.estimates) == 10
+    for stage in Timings.STAGES:
+        assert np.all(np.isfinite(report.stages_ms[stage]))
+    # the stages are parts of the pipeline's own time (the call around them costs a little)
+    parts = sum(report.stages_ms[stage] for stage in Timings.STAGES)
+    assert np.all(parts <= report.methods["perchpose"].ms + 1e-6)
+
+
+def test_ratios_divide_by_the_baseline_on_the_same_frames(report: BenchReport) -> None:
+    mine, base = report.methods["perchpose"].ms, report.methods[BASELINE].ms
+    ratios = report.ratios("perchpose")
+    assert ratios["p50"] == pytest.approx(np.median(mine) / np.median(base))
+    assert ratios["worst_frame"] == pytest.approx(np.max(mine / base))
+    assert report.ratios(BASELINE)["p50"] == pytest.approx(1.0)
+
+
+def test_accuracy_against_the_rendered_truth(report: BenchReport) -> None:
+    assert report.accuracy(BASELINE) is None
+    accuracy = report.accuracy("perchpose")
+    assert accuracy is not None
+    # the first frames of the approach, 150 cm away, all in view: a pose on each, well within
+    # 1 % of the distance
+    assert accuracy["in_view_without_pose"] == 0
+    assert accuracy["max_position_error_pct"] < 1.0
+    assert accuracy["max_yaw_error_deg"] < 1.0
+
+
+def test_json_and_text(report: BenchReport) -> None:
+    data = json.loads(json.dumps(report.to_json()))
+    assert (data["frames"], data["threads"], data["baseline"]) == (10, 1, BASELINE)
+    assert data["methods"]["perchpose"]["frames_with_pose"] == 10
+    assert set(data["stages_ms"]) == set(Timings.STAGES)
+    text = format_report(report)
+    for name in report.methods:
+        assert name in text
+
+
+def test_source_frames_skip_nothing_readable(
+    approach_webcam_dir: Path, webcam: CameraModel
+) -> None:
+    frames = source_frames(str(approach_webcam_dir), webcam, max_frames=5)
+    assert len(frames.images) == 5
+    assert all(T is None for T in frames.truth)
+    camera = CameraModel.preset("webcam")
+    report = bench(frames, camera, TargetSpec.paper(), repeat=1)
+    assert report.accuracy("perchpose") is None
+    assert math.isfinite(report.ratios("perchpose")["p50"])
+
+
+def test_bad_input(tmp_path: Path, webcam: CameraModel, paper_target: TargetSpec) -> None:
+    with pytest.raises(SourceError, match="no such file"):
+        source_frames(str(tmp_path / "missing"), webcam)
+    with pytest.raises(PerchposeError, match="--frames"):
+        rendered_frames(webcam, paper_target, 1)
+    frames = rendered_frames(webcam, paper_target, 2)
+    with pytest.raises(PerchposeError, match="--repeat"):
+        bench(frames, webcam, paper_target, repeat=0)
