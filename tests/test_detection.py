@@ -258,3 +258,24 @@ def test_without_glare_the_frame_is_searched_as_it_is(renderers: dict[str, Rende
     image = r.render(facing_pose(0.0, 0.0, 0.5), rng=np.random.default_rng(0))
     assert not detection.has_glare(image)
     assert detection.has_glare(np.full((480, 640), 255, np.uint8))
+
+
+def test_a_shrunk_search_finds_the_quads_near_their_full_size_corners(
+    renderers: dict[str, Renderer],
+) -> None:
+    """The tracking pass searches large markers shrunk: the quads it finds at a quarter of the
+    size map back to within a pixel and a half of the full-size search's corners (a start for
+    the edge fit, which needs one within 0.6 of a cell: 20 px here)."""
+    from perchpose.quads import QuadFinder
+
+    r = renderers["webcam"]
+    image = r.render(facing_pose(0.01, 0.02, 0.4, 0.6), rng=np.random.default_rng(3))
+    finder = QuadFinder(r.target, 640)
+    full = finder.find(image, "raw")
+    assert set(full) == {0, 1}
+    lo = np.floor(full[0].corners_px.min(axis=0)).astype(int) - 40
+    hi = np.ceil(full[0].corners_px.max(axis=0)).astype(int) + 40
+    window = image[lo[1] : hi[1], lo[0] : hi[0]]
+    shrunk = finder.find(window, "raw", (int(lo[0]), int(lo[1])), finder.tracking, 0.25)
+    assert 0 in shrunk
+    assert np.max(np.abs(shrunk[0].corners_px - full[0].corners_px)) < 1.5

@@ -280,3 +280,40 @@ def test_the_stage_sequence_of_an_approach_is_pinned(approach_fpv_dir: Path, fus
     stages = [est.update(f.image, f.t_s).stage for f in open_source(str(approach_fpv_dir))]
     runs = [(stage, len(list(group))) for stage, group in itertools.groupby(stages)]
     assert runs == [(1, 6), (2, 1), (1, 5), (2, 26), (0, 4), (2, 29), (3, 19)]
+
+
+def test_a_budget_leaves_out_the_pattern_fit_and_says_so(renderers: dict[str, Renderer]) -> None:
+    """At 60 cm through the webcam the inner marker spans about 23 px and gets the pattern
+    fit; within a budget it cannot meet, the frame goes without it and says so, and the pose
+    is still there, near the unhurried one."""
+    r = renderers["webcam"]
+    T = facing_pose(0.02, -0.01, 0.6, 0.3)
+    image = r.render(T, rng=np.random.default_rng(4))
+    full = PerchingEstimator(r.camera, r.target, fusion="paper").update(image, 0.0)
+    hurried = PerchingEstimator(r.camera, r.target, fusion="paper", budget_ms=1e-3).update(
+        image, 0.0
+    )
+    assert full.skipped == ()
+    assert hurried.skipped == ("pattern fit m1",)
+    assert hurried.stage == full.stage == 2
+    assert np.linalg.norm(hurried.t_m - full.t_m) < 1e-3
+    with pytest.raises(ValueError, match="budget_ms"):
+        PerchingEstimator(r.camera, r.target, budget_ms=0.0)
+
+
+def test_a_budget_skips_the_search_after_tracking_lost_a_marker(
+    renderers: dict[str, Renderer],
+) -> None:
+    """Tracking loses the markers (a blank frame): without a budget the whole frame is
+    searched again; within one spent already the frame skips that search, the filter coasts
+    and the estimate says what was skipped."""
+    r = renderers["webcam"]
+    image = r.render(facing_pose(0.0, 0.0, 0.5, 0.2), rng=np.random.default_rng(1))
+    blank = np.full_like(image, 128)
+    for budget, expected in ((None, ()), (1e-3, ("search",))):
+        est = PerchingEstimator(r.camera, r.target, budget_ms=budget)
+        assert est.update(image, 0.0).valid
+        coasted = est.update(blank, 1 / 30)
+        assert coasted.skipped == expected
+        assert coasted.valid
+        assert coasted.predicted

@@ -11,7 +11,7 @@ back through the lens model.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Literal
 
 import cv2
@@ -54,6 +54,9 @@ CORNER_METHODS: tuple[CornerMethod, ...] = ("edges", "subpix")
 # A hinted marker under this side may drop out of tracking without sending the frame to the
 # full search; the tracking pass adds OpenCV's 3 px threshold window for such markers.
 SMALL_MARKER_SIDE_PX = 20.0
+# A pattern fit's first predicted cost, seconds per square pixel of the marker's side (about
+# 25 ms at 45 px on a 2-core x86 machine); each fit run updates the prediction.
+PATTERN_S_PER_PX2 = 1.2e-5
 # Glare: a frame with at least GLARE_FRACTION of its pixels at GLARE_LEVEL or above has its
 # quads searched in copies clipped at these levels (tried in this order, one a frame): a
 # level between the black border's grey and the white margin's works, and these cover white
@@ -61,6 +64,10 @@ SMALL_MARKER_SIDE_PX = 20.0
 GLARE_LEVEL = 250
 GLARE_FRACTION = 0.05
 GLARE_CLIP_LEVELS = (108, 72, 162, 48, 224)
+# While tracking, the window is searched shrunk so that the smallest predicted marker spans
+# this much (never enlarged): the quads are a start for the fit at full resolution, and a
+# large marker costs the detector a fraction of its pixels.
+TRACKING_SIDE_PX = 48.0
 # A marker this many times smaller than another whose corners were fitted in the same frame
 # may go without the pattern fit (``MarkerDetector(pattern_beside_ratio=...)``).
 PATTERN_BESIDE_RATIO = 4.0
@@ -94,6 +101,7 @@ class MarkerDetector:
         self.target = target
         self.corners = corners
         self.pattern_beside_ratio = pattern_beside_ratio
+        self.tracking_side_px = TRACKING_SIDE_PX
         self.quads = QuadFinder(target, max(camera.size))
         self.fitter = CornerFitter(camera, target)
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
@@ -102,9 +110,19 @@ class MarkerDetector:
         # glare: the clip level that found the markers last, the last level of the ladder tried
         self._clip_level: int | None = None
         self._next_level = -1
+        # the time budget of the current ``detect``, what it left out, and the pattern fit's
+        # cost per square pixel of marker side (learnt from the fits run; first guess from
+        # this machine: 25 ms at 45 px)
+        self._deadline_s: float | None = None
+        self.skipped: list[str] = []
+        self._pattern_s_per_px2 = PATTERN_S_PER_PX2
+        self._search_s = 0.0  # a whole-frame search's cost, learnt likewise
 
     def detect(
-        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
+        self,
+        grey: NDArray[np.uint8],
+        hint: tuple[MarkerDetection, ...] = (),
+        deadline_s: float | None = None,
     ) -> tuple[MarkerDetection, ...]:
         """Detect the target's markers in a grey (H, W) uint8 image of the camera's size.
 
@@ -118,13 +136,24 @@ class MarkerDetector:
         level between the sheet's black and white (corners are still fitted to the frame
         itself): the level that found the markers last, and while none does, one more level of
         ``GLARE_CLIP_LEVELS`` per frame (so a frame costs at most two searches).
+
+        deadline_s : a ``time.perf_counter()`` reading by which the detection should be done.
+        What would not end by then is left out where it can be (each step's cost predicted
+        from its runs so far): a pattern fit, the whole-frame search after tracking lost a
+        marker, and the search of another glare level. ``skipped`` names what this call left
+        out.
         """
         self.corners_s = 0.0
+        self.skipped = []
+        self._deadline_s = deadline_s
         glare = has_glare(grey)
         if not glare:
             self._clip_level = None
         found = self._detect_clipped(grey, hint, self._clip_level)
         if found or not glare:
+            return found
+        if self._late(self._search_s):
+            self.skipped.append("glare search")
             return found
         self._next_level = (self._next_level + 1) % len(GLARE_CLIP_LEVELS)
         level = GLARE_CLIP_LEVELS[self._next_level]
@@ -145,20 +174,34 @@ class MarkerDetector:
             tracked = self._track_edges(grey, seen, hint)
             if tracked is not None:
                 return tracked
+            if self._late(self._search_s):
+                self.skipped.append("search")
+                return ()
+        t0 = time.perf_counter()
         found = self._find(seen, hint)
+        self._search_s += 0.3 * (time.perf_counter() - t0 - self._search_s)
         fitted = self._fit_all(grey, found)
         return tuple(fitted[det.marker_index] or det for det in found)
 
     def fit_corners(
-        self, grey: NDArray[np.uint8], det: MarkerDetection, *, pattern: bool = True
+        self,
+        grey: NDArray[np.uint8],
+        det: MarkerDetection,
+        *,
+        pattern: Callable[[MarkerDetection], bool] | None = None,
     ) -> MarkerDetection | None:
         """``det`` with corners fitted to the image, or None (``CornerFitter.fit_corners``);
-        the time it takes counts in ``corners_s``."""
+        the time it takes counts in ``corners_s``, and a pattern fit's in the cost model that
+        predicts the next one's."""
         t0 = time.perf_counter()
         try:
             return self.fitter.fit_corners(grey, det, pattern=pattern)
         finally:
             self.corners_s += time.perf_counter() - t0
+            spent = self.fitter.pattern_s
+            if spent > 0:
+                rate = spent / max(1.0, det.side_px**2)
+                self._pattern_s_per_px2 += 0.3 * (rate - self._pattern_s_per_px2)
 
     def _fit_all(
         self, grey: NDArray[np.uint8], found: Iterable[MarkerDetection]
@@ -168,16 +211,27 @@ class MarkerDetector:
         whose corners were fitted goes without the pattern fit."""
         out: dict[int, MarkerDetection | None] = {}
         largest_px = 0.0
+
+        def pattern(det: MarkerDetection) -> bool:
+            ratio = self.pattern_beside_ratio
+            if ratio is not None and det.side_px * ratio <= largest_px:
+                return False
+            if self._late(self._pattern_s_per_px2 * det.side_px**2):
+                self.skipped.append(f"pattern fit m{det.marker_index}")
+                return False
+            return True
+
         for det in sorted(found, key=lambda d: -d.side_px):
-            beside = (
-                self.pattern_beside_ratio is not None
-                and det.side_px * self.pattern_beside_ratio <= largest_px
-            )
-            fitted = self.fit_corners(grey, det, pattern=not beside)
+            fitted = self.fit_corners(grey, det, pattern=pattern)
             out[det.marker_index] = fitted
             if fitted is not None:
                 largest_px = max(largest_px, det.side_px)
         return out
+
+    def _late(self, more_s: float) -> bool:
+        """Whether ``more_s`` seconds of work from now would end past the deadline."""
+        deadline = self._deadline_s
+        return deadline is not None and time.perf_counter() + more_s > deadline
 
     def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> EdgeFit | None:
         """The edge fit alone of ``det``, or None (``CornerFitter.fit_edges``)."""
@@ -201,11 +255,14 @@ class MarkerDetector:
         small = any(quad_side_px(q) < SMALL_MARKER_SIDE_PX for q in quads.values())
         detector = self.quads.tracking_small if small else self.quads.tracking
         box = tracking_window(grey.shape, quads)
+        # every predicted marker at least tracking_side_px across in the searched image
+        smallest = min((quad_side_px(q) for q in quads.values()), default=0.0)
+        scale = min(1.0, self.tracking_side_px / smallest) if smallest > 0 else 1.0
         if box is None:
-            found = self.quads.find(seen, "raw", detector=detector)
+            found = self.quads.find(seen, "raw", detector=detector, scale=scale)
         else:
             x0, y0, x1, y1 = box
-            found = self.quads.find(seen[y0:y1, x0:x1], "raw", (x0, y0), detector)
+            found = self.quads.find(seen[y0:y1, x0:x1], "raw", (x0, y0), detector, scale)
         result: dict[int, MarkerDetection] = {}
         missing = [d for d in hint if d.marker_index not in found]
         required = [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
@@ -60,6 +61,9 @@ class PerchingEstimator:
         covariance from the Jacobian, and one filter of the fused pose with a
         white-noise-acceleration model; settings in ``covariance_filter``) or ``"paper"``
         (per-marker filters fused with the fixed sigmas by stage, as in the paper).
+    budget_ms : a time budget per frame: past it the detection leaves out what it can (a
+        pattern fit, the whole-frame search after tracking lost a marker, another glare level;
+        ``MarkerDetector.detect``) and the estimate's ``skipped`` says what. None: no budget.
     """
 
     def __init__(
@@ -76,6 +80,7 @@ class PerchingEstimator:
         fusion: FusionMethod = "covariance",
         covariance_filter: CovarianceFilterSettings | None = None,
         disagree_chi2: float = DISAGREE_CHI2,
+        budget_ms: float | None = None,
     ) -> None:
         if fusion not in FUSION_METHODS:
             raise ValueError(f"fusion must be one of {', '.join(FUSION_METHODS)}, got {fusion!r}")
@@ -84,6 +89,12 @@ class PerchingEstimator:
         if not disagree_chi2 > 0:
             raise ValueError(f"disagree_chi2 must be positive, got {disagree_chi2}")
         self.disagree_chi2 = disagree_chi2
+        if budget_ms is not None and not (math.isfinite(budget_ms) and budget_ms > 0):
+            raise ValueError(f"budget_ms must be a positive number, got {budget_ms}")
+        self.budget_ms = budget_ms
+        # the time the last frame spent after detection (poses, filters, fusion): kept out of
+        # the detection's share of the budget
+        self._after_detect_s = 0.0
         n = len(target.markers)
         self.markers = tuple(range(n)) if markers is None else tuple(sorted(set(markers)))
         if not self.markers or not all(0 <= i < n for i in self.markers):
@@ -139,9 +150,16 @@ class PerchingEstimator:
         t = self._check_time(t_s)
         grey = self.camera.check_image(image)
         t0 = time.perf_counter()
-        detections = self.detector.detect(grey, self._hint)
+        deadline = (
+            None if self.budget_ms is None else t0 + self.budget_ms / 1e3 - self._after_detect_s
+        )
+        detections = self.detector.detect(grey, self._hint, deadline)
         self._hint = detections
-        return self._estimate(t, detections, t0, self.detector.corners_s)
+        estimate = self._estimate(t, detections, t0, self.detector.corners_s)
+        timings = estimate.timings
+        self._after_detect_s = (timings.pose_ms + timings.filter_ms + timings.fuse_ms) / 1e3
+        skipped = tuple(self.detector.skipped)
+        return replace(estimate, skipped=skipped) if skipped else estimate
 
     def update_detections(self, detections: tuple[MarkerDetection, ...], t_s: float) -> Estimate:
         """Process markers already detected (by ``self.detector`` or elsewhere) in a frame taken

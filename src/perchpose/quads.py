@@ -177,14 +177,24 @@ class QuadFinder:
         image_pass: ImagePass,
         offset: tuple[int, int] = (0, 0),
         detector: QuadPass | None = None,
+        scale: float = 1.0,
     ) -> dict[int, MarkerDetection]:
         """Markers of the target in ``grey``, with ``cornerSubPix`` corners shifted by
-        ``offset`` (a window's origin), by ``detector`` (the full search's by default)."""
+        ``offset`` (a window's origin), by ``detector`` (the full search's by default).
+        ``scale`` under 1 searches ``grey`` shrunk by that factor (area-averaged) and maps the
+        corners back: a start for a fit at full resolution, about a pixel of the shrunk image
+        off."""
         run = (detector or self.search).run
-        corners, ids, dict_indices = run(grey, self.image_size_px)
+        image = grey
+        if scale < 1.0:
+            size = (max(1, round(grey.shape[1] * scale)), max(1, round(grey.shape[0] * scale)))
+            image = np.asarray(cv2.resize(grey, size, interpolation=cv2.INTER_AREA), np.uint8)
+        corners, ids, dict_indices = run(image, round(self.image_size_px * min(1.0, scale)))
         candidates: dict[int, list[MarkerDetection]] = {}
         if ids is None or len(ids) == 0:
             return {}
+        # a pixel centre at u in the shrunk image is at (u + 0.5) / s - 0.5 in the original
+        factor = (grey.shape[1] / image.shape[1], grey.shape[0] / image.shape[0])
         for quad, marker_id, dict_index in zip(
             corners,
             np.asarray(ids).reshape(-1),
@@ -193,7 +203,9 @@ class QuadFinder:
         ):
             index = self.dict_marker_index[int(dict_index)][int(marker_id)]
             cells = int(self.target.markers[index].cells.shape[0])
-            refined = refine_corners(grey, np.asarray(quad, np.float64).reshape(4, 2), cells)
+            refined = refine_corners(image, np.asarray(quad, np.float64).reshape(4, 2), cells)
+            if image is not grey:
+                refined = (refined + 0.5) * np.array(factor) - 0.5
             det = MarkerDetection(index, refined + np.array(offset, np.float64), image_pass)
             candidates.setdefault(index, []).append(det)
         return one_target(self.target, candidates)

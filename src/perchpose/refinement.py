@@ -4,6 +4,9 @@ blur widths from its whole printed pattern (``perchpose.pattern_fit``)."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -25,28 +28,42 @@ class CornerFitter:
         self.margins = [target.white_margin_cells(i) for i in range(len(target.markers))]
         self.patterns = [printed_pattern(target, i) for i in range(len(target.markers))]
         self.pattern_settings = PatternFitSettings()
+        self.pattern_s = 0.0
 
     def fit_corners(
-        self, grey: NDArray[np.uint8], det: MarkerDetection, *, pattern: bool = True
+        self,
+        grey: NDArray[np.uint8],
+        det: MarkerDetection,
+        *,
+        pattern: Callable[[MarkerDetection], bool] | None = None,
     ) -> MarkerDetection | None:
         """``det`` with corners fitted to the image, or None if no fit succeeds: from the
         marker's four border edges; for a marker whose cells span only a few blur widths,
         where the one-edge model pulls corners inwards, from its whole printed pattern,
-        starting from the edges' corners (unless ``pattern`` is False)."""
+        starting from the edges' corners. ``pattern``, when given, is asked before a pattern
+        fit and may refuse it (the edges' corners stay). ``pattern_s``: the seconds the
+        pattern fit of this call took (0 without one)."""
+        self.pattern_s = 0.0
         i = det.marker_index
         cells = self.target.markers[i].cells
         edges = self.fit_edges(grey, det)
         corners = None if edges is None else edges.corners_px
-        printed = self.patterns[i] if pattern else None
-        if printed is not None and self.pattern_settings.applies(
-            det.side_px, cells.shape[0], None if edges is None else edges.blur_px
+        printed = self.patterns[i]
+        if (
+            printed is not None
+            and self.pattern_settings.applies(
+                det.side_px, cells.shape[0], None if edges is None else edges.blur_px
+            )
+            and (pattern is None or pattern(det))
         ):
+            t0 = time.perf_counter()
             start = det.corners_px if edges is None else edges.corners_px
             blur = 1.0 if edges is None else edges.blur_px
             fitted = refine_corners_pattern(
                 grey, start, self.camera, printed, self.pattern_settings, blur
             )
             corners = fitted if fitted is not None else corners
+            self.pattern_s = time.perf_counter() - t0
         return (
             None if corners is None else MarkerDetection(det.marker_index, corners, det.image_pass)
         )

@@ -154,6 +154,11 @@ class Estimate:
     age_s : seconds since the newest measurement the pose rests on (0 when this frame measured
         the target; a coasting filter's extrapolation is older). Links refuse poses older than
         their limit.
+    skipped : what the detection left out of this frame to stay within its time budget
+        (``PerchingEstimator(budget_ms=...)``): ``pattern fit m{i}``, ``search`` (the
+        whole-frame search after tracking lost a marker), ``glare search``.
+    latency_s : seconds from the frame's capture (or, for files, its reading) to this estimate,
+        where the caller knows it (``perchpose track`` does); NaN otherwise.
 
     ``x_cm``, ``y_cm``, ``z_cm`` and ``yaw_deg`` are the same pose in the paper's units.
     """
@@ -166,6 +171,8 @@ class Estimate:
     markers: tuple[MarkerState, ...] = ()
     timings: Timings = field(default_factory=Timings)
     age_s: float = 0.0
+    skipped: tuple[str, ...] = ()
+    latency_s: float = math.nan
 
     @classmethod
     def none(cls, t_s: float, markers: tuple[MarkerState, ...] = ()) -> Estimate:

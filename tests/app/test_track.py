@@ -94,3 +94,56 @@ def test_yaw_across_plus_minus_180(tracked: dict[str, tuple[Path, Path]], camera
     errors = frame_errors(rows, truth)
     measured = errors.valid & ~errors.dropout & (errors.truth_stage > 0)
     assert np.nanmax(np.abs(errors.yaw_error_deg[measured])) <= 3.0
+
+
+@pytest.mark.parametrize("camera_name", ["webcam", "fpv"])
+def test_each_row_says_its_latency(tracked: dict[str, tuple[Path, Path]], camera_name: str) -> None:
+    """From the frame's reading to its estimate: never less than the estimator's own time."""
+    rows = read_track_csv(tracked[camera_name][0])
+    for r in rows:
+        assert float(r["latency_ms"]) >= float(r["total_ms"])
+        assert r["skipped"] == ""
+
+
+def test_a_live_camera_drops_stale_frames_and_says_so(
+    approach_webcam_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The rendered approach as a live camera (a real capture of an MJPG video, grabbed on
+    its own thread as fast as it decodes, faster than the estimator): a row for every frame
+    in order; the overtaken ones stale, invalid and not passed to the vehicle links."""
+    import cv2
+
+    from perchpose.app import track as track_module
+    from perchpose.io.sources import VideoSource
+
+    video = tmp_path / "camera.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 30.0, (640, 480))
+    frames = sorted(approach_webcam_dir.glob("frame_*.png"))[:45]
+    for path in frames:
+        writer.write(cv2.imread(str(path)))
+    writer.release()
+
+    def live(source: str, fps: float | None, size: tuple[int, int]) -> VideoSource:
+        return VideoSource(cv2.VideoCapture(source), 30.0, "camera 0", live=True)
+
+    monkeypatch.setattr(track_module, "open_source", live)
+    seen: list[float] = []
+    camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
+    summary = track(
+        str(video),
+        PerchingEstimator(camera, TargetSpec.paper()),
+        tmp_path / "live.csv",
+        progress=False,
+        on_frame=[lambda estimate, t_s: seen.append(t_s)],
+    )
+    rows = read_track_csv(tmp_path / "live.csv")
+    assert [int(r["frame"]) for r in rows] == list(range(len(frames)))
+    stale = [r for r in rows if r["error"] == track_module.STALE]
+    assert stale
+    assert summary.stale_frames == len(stale)
+    assert summary.bad_frames == 0
+    assert all(r["valid"] == "0" for r in stale)
+    processed = [r for r in rows if not r["error"]]
+    assert len(seen) == len(processed)
+    assert all(r["latency_ms"] != "" for r in processed)
+    assert sum(r["valid"] == "1" for r in processed) >= len(processed) - 2

@@ -1,3 +1,4 @@
+import time
 from pathlib import Path
 
 import cv2
@@ -5,7 +6,7 @@ import numpy as np
 import pytest
 
 from perchpose.errors import SourceError
-from perchpose.io.sources import open_source
+from perchpose.io.sources import LatestFrame, VideoSource, open_source
 
 
 def _write_images(folder: Path, names: list[str]) -> None:
@@ -156,3 +157,61 @@ def test_a_truncated_jpeg_is_flagged(tmp_path: Path) -> None:
     assert a.error == ""
     assert b.image is not None  # the decoder greys the missing half out
     assert "truncated JPEG" in b.error
+
+
+def _numbered_video(path: Path, count: int) -> None:
+    """An MJPG video whose frame k is a flat grey of 4 k."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 30.0, (64, 48))
+    assert writer.isOpened()
+    for k in range(count):
+        writer.write(np.full((48, 64, 3), 4 * k, np.uint8))
+    writer.release()
+
+
+def test_a_live_capture_gives_the_newest_frame_and_marks_the_overtaken_stale(
+    tmp_path: Path,
+) -> None:
+    """A real capture read as a live camera (its own thread grabs as fast as it decodes)
+    behind a consumer that takes 15 ms a frame: every frame comes once, in order; those a
+    newer one overtook come stale and without an image; the others are the frame their index
+    says, stamped when grabbed."""
+    path = tmp_path / "live.avi"
+    _numbered_video(path, 60)
+    source = VideoSource(cv2.VideoCapture(str(path)), 30.0, "camera 7", live=True)
+    frames = []
+    for frame in source:
+        frames.append(frame)
+        if not frame.stale:
+            time.sleep(0.015)
+    assert [f.index for f in frames] == list(range(60))
+    stale = [f for f in frames if f.stale]
+    assert stale
+    assert source.stale == len(stale)
+    assert all(f.image is None for f in stale)
+    for f in frames:
+        if not f.stale:
+            assert f.image is not None
+            assert abs(float(f.image.mean()) - 4 * f.index) < 3
+    grabbed = [f.grabbed_s for f in frames]
+    assert grabbed == sorted(grabbed)
+    assert frames[0].t_s == 0.0
+    assert frames[-1].t_s == pytest.approx(grabbed[-1] - grabbed[0])
+    assert frames[5].file == "camera 7#5"
+
+
+def test_a_slow_consumer_does_not_queue_frames(tmp_path: Path) -> None:
+    """Taking one frame and stopping leaves no backlog: closing ends the grabbing thread."""
+    path = tmp_path / "live.avi"
+    _numbered_video(path, 30)
+    grabber = LatestFrame(cv2.VideoCapture(str(path)))
+    first = next(iter(grabber))
+    grabber.close()
+    assert first[2] is not None
+    assert not grabber.running
+
+
+def test_files_are_stamped_when_read(tmp_path: Path) -> None:
+    _write_images(tmp_path, ["a.png", "b.png"])
+    before = time.monotonic()
+    frames = list(open_source(str(tmp_path)))
+    assert before <= frames[0].grabbed_s <= frames[1].grabbed_s <= time.monotonic()

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import sys
+import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -28,28 +30,42 @@ class TrackSummary:
     stage_counts: dict[int, int]
     mean_ms: float
     out: Path
+    stale_frames: int = 0
+    budget_frames: int = 0
+    p95_latency_ms: float = math.nan
 
 
 class _Tally:
     """Counts of a tracking run as its frames come."""
 
     def __init__(self) -> None:
-        self.frames = self.valid = self.bad = 0
+        self.frames = self.valid = self.bad = self.stale = self.budget = 0
         self.stage_counts = {0: 0, 1: 0, 2: 0, 3: 0}
         self.total_ms = 0.0
+        self.latencies_ms: list[float] = []
 
-    def add(self, estimate: Estimate | None, error: str) -> None:
+    def add(self, estimate: Estimate | None, error: str, stale: bool) -> None:
         self.frames += 1
-        self.bad += int(bool(error))
+        self.stale += int(stale)
+        self.bad += int(bool(error) and not stale)
         if estimate is not None:
             self.valid += int(estimate.valid)
             self.stage_counts[estimate.stage] += 1
             self.total_ms += estimate.timings.total_ms
+            self.budget += int(bool(estimate.skipped))
+            if math.isfinite(estimate.latency_s):
+                self.latencies_ms.append(estimate.latency_s * 1e3)
         else:
             self.stage_counts[0] += 1
 
     def summary(self, out: Path) -> TrackSummary:
-        processed = max(1, self.frames - self.bad)
+        processed = max(1, self.frames - self.bad - self.stale)
+        latencies = sorted(self.latencies_ms)
+        p95 = (
+            latencies[min(len(latencies) - 1, int(0.95 * len(latencies)))]
+            if latencies
+            else math.nan
+        )
         return TrackSummary(
             self.frames,
             self.valid,
@@ -57,6 +73,9 @@ class _Tally:
             self.stage_counts,
             self.total_ms / processed,
             out,
+            self.stale,
+            self.budget,
+            p95,
         )
 
 
@@ -82,6 +101,16 @@ class _Overlay:
             self.video.close()
 
 
+STALE = "stale: dropped unprocessed for a newer frame"
+
+
+def _with_latency(estimate: Estimate, frame: Frame) -> Estimate:
+    """``estimate`` with the time from the frame's grab to now."""
+    if not math.isfinite(frame.grabbed_s):
+        return estimate
+    return replace(estimate, latency_s=time.monotonic() - frame.grabbed_s)
+
+
 def track(
     source: str,
     estimator: PerchingEstimator,
@@ -93,7 +122,11 @@ def track(
     on_frame: Sequence[Callable[[Estimate | None, float], None]] = (),
 ) -> TrackSummary:
     """Run ``estimator`` (its camera and target) over every frame of ``source`` and write one
-    row per frame to ``out``.
+    row per frame to ``out``; each estimate carries its latency from the frame's grab.
+
+    A live camera is grabbed on a thread of its own and the estimator always takes the newest
+    frame: a frame overtaken before it was taken gets an invalid row saying it was stale (no
+    warning each; the summary counts them).
 
     A frame that cannot be read or has the wrong size gets an invalid row and a warning on
     stderr; the run goes on. The first frame having a size other than the calibration's is an
@@ -121,20 +154,22 @@ def track(
         for frame in bar:
             estimate: Estimate | None = None
             error = frame.error
-            if frame.image is not None:
+            if frame.stale:
+                error = STALE
+            elif frame.image is not None:
                 try:
                     grey = camera.check_image(frame.image, f"{frames.description}: {frame.name}")
-                    estimate = estimator.update(grey, frame.t_s)
+                    estimate = _with_latency(estimator.update(grey, frame.t_s), frame)
                 except ImageError as exc:
                     if first_good:
                         raise
                     error = str(exc)
                 first_good = False
-            if error:
+            if error and not frame.stale:
                 print(f"warning: {error}", file=sys.stderr)
             writer.write(estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file))
-            tally.add(estimate, error)
-            for hook in on_frame:
+            tally.add(estimate, error, frame.stale)
+            for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
                 hook(estimate, frame.t_s)
             video.write(frame, estimate)
     finally:

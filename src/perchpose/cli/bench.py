@@ -58,6 +58,12 @@ QUALITIES = ("default", "clean", "analog_fpv", "harsh")
     type=click.Path(dir_okay=False),
     help="Also write the report as JSON.",
 )
+@click.option(
+    "--budget-ms",
+    default=None,
+    type=float,
+    help="Also time perchpose within this budget per frame (perchpose-budget).",
+)
 @quiet_option
 def bench(
     source: str | None,
@@ -68,13 +74,19 @@ def bench(
     repeat: int,
     seed: int,
     json_out: str | None,
+    budget_ms: float | None,
     quiet: bool,
 ) -> None:
     """Time perchpose per frame and per stage against OpenCV's detectMarkers and the paper's
     pipeline, on one thread, on SOURCE (a folder, glob, video or camera) or a rendered
     approach."""
     from perchpose.app.bench import bench as run_bench
-    from perchpose.app.bench import format_report, rendered_frames, source_frames
+    from perchpose.app.bench import (
+        default_methods,
+        format_report,
+        rendered_frames,
+        source_frames,
+    )
     from perchpose.errors import PerchposeError
     from perchpose.sim.render import ImageQuality
 
@@ -87,7 +99,16 @@ def bench(
         data = rendered_frames(camera, target, frames, ImageQuality.preset(quality), seed, progress)
     else:
         data = source_frames(source, camera, frames)
-    report = run_bench(data, camera, target, repeat, progress)
+    if budget_ms is not None and not budget_ms > 0:
+        raise click.BadParameter(f"must be positive, got {budget_ms}", param_hint="--budget-ms")
+    report = run_bench(
+        data,
+        camera,
+        target,
+        repeat,
+        progress,
+        lambda cam, spec: default_methods(cam, spec, budget_ms),
+    )
     click.echo(format_report(report))
     if json_out is not None:
         path = Path(json_out)

@@ -138,6 +138,13 @@ def _vehicle_links(
     help="Fuse the markers with the paper's fusion and these weights (the JSON that "
     "'fit-fusion --json' writes) instead of the joint pose.",
 )
+@click.option(
+    "--budget-ms",
+    default=None,
+    type=float,
+    help="Time budget per frame: past it the detection leaves out what it can (a pattern fit, "
+    "a whole-frame search) and the track file's 'skipped' column says what.",
+)
 def track(
     source: str,
     camera_file: str,
@@ -151,6 +158,7 @@ def track(
     crazyflie_uri: str | None,
     mount_file: str | None,
     sigmas_file: str | None,
+    budget_ms: float | None,
 ) -> None:
     """Track the target in SOURCE: a folder of images, a glob, a video file or a camera index.
 
@@ -163,11 +171,13 @@ def track(
 
     cam = load_camera(camera_file)
     spec = load_target(target_file)
+    if budget_ms is not None and not budget_ms > 0:
+        raise click.BadParameter(f"must be positive, got {budget_ms}", param_hint="--budget-ms")
     if sigmas_file is None:
-        estimator = PerchingEstimator(cam, spec)
+        estimator = PerchingEstimator(cam, spec, budget_ms=budget_ms)
     else:
         sigmas = FusionSigmas.load(sigmas_file)
-        estimator = PerchingEstimator(cam, spec, fusion="paper", sigmas=sigmas)
+        estimator = PerchingEstimator(cam, spec, fusion="paper", sigmas=sigmas, budget_ms=budget_ms)
     if overlay is not None:
         check_overlay_path(overlay)  # before any vehicle link takes over
     with _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks:
@@ -181,8 +191,13 @@ def track(
             on_frame=hooks,
         )
     stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
+    extra = ""
+    if summary.stale_frames:
+        extra += f", {summary.stale_frames} stale (dropped for a newer frame)"
+    if summary.budget_frames:
+        extra += f", {summary.budget_frames} over budget (see 'skipped')"
     click.echo(
         f"{summary.frames} frames, {summary.valid} valid ({stages}), "
-        f"{summary.bad_frames} unreadable; {summary.mean_ms:.1f} ms per frame; "
-        f"wrote {summary.out}"
+        f"{summary.bad_frames} unreadable{extra}; {summary.mean_ms:.1f} ms per frame, "
+        f"latency p95 {summary.p95_latency_ms:.1f} ms; wrote {summary.out}"
     )

@@ -31,9 +31,11 @@ def columns(target: TargetSpec) -> tuple[str, ...]:
         *POSE_COLUMNS,
         *raw_columns(target),
         "total_ms",
+        "latency_ms",
         "age_s",
         "measured",
         "predicted",
+        "skipped",
         "error",
         "file",
     )
@@ -55,7 +57,9 @@ def estimate_row(
     ``age_s`` is 0 for a pose measured in this frame and the age of the newest measurement
     for a filter's prediction; ``measured`` the markers measured in this frame (``m0+m1``: the
     indices of the ``m{i}_*`` columns); ``predicted`` 1 for a valid pose that no measurement
-    of this frame backs (the filter coasting), 0 for a measured one; ``file`` names the
+    of this frame backs (the filter coasting), 0 for a measured one; ``latency_ms`` the time
+    from the frame's capture (a file's reading) to its estimate, where known; ``skipped`` what
+    the detection left out to keep to its time budget (``;``-separated); ``file`` names the
     frame's source."""
     row: dict[str, Any] = dict.fromkeys(columns(target), "")
     row.update(frame=frame, t_s=f"{t_s:.6f}", valid=0, stage=0, error=error, file=file)
@@ -65,7 +69,9 @@ def estimate_row(
         valid=int(estimate.valid),
         stage=estimate.stage,
         total_ms=f"{estimate.timings.total_ms:.2f}",
+        latency_ms=_num(estimate.latency_s * 1e3, 2),
         measured=estimate.measured_label,
+        skipped=";".join(estimate.skipped),
     )
     if estimate.valid:
         row.update(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import glob as globlib
 import math
 import re
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -32,6 +33,10 @@ class Frame:
     image : (H, W) or (H, W, 3) uint8, or None when it could not be read (``error`` says why).
     name : file name, or ``frame N`` for videos and cameras.
     file : where the frame came from: the image file's path, or ``VIDEO#N`` / ``camera K#N``.
+    grabbed_s : ``time.monotonic()`` when the frame was grabbed (a live camera: before it was
+        decoded) or read (files); the start of its latency.
+    stale : a live camera's frame that was dropped unprocessed because a newer one was ready
+        (``image`` is None).
     """
 
     index: int
@@ -40,18 +45,22 @@ class Frame:
     name: str
     error: str = ""
     file: str = ""
+    grabbed_s: float = math.nan
+    stale: bool = False
 
 
 class FrameSource:
     """Iterable of ``Frame``; ``count`` is the number of frames when known in advance.
     ``lost`` counts the frames that could not be decoded (each still yields a ``Frame`` with
-    ``image`` None and the reason in ``error``)."""
+    ``image`` None and the reason in ``error``); ``stale`` a live camera's frames dropped for
+    a newer one (each yields a ``Frame`` with ``stale`` set)."""
 
     def __init__(self, description: str, count: int | None, fps: float) -> None:
         self.description = description
         self.count = count
         self.fps = fps
         self.lost = 0
+        self.stale = 0
 
     def __iter__(self) -> Iterator[Frame]:
         raise NotImplementedError
@@ -67,12 +76,13 @@ class ImageFilesSource(FrameSource):
     def __iter__(self) -> Iterator[Frame]:
         for i, path in enumerate(self.paths):
             t_s = i / self.fps
+            grabbed = time.monotonic()
             image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if image is None:
                 self.lost += 1
                 yield Frame(i, t_s, None, path.name, f"{path}: cannot read image", str(path))
                 continue
-            yield Frame(i, t_s, _to_uint8(image), path.name, _damage(path), str(path))
+            yield Frame(i, t_s, _to_uint8(image), path.name, _damage(path), str(path), grabbed)
 
 
 class VideoSource(FrameSource):
@@ -88,14 +98,17 @@ class VideoSource(FrameSource):
         self.live = live
 
     def __iter__(self) -> Iterator[Frame]:
+        if self.live:
+            yield from self._live()
+            return
         i = 0
-        t0 = time.monotonic()
         try:
             while True:
                 with native_stderr_silenced():
                     ok, image = self.capture.read()
+                grabbed = time.monotonic()
                 if not ok or image is None:
-                    if self.live or self.count is None or i >= self.count:
+                    if self.count is None or i >= self.count:
                         break
                     # a damaged or truncated file: one row per frame the header promises; the
                     # demuxer moves on by itself to whatever can still be decoded
@@ -103,16 +116,44 @@ class VideoSource(FrameSource):
                     yield self._lost_frame(i)
                     i += 1
                     continue
-                if not self.live:
-                    # frames the decoder skipped over: their timestamps say where it resumed
-                    while i < self._index_of_last_read(i):
-                        self.lost += 1
-                        yield self._lost_frame(i)
-                        i += 1
-                t_s = time.monotonic() - t0 if self.live else i / self.fps
-                yield Frame(i, t_s, _to_uint8(image), f"frame {i}", file=f"{self.description}#{i}")
+                # frames the decoder skipped over: their timestamps say where it resumed
+                while i < self._index_of_last_read(i):
+                    self.lost += 1
+                    yield self._lost_frame(i)
+                    i += 1
+                yield Frame(
+                    i,
+                    i / self.fps,
+                    _to_uint8(image),
+                    f"frame {i}",
+                    file=f"{self.description}#{i}",
+                    grabbed_s=grabbed,
+                )
                 i += 1
         finally:
+            self.capture.release()
+
+    def _live(self) -> Iterator[Frame]:
+        """A camera's frames, grabbed on a thread of their own (``LatestFrame``): each is the
+        newest when the caller asks; those a newer one overtook come as stale frames, without
+        an image. t_s: seconds from the first frame's grab to this one's."""
+        grabber = LatestFrame(self.capture)
+        t0: float | None = None
+        try:
+            for index, grabbed, image in grabber:
+                t0 = grabbed if t0 is None else t0
+                name, file = f"frame {index}", f"{self.description}#{index}"
+                if image is None:
+                    self.stale += 1
+                    yield Frame(
+                        index, grabbed - t0, None, name, file=file, grabbed_s=grabbed, stale=True
+                    )
+                    continue
+                yield Frame(
+                    index, grabbed - t0, _to_uint8(image), name, file=file, grabbed_s=grabbed
+                )
+        finally:
+            grabber.close()
             self.capture.release()
 
     def _index_of_last_read(self, expected: int) -> int:
@@ -130,6 +171,69 @@ class VideoSource(FrameSource):
     def _lost_frame(self, i: int) -> Frame:
         why = f"{self.description}: frame {i} cannot be decoded (damaged or truncated video)"
         return Frame(i, i / self.fps, None, f"frame {i}", why, f"{self.description}#{i}")
+
+
+class LatestFrame:
+    """A live capture read on a thread of its own, so that grabbing never waits for the
+    estimator and the estimator never works on an old frame: iterating gives (index, grab
+    time, image) for the newest frame, and (index, grab time, None) first for each frame a
+    newer one overtook before it was taken (stale: dropped, not queued). Grab times are
+    ``time.monotonic()`` just after ``grab()``, before the frame is decoded. Ends when the
+    capture stops delivering or ``close`` is called."""
+
+    def __init__(self, capture: cv2.VideoCapture) -> None:
+        self.capture = capture
+        self._ready = threading.Condition()
+        self._newest: tuple[int, float, NDArray[Any]] | None = None
+        self._overtaken: list[tuple[int, float]] = []
+        self._ended = False
+        self._closing = threading.Event()
+        self._thread = threading.Thread(target=self._grab, name="perchpose-capture", daemon=True)
+        self._thread.start()
+
+    def _grab(self) -> None:
+        index = 0
+        try:
+            while not self._closing.is_set():
+                if not self.capture.grab():
+                    break
+                grabbed = time.monotonic()
+                ok, image = self.capture.retrieve()
+                if not ok or image is None:
+                    break
+                with self._ready:
+                    if self._newest is not None:
+                        self._overtaken.append(self._newest[:2])
+                    self._newest = (index, grabbed, image)
+                    self._ready.notify()
+                index += 1
+        finally:
+            with self._ready:
+                self._ended = True
+                self._ready.notify()
+
+    def __iter__(self) -> Iterator[tuple[int, float, NDArray[Any] | None]]:
+        while True:
+            with self._ready:
+                while self._newest is None and not self._ended:
+                    self._ready.wait()
+                overtaken, self._overtaken = self._overtaken, []
+                newest, self._newest = self._newest, None
+            for index, grabbed in overtaken:
+                yield index, grabbed, None
+            if newest is None:
+                return
+            yield newest
+
+    @property
+    def running(self) -> bool:
+        """The grabbing thread is still alive."""
+        return self._thread.is_alive()
+
+    def close(self) -> None:
+        """Stop grabbing and wait for the thread (it ends after its current grab)."""
+        self._closing.set()
+        self._thread.join(timeout=2.0)
 
 
 def _damage(path: Path) -> str:
