@@ -279,3 +279,39 @@ def test_a_shrunk_search_finds_the_quads_near_their_full_size_corners(
     shrunk = finder.find(window, "raw", (int(lo[0]), int(lo[1])), finder.tracking, 0.25)
     assert 0 in shrunk
     assert np.max(np.abs(shrunk[0].corners_px - full[0].corners_px)) < 1.5
+
+
+def test_tracking_searches_the_whole_frame_at_an_interval(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Tracking looks in windows, but every ``full_search_every`` frames it searches the whole
+    frame with OpenCV's three thresholds, as on the first frame; under a spent budget it puts
+    that off and says so."""
+    from perchpose.quads import QuadFinder
+
+    r = renderers["webcam"]
+    image = r.render(facing_pose(0.0, 0.01, 0.7, 0.2), rng=np.random.default_rng(0))
+    whole: list[int] = []
+    find = QuadFinder.find
+
+    def counted(self, grey, image_pass, offset=(0, 0), detector=None, scale=1.0):  # type: ignore[no-untyped-def]
+        if detector is None and grey.shape == image.shape:
+            whole.append(1)
+        return find(self, grey, image_pass, offset, detector, scale)
+
+    monkeypatch.setattr(QuadFinder, "find", counted)
+    detector = MarkerDetector(r.camera, r.target)
+    detector.full_search_every = 5
+    hint: tuple = ()
+    for _ in range(11):
+        hint = detector.detect(image, hint)
+        assert {d.marker_index for d in hint} == {0, 1}
+    assert len(whole) == 3  # frames 0, 5 and 10
+    late = MarkerDetector(r.camera, r.target)
+    late.full_search_every = 2
+    hint = late.detect(image)
+    hint = late.detect(image, hint)
+    whole.clear()
+    hint = late.detect(image, hint, deadline_s=0.0)
+    assert late.skipped[0] == "interval search"
+    assert whole == []

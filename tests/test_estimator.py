@@ -317,3 +317,22 @@ def test_a_budget_skips_the_search_after_tracking_lost_a_marker(
         assert coasted.skipped == expected
         assert coasted.valid
         assert coasted.predicted
+
+
+def test_a_budget_does_not_keep_the_target_from_being_found_under_glare(
+    renderers: dict[str, Renderer],
+) -> None:
+    """Under glare the frame as it is shows no marker and a spent budget leaves no room for a
+    second search in the same frame; the next frame starts from the next clip level, so the
+    target is found within a few frames all the same."""
+    from perchpose.detection import GLARE_CLIP_LEVELS
+    from perchpose.sim.render import ImageQuality
+
+    r = renderers["fpv"]
+    T = facing_pose(0.03, -0.02, 1.0, 0.7)
+    image = r.render(T, ImageQuality.preset("harsh"), np.random.default_rng(1))
+    est = PerchingEstimator(r.camera, r.target, budget_ms=1e-3)
+    estimates = [est.update(image, k / 30) for k in range(len(GLARE_CLIP_LEVELS))]
+    assert "glare search" in estimates[0].skipped
+    assert estimates[-1].valid
+    assert np.linalg.norm(estimates[-1].t_m - T[:3, 3]) < 0.01

@@ -58,12 +58,15 @@ SMALL_MARKER_SIDE_PX = 20.0
 # 25 ms at 45 px on a 2-core x86 machine); each fit run updates the prediction.
 PATTERN_S_PER_PX2 = 1.2e-5
 # Glare: a frame with at least GLARE_FRACTION of its pixels at GLARE_LEVEL or above has its
-# quads searched in copies clipped at these levels (tried in this order, one a frame): a
-# level between the black border's grey and the white margin's works, and these cover white
-# margins from about 50 to 230 grey levels.
+# quads searched in copies clipped at these levels (None: the frame as it is), tried in this
+# order, the next one whenever the current one finds nothing: a level between the black
+# border's grey and the white margin's works, and these cover white margins from about 50 to
+# 230 grey levels.
 GLARE_LEVEL = 250
 GLARE_FRACTION = 0.05
-GLARE_CLIP_LEVELS = (108, 72, 162, 48, 224)
+GLARE_CLIP_LEVELS: tuple[int | None, ...] = (None, 108, 72, 162, 48, 224)
+# While tracking, every this many frames the whole frame is searched as if nothing were known.
+FULL_SEARCH_EVERY = 30
 # While tracking, the window is searched shrunk so that the smallest predicted marker spans
 # this much (never enlarged): the quads are a start for the fit at full resolution, and a
 # large marker costs the detector a fraction of its pixels.
@@ -102,14 +105,17 @@ class MarkerDetector:
         self.corners = corners
         self.pattern_beside_ratio = pattern_beside_ratio
         self.tracking_side_px = TRACKING_SIDE_PX
+        self.full_search_every: int | None = FULL_SEARCH_EVERY
+        self._tracked_frames = 0
         self.quads = QuadFinder(target, max(camera.size))
         self.fitter = CornerFitter(camera, target)
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
         # seconds spent fitting corners during the last ``detect``
         self.corners_s = 0.0
-        # glare: the clip level that found the markers last, the last level of the ladder tried
+        # glare: the clip level searched first (the one that found the markers last), and its
+        # place in the ladder
         self._clip_level: int | None = None
-        self._next_level = -1
+        self._next_level = 0
         # the time budget of the current ``detect``, what it left out, and the pattern fit's
         # cost per square pixel of marker side (learnt from the fits run; first guess from
         # this machine: 25 ms at 45 px)
@@ -134,33 +140,56 @@ class MarkerDetector:
         target in shadow), the adaptive threshold sees the sheet's white margin as dark next to
         the surround and no quad closes. The quads are then searched in the frame clipped at a
         level between the sheet's black and white (corners are still fitted to the frame
-        itself): the level that found the markers last, and while none does, one more level of
-        ``GLARE_CLIP_LEVELS`` per frame (so a frame costs at most two searches).
+        itself): the level that found the markers last, and when it finds nothing, the next
+        level of ``GLARE_CLIP_LEVELS`` (so a frame costs at most two searches, and a frame
+        without room for the second still moves the next frame on to it).
 
         deadline_s : a ``time.perf_counter()`` reading by which the detection should be done.
         What would not end by then is left out where it can be (each step's cost predicted
         from its runs so far): a pattern fit, the whole-frame search after tracking lost a
-        marker, and the search of another glare level. ``skipped`` names what this call left
-        out.
+        marker, the search of another glare level, and the whole-frame search that tracking
+        runs every ``full_search_every`` frames (``FULL_SEARCH_EVERY``). ``skipped`` names
+        what this call left out.
         """
         self.corners_s = 0.0
         self.skipped = []
         self._deadline_s = deadline_s
+        hint = self._unless_interval(hint)
         glare = has_glare(grey)
         if not glare:
             self._clip_level = None
         found = self._detect_clipped(grey, hint, self._clip_level)
         if found or not glare:
             return found
+        # nothing at this level: the next one of the ladder, now and as the next frame's start
+        # (so that a frame with no room in its budget for a second search still moves on)
+        self._next_level = (self._next_level + 1) % len(GLARE_CLIP_LEVELS)
+        tried, level = self._clip_level, GLARE_CLIP_LEVELS[self._next_level]
+        if level == tried:
+            self._next_level = (self._next_level + 1) % len(GLARE_CLIP_LEVELS)
+            level = GLARE_CLIP_LEVELS[self._next_level]
+        self._clip_level = level
         if self._late(self._search_s):
             self.skipped.append("glare search")
             return found
-        self._next_level = (self._next_level + 1) % len(GLARE_CLIP_LEVELS)
-        level = GLARE_CLIP_LEVELS[self._next_level]
-        found = self._detect_clipped(grey, (), level)
-        if found:
-            self._clip_level = level
-        return found
+        return self._detect_clipped(grey, (), level)
+
+    def _unless_interval(self, hint: tuple[MarkerDetection, ...]) -> tuple[MarkerDetection, ...]:
+        """``hint``, or none when ``full_search_every`` tracked frames have passed since the
+        last whole-frame search (so a marker the windows cannot see is found again within
+        that many frames), unless the budget has no room for it."""
+        every = self.full_search_every
+        if not hint or every is None:
+            self._tracked_frames = 0
+            return hint
+        self._tracked_frames += 1
+        if self._tracked_frames < every:
+            return hint
+        if self._late(self._search_s):
+            self.skipped.append("interval search")
+            return hint
+        self._tracked_frames = 0
+        return ()
 
     def _detect_clipped(
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...], clip_level: int | None

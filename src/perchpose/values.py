@@ -156,7 +156,8 @@ class Estimate:
         their limit.
     skipped : what the detection left out of this frame to stay within its time budget
         (``PerchingEstimator(budget_ms=...)``): ``pattern fit m{i}``, ``search`` (the
-        whole-frame search after tracking lost a marker), ``glare search``.
+        whole-frame search after tracking lost a marker), ``glare search``, ``interval
+        search`` (tracking's periodic whole-frame search, put off to a later frame).
     latency_s : seconds from the frame's capture (or, for files, its reading) to this estimate,
         where the caller knows it (``perchpose track`` does); NaN otherwise.
 
