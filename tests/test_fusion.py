@@ -162,3 +162,26 @@ def test_bad_weight_files_name_the_file_and_the_field(
     assert str(path) in str(caught.value)
     with pytest.raises(FusionFileError, match="file not found"):
         FusionSigmas.load(tmp_path / "none.json")
+
+
+def test_corner_noise_pools_the_residuals_and_forgets_slowly() -> None:
+    from perchpose.fusion import CornerNoise
+
+    noise = CornerNoise(prior_px=0.1, frames=30.0, prior_dof=1.0, floor_px=0.005)
+    assert noise.variance_px2 == pytest.approx(0.01)
+    # 8 corners, 10 degrees of freedom each frame, residuals of 0.02 px per axis
+    for _ in range(300):
+        noise.add(0.02**2 * 10, 10)
+    assert math.sqrt(noise.variance_px2) == pytest.approx(0.02, rel=1e-3)
+    # the noise grows: within a few time constants the pool says so
+    for _ in range(90):
+        noise.add(0.1**2 * 10, 10)
+    assert math.sqrt(noise.variance_px2) == pytest.approx(0.1, rel=0.05)
+    # a noise-free frame never makes it certain; a frame without dof changes nothing
+    quiet = CornerNoise(prior_px=0.1, prior_dof=1.0, floor_px=0.005)
+    for _ in range(300):
+        quiet.add(0.0, 10)
+    assert quiet.variance_px2 == pytest.approx(0.005**2)
+    before = quiet.variance_px2
+    quiet.add(1.0, 0)
+    assert quiet.variance_px2 == before

@@ -72,3 +72,35 @@ def test_check_transform_names_the_argument() -> None:
     bad[0, 0] = 2.0
     with pytest.raises(ValueError, match="orthonormal"):
         check_transform(bad)
+
+
+def test_yaw_and_tilt_give_back_the_rotation() -> None:
+    from perchpose.geometry import (
+        facing_pose,
+        rotation_from_angles,
+        tilt_rad,
+        yaw_rad,
+    )
+
+    for yaw, tx, ty in ((0.0, 0.0, 0.0), (2.9, 0.3, -0.2), (-3.1, -0.4, 0.35)):
+        R = facing_pose(0.0, 0.0, 1.0, yaw, tx, ty)[:3, :3]
+        roll, pitch = tilt_rad(R)
+        assert np.allclose(rotation_from_angles(yaw_rad(R), roll, pitch), R, atol=1e-12)
+    # facing the camera: no tilt, whatever the yaw
+    assert tilt_rad(facing_pose(0.1, 0.0, 0.5, 2.0)[:3, :3]) == pytest.approx((0.0, 0.0))
+
+
+def test_rotation_vector_jacobian_matches_small_turns() -> None:
+    from perchpose.geometry import rotation_from_angles, rotation_vector_jacobian
+
+    yaw, roll, pitch = 2.2, -0.3, 0.25
+    R = rotation_from_angles(yaw, roll, pitch)
+    J = rotation_vector_jacobian(yaw, pitch)
+    step = 1e-6
+    for k, (dr, dp, dy) in enumerate(np.eye(3) * step):
+        turned = rotation_from_angles(yaw + dy, roll + dr, pitch + dp)
+        small = turned @ R.T  # I + [w]x to first order
+        w = np.array(
+            [small[2, 1] - small[1, 2], small[0, 2] - small[2, 0], small[1, 0] - small[0, 1]]
+        )
+        assert np.allclose(w / (2 * step), J[:, k], atol=1e-5)

@@ -40,6 +40,13 @@ FUSION_METHODS: tuple[FusionMethod, ...] = ("paper", "covariance")
 Array = NDArray[np.float64]
 
 
+def _flat(covariance: Array | None) -> tuple[float, ...]:
+    """The 36 entries of a (6, 6) covariance, or none when it is unknown or not finite."""
+    if covariance is None or not np.all(np.isfinite(covariance)):
+        return ()
+    return tuple(float(v) for v in covariance.reshape(-1))
+
+
 class PerchingEstimator:
     """The paper's pipeline: detect, per-marker PnP, per-marker Kalman filter, staged fusion.
 
@@ -117,7 +124,13 @@ class PerchingEstimator:
             return CovarianceFusion(
                 self.camera, self.target, self.covariance_filter, use_filter=self.use_filter
             )
-        return PaperFusion(self.sigmas, use_filter=self.use_filter)
+        return PaperFusion(
+            self.sigmas,
+            use_filter=self.use_filter,
+            camera=self.camera,
+            target=self.target,
+            corner_sigma_px=self.covariance_filter.corner_sigma_px,
+        )
 
     @property
     def reinitialised(self) -> int:
@@ -310,4 +323,7 @@ class PerchingEstimator:
                 total_ms=(t3 - t0) * 1e3,
             ),
             age_s=fused.age_s if valid else math.nan,
+            roll_rad=fused.tilt_rad[0] if valid else math.nan,
+            pitch_rad=fused.tilt_rad[1] if valid else math.nan,
+            covariance_flat=_flat(fused.covariance) if valid else (),
         )

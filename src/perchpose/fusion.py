@@ -25,8 +25,17 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.errors import FusionFileError
-from perchpose.geometry import weighted_circular_mean_rad, yaw_rad
-from perchpose.joint_pose import measurement_jacobian, solve_joint_pose
+from perchpose.geometry import (
+    rotation_vector_jacobian,
+    tilt_rad,
+    weighted_circular_mean_rad,
+    yaw_rad,
+)
+from perchpose.joint_pose import (
+    measurement_jacobian,
+    pose_covariance,
+    solve_joint_pose,
+)
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection, MarkerPose
@@ -202,12 +211,36 @@ def fit_sigma_lms(
 class Fused:
     """A frame's fused pose: ``pose`` (4,) [psi_rad, x_m, y_m, z_m] (NaN when there is none),
     the paper's ``stage``, the markers whose poses took part, and ``age_s``, the time since the
-    newest measurement behind it (0 for a measured frame)."""
+    newest measurement behind it (0 for a measured frame). ``tilt_rad``: (roll, pitch) of the
+    target's plane (``geometry.tilt_rad``; NaN when unknown). ``covariance``: (6, 6) over
+    [x, y, z] (m) and a small rotation vector about the camera's axes (rad), or None."""
 
     pose: Array
     stage: int
     contributing: frozenset[int]
     age_s: float
+    tilt_rad: tuple[float, float] = (math.nan, math.nan)
+    covariance: Array | None = None
+
+
+def angles_covariance(T: Array, covariance_w_dt: Array) -> Array:
+    """A pose covariance over (w, dt) (``joint_pose``) carried to (6, 6) over
+    [roll, pitch, yaw, x, y, z] (``geometry.tilt_rad``, ``geometry.yaw_rad``)."""
+    _, pitch = tilt_rad(T[:3, :3])
+    A = np.zeros((6, 6))
+    A[:3, :3] = np.linalg.inv(rotation_vector_jacobian(yaw_rad(T[:3, :3]), pitch))
+    A[3:, 3:] = np.eye(3)
+    return np.asarray(A @ covariance_w_dt @ A.T, np.float64)
+
+
+def camera_covariance(yaw_rad_: float, pitch_rad: float, covariance_angles: Array) -> Array:
+    """A covariance over [roll, pitch, yaw, x, y, z] carried to the estimate's (6, 6) over
+    [x, y, z] and a small rotation vector about the camera's axes."""
+    B = np.zeros((6, 6))
+    B[:3, 3:] = np.eye(3)
+    B[3:, :3] = rotation_vector_jacobian(yaw_rad_, pitch_rad)
+    out = B @ covariance_angles @ B.T
+    return np.asarray(0.5 * (out + out.T), np.float64)
 
 
 class Fusion(Protocol):
@@ -245,13 +278,69 @@ def _marker_poses(
 
 
 class PaperFusion:
-    """The paper's fusion of the per-marker filters with fixed sigmas, by stage."""
+    """The paper's fusion of the per-marker filters with fixed sigmas, by stage.
+
+    With ``camera``, ``target`` and ``corner_sigma_px`` it also gives the target's tilt and a
+    covariance: those of the frame's fused measurement (each measured marker's pose
+    covariance from its own corners, weighed as the poses are). The paper's filters have no
+    calibrated noise model, so their smoothing is not in it; a frame the filters bridge
+    without a measurement has none."""
 
     reinitialised = 0
 
-    def __init__(self, sigmas: FusionSigmas, *, use_filter: bool = True) -> None:
+    def __init__(
+        self,
+        sigmas: FusionSigmas,
+        *,
+        use_filter: bool = True,
+        camera: CameraModel | None = None,
+        target: TargetSpec | None = None,
+        corner_sigma_px: float = 0.0,
+    ) -> None:
         self.sigmas = sigmas
         self.use_filter = use_filter
+        self.camera = camera
+        self.target = target
+        self.corner_sigma_px = corner_sigma_px
+        self._tilt: tuple[float, float] = (math.nan, math.nan)
+
+    def _measured_uncertainty(
+        self, measurements: dict[int, MarkerPose], contributing: set[int]
+    ) -> tuple[tuple[float, float], Array | None] | None:
+        """The weighed tilt and covariance over [roll, pitch, yaw, x, y, z] of the markers
+        measured in this frame that take part, or None."""
+        camera, target = self.camera, self.target
+        used = {i: m for i, m in measurements.items() if i in contributing}
+        if camera is None or target is None or not used or not self.corner_sigma_px > 0:
+            return None
+        tilts: dict[int, Array] = {}
+        covariances: dict[int, Array | None] = {}
+        for i, m in used.items():
+            T = m.T_camera_target
+            tilts[i] = np.array(tilt_rad(T[:3, :3]))
+            points = target.markers[i].corners_target_m
+            c = pose_covariance(camera, T, points, self.corner_sigma_px)
+            covariances[i] = None if c is None else angles_covariance(T, c)
+        # the inner markers are averaged first, as their poses are (``fuse_paper``)
+        groups = [g for g in ([i for i in used if i == 0], [i for i in used if i > 0]) if g]
+        tilt_g = [np.mean([tilts[i] for i in g], axis=0) for g in groups]
+        cov_g: list[Array | None] = []
+        for g in groups:
+            covs = [covariances[i] for i in g]
+            known = [c for c in covs if c is not None]
+            cov_g.append(
+                sum(known, np.zeros((6, 6))) / len(g) ** 2 if len(known) == len(g) else None
+            )
+        if len(groups) == 1:
+            return (float(tilt_g[0][0]), float(tilt_g[0][1])), cov_g[0]
+        s = self.sigmas.as_array()  # [yaw, x, y, z]: the outer marker's weights
+        w = np.array([s[0], s[0], s[0], s[1], s[2], s[3]])
+        tilt = w[0] * tilt_g[0] + (1.0 - w[0]) * tilt_g[1]
+        cov_o, cov_i = cov_g
+        if cov_o is None or cov_i is None:
+            return (float(tilt[0]), float(tilt[1])), None
+        W, V = np.diag(w), np.diag(1.0 - w)
+        return (float(tilt[0]), float(tilt[1])), W @ cov_o @ W + V @ cov_i @ V
 
     def fuse(
         self,
@@ -263,10 +352,49 @@ class PaperFusion:
         poses = _marker_poses(measurements, markers, self.use_filter)
         pose, stage = fuse_paper(poses, self.sigmas)
         age = 0.0 if measurements or not self.use_filter else markers.age_s(poses, t_s)
-        return Fused(pose, stage, frozenset(poses), age)
+        measured = self._measured_uncertainty(measurements, set(poses))
+        covariance = None
+        if measured is not None:
+            self._tilt, angles = measured
+            if angles is not None and stage != STAGE_NONE:
+                covariance = camera_covariance(float(pose[0]), self._tilt[1], angles)
+        tilt = self._tilt if stage != STAGE_NONE else (math.nan, math.nan)
+        return Fused(pose, stage, frozenset(poses), age, tilt, covariance)
 
     def predicted_pose(self, t_s: float) -> Array | None:
         return None
+
+
+class CornerNoise:
+    """The corners' noise per axis, pooled from the joint poses' residuals: each frame adds
+    its squared residuals and their degrees of freedom (2 per corner, less the pose's 6), and
+    both pools fade with a time constant of ``frames`` frames. Before the pools hold anything
+    it is ``prior_px``, which also weighs as ``prior_dof`` degrees of freedom; it never goes
+    under ``floor_px`` (a noise-free render would otherwise claim certainty)."""
+
+    def __init__(
+        self,
+        prior_px: float,
+        frames: float = 30.0,
+        prior_dof: float = 1.0,
+        floor_px: float = 0.005,
+    ) -> None:
+        self.keep = math.exp(-1.0 / frames)
+        self.floor_px2 = floor_px**2
+        self.sum_px2 = prior_px**2 * prior_dof
+        self.dof = prior_dof
+
+    def add(self, sum_squares_px2: float, dof: float) -> None:
+        """One frame's residuals: their sum of squares (px^2) and degrees of freedom."""
+        if dof <= 0 or not math.isfinite(sum_squares_px2):
+            return
+        self.sum_px2 = self.keep * self.sum_px2 + sum_squares_px2
+        self.dof = self.keep * self.dof + dof
+
+    @property
+    def variance_px2(self) -> float:
+        """The pooled variance per axis, px^2."""
+        return max(self.floor_px2, self.sum_px2 / self.dof)
 
 
 class CovarianceFusion:
@@ -286,6 +414,11 @@ class CovarianceFusion:
         self.settings = settings
         self.use_filter = use_filter
         self.track = CovarianceTrack(settings)
+        self.noise = CornerNoise(settings.corner_sigma_px)
+        # the target's tilt from the last joint pose, and that pose's covariance over
+        # [roll, pitch, yaw, x, y, z]
+        self._tilt: tuple[float, float] = (math.nan, math.nan)
+        self._angles_covariance: Array | None = None
 
     @property
     def reinitialised(self) -> int:
@@ -297,7 +430,8 @@ class CovarianceFusion:
     def _joint(
         self, detections: tuple[MarkerDetection, ...], measurements: dict[int, MarkerPose]
     ) -> tuple[Array, Array] | None:
-        """This frame's joint pose [psi, x, y, z] and its covariance (4, 4), or None."""
+        """This frame's joint pose T_camera_target (4, 4) and its covariance over (w, dt),
+        or None."""
         if not measurements:
             return None
         used = tuple(d for d in detections if d.marker_index in measurements)
@@ -311,9 +445,10 @@ class CovarianceFusion:
         )
         if joint is None:
             return None
-        T = joint.T_camera_target
-        J = measurement_jacobian(T)
-        return np.array([yaw_rad(T[:3, :3]), *T[:3, 3]]), J @ joint.covariance @ J.T
+        # the corner noise the frames show, for the covariance the estimate reports
+        n_points = 4 * len(used)
+        self.noise.add(joint.reproj_rms_px**2 * n_points, 2 * n_points - 6)
+        return joint.T_camera_target, joint.covariance
 
     def fuse(
         self,
@@ -324,17 +459,39 @@ class CovarianceFusion:
     ) -> Fused:
         poses = _marker_poses(measurements, markers, self.use_filter)
         stage = stage_of(set(poses))
-        measured = self._joint(detections, measurements)
-        if measured is None:
+        joint = self._joint(detections, measurements)
+        measured: Array | None = None
+        if joint is None:
             self.track.missed_frame(t_s)
         else:
-            self.track.measured(measured[0], measured[1], t_s)
-        pose: Array | None
-        if not self.use_filter:
-            pose = None if measured is None else measured[0]
-        else:
-            pose = self.track.pose if stage != STAGE_NONE else None
+            T, covariance = joint
+            J = measurement_jacobian(T)
+            measured = np.array([yaw_rad(T[:3, :3]), *T[:3, 3]])
+            self.track.measured(measured, J @ covariance @ J.T, t_s)
+            self._tilt = tilt_rad(T[:3, :3])
+            self._angles_covariance = angles_covariance(T, covariance)
+        filtered = self.track.pose if stage != STAGE_NONE else None
+        pose = filtered if self.use_filter else measured
         if pose is None:
             return Fused(np.full(4, np.nan), STAGE_NONE, frozenset(poses), math.nan)
         age = self.track.age_s(t_s) if self.use_filter else 0.0
-        return Fused(pose, stage, frozenset(poses), age)
+        return Fused(pose, stage, frozenset(poses), age, self._tilt, self._covariance(pose))
+
+    def _covariance(self, pose: Array) -> Array | None:
+        """The output's covariance: the tilt's from the last joint pose; yaw and position
+        from the filter (without it, the joint pose's own, whole). The filter runs with the
+        corner noise it is set to assume (``corner_sigma_px``, 0.1 px: a tuning that keeps it
+        steady on analog video); what it reports is scaled to the noise the frames show
+        (``CornerNoise``), as a covariance scales with the corners' variance."""
+        scale = self.noise.variance_px2 / self.settings.corner_sigma_px**2
+        angles = self._angles_covariance
+        if angles is None:
+            return None
+        if self.use_filter:
+            filtered = self.track.pose_covariance
+            if filtered is None:
+                return None
+            angles = angles.copy()
+            angles[2:, :] = angles[:, 2:] = 0.0  # the tilt keeps its own block
+            angles[2:, 2:] = filtered
+        return camera_covariance(float(pose[0]), self._tilt[1], angles * scale)

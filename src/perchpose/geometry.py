@@ -128,3 +128,31 @@ def facing_pose(
     """
     R = rot_x(tilt_x_rad) @ rot_y(tilt_y_rad) @ rot_z(yaw_rad_) @ R_CAMERA_TARGET_FACING
     return make_transform(R, np.array([x_m, y_m, z_m]))
+
+
+def tilt_rad(R_camera_target: Array) -> tuple[float, float]:
+    """(roll, pitch) of the target's plane, radians, with the estimate's yaw (``yaw_rad``)
+    completing them: ``R = Rz(yaw) Ry(pitch) Rx(roll) R_CAMERA_TARGET_FACING``. Both are 0
+    for a target facing the camera (``facing_pose`` without tilt), whatever its yaw."""
+    M = np.asarray(R_camera_target, np.float64) @ R_CAMERA_TARGET_FACING
+    pitch = -math.asin(max(-1.0, min(1.0, float(M[2, 0]))))
+    roll = math.atan2(float(M[2, 1]), float(M[2, 2]))
+    return roll, pitch
+
+
+def rotation_from_angles(yaw_rad_: float, roll_rad: float, pitch_rad: float) -> Array:
+    """``R_camera_target`` of a yaw (``yaw_rad``) and a tilt (``tilt_rad``)."""
+    R: Array = rot_z(yaw_rad_) @ rot_y(pitch_rad) @ rot_x(roll_rad) @ R_CAMERA_TARGET_FACING
+    return R
+
+
+def rotation_vector_jacobian(yaw_rad_: float, pitch_rad: float) -> Array:
+    """d w / d(roll, pitch, yaw) (3, 3): how the angles of ``rotation_from_angles`` move the
+    rotation, as a small rotation vector ``w`` about the camera's axes (``R' = exp([w]) R``).
+    Its columns: the roll axis ``Rz Ry x``, the pitch axis ``Rz y``, the yaw axis ``z``."""
+    Rz = rot_z(yaw_rad_)
+    J = np.empty((3, 3))
+    J[:, 0] = Rz @ rot_y(pitch_rad) @ np.array([1.0, 0.0, 0.0])
+    J[:, 1] = Rz @ np.array([0.0, 1.0, 0.0])
+    J[:, 2] = np.array([0.0, 0.0, 1.0])
+    return J

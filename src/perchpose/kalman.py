@@ -203,6 +203,11 @@ class Track(ABC):
         return self.filter is not None
 
     @property
+    def pose_covariance(self) -> Array | None:
+        """(4, 4) covariance of ``pose`` [psi, tx, ty, tz] (the filter's), or None."""
+        return None if self.filter is None else np.asarray(H @ self.filter.P @ H.T)
+
+    @property
     def pose(self) -> Array | None:
         """(4,) [psi_rad, tx_m, ty_m, tz_m], or None."""
         return None if self.filter is None else self.filter.pose

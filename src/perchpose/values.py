@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.geometry import yaw_rad
+from perchpose.geometry import rotation_from_angles, rotation_vector_jacobian, yaw_rad
 
 Array = NDArray[np.float64]
 
@@ -160,6 +160,10 @@ class Estimate:
         search`` (tracking's periodic whole-frame search, put off to a later frame).
     latency_s : seconds from the frame's capture (or, for files, its reading) to this estimate,
         where the caller knows it (``perchpose track`` does); NaN otherwise.
+    roll_rad, pitch_rad : the tilt of the target's plane (``geometry.tilt_rad``: 0 when it
+        faces the camera); with ``yaw_rad`` the whole rotation (``T_camera_target``). NaN
+        when unknown.
+    covariance_flat : the 36 entries (row by row) of ``covariance``; empty when unknown.
 
     ``x_cm``, ``y_cm``, ``z_cm`` and ``yaw_deg`` are the same pose in the paper's units.
     """
@@ -174,6 +178,9 @@ class Estimate:
     age_s: float = 0.0
     skipped: tuple[str, ...] = ()
     latency_s: float = math.nan
+    roll_rad: float = math.nan
+    pitch_rad: float = math.nan
+    covariance_flat: tuple[float, ...] = ()
 
     @classmethod
     def none(cls, t_s: float, markers: tuple[MarkerState, ...] = ()) -> Estimate:
@@ -197,6 +204,40 @@ class Estimate:
     def t_m(self) -> Array:
         """(3,) target centre in the camera frame, metres."""
         return np.array(self.t_camera_target_m, dtype=np.float64)
+
+    @property
+    def T_camera_target(self) -> Array:
+        """(4, 4) the fused pose, metres: the rotation from yaw, roll and pitch (a tilt not
+        known is taken as none: the target facing the camera); NaN when not valid."""
+        if not self.valid:
+            return np.full((4, 4), np.nan)
+        roll = self.roll_rad if math.isfinite(self.roll_rad) else 0.0
+        pitch = self.pitch_rad if math.isfinite(self.pitch_rad) else 0.0
+        T = np.eye(4)
+        T[:3, :3] = rotation_from_angles(self.yaw_rad, roll, pitch)
+        T[:3, 3] = self.t_m
+        return T
+
+    @property
+    def covariance(self) -> Array:
+        """(6, 6) covariance of the pose in the camera frame: [x, y, z] in m^2, then a small
+        rotation vector about the camera's axes (``R_true = exp([w]) R``) in rad^2; NaN when
+        unknown (``PerchingEstimator`` gives it with both fusions; see ``Fused``)."""
+        if len(self.covariance_flat) != 36:
+            return np.full((6, 6), np.nan)
+        return np.array(self.covariance_flat, np.float64).reshape(6, 6)
+
+    @property
+    def std(self) -> tuple[float, float, float, float]:
+        """Standard deviations of x, y, z (m) and of yaw (rad) from ``covariance`` (NaN when
+        unknown)."""
+        C = self.covariance
+        if not np.all(np.isfinite(C)) or not math.isfinite(self.pitch_rad):
+            return (math.nan,) * 4
+        J = rotation_vector_jacobian(self.yaw_rad, self.pitch_rad)
+        angles = np.linalg.solve(J, np.linalg.solve(J, C[3:, 3:]).T)
+        x, y, z, yaw = (math.sqrt(max(0.0, float(v))) for v in (*np.diag(C)[:3], angles[2, 2]))
+        return x, y, z, yaw
 
     @property
     def finite(self) -> bool:

@@ -36,6 +36,14 @@ def test_csv_rows_hold_pose_and_raw_measurements(
     assert rows[1]["valid"] == "0"
     assert rows[1]["x_cm"] == ""
     assert rows[1]["error"] == "1.png: cannot read image"
+    # the whole pose and its uncertainty: a target facing the camera has no tilt
+    assert float(rows[0]["roll_deg"]) == pytest.approx(0.0, abs=0.5)
+    assert float(rows[0]["pitch_deg"]) == pytest.approx(0.0, abs=0.5)
+    x_std, _, z_std, yaw_std = e.std
+    assert float(rows[0]["x_std_cm"]) == pytest.approx(x_std * 100, rel=1e-2)
+    assert float(rows[0]["z_std_cm"]) == pytest.approx(z_std * 100, rel=1e-2)
+    assert float(rows[0]["yaw_std_deg"]) == pytest.approx(np.degrees(yaw_std), rel=1e-2)
+    assert rows[1]["roll_deg"] == rows[1]["x_std_cm"] == ""
 
 
 def test_jsonl(tmp_path: Path, renderers: dict[str, Renderer]) -> None:

@@ -25,10 +25,15 @@ def raw_columns(target: TargetSpec) -> tuple[str, ...]:
     )
 
 
+# the pose's tilt and the standard deviations its covariance gives
+UNCERTAINTY_COLUMNS = ("roll_deg", "pitch_deg", "x_std_cm", "y_std_cm", "z_std_cm", "yaw_std_deg")
+
+
 def columns(target: TargetSpec) -> tuple[str, ...]:
     """All columns of a track file."""
     return (
         *POSE_COLUMNS,
+        *UNCERTAINTY_COLUMNS,
         *raw_columns(target),
         "total_ms",
         "latency_ms",
@@ -81,6 +86,15 @@ def estimate_row(
             y_cm=_num(estimate.y_cm, 4),
             z_cm=_num(estimate.z_cm, 4),
             yaw_deg=_num(estimate.yaw_deg, 3),
+            roll_deg=_num(math.degrees(estimate.roll_rad), 3),
+            pitch_deg=_num(math.degrees(estimate.pitch_rad), 3),
+        )
+        x_std, y_std, z_std, yaw_std = estimate.std
+        row.update(
+            x_std_cm=_num(x_std * 100.0, 6),
+            y_std_cm=_num(y_std * 100.0, 6),
+            z_std_cm=_num(z_std * 100.0, 6),
+            yaw_std_deg=_num(math.degrees(yaw_std), 5),
         )
     for i, m in enumerate(estimate.markers):
         if m.measurement is None:

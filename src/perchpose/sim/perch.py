@@ -27,7 +27,7 @@ from perchpose.control import (
 )
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import stage_of
-from perchpose.geometry import invert_transform, make_transform, rot_z, yaw_rad
+from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad, yaw_rad
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams, VehicleConfigError
 from perchpose.sim.render import ImageQuality, Renderer
@@ -180,12 +180,15 @@ def truth_estimate(
     if not valid:
         return Estimate.none(t_s)
     t = T_camera_target[:3, 3]
+    roll, pitch = tilt_rad(T_camera_target[:3, :3])
     return Estimate(
         t_s=t_s,
         valid=True,
         stage=stage,
         t_camera_target_m=(float(t[0]), float(t[1]), float(t[2])),
         yaw_rad=yaw_rad(T_camera_target[:3, :3]),
+        roll_rad=roll,
+        pitch_rad=pitch,
     )
 
 
