@@ -356,6 +356,9 @@ def test_bench_refuses_a_source_without_its_calibration(
     code, _, err = _run(["bench", str(short_sequence)], capsys)
     assert code == 2
     assert "--camera" in _single_error_line(err)
+    code, _, err = _run(["bench", "--budget-ms", "0"], capsys)
+    assert code == 2
+    assert "--budget-ms" in err
     code, _, err = _run(
         ["bench", str(short_sequence / "missing"), "--camera", str(short_sequence / "camera.yaml")],
         capsys,

@@ -30,9 +30,9 @@ from perchpose.errors import PerchposeError, SourceError
 from perchpose.estimator import PerchingEstimator
 from perchpose.geometry import wrap_angle_deg, yaw_rad
 from perchpose.io.sources import open_source
-from perchpose.sim.render import ImageQuality, Renderer
+from perchpose.sim.render import ImageQuality
 from perchpose.sim.scenarios import approach, markers_in_view
-from perchpose.sim.sequence import render_frame
+from perchpose.sim.sequence import rendered_frames as rendered_sequence
 from perchpose.target import TargetSpec, aruco_dictionary
 from perchpose.values import Estimate, Timings
 
@@ -67,18 +67,8 @@ def rendered_frames(
     if frames < 2:
         raise PerchposeError(f"--frames must be at least 2, got {frames}")
     scenario = approach(duration_s=frames / 30.0, quality=quality)
-    renderer = Renderer(camera, target)
-    rng = np.random.default_rng(seed)
     images, truth, in_view = [], [], []
-    for i in tqdm(
-        range(len(scenario)),
-        desc="render",
-        unit="frame",
-        disable=not progress,
-        file=sys.stderr,
-        leave=False,
-    ):
-        image = render_frame(renderer, scenario, i, rng)
+    for i, image in rendered_sequence(scenario, camera, target, seed, progress):
         images.append(camera.check_image(image))
         T = scenario.poses[i]
         truth.append(T)

@@ -10,6 +10,7 @@ import click
 
 from perchpose.cli.common import (
     CAMERA_HELP,
+    budget_option,
     load_camera,
     load_target,
     quiet_option,
@@ -58,12 +59,7 @@ QUALITIES = ("default", "clean", "analog_fpv", "harsh")
     type=click.Path(dir_okay=False),
     help="Also write the report as JSON.",
 )
-@click.option(
-    "--budget-ms",
-    default=None,
-    type=float,
-    help="Also time perchpose within this budget per frame (perchpose-budget).",
-)
+@budget_option("Also time perchpose within this budget per frame (perchpose-budget).")
 @quiet_option
 def bench(
     source: str | None,
@@ -99,8 +95,6 @@ def bench(
         data = rendered_frames(camera, target, frames, ImageQuality.preset(quality), seed, progress)
     else:
         data = source_frames(source, camera, frames)
-    if budget_ms is not None and not budget_ms > 0:
-        raise click.BadParameter(f"must be positive, got {budget_ms}", param_hint="--budget-ms")
     report = run_bench(
         data,
         camera,

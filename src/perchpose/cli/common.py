@@ -49,6 +49,16 @@ sheet_out_option = click.option(
 dpi_option = click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
 
 
+def budget_option(help_text: str) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """``--budget-ms``: a positive time budget per frame, milliseconds."""
+    return click.option(
+        "--budget-ms",
+        default=None,
+        type=click.FloatRange(min=0.0, min_open=True),
+        help=help_text,
+    )
+
+
 def show_progress(quiet: bool) -> bool:
     """A progress bar unless ``--quiet`` or stderr is not a terminal."""
     return not quiet and sys.stderr.isatty()

@@ -12,6 +12,7 @@ import click
 
 from perchpose.cli.common import (
     CAMERA_HELP,
+    budget_option,
     load_camera,
     load_target,
     quiet_option,
@@ -138,12 +139,9 @@ def _vehicle_links(
     help="Fuse the markers with the paper's fusion and these weights (the JSON that "
     "'fit-fusion --json' writes) instead of the joint pose.",
 )
-@click.option(
-    "--budget-ms",
-    default=None,
-    type=float,
-    help="Time budget per frame: past it the detection leaves out what it can (a pattern fit, "
-    "a whole-frame search) and the track file's 'skipped' column says what.",
+@budget_option(
+    "Time budget per frame: past it the detection leaves out what it can (a pattern fit, "
+    "a whole-frame search) and the track file's 'skipped' column says what."
 )
 def track(
     source: str,
@@ -171,8 +169,6 @@ def track(
 
     cam = load_camera(camera_file)
     spec = load_target(target_file)
-    if budget_ms is not None and not budget_ms > 0:
-        raise click.BadParameter(f"must be positive, got {budget_ms}", param_hint="--budget-ms")
     if sigmas_file is None:
         estimator = PerchingEstimator(cam, spec, budget_ms=budget_ms)
     else:

@@ -5,10 +5,12 @@ from __future__ import annotations
 import csv
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 from tqdm import tqdm
 
 from perchpose.camera import CameraModel
@@ -58,6 +60,28 @@ def render_frame(
     return renderer.render(T, scenario.quality, rng, occluders)
 
 
+def rendered_frames(
+    scenario: Scenario,
+    camera: CameraModel,
+    target: TargetSpec,
+    seed: int = 0,
+    progress: bool = False,
+) -> Iterator[tuple[int, NDArray[np.uint8]]]:
+    """Each frame of ``scenario`` rendered (``render_frame``), in order, from one generator
+    seeded with ``seed``; a progress bar on stderr with ``progress``."""
+    renderer = Renderer(camera, target)
+    rng = np.random.default_rng(seed)
+    for i in tqdm(
+        range(len(scenario)),
+        desc="render",
+        unit="frame",
+        disable=not progress,
+        file=sys.stderr,
+        leave=False,
+    ):
+        yield i, render_frame(renderer, scenario, i, rng)
+
+
 def truth_row(
     camera: CameraModel, target: TargetSpec, scenario: Scenario, i: int
 ) -> dict[str, object]:
@@ -100,20 +124,10 @@ def write_sequence(
         raise PerchposeError(f"{out}: cannot create folder ({exc.strerror})") from exc
     camera.save(out / "camera.yaml")
     target.save(out / "target.yaml")
-    renderer = Renderer(camera, target)
-    rng = np.random.default_rng(seed)
     with (out / "truth.csv").open("w", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=list(truth_columns(target)))
         writer.writeheader()
-        for i in tqdm(
-            range(len(scenario)),
-            desc="render",
-            unit="frame",
-            disable=not progress,
-            file=sys.stderr,
-            leave=False,
-        ):
-            image = render_frame(renderer, scenario, i, rng)
+        for i, image in rendered_frames(scenario, camera, target, seed, progress):
             name = out / f"frame_{i:06d}.{image_format}"
             if not cv2.imwrite(str(name), image):
                 raise PerchposeError(f"{name}: cannot write image")
