@@ -12,12 +12,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from perchpose.cli import main
+from perchpose.control import downward_T_body_camera
 from perchpose.errors import LinkError
 from perchpose.io.mavlink import LandingTargetSink, mavutil_module
 from perchpose.io.sinks import read_track_csv
 from perchpose.values import Estimate
 
-MOUNT_M = np.array([0.015, 0.0, 0.012])  # control.default_T_body_camera's offset
+DOWN = downward_T_body_camera()  # ArduPilot takes LANDING_TARGET only from a camera looking down
 
 
 def free_udp_port() -> int:
@@ -67,8 +68,10 @@ class Receiver:
 
 
 def frd_from_camera(x_cm: float, y_cm: float, z_cm: float) -> np.ndarray:
-    p_flu = np.array([x_cm, y_cm, z_cm]) / 100.0 + MOUNT_M
-    return np.array([p_flu[0], -p_flu[1], -p_flu[2]])
+    """The downward camera's point in body FRD: image right is the body's right, image down
+    its back, the optical axis its down; the camera 15 mm ahead of and 12 mm below the centre."""
+    x, y, z = (v / 100.0 for v in (x_cm, y_cm, z_cm))
+    return np.array([-y + 0.015, x, z + 0.012])
 
 
 def test_track_sends_one_landing_target_per_valid_row(
@@ -89,6 +92,8 @@ def test_track_sends_one_landing_target_per_valid_row(
                 "--quiet",
                 "--mavlink",
                 f"udpout:127.0.0.1:{port}",
+                "--mount",
+                "down",
             ]
         )
     finally:
@@ -107,10 +112,12 @@ def test_track_sends_one_landing_target_per_valid_row(
         assert [msg.x, msg.y, msg.z] == pytest.approx(frd_from_camera(x, y, z), abs=1e-3)
         assert msg.distance == pytest.approx(math.hypot(x, y, z) / 100.0, abs=1e-3)
         assert msg.distance > 0
+        assert msg.z > 0  # the line of sight points down, along ArduCopter's descent
         assert msg.angle_x == pytest.approx(math.atan2(x, z), abs=1e-4)
         assert msg.angle_y == pytest.approx(math.atan2(y, z), abs=1e-4)
-        # the target's heading in FRD is minus its yaw in the upward camera
-        heading = -math.radians(float(row["yaw_deg"]))
+        # the target's x axis, at yaw psi in the image, points to (-sin psi, cos psi) in FRD
+        yaw = math.radians(float(row["yaw_deg"]))
+        heading = math.atan2(math.cos(yaw), -math.sin(yaw))
         q = np.array(msg.q)
         assert abs(float(q @ [math.cos(heading / 2), 0, 0, math.sin(heading / 2)])) == (
             pytest.approx(1.0, abs=1e-5)
@@ -132,7 +139,9 @@ def test_local_ned_uses_the_vehicles_attitude_and_position() -> None:
     p_vehicle = (3.0, -2.0, -1.5)
     receiver = Receiver(port, attitude=(roll, pitch, yaw), p_ned_m=p_vehicle)
     reports: list[str] = []
-    sink = LandingTargetSink(f"udpout:127.0.0.1:{port}", frame="local_ned", report=reports.append)
+    sink = LandingTargetSink(
+        f"udpout:127.0.0.1:{port}", frame="local_ned", T_body_camera=DOWN, report=reports.append
+    )
     try:
         deadline = time.monotonic() + 5.0
         while sink.vehicle.p_ned_m is None and time.monotonic() < deadline:
@@ -171,7 +180,9 @@ def test_stale_and_non_finite_estimates_are_never_sent() -> None:
     port = free_udp_port()
     receiver = Receiver(port, attitude=(math.nan, 0.0, 0.0))
     reports: list[str] = []
-    body = LandingTargetSink(f"udpout:127.0.0.1:{port}", max_age_s=0.3, report=reports.append)
+    body = LandingTargetSink(
+        f"udpout:127.0.0.1:{port}", T_body_camera=DOWN, max_age_s=0.3, report=reports.append
+    )
     ned = LandingTargetSink(f"udpout:127.0.0.1:{port}", frame="local_ned", report=reports.append)
     try:
         fresh = estimate_at(1.0, (2.0, 1.0, 50.0), 10.0)
@@ -199,7 +210,10 @@ def test_stale_and_non_finite_estimates_are_never_sent() -> None:
 def test_a_link_that_cannot_open_is_reported_once_and_tracking_goes_on() -> None:
     reports: list[str] = []
     sink = LandingTargetSink(
-        "/dev/perchpose-no-such-port,57600", retry_period_s=0.05, report=reports.append
+        "/dev/perchpose-no-such-port,57600",
+        T_body_camera=DOWN,
+        retry_period_s=0.05,
+        report=reports.append,
     )
     try:
         accepted = []
@@ -219,7 +233,52 @@ def test_a_link_that_cannot_open_is_reported_once_and_tracking_goes_on() -> None
 @pytest.mark.parametrize("url", ["udpout:127.0.0.1", "udpout:host:99999", "nonsense", ""])
 def test_bad_urls_are_refused(url: str) -> None:
     with pytest.raises(LinkError, match="MAVLink URL"):
-        LandingTargetSink(url)
+        LandingTargetSink(url, T_body_camera=DOWN)
+
+
+def test_arducopter_would_drop_a_target_above_so_it_is_refused() -> None:
+    """ArduCopter takes a LANDING_TARGET only along its descent: body_frd from the default
+    upward camera (or one looking sideways) is refused with what to use instead; PX4's
+    local_ned is not refused, nor body_frd from a camera looking down."""
+    from perchpose.control import default_T_body_camera
+    from perchpose.geometry import make_transform, rot_x
+
+    with pytest.raises(LinkError, match=r"looking up.*--mount down.*--crazyflie"):
+        LandingTargetSink("udpout:127.0.0.1:14550")
+    sideways = make_transform(rot_x(math.pi / 2), np.zeros(3))
+    with pytest.raises(LinkError, match="looking sideways"):
+        LandingTargetSink("udpout:127.0.0.1:14550", T_body_camera=sideways)
+    for sink in (
+        LandingTargetSink("udpout:127.0.0.1:14550", frame="local_ned"),
+        LandingTargetSink(
+            "udpout:127.0.0.1:14550", frame="local_ned", T_body_camera=default_T_body_camera()
+        ),
+        LandingTargetSink("udpout:127.0.0.1:14550", T_body_camera=DOWN),
+    ):
+        sink.close()
+
+
+def test_cli_refuses_landing_target_to_ardupilot_from_an_upward_camera(
+    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "p.csv"
+    code = main(
+        [
+            "track",
+            str(approach_fpv_dir),
+            "--camera",
+            str(approach_fpv_dir / "camera.yaml"),
+            "--out",
+            str(out),
+            "--mavlink",
+            f"udpout:127.0.0.1:{free_udp_port()}",
+        ]
+    )
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "--mount down" in err[0]
+    assert not out.exists()  # refused before the first frame
 
 
 def test_cli_reports_a_bad_url(
@@ -263,7 +322,9 @@ def test_tcp_link_survives_the_vehicle_restarting(capfd: pytest.CaptureFixture[s
     each time, and nothing printed to stdout."""
     port = free_tcp_port()
     reports: list[str] = []
-    sink = LandingTargetSink(f"tcp:127.0.0.1:{port}", retry_period_s=0.1, report=reports.append)
+    sink = LandingTargetSink(
+        f"tcp:127.0.0.1:{port}", T_body_camera=DOWN, retry_period_s=0.1, report=reports.append
+    )
     vehicle = None
     try:
         for _ in range(5):  # nobody listens yet: dropped, never blocking the caller

@@ -33,9 +33,9 @@ def _vehicle_links(
     mount_file: str | None,
 ) -> Iterator[list[Callable[[Any, float], None]]]:
     """The per-frame hooks of the requested vehicle links; lands and closes them at the end."""
-    from perchpose.control import ControllerSettings, PerchingController, load_T_body_camera
+    from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
 
-    T_body_camera = load_T_body_camera(mount_file) if mount_file else None
+    T_body_camera = mount_T_body_camera(mount_file) if mount_file else None
     hooks: list[Callable[[Any, float], None]] = []
     closers: list[Callable[[], None]] = []
     pilot = None
@@ -127,9 +127,9 @@ def _vehicle_links(
     "--mount",
     "mount_file",
     default=None,
-    type=click.Path(dir_okay=False),
-    help="YAML with T_body_camera (4x4, body x forward, y left, z up); default: camera on top "
-    "looking up.",
+    help="Where the camera sits: 'up' (on top looking up, for perching; the default), "
+    "'down' (under the body looking down, for landing with an autopilot), or a YAML file with "
+    "T_body_camera (4x4, body x forward, y left, z up).",
 )
 @click.option(
     "--sigmas",

@@ -8,12 +8,19 @@ from perchpose.control.controller import (
     PerchingController,
     usable,
 )
-from perchpose.control.mount import default_T_body_camera, load_T_body_camera
+from perchpose.control.mount import (
+    MOUNT_PRESETS,
+    default_T_body_camera,
+    downward_T_body_camera,
+    load_T_body_camera,
+    mount_T_body_camera,
+)
 from perchpose.control.pilot import CommanderLike, PerchingPilot, PilotSettings, PilotStep
 from perchpose.control.setpoint import Setpoint, SetpointLimits, safe_setpoint
 from perchpose.errors import ControllerConfigError
 
 __all__ = [
+    "MOUNT_PRESETS",
     "Command",
     "CommanderLike",
     "ControllerConfigError",
@@ -26,7 +33,9 @@ __all__ = [
     "Setpoint",
     "SetpointLimits",
     "default_T_body_camera",
+    "downward_T_body_camera",
     "load_T_body_camera",
+    "mount_T_body_camera",
     "safe_setpoint",
     "usable",
 ]

@@ -22,6 +22,25 @@ def default_T_body_camera() -> Array:
     return make_transform(np.eye(3), np.array([0.015, 0.0, 0.012]))
 
 
+def downward_T_body_camera() -> Array:
+    """Camera under the body looking down, as autopilots' precision landing expects: the
+    optical axis along the body's -z, the image's top toward the body's front (image x to the
+    body's right, image y to its back), 15 mm ahead of and 12 mm below the body centre."""
+    R = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    return make_transform(R, np.array([0.015, 0.0, -0.012]))
+
+
+MOUNT_PRESETS = {"up": default_T_body_camera, "down": downward_T_body_camera}
+
+
+def mount_T_body_camera(value: str) -> Array:
+    """``T_body_camera`` of a preset (``up``: the default, on top looking up, for perching;
+    ``down``: under the body looking down, for landing) or of a YAML file
+    (``load_T_body_camera``)."""
+    preset = MOUNT_PRESETS.get(value)
+    return preset() if preset is not None else load_T_body_camera(value)
+
+
 def load_T_body_camera(path: str | Path) -> Array:
     """``T_body_camera`` from a YAML file holding a 4x4 matrix under that key (body FLU: x
     forward, y left, z up; camera: OpenCV optical frame)."""

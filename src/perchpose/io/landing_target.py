@@ -49,6 +49,30 @@ class LandingTarget:
     q_wxyz: tuple[float, float, float, float]
 
 
+# ArduCopter's precision landing takes a target only along its descent: a line of sight this
+# close to the body's down axis (here: the camera's optical axis within 60 degrees of it)
+MIN_DOWN_COSINE = 0.5
+
+
+def check_line_of_sight(T_body_camera: Array, frame: str) -> None:
+    """Refuse a mounting whose LANDING_TARGET an autopilot would drop without a word:
+    ``body_frd`` is ArduPilot's frame, and ArduCopter uses a target only when its line of
+    sight points down along the descent (its approach vector is fixed body-down), so a camera
+    that does not look down gets a ``LinkError`` that says what to use instead."""
+    if frame != "body_frd":
+        return
+    axis_frd = R_FRD_FLU @ np.asarray(T_body_camera, np.float64)[:3, 2]
+    if float(axis_frd[2]) >= MIN_DOWN_COSINE:
+        return
+    looks = "up" if float(axis_frd[2]) <= -MIN_DOWN_COSINE else "sideways"
+    raise LinkError(
+        f"LANDING_TARGET in body_frd (ArduPilot) from a camera looking {looks}: ArduCopter "
+        "drops every target whose line of sight does not point down along its descent; to "
+        "land, mount the camera looking down (--mount down); to perch on a target above, "
+        "fly with the perching controller (--crazyflie)"
+    )
+
+
 def R_ned_frd_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Array:
     """The vehicle's attitude as MAVLink's ATTITUDE gives it (Z-Y-X Euler angles) as a matrix
     mapping body FRD vectors into local NED."""

@@ -37,6 +37,7 @@ from perchpose.io.landing_target import (
     FRAMES,
     LandingTarget,
     R_ned_frd_from_euler,
+    check_line_of_sight,
     landing_target,
 )
 from perchpose.target import TargetSpec
@@ -160,6 +161,7 @@ class LandingTargetSink:
             )
         except ValueError as exc:
             raise LinkError(str(exc)) from exc
+        check_line_of_sight(self.T_body_camera, frame)
         self.target_side_m = (target or TargetSpec.paper()).markers[0].side_m
         self.source_system = source_system
         self.source_component = source_component
