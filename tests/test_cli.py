@@ -220,8 +220,13 @@ def test_bad_sources_and_outputs_exit_2(
         assert message in _single_error_line(err)
 
 
-def test_usage_error_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+def test_usage_error_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = _run(["track", "somewhere"], capsys)
+    assert code == 2
+    assert "--out" in err
+    assert "Traceback" not in err
+    # --camera may be left out only for a ROS bag, whose CameraInfo gives the camera
+    code, _, err = _run(["track", str(tmp_path), "--out", str(tmp_path / "p.csv")], capsys)
     assert code == 2
     assert "--camera" in err
     assert "Traceback" not in err

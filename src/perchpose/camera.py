@@ -268,6 +268,13 @@ class CameraModel:
 
     # ------------------------------------------------------------------ file I/O
     @staticmethod
+    def from_camera_info(data: dict[str, Any], where: str) -> CameraModel:
+        """A camera from the fields of a ROS ``CameraInfo`` (``k``, ``d``,
+        ``distortion_model``, ``width``, ``height``; either case), as a message or a
+        camera_info YAML gives them; ``where`` names it in errors (``CameraFileError``)."""
+        return _from_ros_mapping(data, Path(where))
+
+    @staticmethod
     def load(path: str | Path) -> CameraModel:
         """Read a ROS camera_info YAML or an OpenCV FileStorage YAML/XML calibration."""
         p = Path(path)

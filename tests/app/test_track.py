@@ -123,7 +123,9 @@ def test_a_live_camera_drops_stale_frames_and_says_so(
         writer.write(cv2.imread(str(path)))
     writer.release()
 
-    def live(source: str, fps: float | None, size: tuple[int, int]) -> VideoSource:
+    def live(
+        source: str, fps: float | None, size: tuple[int, int], image_topic: str | None = None
+    ) -> VideoSource:
         return VideoSource(cv2.VideoCapture(source), 30.0, "camera 0", live=True)
 
     monkeypatch.setattr(track_module, "open_source", live)

@@ -120,10 +120,12 @@ def track(
     overlay: str | Path | None = None,
     progress: bool = True,
     on_frame: Sequence[Callable[[Estimate | None, float], None]] = (),
+    image_topic: str | None = None,
 ) -> TrackSummary:
     """Run ``estimator`` (its camera and target) over every frame of ``source`` and write one
     row per frame to ``out``; each estimate carries its latency from the frame's grab.
 
+    ``image_topic``: the images' topic when ``source`` is a ROS bag (``perchpose.io.rosbag``).
     A live camera is grabbed on a thread of its own and the estimator always takes the newest
     frame: a frame overtaken before it was taken gets an invalid row saying it was stale (no
     warning each; the summary counts them).
@@ -136,7 +138,7 @@ def track(
     if overlay is not None:
         check_overlay_path(overlay)
     camera, target = estimator.camera, estimator.target
-    frames = open_source(source, fps, camera.size)
+    frames = open_source(source, fps, camera.size, image_topic=image_topic)
     video = _Overlay(overlay, frames.fps, camera)
     writer = PoseWriter(out, target)
     tally = _Tally()

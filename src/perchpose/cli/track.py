@@ -77,9 +77,36 @@ def _vehicle_links(
             close()
 
 
+def _camera(source: str, camera_file: str | None, camera_info_topic: str | None) -> Any:
+    """The camera of ``--camera``, or of a bag's CameraInfo topic."""
+    from perchpose.io.rosbag import camera_from_bag, is_bag
+
+    if camera_file is not None:
+        return load_camera(camera_file)
+    if is_bag(source):
+        return camera_from_bag(source, camera_info_topic)
+    raise click.UsageError("Missing option '--camera'.")
+
+
 @group.command()
 @click.argument("source")
-@click.option("--camera", "camera_file", required=True, help=CAMERA_HELP)
+@click.option(
+    "--camera",
+    "camera_file",
+    default=None,
+    help=f"{CAMERA_HELP}. Required, except for a ROS bag with a CameraInfo topic.",
+)
+@click.option(
+    "--image-topic",
+    default=None,
+    help="For a ROS bag (.bag, .mcap or a ROS 2 bag folder): the topic of its images "
+    "(sensor_msgs/Image or CompressedImage).",
+)
+@click.option(
+    "--camera-info-topic",
+    default=None,
+    help="For a ROS bag without --camera: the CameraInfo topic (default: the bag's only one).",
+)
 @target_option
 @click.option(
     "--fps",
@@ -157,8 +184,11 @@ def track(
     mount_file: str | None,
     sigmas_file: str | None,
     budget_ms: float | None,
+    image_topic: str | None,
+    camera_info_topic: str | None,
 ) -> None:
-    """Track the target in SOURCE: a folder of images, a glob, a video file or a camera index.
+    """Track the target in SOURCE: a folder of images, a glob, a video file, a camera index,
+    or a ROS bag (with --image-topic).
 
     With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
     """
@@ -167,7 +197,7 @@ def track(
     from perchpose.fusion import FusionSigmas
     from perchpose.io.overlay import check_overlay_path
 
-    cam = load_camera(camera_file)
+    cam = _camera(source, camera_file, camera_info_topic)
     spec = load_target(target_file)
     if sigmas_file is None:
         estimator = PerchingEstimator(cam, spec, budget_ms=budget_ms)
@@ -185,6 +215,7 @@ def track(
             overlay=overlay,
             progress=show_progress(quiet),
             on_frame=hooks,
+            image_topic=image_topic,
         )
     stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
     extra = ""

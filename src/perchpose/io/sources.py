@@ -267,8 +267,44 @@ def _to_uint8(image: NDArray[Any]) -> NDArray[np.uint8]:
     return np.asarray(image, dtype=np.uint8)
 
 
+def _camera(index: str, rate: float, size: tuple[int, int] | None) -> VideoSource:
+    """Camera ``index``, asked for ``size``."""
+    with native_stderr_silenced():
+        capture = cv2.VideoCapture(int(index))
+    if not capture.isOpened():
+        raise SourceError(f"camera {index}: cannot be opened")
+    if size is not None:
+        capture.set(cv2.CAP_PROP_FRAME_WIDTH, float(size[0]))
+        capture.set(cv2.CAP_PROP_FRAME_HEIGHT, float(size[1]))
+    return VideoSource(capture, rate, f"camera {index}", live=True)
+
+
+def _image_files(source: str) -> list[Path] | None:
+    """The image files a glob or a folder names, in natural order; None for anything else."""
+    if any(ch in source for ch in "*?["):
+        paths = sorted(
+            (Path(p) for p in globlib.glob(source) if Path(p).is_file()), key=natural_key
+        )
+        if not paths:
+            raise SourceError(f"{source}: the pattern matches no file")
+        return paths
+    path = Path(source)
+    if not path.is_dir():
+        return None
+    paths = sorted(
+        (p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+        key=natural_key,
+    )
+    if not paths:
+        raise SourceError(f"{path}: the folder holds no image files")
+    return paths
+
+
 def open_source(
-    source: str, fps: float | None = None, size: tuple[int, int] | None = None
+    source: str,
+    fps: float | None = None,
+    size: tuple[int, int] | None = None,
+    image_topic: str | None = None,
 ) -> FrameSource:
     """Open ``source``: a folder of images (in natural order: ``img_2`` before ``img_10``), a
     glob (the same order), a video file, one image
@@ -278,35 +314,24 @@ def open_source(
         a video file's own rate when not given).
     size : (width, height) to ask a live camera for (the calibration's); a driver that gives
         another size is caught at the first frame (``CameraModel.check_image``).
+    image_topic : for a ROS bag (``perchpose.io.rosbag``), the topic of its images.
     """
+    from perchpose.io import rosbag
+
+    if rosbag.is_bag(source):
+        if image_topic is None:
+            raise SourceError(f"{source}: a ROS bag needs --image-topic (the images' topic)")
+        return rosbag.BagSource(source, image_topic)
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise SourceError(f"--fps must be a positive number, got {fps}")
     rate = fps or 30.0
     if source.isdigit():
-        with native_stderr_silenced():
-            capture = cv2.VideoCapture(int(source))
-        if not capture.isOpened():
-            raise SourceError(f"camera {source}: cannot be opened")
-        if size is not None:
-            capture.set(cv2.CAP_PROP_FRAME_WIDTH, float(size[0]))
-            capture.set(cv2.CAP_PROP_FRAME_HEIGHT, float(size[1]))
-        return VideoSource(capture, rate, f"camera {source}", live=True)
+        return _camera(source, rate, size)
+    images = _image_files(source)
+    if images is not None:
+        described = str(Path(source)) if Path(source).is_dir() else source
+        return ImageFilesSource(images, rate, described)
     path = Path(source)
-    if any(ch in source for ch in "*?["):
-        paths = sorted(
-            (Path(p) for p in globlib.glob(source) if Path(p).is_file()), key=natural_key
-        )
-        if not paths:
-            raise SourceError(f"{source}: the pattern matches no file")
-        return ImageFilesSource(paths, rate, source)
-    if path.is_dir():
-        paths = sorted(
-            (p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
-            key=natural_key,
-        )
-        if not paths:
-            raise SourceError(f"{path}: the folder holds no image files")
-        return ImageFilesSource(paths, rate, str(path))
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder")
     if path.suffix.lower() in IMAGE_SUFFIXES:

@@ -1,0 +1,197 @@
+"""Frames from ROS bags through ``rosbags`` (the ``[ros]`` extra): ROS 1 ``.bag`` files, ROS 2
+bag folders (sqlite3 or MCAP storage) and bare ``.mcap`` files, with their images as
+``sensor_msgs/Image`` (mono8, mono16, bgr8, rgb8, bgra8, rgba8) or ``CompressedImage``, and the
+camera from a ``CameraInfo`` topic.
+
+One ``Frame`` per image message, in the bag's order; ``t_s`` from the message's header stamp
+(the bag's receive time where the stamp is zero); ``file`` is ``BAG#TOPIC#N``. A message that
+cannot be decoded ends the reading with a ``SourceError`` after the frames before it."""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.errors import SourceError
+from perchpose.io.sources import Frame, FrameSource
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+ENCODINGS = ("mono8", "mono16", "bgr8", "rgb8", "bgra8", "rgba8")
+BAG_SUFFIXES = (".bag", ".mcap")
+
+
+def is_bag(source: str) -> bool:
+    """A ROS 1 ``.bag``, a bare ``.mcap`` or a ROS 2 bag folder (one with ``metadata.yaml``)."""
+    path = Path(source)
+    if path.suffix.lower() in BAG_SUFFIXES:
+        return True
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
+def _rosbags() -> Any:
+    try:
+        return importlib.import_module("rosbags.highlevel")
+    except ImportError as exc:
+        raise SourceError('reading ROS bags needs the ros extra: pip install -e ".[ros]"') from exc
+
+
+def _open(path: Path) -> Any:
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or folder")
+    reader = _rosbags().AnyReader([path])
+    try:
+        reader.open()
+    except Exception as exc:  # rosbags raises its own error kinds per format
+        raise SourceError(f"{path}: not a readable ROS bag ({_first_line(exc)})") from exc
+    return reader
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def _topics_of(reader: Any, kinds: tuple[str, ...]) -> list[str]:
+    return sorted({c.topic for c in reader.connections if c.msgtype in kinds})
+
+
+def _connection(reader: Any, path: Path, topic: str, kinds: tuple[str, ...], what: str) -> Any:
+    found = [c for c in reader.connections if c.topic == topic]
+    if not found:
+        available = ", ".join(_topics_of(reader, kinds)) or "none"
+        raise SourceError(f"{path}: no topic {topic!r} in the bag ({what} topics: {available})")
+    if found[0].msgtype not in kinds:
+        raise SourceError(
+            f"{path}: topic {topic!r} holds {found[0].msgtype}, not {' or '.join(kinds)}"
+        )
+    return found[0]
+
+
+def _stamp_s(msg: Any, bag_time_ns: int) -> float:
+    stamp = msg.header.stamp
+    seconds = int(getattr(stamp, "sec", getattr(stamp, "secs", 0)))
+    nanoseconds = int(getattr(stamp, "nanosec", getattr(stamp, "nsecs", 0)))
+    if seconds == 0 and nanoseconds == 0:
+        return bag_time_ns * 1e-9
+    return seconds + nanoseconds * 1e-9
+
+
+def image_of(msg: Any, where: str) -> NDArray[np.uint8]:
+    """The grey or BGR uint8 image of an ``Image`` or ``CompressedImage`` message."""
+    if hasattr(msg, "format"):  # CompressedImage
+        data = np.frombuffer(bytes(msg.data), np.uint8)
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise SourceError(f"{where}: the compressed image ({msg.format}) cannot be decoded")
+        if image.dtype == np.uint16:
+            image = (image // 256).astype(np.uint8)
+        return np.asarray(image, np.uint8)
+    encoding = str(msg.encoding).lower()
+    if encoding not in ENCODINGS:
+        raise SourceError(
+            f"{where}: image encoding {msg.encoding!r} is not supported ({', '.join(ENCODINGS)})"
+        )
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    channels = {"mono8": 1, "mono16": 1, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}[encoding]
+    depth = 2 if encoding == "mono16" else 1
+    raw = np.frombuffer(bytes(msg.data), np.uint8)
+    if step < w * channels * depth or raw.size < h * step:
+        raise SourceError(f"{where}: the image's data is shorter than {h} rows of {step} bytes")
+    rows = raw[: h * step].reshape(h, step)[:, : w * channels * depth]
+    if depth == 2:
+        dtype = ">u2" if int(msg.is_bigendian) else "<u2"
+        grey16 = rows.copy().view(dtype).reshape(h, w)
+        return (grey16 // 256).astype(np.uint8)
+    image = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
+    if encoding == "rgb8":
+        image = image[:, :, ::-1]
+    elif encoding in ("bgra8", "rgba8"):
+        image = image[:, :, [2, 1, 0]] if encoding == "rgba8" else image[:, :, :3]
+    return np.ascontiguousarray(image, np.uint8)
+
+
+class BagSource(FrameSource):
+    """The images of one topic of a bag, as ``Frame`` in the bag's order."""
+
+    def __init__(self, path: str | Path, image_topic: str) -> None:
+        self.path = Path(path)
+        reader = _open(self.path)
+        try:
+            self.connection = _connection(reader, self.path, image_topic, IMAGE_TYPES, "image")
+        finally:
+            reader.close()
+        self.topic = image_topic
+        count = int(self.connection.msgcount)
+        super().__init__(f"{self.path} {image_topic}", count, 30.0)
+
+    def __iter__(self) -> Iterator[Frame]:
+        reader = _open(self.path)
+        try:
+            connections = [c for c in reader.connections if c.topic == self.topic]
+            messages = reader.messages(connections=connections)
+            index = 0
+            while True:
+                where = f"{self.path} {self.topic} message {index}"
+                try:
+                    item = next(messages, None)
+                    if item is None:
+                        return
+                    connection, bag_time_ns, raw = item
+                    msg = reader.deserialize(raw, connection.msgtype)
+                except Exception as exc:  # a damaged bag: each format fails its own way
+                    raise SourceError(f"{where}: cannot be read ({_first_line(exc)})") from exc
+                grabbed = time.monotonic()
+                image = image_of(msg, where)
+                yield Frame(
+                    index,
+                    _stamp_s(msg, bag_time_ns),
+                    image,
+                    f"message {index}",
+                    file=f"{self.path}#{self.topic}#{index}",
+                    grabbed_s=grabbed,
+                )
+                index += 1
+        finally:
+            reader.close()
+
+
+def camera_from_bag(path: str | Path, topic: str | None = None) -> CameraModel:
+    """The camera of the first ``CameraInfo`` message on ``topic`` (default: the bag's only
+    CameraInfo topic)."""
+    where = Path(path)
+    reader = _open(where)
+    try:
+        topics = _topics_of(reader, (CAMERA_INFO_TYPE,))
+        if topic is None:
+            if len(topics) != 1:
+                found = ", ".join(topics) if topics else "none"
+                raise SourceError(
+                    f"{where}: give --camera, or --camera-info-topic to pick the CameraInfo "
+                    f"topic (found: {found})"
+                )
+            topic = topics[0]
+        connection = _connection(reader, where, topic, (CAMERA_INFO_TYPE,), "CameraInfo")
+        for conn, _, raw in reader.messages(connections=[connection]):
+            msg = reader.deserialize(raw, conn.msgtype)
+            # ROS 2 names its fields k and d; ROS 1, K and D
+            data = {
+                "k": [float(v) for v in getattr(msg, "k", getattr(msg, "K", []))],
+                "d": [float(v) for v in getattr(msg, "d", getattr(msg, "D", []))],
+                "distortion_model": str(msg.distortion_model) or "plumb_bob",
+                "width": int(msg.width),
+                "height": int(msg.height),
+                "camera_name": topic,
+            }
+            return CameraModel.from_camera_info(data, f"{where} {topic}")
+        raise SourceError(f"{where}: topic {topic!r} holds no message")
+    finally:
+        reader.close()

@@ -1,0 +1,258 @@
+"""ROS bags in: bags written by rosbags' own writers (ROS 1, ROS 2 sqlite3 and MCAP) from the
+rendered approach, tracked, and compared row by row with the same frames read from files."""
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_typestore
+
+from perchpose import CameraModel
+from perchpose.cli import main
+from perchpose.io.sinks import read_track_csv
+
+FRAMES = 12
+T0_NS = 1_700_000_000_000_000_000
+
+
+class Bag:
+    """Writes a bag of one kind: ``ros1``, ``sqlite3`` or ``mcap``."""
+
+    def __init__(self, path: Path, kind: str) -> None:
+        self.kind = kind
+        self.ros1 = kind == "ros1"
+        self.ts = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
+        if self.ros1:
+            self.writer: Any = Writer1(path)
+        else:
+            plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+            self.writer = Writer2(path, version=9, storage_plugin=plugin)
+        self.writer.open()
+        self.connections: dict[str, Any] = {}
+
+    def header(self, t_ns: int) -> Any:
+        types = self.ts.types
+        if self.ros1:
+            stamp = types["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9)
+            return types["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="camera")
+        stamp = types["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9)
+        return types["std_msgs/msg/Header"](stamp=stamp, frame_id="camera")
+
+    def write(self, topic: str, msg: Any, t_ns: int) -> None:
+        msgtype = msg.__msgtype__
+        if topic not in self.connections:
+            self.connections[topic] = self.writer.add_connection(topic, msgtype, typestore=self.ts)
+        data = (
+            self.ts.serialize_ros1(msg, msgtype)
+            if self.ros1
+            else self.ts.serialize_cdr(msg, msgtype)
+        )
+        self.writer.write(self.connections[topic], t_ns, data)
+
+    def image(self, topic: str, bgr: np.ndarray, encoding: str, t_ns: int) -> None:
+        if encoding == "mono8":
+            pixels = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+        elif encoding == "rgb8":
+            pixels = bgr[:, :, ::-1]
+        else:
+            pixels = bgr
+        channels = 1 if pixels.ndim == 2 else 3
+        h, w = pixels.shape[:2]
+        msg = self.ts.types["sensor_msgs/msg/Image"](
+            header=self.header(t_ns),
+            height=h,
+            width=w,
+            encoding=encoding,
+            is_bigendian=0,
+            step=w * channels,
+            data=np.ascontiguousarray(pixels).reshape(-1),
+        )
+        self.write(topic, msg, t_ns)
+
+    def compressed(self, topic: str, bgr: np.ndarray, t_ns: int) -> None:
+        ok, png = cv2.imencode(".png", bgr)
+        assert ok
+        msg = self.ts.types["sensor_msgs/msg/CompressedImage"](
+            header=self.header(t_ns), format="png", data=png.reshape(-1)
+        )
+        self.write(topic, msg, t_ns)
+
+    def camera_info(self, topic: str, camera: CameraModel, t_ns: int) -> None:
+        types = self.ts.types
+        roi = types["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        )
+        k = camera.K.reshape(-1)
+        p = np.hstack([camera.K, np.zeros((3, 1))]).reshape(-1)
+        fields = {"k": k, "d": camera.dist, "r": np.eye(3).reshape(-1), "p": p}
+        if self.ros1:
+            fields = {key.upper(): value for key, value in fields.items()}
+        msg = types["sensor_msgs/msg/CameraInfo"](
+            header=self.header(t_ns),
+            height=camera.height_px,
+            width=camera.width_px,
+            distortion_model="equidistant" if camera.model == "equidistant" else "plumb_bob",
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+            **fields,
+        )
+        self.write(topic, msg, t_ns)
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+def _frames(folder: Path) -> list[np.ndarray]:
+    return [cv2.imread(str(p)) for p in sorted(folder.glob("frame_*.png"))[:FRAMES]]
+
+
+def _write(path: Path, kind: str, folder: Path, encoding: str, camera_info: bool = True) -> Path:
+    bag = Bag(path, kind)
+    camera = CameraModel.load(folder / "camera.yaml")
+    if camera_info:
+        bag.camera_info("/camera/camera_info", camera, T0_NS)
+    for k, bgr in enumerate(_frames(folder)):
+        t_ns = T0_NS + k * 33_333_333
+        if encoding == "png":
+            bag.compressed("/camera/image_raw/compressed", bgr, t_ns)
+        else:
+            bag.image("/camera/image_raw", bgr, encoding, t_ns)
+    bag.close()
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(approach_webcam_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> list[dict]:
+    """The same frames tracked from their files."""
+    folder = tmp_path_factory.mktemp("first")
+    for k, path in enumerate(sorted(approach_webcam_dir.glob("frame_*.png"))[:FRAMES]):
+        (folder / f"frame_{k:06d}.png").write_bytes(path.read_bytes())
+    out = folder / "poses.csv"
+    code = main(
+        ["track", str(folder), "--camera", str(approach_webcam_dir / "camera.yaml"),
+         "--out", str(out), "--quiet"]
+    )  # fmt: skip
+    assert code == 0
+    return read_track_csv(out)
+
+
+@pytest.mark.parametrize(
+    ("kind", "encoding", "name"),
+    [
+        ("sqlite3", "bgr8", "run2"),
+        ("mcap", "mono8", "run_mcap"),
+        ("ros1", "rgb8", "run.bag"),
+        ("sqlite3", "png", "run_png"),
+    ],
+)
+def test_a_bag_tracks_as_its_frames_do(
+    approach_webcam_dir: Path,
+    tmp_path: Path,
+    reference: list[dict],
+    kind: str,
+    encoding: str,
+    name: str,
+) -> None:
+    """One row per image message, in order, stamped from the headers, with the camera from the
+    bag's CameraInfo; the poses are those of the same frames read from files (mono8: the
+    same grey)."""
+    bag = _write(tmp_path / name, kind, approach_webcam_dir, encoding)
+    out = tmp_path / "poses.csv"
+    topic = "/camera/image_raw/compressed" if encoding == "png" else "/camera/image_raw"
+    code = main(["track", str(bag), "--image-topic", topic, "--out", str(out), "--quiet"])
+    assert code == 0
+    rows = read_track_csv(out)
+    assert [int(r["frame"]) for r in rows] == list(range(FRAMES))
+    for k, (row, ref) in enumerate(zip(rows, reference, strict=True)):
+        assert float(row["t_s"]) == pytest.approx((T0_NS + k * 33_333_333) * 1e-9, abs=1e-6)
+        assert row["file"] == f"{bag}#{topic}#{k}"
+        for key in ("valid", "stage", "x_cm", "y_cm", "z_cm", "yaw_deg"):
+            assert row[key] == ref[key], (k, key)
+
+
+def test_a_bare_mcap_file(approach_webcam_dir: Path, tmp_path: Path) -> None:
+    folder = _write(tmp_path / "run", "mcap", approach_webcam_dir, "bgr8")
+    (mcap,) = folder.glob("*.mcap")
+    out = tmp_path / "poses.csv"
+    code = main(
+        ["track", str(mcap), "--image-topic", "/camera/image_raw", "--out", str(out), "--quiet"]
+    )
+    assert code == 0
+    assert len(read_track_csv(out)) == FRAMES
+
+
+def _one_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1, err
+    assert "Traceback" not in err[0]
+    return err[0]
+
+
+def test_bad_bags_get_one_line(
+    approach_webcam_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bag = _write(tmp_path / "run", "sqlite3", approach_webcam_dir, "bgr8")
+    out = str(tmp_path / "p.csv")
+    args = ["track", str(bag), "--out", out, "--quiet"]
+    assert main([*args, "--image-topic", "/nope"]) == 2
+    line = _one_line(capsys)
+    assert "/nope" in line
+    assert "/camera/image_raw" in line  # the image topics it has
+    assert main(args) == 2
+    assert "--image-topic" in _one_line(capsys)
+    assert main([*args, "--image-topic", "/camera/camera_info"]) == 2
+    assert "CameraInfo" in _one_line(capsys)
+    bare = _write(tmp_path / "bare", "sqlite3", approach_webcam_dir, "bgr8", camera_info=False)
+    assert main(["track", str(bare), "--image-topic", "/camera/image_raw", "--out", out]) == 2
+    assert "--camera" in _one_line(capsys)
+
+
+def test_an_unsupported_encoding_keeps_the_rows_before(
+    approach_webcam_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    bag = Bag(tmp_path / "run", "sqlite3")
+    camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
+    bag.camera_info("/camera/camera_info", camera, T0_NS)
+    frames = _frames(approach_webcam_dir)
+    for k in range(3):
+        bag.image("/camera/image_raw", frames[k], "bgr8", T0_NS + k * 33_333_333)
+    bag.image("/camera/image_raw", frames[3], "bgr8", T0_NS + 3 * 33_333_333)
+    bag.close()
+    # the fourth message claims an encoding perchpose does not read
+    out = tmp_path / "p.csv"
+    from perchpose.io import rosbag
+
+    original = rosbag.image_of
+
+    def yuv_at_three(msg: Any, where: str) -> np.ndarray:
+        if where.endswith("message 3"):
+            msg.encoding = "yuv422"
+        return original(msg, where)
+
+    monkeypatch.setattr(rosbag, "image_of", yuv_at_three)
+    code = main(["track", str(tmp_path / "run"), "--image-topic", "/camera/image_raw",
+                 "--out", str(out), "--quiet"])  # fmt: skip
+    assert code == 2
+    assert "yuv422" in _one_line(capsys)
+    assert len(read_track_csv(out)) == 3
+
+
+def test_a_corrupt_bag_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag = tmp_path / "broken.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\n" + b"\x00" * 64)
+    code = main(["track", str(bag), "--image-topic", "/camera/image_raw", "--camera",
+                 "preset:webcam", "--out", str(tmp_path / "p.csv")])  # fmt: skip
+    assert code == 2
+    assert "broken.bag" in _one_line(capsys)
