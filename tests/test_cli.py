@@ -186,7 +186,7 @@ def test_bad_sources_and_outputs_exit_2(
         ),
         (
             ["track", str(short_sequence), "--camera", camera, "--out", str(tmp_path / "p.txt")],
-            "must end in .csv or .jsonl",
+            "must end in .csv, .jsonl or .mcap",
         ),
         (
             [

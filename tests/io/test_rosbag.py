@@ -256,3 +256,61 @@ def test_a_corrupt_bag_gets_one_line(tmp_path: Path, capsys: pytest.CaptureFixtu
                  "preset:webcam", "--out", str(tmp_path / "p.csv")])  # fmt: skip
     assert code == 2
     assert "broken.bag" in _one_line(capsys)
+
+
+@pytest.mark.parametrize("name", ["run.mcap", "run_bag"])
+def test_a_track_written_as_a_bag_reads_back_as_its_csv(
+    approach_webcam_dir: Path, tmp_path: Path, name: str
+) -> None:
+    """The rendered approach tracked into a bag and into a CSV: read back with rosbags'
+    reader, one pose (with the covariance) and one transform per valid row, equal to the CSV;
+    the overlay and the row on every frame."""
+    import json
+    import math
+
+    from rosbags.highlevel import AnyReader
+
+    from perchpose.io.bag_writer import OVERLAY_TOPIC, POSE_TOPIC, TF_TOPIC, TRACK_TOPIC
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, path in enumerate(sorted(approach_webcam_dir.glob("frame_*.png"))[:45]):
+        (folder / f"frame_{k:06d}.png").write_bytes(path.read_bytes())
+    camera = str(approach_webcam_dir / "camera.yaml")
+    bag, csv_out = tmp_path / name, tmp_path / "poses.csv"
+    for out in (bag, csv_out):
+        args = ["track", str(folder), "--camera", camera, "--out", str(out), "--quiet"]
+        assert main(args) == 0
+    rows = read_track_csv(csv_out)
+    valid = [r for r in rows if r["valid"] == "1"]
+    assert 0 < len(valid) < len(rows)  # the approach's dropout
+    with AnyReader([bag]) as reader:
+        by_topic: dict[str, list[Any]] = {}
+        for connection, t_ns, raw in reader.messages():
+            msg = reader.deserialize(raw, connection.msgtype)
+            by_topic.setdefault(connection.topic, []).append((t_ns, msg))
+    assert len(by_topic[TRACK_TOPIC]) == len(rows)
+    assert len(by_topic[OVERLAY_TOPIC]) == len(rows)
+    assert len(by_topic[POSE_TOPIC]) == len(by_topic[TF_TOPIC]) == len(valid)
+    for (t_ns, msg), row in zip(by_topic[POSE_TOPIC], valid, strict=True):
+        assert t_ns == pytest.approx(float(row["t_s"]) * 1e9, abs=1e3)  # the CSV's 1 us
+        assert msg.header.frame_id == "camera"
+        p = msg.pose.pose.position
+        assert [p.x * 100, p.y * 100, p.z * 100] == pytest.approx(
+            [float(row[k]) for k in ("x_cm", "y_cm", "z_cm")], abs=1e-3
+        )
+        q = msg.pose.pose.orientation
+        yaw = math.degrees(math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y**2 + q.z**2)))
+        assert (yaw - float(row["yaw_deg"]) + 180) % 360 - 180 == pytest.approx(0, abs=1e-2)
+        covariance = np.asarray(msg.pose.covariance).reshape(6, 6)
+        assert math.sqrt(covariance[0, 0]) * 100 == pytest.approx(float(row["x_std_cm"]), rel=1e-2)
+    (_, tf), *_ = by_topic[TF_TOPIC]
+    assert tf.transforms[0].child_frame_id == "target"
+    texts = [json.loads(m.data) for _, m in by_topic[TRACK_TOPIC]]
+    assert [int(t["frame"]) for t in texts] == [int(r["frame"]) for r in rows]
+    assert [str(t["stage"]) for t in texts] == [r["stage"] for r in rows]
+    (_, overlay), *_ = by_topic[OVERLAY_TOPIC]
+    image = cv2.imdecode(np.asarray(overlay.data, np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (480, 640, 3)
+    # a bag is never written over
+    assert main(["track", str(folder), "--camera", camera, "--out", str(bag), "--quiet"]) == 2

@@ -59,7 +59,7 @@ def test_jsonl(tmp_path: Path, renderers: dict[str, Renderer]) -> None:
 
 
 def test_bad_output_suffix(tmp_path: Path) -> None:
-    with pytest.raises(PerchposeError, match=r"\.csv or \.jsonl"):
+    with pytest.raises(PerchposeError, match=r"\.csv, \.jsonl or \.mcap"):
         PoseWriter(tmp_path / "p.txt", TargetSpec.paper())
 
 

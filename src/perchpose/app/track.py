@@ -15,7 +15,7 @@ from perchpose.camera import CameraModel
 from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
-from perchpose.io.sinks import PoseWriter, estimate_row
+from perchpose.io.sinks import estimate_row, open_track_writer
 from perchpose.io.sources import Frame, open_source
 from perchpose.values import Estimate
 
@@ -140,7 +140,7 @@ def track(
     camera, target = estimator.camera, estimator.target
     frames = open_source(source, fps, camera.size, image_topic=image_topic)
     video = _Overlay(overlay, frames.fps, camera)
-    writer = PoseWriter(out, target)
+    writer = open_track_writer(out, target, camera)
     tally = _Tally()
     first_good = True
     try:
@@ -169,7 +169,8 @@ def track(
                 first_good = False
             if error and not frame.stale:
                 print(f"warning: {error}", file=sys.stderr)
-            writer.write(estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file))
+            row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)
+            writer.write_frame(row, estimate, frame.t_s, frame.image)
             tally.add(estimate, error, frame.stale)
             for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
                 hook(estimate, frame.t_s)

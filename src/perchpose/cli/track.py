@@ -118,8 +118,9 @@ def _camera(source: str, camera_file: str | None, camera_info_topic: str | None)
     "--out",
     "out",
     required=True,
-    type=click.Path(dir_okay=False),
-    help="Pose file: .csv or .jsonl.",
+    type=click.Path(),
+    help="Pose file (.csv or .jsonl), or a ROS 2 bag: run.mcap, or a folder name (pose with "
+    "covariance, /tf, the overlay and each frame's row; extra [ros]).",
 )
 @click.option(
     "--overlay",

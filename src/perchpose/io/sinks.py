@@ -8,11 +8,41 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
 from perchpose.target import TargetSpec
 from perchpose.values import POSE_COLUMNS, Estimate
+
+
+class TrackWriter(Protocol):
+    """Where a track's frames go: a pose file (``PoseWriter``) or a ROS 2 bag
+    (``perchpose.io.bag_writer.BagWriter``)."""
+
+    rows: int
+
+    def write_frame(
+        self,
+        row: dict[str, Any],
+        estimate: Estimate | None,
+        t_s: float,
+        image: NDArray[np.uint8] | None = None,
+    ) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def open_track_writer(out: str | Path, target: TargetSpec, camera: CameraModel) -> TrackWriter:
+    """A ``.csv`` or ``.jsonl`` pose file, or a ROS 2 bag for ``.mcap`` or a folder name."""
+    from perchpose.io.bag_writer import BagWriter, is_bag_output
+
+    if is_bag_output(out):
+        return BagWriter(out, camera)
+    return PoseWriter(out, target)
 
 
 def raw_columns(target: TargetSpec) -> tuple[str, ...]:
@@ -120,7 +150,9 @@ class PoseWriter:
         self.path = Path(path)
         suffix = self.path.suffix.lower()
         if suffix not in (".csv", ".jsonl"):
-            raise PerchposeError(f"{self.path}: output must end in .csv or .jsonl")
+            raise PerchposeError(
+                f"{self.path}: output must end in .csv, .jsonl or .mcap (or name a bag folder)"
+            )
         self.target = target
         self._jsonl = suffix == ".jsonl"
         try:
@@ -166,6 +198,16 @@ class PoseWriter:
             self._buffer.write(json.dumps({k: _json_value(v) for k, v in row.items()}) + "\n")
         self._commit()
         self.rows += 1
+
+    def write_frame(
+        self,
+        row: dict[str, Any],
+        estimate: Estimate | None,
+        t_s: float,
+        image: NDArray[np.uint8] | None = None,
+    ) -> None:
+        """Append one frame's row (what else a frame brings goes into bags only)."""
+        self.write(row)
 
     def close(self) -> None:
         """Close the file (every written row is already in it)."""

@@ -1,0 +1,177 @@
+"""A track written as ROS 2 messages (the ``[ros]`` extra, through ``rosbags``): ``--out
+run.mcap`` makes one MCAP file, which Foxglove and ``ros2 bag`` open; any other name a ROS 2
+bag folder with MCAP storage.
+
+Per frame (stamped with the frame's capture time, in the camera's frame ``camera``):
+- ``/perchpose/pose``: ``geometry_msgs/PoseWithCovarianceStamped``, the target in the camera
+  frame with ``Estimate.covariance`` (ROS's order, x y z then rotation about the frame's axes),
+  on frames with a valid pose;
+- ``/tf``: ``tf2_msgs/TFMessage``, ``camera`` -> ``target``, on the same frames;
+- ``/perchpose/overlay/compressed``: ``sensor_msgs/CompressedImage`` (JPEG), the overlay the
+  ``--overlay`` video shows, on every frame with an image;
+- ``/perchpose/track``: ``std_msgs/String``, the frame's track row as JSON (stage, markers,
+  timings, errors), on every frame.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import shutil
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.errors import PerchposeError
+from perchpose.io.overlay import draw_overlay
+from perchpose.values import Estimate
+
+POSE_TOPIC = "/perchpose/pose"
+TF_TOPIC = "/tf"
+OVERLAY_TOPIC = "/perchpose/overlay/compressed"
+TRACK_TOPIC = "/perchpose/track"
+CAMERA_FRAME = "camera"
+TARGET_FRAME = "target"
+
+
+def is_bag_output(path: str | Path) -> bool:
+    """Whether ``--out`` names a bag: a ``.mcap`` file, or a folder (no file suffix)."""
+    return Path(path).suffix.lower() in ("", ".mcap")
+
+
+def _rosbags(module: str) -> Any:
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise PerchposeError(
+            'writing ROS bags needs the ros extra: pip install -e ".[ros]"'
+        ) from exc
+
+
+def quaternion_xyzw(R: NDArray[np.float64]) -> tuple[float, float, float, float]:
+    """The unit quaternion (x, y, z, w) of a rotation matrix, w >= 0."""
+    m = np.asarray(R, np.float64)
+    w = math.sqrt(max(0.0, 1.0 + m[0, 0] + m[1, 1] + m[2, 2])) / 2.0
+    x = math.copysign(
+        math.sqrt(max(0.0, 1.0 + m[0, 0] - m[1, 1] - m[2, 2])) / 2.0, m[2, 1] - m[1, 2]
+    )
+    y = math.copysign(
+        math.sqrt(max(0.0, 1.0 - m[0, 0] + m[1, 1] - m[2, 2])) / 2.0, m[0, 2] - m[2, 0]
+    )
+    z = math.copysign(
+        math.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2.0, m[1, 0] - m[0, 1]
+    )
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    return x / norm, y / norm, z / norm, w / norm
+
+
+class BagWriter:
+    """Writes a track's frames as ROS 2 messages into ``path`` (``is_bag_output``)."""
+
+    def __init__(self, path: str | Path, camera: CameraModel) -> None:
+        self.path = Path(path)
+        self.camera = camera
+        rosbag2 = _rosbags("rosbags.rosbag2")
+        typesys = _rosbags("rosbags.typesys")
+        self.ts = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
+        self.types = self.ts.types
+        self._bare = self.path.suffix.lower() == ".mcap"
+        self._folder = self.path.with_name(self.path.name + ".bag") if self._bare else self.path
+        for place in (self.path, self._folder):
+            if place.exists():
+                raise PerchposeError(f"{place}: already exists (a bag is never overwritten)")
+        try:
+            self._folder.parent.mkdir(parents=True, exist_ok=True)
+            self.writer = rosbag2.Writer(
+                self._folder, version=9, storage_plugin=rosbag2.StoragePlugin.MCAP
+            )
+            self.writer.open()
+        except OSError as exc:
+            raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
+        self._connections: dict[str, Any] = {}
+        self.rows = 0
+
+    def _write(self, topic: str, msg: Any, t_ns: int) -> None:
+        msgtype = msg.__msgtype__
+        if topic not in self._connections:
+            self._connections[topic] = self.writer.add_connection(topic, msgtype, typestore=self.ts)
+        self.writer.write(self._connections[topic], t_ns, self.ts.serialize_cdr(msg, msgtype))
+
+    def _header(self, t_s: float, frame_id: str = CAMERA_FRAME) -> Any:
+        t_ns = max(0, round(t_s * 1e9))
+        stamp = self.types["builtin_interfaces/msg/Time"](
+            sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000
+        )
+        return self.types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+
+    def write_frame(
+        self,
+        row: dict[str, Any],
+        estimate: Estimate | None,
+        t_s: float,
+        image: NDArray[np.uint8] | None = None,
+    ) -> None:
+        """One frame: its row, its pose and transform when valid, its overlay when it has an
+        image."""
+        t_ns = max(0, round(t_s * 1e9))
+        types = self.types
+        try:
+            if estimate is not None and estimate.valid:
+                self._pose(estimate, t_s, t_ns)
+            if image is not None:
+                overlay = draw_overlay(image, estimate, self.camera, note=f"t {t_s:.2f} s")
+                ok, jpeg = cv2.imencode(".jpg", overlay, [cv2.IMWRITE_JPEG_QUALITY, 90])
+                if ok:
+                    msg = types["sensor_msgs/msg/CompressedImage"](
+                        header=self._header(t_s), format="jpeg", data=jpeg.reshape(-1)
+                    )
+                    self._write(OVERLAY_TOPIC, msg, t_ns)
+            text = json.dumps(dict(row), default=str)
+            self._write(TRACK_TOPIC, types["std_msgs/msg/String"](data=text), t_ns)
+        except OSError as exc:
+            raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
+        self.rows += 1
+
+    def _pose(self, estimate: Estimate, t_s: float, t_ns: int) -> None:
+        types = self.types
+        T = estimate.T_camera_target
+        qx, qy, qz, qw = quaternion_xyzw(T[:3, :3])
+        x, y, z = (float(v) for v in T[:3, 3])
+        point = types["geometry_msgs/msg/Point"](x=x, y=y, z=z)
+        quaternion = types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)
+        covariance = estimate.covariance
+        if not np.all(np.isfinite(covariance)):
+            covariance = np.zeros((6, 6))  # unknown: ROS's convention for "not given"
+        pose = types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](position=point, orientation=quaternion),
+            covariance=np.asarray(covariance, np.float64).reshape(-1),
+        )
+        stamped = types["geometry_msgs/msg/PoseWithCovarianceStamped"](
+            header=self._header(t_s), pose=pose
+        )
+        self._write(POSE_TOPIC, stamped, t_ns)
+        transform = types["geometry_msgs/msg/TransformStamped"](
+            header=self._header(t_s),
+            child_frame_id=TARGET_FRAME,
+            transform=types["geometry_msgs/msg/Transform"](
+                translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+                rotation=quaternion,
+            ),
+        )
+        self._write(TF_TOPIC, types["tf2_msgs/msg/TFMessage"](transforms=[transform]), t_ns)
+
+    def close(self) -> None:
+        """Finish the bag; for ``.mcap``, move its one file into place."""
+        try:
+            self.writer.close()
+            if self._bare:
+                (inner,) = self._folder.glob("*.mcap")
+                inner.replace(self.path)
+                shutil.rmtree(self._folder)
+        except OSError as exc:
+            raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
