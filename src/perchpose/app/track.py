@@ -8,7 +8,10 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Protocol
 
+import numpy as np
+from numpy.typing import NDArray
 from tqdm import tqdm
 
 from perchpose.camera import CameraModel
@@ -104,6 +107,14 @@ class _Overlay:
 STALE = "stale: dropped unprocessed for a newer frame"
 
 
+class FrameView(Protocol):
+    """Something that shows each frame as it is tracked (``perchpose.io.view.LiveView``)."""
+
+    def publish(
+        self, t_s: float, estimate: Estimate | None, image: NDArray[np.uint8] | None
+    ) -> None: ...
+
+
 def _with_latency(estimate: Estimate, frame: Frame) -> Estimate:
     """``estimate`` with the time from the frame's grab to now."""
     if not math.isfinite(frame.grabbed_s):
@@ -121,11 +132,13 @@ def track(
     progress: bool = True,
     on_frame: Sequence[Callable[[Estimate | None, float], None]] = (),
     image_topic: str | None = None,
+    view: FrameView | None = None,
 ) -> TrackSummary:
     """Run ``estimator`` (its camera and target) over every frame of ``source`` and write one
     row per frame to ``out``; each estimate carries its latency from the frame's grab.
 
     ``image_topic``: the images' topic when ``source`` is a ROS bag (``perchpose.io.rosbag``).
+    ``view``: a live view (``perchpose.io.view.LiveView``) that gets every frame with its image.
     A live camera is grabbed on a thread of its own and the estimator always takes the newest
     frame: a frame overtaken before it was taken gets an invalid row saying it was stale (no
     warning each; the summary counts them).
@@ -174,6 +187,8 @@ def track(
             tally.add(estimate, error, frame.stale)
             for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
                 hook(estimate, frame.t_s)
+            if view is not None and not frame.stale:
+                view.publish(frame.t_s, estimate, frame.image)
             video.write(frame, estimate)
     finally:
         writer.close()

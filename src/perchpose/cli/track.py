@@ -77,6 +77,22 @@ def _vehicle_links(
             close()
 
 
+@contextmanager
+def _live_view(wanted: bool, port: int, camera: Any, target: TargetSpec) -> Iterator[Any]:
+    """The live view when asked for (imported only then), closed at the end."""
+    if not wanted:
+        yield None
+        return
+    from perchpose.io.view import LiveView
+
+    view = LiveView(camera, target, port=port)
+    warn(f"live view for Foxglove at ws://127.0.0.1:{view.port}")
+    try:
+        yield view
+    finally:
+        view.close()
+
+
 def _camera(source: str, camera_file: str | None, camera_info_topic: str | None) -> Any:
     """The camera of ``--camera``, or of a bag's CameraInfo topic."""
     from perchpose.io.rosbag import camera_from_bag, is_bag
@@ -167,6 +183,13 @@ def _camera(source: str, camera_file: str | None, camera_info_topic: str | None)
     help="Fuse the markers with the paper's fusion and these weights (the JSON that "
     "'fit-fusion --json' writes) instead of the joint pose.",
 )
+@click.option(
+    "--view",
+    is_flag=True,
+    help="Serve a live view for Foxglove (ws://127.0.0.1:PORT): the overlay, the pose, /tf, "
+    "a 3D scene and plots (extra [view]).",
+)
+@click.option("--view-port", default=8765, show_default=True, help="Port of the live view.")
 @budget_option(
     "Time budget per frame: past it the detection leaves out what it can (a pattern fit, "
     "a whole-frame search) and the track file's 'skipped' column says what."
@@ -187,6 +210,8 @@ def track(
     budget_ms: float | None,
     image_topic: str | None,
     camera_info_topic: str | None,
+    view: bool,
+    view_port: int,
 ) -> None:
     """Track the target in SOURCE: a folder of images, a glob, a video file, a camera index,
     or a ROS bag (with --image-topic).
@@ -207,7 +232,10 @@ def track(
         estimator = PerchingEstimator(cam, spec, fusion="paper", sigmas=sigmas, budget_ms=budget_ms)
     if overlay is not None:
         check_overlay_path(overlay)  # before any vehicle link takes over
-    with _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks:
+    with (
+        _live_view(view, view_port, cam, spec) as live,
+        _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks,
+    ):
         summary = run_track(
             source,
             estimator,
@@ -217,6 +245,7 @@ def track(
             progress=show_progress(quiet),
             on_frame=hooks,
             image_topic=image_topic,
+            view=live,
         )
     stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
     extra = ""

@@ -1,0 +1,166 @@
+"""A live view in Foxglove (``perchpose track ... --view``; the ``[view]`` extra): a Foxglove
+WebSocket server (``foxglove-sdk``) that Foxglove connects to at ``ws://HOST:PORT``.
+
+Channels, per frame, stamped with the frame's capture time:
+- ``/perchpose/overlay``: ``foxglove.CompressedImage`` (JPEG), the overlay the ``--overlay``
+  video shows, in the frame ``camera``;
+- ``/perchpose/pose``: ``foxglove.PoseInFrame``, the target in ``camera`` (valid frames);
+- ``/tf``: ``foxglove.FrameTransforms``, ``camera`` -> ``target`` (valid frames);
+- ``/perchpose/scene``: ``foxglove.SceneUpdate``, the target's plate (the printed sheet) and
+  its largest marker in ``target``, for the 3D panel (valid frames);
+- ``/perchpose/estimate``: JSON ``{t_s, valid, stage, x_cm, y_cm, z_cm, yaw_deg, roll_deg,
+  pitch_deg, latency_ms}`` for the Plot panel (every frame).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.errors import PerchposeError
+from perchpose.io.bag_writer import quaternion_xyzw
+from perchpose.io.overlay import draw_overlay
+from perchpose.target import TargetSpec
+from perchpose.values import Estimate
+
+ESTIMATE_SCHEMA = {
+    "type": "object",
+    "properties": {
+        name: {"type": "number"}
+        for name in (
+            "t_s",
+            "stage",
+            "x_cm",
+            "y_cm",
+            "z_cm",
+            "yaw_deg",
+            "roll_deg",
+            "pitch_deg",
+            "latency_ms",
+        )
+    }
+    | {"valid": {"type": "boolean"}},
+}
+
+
+def _foxglove() -> Any:
+    try:
+        return importlib.import_module("foxglove")
+    except ImportError as exc:
+        raise PerchposeError(
+            'the live view needs the view extra: pip install -e ".[view]"'
+        ) from exc
+
+
+def _finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+class LiveView:
+    """A Foxglove WebSocket server publishing each frame (``publish``); ``port`` 0 picks a free
+    one (``self.port`` says which)."""
+
+    def __init__(
+        self, camera: CameraModel, target: TargetSpec, port: int = 8765, host: str = "127.0.0.1"
+    ) -> None:
+        fox = _foxglove()
+        self.camera = camera
+        self.target = target
+        self.m = importlib.import_module("foxglove.messages")
+        channels = importlib.import_module("foxglove.channels")
+        try:
+            self.server = fox.start_server(name="perchpose", host=host, port=port)
+        except Exception as exc:  # the SDK reports a port in use as its own error kind
+            raise PerchposeError(f"--view: cannot serve on {host}:{port} ({exc})") from exc
+        self.port = int(self.server.port)
+        self.image = channels.CompressedImageChannel("/perchpose/overlay")
+        self.pose = channels.PoseInFrameChannel("/perchpose/pose")
+        self.tf = channels.FrameTransformsChannel("/tf")
+        self.scene = channels.SceneUpdateChannel("/perchpose/scene")
+        self.estimate = fox.Channel(
+            "/perchpose/estimate", schema=ESTIMATE_SCHEMA, message_encoding="json"
+        )
+
+    def _stamp(self, t_s: float) -> Any:
+        t_ns = max(0, round(t_s * 1e9))
+        return self.m.Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000)
+
+    def publish(
+        self, t_s: float, estimate: Estimate | None, image: NDArray[np.uint8] | None
+    ) -> None:
+        """One frame: its overlay, and its pose, transform and scene when valid."""
+        m = self.m
+        stamp = self._stamp(t_s)
+        if image is not None:
+            overlay = draw_overlay(image, estimate, self.camera, note=f"t {t_s:.2f} s")
+            ok, jpeg = cv2.imencode(".jpg", overlay, [cv2.IMWRITE_JPEG_QUALITY, 80])
+            if ok:
+                self.image.log(
+                    m.CompressedImage(
+                        timestamp=stamp, frame_id="camera", data=jpeg.tobytes(), format="jpeg"
+                    )
+                )
+        valid = estimate is not None and estimate.valid
+        row: dict[str, Any] = {"t_s": t_s, "valid": valid}
+        if estimate is not None and valid:
+            self._pose(estimate, stamp)
+            row |= {
+                "stage": estimate.stage,
+                "x_cm": _finite(estimate.x_cm),
+                "y_cm": _finite(estimate.y_cm),
+                "z_cm": _finite(estimate.z_cm),
+                "yaw_deg": _finite(estimate.yaw_deg),
+                "roll_deg": _finite(math.degrees(estimate.roll_rad)),
+                "pitch_deg": _finite(math.degrees(estimate.pitch_rad)),
+                "latency_ms": _finite(estimate.latency_s * 1e3),
+            }
+        self.estimate.log(json.dumps(row).encode())
+
+    def _pose(self, estimate: Estimate, stamp: Any) -> None:
+        m = self.m
+        T = estimate.T_camera_target
+        qx, qy, qz, qw = quaternion_xyzw(T[:3, :3])
+        x, y, z = (float(v) for v in T[:3, 3])
+        pose = m.Pose(
+            position=m.Vector3(x=x, y=y, z=z), orientation=m.Quaternion(x=qx, y=qy, z=qz, w=qw)
+        )
+        self.pose.log(m.PoseInFrame(timestamp=stamp, frame_id="camera", pose=pose))
+        transform = m.FrameTransform(
+            timestamp=stamp,
+            parent_frame_id="camera",
+            child_frame_id="target",
+            translation=m.Vector3(x=x, y=y, z=z),
+            rotation=m.Quaternion(x=qx, y=qy, z=qz, w=qw),
+        )
+        self.tf.log(m.FrameTransforms(transforms=[transform]))
+        sheet = 2.0 * self.target.sheet_half_extent_m
+        side = self.target.markers[0].side_m
+        centre = m.Pose(
+            position=m.Vector3(x=0.0, y=0.0, z=0.0),
+            orientation=m.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+        )
+        cubes = [
+            m.CubePrimitive(
+                pose=centre,
+                size=m.Vector3(x=sheet, y=sheet, z=0.002),
+                color=m.Color(r=0.9, g=0.9, b=0.9, a=0.8),
+            ),
+            m.CubePrimitive(
+                pose=centre,
+                size=m.Vector3(x=side, y=side, z=0.003),
+                color=m.Color(r=0.1, g=0.1, b=0.1, a=0.9),
+            ),
+        ]
+        entity = m.SceneEntity(timestamp=stamp, frame_id="target", id="target", cubes=cubes)
+        self.scene.log(m.SceneUpdate(entities=[entity]))
+
+    def close(self) -> None:
+        """Stop serving."""
+        self.server.stop()
