@@ -156,3 +156,20 @@ def rotation_vector_jacobian(yaw_rad_: float, pitch_rad: float) -> Array:
     J[:, 1] = Rz @ np.array([0.0, 1.0, 0.0])
     J[:, 2] = np.array([0.0, 0.0, 1.0])
     return J
+
+
+def quaternion_xyzw(R: Array) -> tuple[float, float, float, float]:
+    """The unit quaternion (x, y, z, w) of a rotation matrix, w >= 0."""
+    m = np.asarray(R, np.float64)
+    w = math.sqrt(max(0.0, 1.0 + m[0, 0] + m[1, 1] + m[2, 2])) / 2.0
+    x = math.copysign(
+        math.sqrt(max(0.0, 1.0 + m[0, 0] - m[1, 1] - m[2, 2])) / 2.0, m[2, 1] - m[1, 2]
+    )
+    y = math.copysign(
+        math.sqrt(max(0.0, 1.0 - m[0, 0] + m[1, 1] - m[2, 2])) / 2.0, m[0, 2] - m[2, 0]
+    )
+    z = math.copysign(
+        math.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2.0, m[1, 0] - m[0, 1]
+    )
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    return x / norm, y / norm, z / norm, w / norm

@@ -18,6 +18,7 @@ from websockets.sync.client import connect
 
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.geometry import facing_pose
+from perchpose.io.overlay import draw_overlay
 from perchpose.io.view import LiveView
 from perchpose.sim.render import Renderer
 
@@ -42,7 +43,8 @@ def test_a_client_subscribes_and_decodes_the_frames() -> None:
     image = renderer.render(T, rng=np.random.default_rng(0))
     estimate = PerchingEstimator(camera, target).update(image, 0.0)
     assert estimate.valid
-    view = LiveView(camera, target, port=0)
+    overlay = draw_overlay(image, estimate, camera)
+    view = LiveView(target, port=0)
     try:
         with connect(f"ws://127.0.0.1:{view.port}", subprotocols=[SUBPROTOCOL]) as ws:
             _json_until(ws, "serverInfo")
@@ -67,7 +69,7 @@ def test_a_client_subscribes_and_decodes_the_frames() -> None:
             )
             received: dict[int, list[bytes]] = {}
             for k in range(20):
-                view.publish(k / 30, estimate, image)
+                view.publish(k / 30, estimate, overlay)
                 try:
                     while True:
                         frame = ws.recv(timeout=0.05)

@@ -14,7 +14,6 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from perchpose.camera import CameraModel
 from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
@@ -83,21 +82,19 @@ class _Tally:
 
 
 class _Overlay:
-    """The overlay video, opened at the first readable frame (its size)."""
+    """The overlay video, opened at the first overlay (its size)."""
 
-    def __init__(self, path: str | Path | None, fps: float, camera: CameraModel) -> None:
-        self.path, self.fps, self.camera = path, fps, camera
+    def __init__(self, path: str | Path | None, fps: float) -> None:
+        self.path, self.fps = path, fps
         self.video: OverlayWriter | None = None
 
-    def write(self, frame: Frame, estimate: Estimate | None) -> None:
-        if self.path is None or frame.image is None:
+    def write(self, picture: NDArray[np.uint8] | None) -> None:
+        if self.path is None or picture is None:
             return
         if self.video is None:
-            h, w = frame.image.shape[:2]
+            h, w = picture.shape[:2]
             self.video = OverlayWriter(self.path, self.fps, (w, h))
-        self.video.write(
-            draw_overlay(frame.image, estimate, self.camera, note=f"t {frame.t_s:.2f} s")
-        )
+        self.video.write(picture)
 
     def close(self) -> None:
         if self.video is not None:
@@ -111,7 +108,7 @@ class FrameView(Protocol):
     """Something that shows each frame as it is tracked (``perchpose.io.view.LiveView``)."""
 
     def publish(
-        self, t_s: float, estimate: Estimate | None, image: NDArray[np.uint8] | None
+        self, t_s: float, estimate: Estimate | None, overlay: NDArray[np.uint8] | None
     ) -> None: ...
 
 
@@ -138,7 +135,8 @@ def track(
     row per frame to ``out``; each estimate carries its latency from the frame's grab.
 
     ``image_topic``: the images' topic when ``source`` is a ROS bag (``perchpose.io.rosbag``).
-    ``view``: a live view (``perchpose.io.view.LiveView``) that gets every frame with its image.
+    ``view``: a live view (``perchpose.io.view.LiveView``) that gets every frame with its
+    overlay.
     A live camera is grabbed on a thread of its own and the estimator always takes the newest
     frame: a frame overtaken before it was taken gets an invalid row saying it was stale (no
     warning each; the summary counts them).
@@ -152,8 +150,10 @@ def track(
         check_overlay_path(overlay)
     camera, target = estimator.camera, estimator.target
     frames = open_source(source, fps, camera.size, image_topic=image_topic)
-    video = _Overlay(overlay, frames.fps, camera)
-    writer = open_track_writer(out, target, camera)
+    video = _Overlay(overlay, frames.fps)
+    writer = open_track_writer(out, target)
+    # the overlay is drawn once a frame, for whichever of its users there are
+    draw = overlay is not None or writer.wants_overlay or view is not None
     tally = _Tally()
     first_good = True
     try:
@@ -182,14 +182,18 @@ def track(
                 first_good = False
             if error and not frame.stale:
                 print(f"warning: {error}", file=sys.stderr)
+            picture = None
+            if draw and frame.image is not None:
+                note = f"t {frame.t_s:.2f} s"
+                picture = draw_overlay(frame.image, estimate, camera, note=note)
             row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)
-            writer.write_frame(row, estimate, frame.t_s, frame.image)
+            writer.write_frame(row, estimate, frame.t_s, picture)
             tally.add(estimate, error, frame.stale)
             for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
                 hook(estimate, frame.t_s)
             if view is not None and not frame.stale:
-                view.publish(frame.t_s, estimate, frame.image)
-            video.write(frame, estimate)
+                view.publish(frame.t_s, estimate, picture)
+            video.write(picture)
     finally:
         writer.close()
         video.close()

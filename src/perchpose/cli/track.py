@@ -78,14 +78,14 @@ def _vehicle_links(
 
 
 @contextmanager
-def _live_view(wanted: bool, port: int, camera: Any, target: TargetSpec) -> Iterator[Any]:
+def _live_view(wanted: bool, port: int, target: TargetSpec) -> Iterator[Any]:
     """The live view when asked for (imported only then), closed at the end."""
     if not wanted:
         yield None
         return
     from perchpose.io.view import LiveView
 
-    view = LiveView(camera, target, port=port)
+    view = LiveView(target, port=port)
     warn(f"live view for Foxglove at ws://127.0.0.1:{view.port}")
     try:
         yield view
@@ -233,7 +233,7 @@ def track(
     if overlay is not None:
         check_overlay_path(overlay)  # before any vehicle link takes over
     with (
-        _live_view(view, view_port, cam, spec) as live,
+        _live_view(view, view_port, spec) as live,
         _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks,
     ):
         summary = run_track(

@@ -17,18 +17,17 @@ from __future__ import annotations
 
 import importlib
 import json
-import math
 import shutil
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
-from perchpose.io.overlay import draw_overlay
+from perchpose.geometry import quaternion_xyzw
+from perchpose.io.overlay import encode_jpeg
+from perchpose.io.sinks import stamp_ns
 from perchpose.values import Estimate
 
 POSE_TOPIC = "/perchpose/pose"
@@ -53,29 +52,13 @@ def _rosbags(module: str) -> Any:
         ) from exc
 
 
-def quaternion_xyzw(R: NDArray[np.float64]) -> tuple[float, float, float, float]:
-    """The unit quaternion (x, y, z, w) of a rotation matrix, w >= 0."""
-    m = np.asarray(R, np.float64)
-    w = math.sqrt(max(0.0, 1.0 + m[0, 0] + m[1, 1] + m[2, 2])) / 2.0
-    x = math.copysign(
-        math.sqrt(max(0.0, 1.0 + m[0, 0] - m[1, 1] - m[2, 2])) / 2.0, m[2, 1] - m[1, 2]
-    )
-    y = math.copysign(
-        math.sqrt(max(0.0, 1.0 - m[0, 0] + m[1, 1] - m[2, 2])) / 2.0, m[0, 2] - m[2, 0]
-    )
-    z = math.copysign(
-        math.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2.0, m[1, 0] - m[0, 1]
-    )
-    norm = math.sqrt(x * x + y * y + z * z + w * w)
-    return x / norm, y / norm, z / norm, w / norm
-
-
 class BagWriter:
     """Writes a track's frames as ROS 2 messages into ``path`` (``is_bag_output``)."""
 
-    def __init__(self, path: str | Path, camera: CameraModel) -> None:
+    wants_overlay = True
+
+    def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self.camera = camera
         rosbag2 = _rosbags("rosbags.rosbag2")
         typesys = _rosbags("rosbags.typesys")
         self.ts = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
@@ -103,10 +86,8 @@ class BagWriter:
         self.writer.write(self._connections[topic], t_ns, self.ts.serialize_cdr(msg, msgtype))
 
     def _header(self, t_s: float, frame_id: str = CAMERA_FRAME) -> Any:
-        t_ns = max(0, round(t_s * 1e9))
-        stamp = self.types["builtin_interfaces/msg/Time"](
-            sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000
-        )
+        sec, nanosec = divmod(stamp_ns(t_s), 1_000_000_000)
+        stamp = self.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
         return self.types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
 
     def write_frame(
@@ -114,23 +95,21 @@ class BagWriter:
         row: dict[str, Any],
         estimate: Estimate | None,
         t_s: float,
-        image: NDArray[np.uint8] | None = None,
+        overlay: NDArray[np.uint8] | None = None,
     ) -> None:
-        """One frame: its row, its pose and transform when valid, its overlay when it has an
-        image."""
-        t_ns = max(0, round(t_s * 1e9))
+        """One frame: its row, its pose and transform when valid, its overlay (drawn by the
+        caller) when it has one."""
+        t_ns = stamp_ns(t_s)
         types = self.types
         try:
             if estimate is not None and estimate.valid:
                 self._pose(estimate, t_s, t_ns)
-            if image is not None:
-                overlay = draw_overlay(image, estimate, self.camera, note=f"t {t_s:.2f} s")
-                ok, jpeg = cv2.imencode(".jpg", overlay, [cv2.IMWRITE_JPEG_QUALITY, 90])
-                if ok:
-                    msg = types["sensor_msgs/msg/CompressedImage"](
-                        header=self._header(t_s), format="jpeg", data=jpeg.reshape(-1)
-                    )
-                    self._write(OVERLAY_TOPIC, msg, t_ns)
+            jpeg = None if overlay is None else encode_jpeg(overlay, 90)
+            if jpeg is not None:
+                msg = types["sensor_msgs/msg/CompressedImage"](
+                    header=self._header(t_s), format="jpeg", data=np.frombuffer(jpeg, np.uint8)
+                )
+                self._write(OVERLAY_TOPIC, msg, t_ns)
             text = json.dumps(dict(row), default=str)
             self._write(TRACK_TOPIC, types["std_msgs/msg/String"](data=text), t_ns)
         except OSError as exc:

@@ -147,3 +147,9 @@ class OverlayWriter:
     def close(self) -> None:
         """Finish the file."""
         self._writer.release()
+
+
+def encode_jpeg(image: NDArray[np.uint8], quality: int) -> bytes | None:
+    """``image`` as a JPEG of ``quality`` (1-100), or None if OpenCV cannot encode it."""
+    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return jpeg.tobytes() if ok else None

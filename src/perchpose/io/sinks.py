@@ -13,7 +13,6 @@ from typing import IO, Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
 from perchpose.target import TargetSpec
 from perchpose.values import POSE_COLUMNS, Estimate
@@ -21,28 +20,35 @@ from perchpose.values import POSE_COLUMNS, Estimate
 
 class TrackWriter(Protocol):
     """Where a track's frames go: a pose file (``PoseWriter``) or a ROS 2 bag
-    (``perchpose.io.bag_writer.BagWriter``)."""
+    (``perchpose.io.bag_writer.BagWriter``), which also takes each frame's overlay
+    (``wants_overlay``)."""
 
     rows: int
+    wants_overlay: bool
 
     def write_frame(
         self,
         row: dict[str, Any],
         estimate: Estimate | None,
         t_s: float,
-        image: NDArray[np.uint8] | None = None,
+        overlay: NDArray[np.uint8] | None = None,
     ) -> None: ...
 
     def close(self) -> None: ...
 
 
-def open_track_writer(out: str | Path, target: TargetSpec, camera: CameraModel) -> TrackWriter:
+def open_track_writer(out: str | Path, target: TargetSpec) -> TrackWriter:
     """A ``.csv`` or ``.jsonl`` pose file, or a ROS 2 bag for ``.mcap`` or a folder name."""
     from perchpose.io.bag_writer import BagWriter, is_bag_output
 
     if is_bag_output(out):
-        return BagWriter(out, camera)
+        return BagWriter(out)
     return PoseWriter(out, target)
+
+
+def stamp_ns(t_s: float) -> int:
+    """A frame time as a message stamp: integer nanoseconds, never negative."""
+    return max(0, round(t_s * 1e9))
 
 
 def raw_columns(target: TargetSpec) -> tuple[str, ...]:
@@ -199,12 +205,14 @@ class PoseWriter:
         self._commit()
         self.rows += 1
 
+    wants_overlay = False
+
     def write_frame(
         self,
         row: dict[str, Any],
         estimate: Estimate | None,
         t_s: float,
-        image: NDArray[np.uint8] | None = None,
+        overlay: NDArray[np.uint8] | None = None,
     ) -> None:
         """Append one frame's row (what else a frame brings goes into bags only)."""
         self.write(row)

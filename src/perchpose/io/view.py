@@ -19,14 +19,13 @@ import json
 import math
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
-from perchpose.io.bag_writer import quaternion_xyzw
-from perchpose.io.overlay import draw_overlay
+from perchpose.geometry import quaternion_xyzw
+from perchpose.io.overlay import encode_jpeg
+from perchpose.io.sinks import stamp_ns
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
@@ -67,11 +66,8 @@ class LiveView:
     """A Foxglove WebSocket server publishing each frame (``publish``); ``port`` 0 picks a free
     one (``self.port`` says which)."""
 
-    def __init__(
-        self, camera: CameraModel, target: TargetSpec, port: int = 8765, host: str = "127.0.0.1"
-    ) -> None:
+    def __init__(self, target: TargetSpec, port: int = 8765, host: str = "127.0.0.1") -> None:
         fox = _foxglove()
-        self.camera = camera
         self.target = target
         self.m = importlib.import_module("foxglove.messages")
         channels = importlib.import_module("foxglove.channels")
@@ -89,24 +85,21 @@ class LiveView:
         )
 
     def _stamp(self, t_s: float) -> Any:
-        t_ns = max(0, round(t_s * 1e9))
-        return self.m.Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000)
+        sec, nsec = divmod(stamp_ns(t_s), 1_000_000_000)
+        return self.m.Timestamp(sec=sec, nsec=nsec)
 
     def publish(
-        self, t_s: float, estimate: Estimate | None, image: NDArray[np.uint8] | None
+        self, t_s: float, estimate: Estimate | None, overlay: NDArray[np.uint8] | None
     ) -> None:
-        """One frame: its overlay, and its pose, transform and scene when valid."""
+        """One frame: its overlay (drawn by the caller), and its pose, transform and scene
+        when valid."""
         m = self.m
         stamp = self._stamp(t_s)
-        if image is not None:
-            overlay = draw_overlay(image, estimate, self.camera, note=f"t {t_s:.2f} s")
-            ok, jpeg = cv2.imencode(".jpg", overlay, [cv2.IMWRITE_JPEG_QUALITY, 80])
-            if ok:
-                self.image.log(
-                    m.CompressedImage(
-                        timestamp=stamp, frame_id="camera", data=jpeg.tobytes(), format="jpeg"
-                    )
-                )
+        jpeg = None if overlay is None else encode_jpeg(overlay, 80)
+        if jpeg is not None:
+            self.image.log(
+                m.CompressedImage(timestamp=stamp, frame_id="camera", data=jpeg, format="jpeg")
+            )
         valid = estimate is not None and estimate.valid
         row: dict[str, Any] = {"t_s": t_s, "valid": valid}
         if estimate is not None and valid:
