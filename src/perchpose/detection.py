@@ -10,6 +10,7 @@ back through the lens model.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable
 from typing import Literal
@@ -281,12 +282,12 @@ class MarkerDetector:
         marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads are
         searched in ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
         quads = predicted_quads(self.target, hint)
-        small = any(quad_side_px(q) < SMALL_MARKER_SIDE_PX for q in quads.values())
+        smallest = min((quad_side_px(q) for q in quads.values()), default=math.inf)
+        small = smallest < SMALL_MARKER_SIDE_PX
         detector = self.quads.tracking_small if small else self.quads.tracking
         box = tracking_window(grey.shape, quads)
         # every predicted marker at least tracking_side_px across in the searched image
-        smallest = min((quad_side_px(q) for q in quads.values()), default=0.0)
-        scale = min(1.0, self.tracking_side_px / smallest) if smallest > 0 else 1.0
+        scale = min(1.0, self.tracking_side_px / smallest) if 0 < smallest < math.inf else 1.0
         if box is None:
             found = self.quads.find(seen, "raw", detector=detector, scale=scale)
         else:

@@ -10,6 +10,7 @@ from typing import Any
 
 import click
 
+from perchpose.camera import CameraModel
 from perchpose.cli.common import (
     CAMERA_HELP,
     budget_option,
@@ -93,7 +94,7 @@ def _live_view(wanted: bool, port: int, target: TargetSpec) -> Iterator[Any]:
         view.close()
 
 
-def _camera(source: str, camera_file: str | None, camera_info_topic: str | None) -> Any:
+def _camera(source: str, camera_file: str | None, camera_info_topic: str | None) -> CameraModel:
     """The camera of ``--camera``, or of a bag's CameraInfo topic."""
     from perchpose.io.rosbag import camera_from_bag, is_bag
 
