@@ -296,3 +296,63 @@ def test_pilot_lands_when_the_controller_gives_up() -> None:
     assert step.state == "landing"
     assert step.v_mps is not None
     assert step.v_mps[2] < 0
+
+
+def test_between_frames_the_lateral_loop_steers_on_odometry() -> None:
+    s = ControllerSettings(observer_rate=0.0, k_i_xy=0.0)
+    c = PerchingController(s)
+    assert c.between_frames(0.0, np.eye(3), _odometry(0.0)) is None  # nothing held yet
+    frame = c.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0, np.eye(3), _odometry(0.0))
+    assert frame.phase == "climb"
+    # a gust pushes the vehicle 8 mm on before the next frame: it steers back at once,
+    # climbing as the frame said and in the frame's phase
+    tick = c.between_frames(0.02, np.eye(3), _odometry(0.02, x_m=0.008))
+    assert tick is not None
+    assert tick.phase == "climb"
+    assert tick.v_mps[0] == pytest.approx(-s.k_xy * 0.008, rel=1e-6)
+    assert tick.v_mps[2] == pytest.approx(frame.v_mps[2])
+    assert c.phase == "climb"
+    # a lost target steers on nothing between frames
+    c.update(None, 2.0, np.eye(3), _odometry(2.0))
+    assert c.phase == "lost"
+    assert c.between_frames(2.02, np.eye(3), _odometry(2.02)) is None
+
+
+def test_pilot_ticks_between_frames_only_while_perching() -> None:
+    s = ControllerSettings(observer_rate=0.0, k_i_xy=0.0)
+    sent: list[tuple[float, ...]] = []
+
+    class Commander:
+        def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yr: float) -> None:
+            sent.append((vx, vy, vz, yr))
+
+        def send_stop_setpoint(self) -> None:
+            sent.append(())
+
+        def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
+            pass
+
+    now = {"t": 100.0}
+    position = {"x": 0.0}
+    pilot = PerchingPilot(
+        Commander(),
+        lambda: np.eye(3),
+        controller=PerchingController(s),
+        height_m=lambda: 1.0,
+        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
+        report=lambda _m: None,
+        clock=lambda: now["t"],
+    )
+    assert pilot.tick_now() is None  # waiting: nothing sent before the first target
+    assert not sent
+    pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
+    assert len(sent) == 1
+    now["t"] += 0.02
+    position["x"] = -0.004
+    step = pilot.tick_now()
+    assert step is not None
+    assert step.t_s == pytest.approx(0.02)  # on the frames' clock
+    assert sent[-1][0] == pytest.approx(s.k_xy * 0.004, rel=1e-6)
+    assert pilot.tick(0.01) is None  # never back in time
+    pilot.abort(0.03)
+    assert pilot.tick_now() is None  # landing: the landing sends its own setpoints

@@ -334,3 +334,46 @@ def test_nothing_imports_cflib_without_the_crazyflie_link() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_each_state_estimate_sample_ticks_the_pilot(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """Between frames the link's odometry log (50 Hz) closes the lateral loop: each sample
+    sends a setpoint that steers on it."""
+    from perchpose.io.crazyflie import CrazyflieConnection
+
+    cf, link = crazyflie
+    connection = CrazyflieConnection.__new__(CrazyflieConnection)  # no radio to open
+    connection.cf = cf
+    connection.report = lambda _m: None
+    connection._R_world_body = np.eye(3)
+    connection._height_m = None
+    connection._odometry = None
+    connection._pilots = []
+    connection._state(
+        0,
+        {
+            "stateEstimate.qw": 1.0,
+            "stateEstimate.qx": 0.0,
+            "stateEstimate.qy": 0.0,
+            "stateEstimate.qz": 0.0,
+            "stateEstimate.z": 1.0,
+        },
+        None,
+    )
+    still = {f"stateEstimate.{a}": 0.0 for a in ("x", "y", "vx", "vy", "vz")}
+    connection._moved(0, still, None)
+    pilot = connection.pilot()
+    settings = pilot.controller.settings
+    seen = Estimate.of_pose(0.0, (0.0, 0.0, 0.5), 0.0)  # upward camera: target straight above
+    pilot.update(seen, 0.0)
+    frames = len(link.sent)
+    assert frames == 1
+    vx_frame = decode(link.sent[0])[1]
+    connection._moved(0, {**still, "stateEstimate.x": 0.006}, None)  # pushed 6 mm along x
+    packets = [decode(p) for p in link.sent[frames:]]
+    assert len(packets) == 1
+    kind, vx, _vy, _vz, _yaw_rate = packets[0]
+    assert kind == "velocity"
+    assert vx_frame - vx > 0.8 * settings.k_xy * 0.006  # back towards the held target

@@ -57,6 +57,8 @@ from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
 
+STEERED = ("align", "climb", "commit")  # the phases that steer on the target
+
 
 @dataclass(frozen=True)
 class ControllerSettings:
@@ -123,7 +125,7 @@ class ControllerSettings:
     speed_window_s: float = 0.1
     retry_below_m: float = 0.15
     max_tries: int = 3
-    fix_weight: float = 0.5
+    fix_weight: float = 1.0
     hold_s: float = 1.0
     descend_mps: float = 0.1
     camera_period_s: float = 1.0 / 30.0
@@ -245,6 +247,8 @@ class PerchingController:
         self._steer_t: float | None = None
         self._last_t: float | None = None
         self._last_sp: Array | None = None
+        # the last frame's command before the observer's offset (flown on between frames)
+        self._frame_command: Command | None = None
 
     @property
     def disturbance_mps(self) -> Array:
@@ -367,6 +371,8 @@ class PerchingController:
         """The setpoint for this frame; an estimate that is None, not valid, not finite or too
         old means no target. ``odometry``: the flight controller's state estimate now."""
         command = self._command(estimate, t_s, R_world_body, odometry)
+        steered = command.phase in STEERED and command.error_m is not None
+        self._frame_command = command if steered else None
         if command.phase in ("search", "give-up"):
             return command
         return Command(
@@ -374,6 +380,37 @@ class PerchingController:
             command.yaw_rate_rad_s,
             command.phase,
             command.error_m,
+        )
+
+    def between_frames(self, t_s: float, R_world_body: Array, odometry: Odometry) -> Command | None:
+        """The setpoint between camera frames, from a new odometry sample: the lateral loop
+        steers on the target held in the odometry frame (the vertical speed, the yaw rate and
+        the phase stay the last frame's, which alone decides them). None where there is nothing
+        to steer on: no held target, or the last frame did not steer (search, lost, give-up).
+
+        A flight controller reports its state several times per camera frame; closing the
+        lateral loop at that rate takes out gusts a frame-rate loop lets through."""
+        s = self.settings
+        last = self._frame_command
+        if last is None or self.phase not in STEERED:
+            return None
+        self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
+        limit = s.commit_timeout_s if self.phase == "commit" else s.hold_target_s
+        held = self._held_error(t_s, R_world_body, odometry, limit)
+        if held is None:
+            return None
+        v = np.array(last.v_mps, np.float64)
+        v[:2] = self._lateral_mps(held, t_s)
+        return Command(self._reject(v, t_s, odometry), last.yaw_rate_rad_s, last.phase, held)
+
+    def _lateral_mps(self, d: Array, t_s: float) -> Array:
+        """The lateral velocity command for the magnet-to-target vector ``d``: proportional
+        (saturated at ``max_xy_mps``) plus the position integral."""
+        s = self.settings
+        lateral = float(np.hypot(d[0], d[1]))
+        scale = min(1.0, s.max_xy_mps / max(1e-9, s.k_xy * lateral))
+        return s.k_xy * np.asarray(d[:2], np.float64) * scale + self._integrate(
+            d, t_s, wind=lateral < s.integrate_within_m
         )
 
     def _command(
@@ -432,10 +469,7 @@ class PerchingController:
         lateral = float(np.hypot(d[0], d[1]))
         height = float(d[2])
         v = np.zeros(3)
-        scale = min(1.0, s.max_xy_mps / max(1e-9, s.k_xy * lateral))
-        v[:2] = s.k_xy * d[:2] * scale + self._integrate(
-            d, t_s, wind=lateral < s.integrate_within_m
-        )
+        v[:2] = self._lateral_mps(d, t_s)
         if self.phase == "retreat":
             if height < s.retry_below_m:
                 v[2] = -s.descend_mps

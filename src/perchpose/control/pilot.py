@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -151,8 +152,10 @@ class PerchingPilot:
         height_m: Callable[[], float | None] | None = None,
         odometry: Callable[[], tuple[Array, Array] | None] | None = None,
         report: Callable[[str], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.commander = commander
+        self.clock = clock
         self.attitude = attitude
         self.controller = controller or PerchingController()
         self.settings = settings or PilotSettings()
@@ -168,6 +171,9 @@ class PerchingPilot:
             self.settings.contact_window_s, self.settings.contact_rise_m
         )
         self.last_t_s = 0.0
+        # frames and odometry samples may arrive on different threads (a vehicle link's)
+        self._lock = threading.RLock()
+        self._frame_clock: tuple[float, float] | None = None  # (frame t_s, clock() then)
         if height_m is None:
             self.report(
                 "pilot: no height source, so no contact evidence: the motors are never "
@@ -193,15 +199,17 @@ class PerchingPilot:
 
     def link_lost(self, reason: str = "link lost") -> None:
         """The radio link is gone: send nothing more (the firmware's watchdog takes over)."""
-        if self.state not in ("landed", "perched", "link_lost"):
-            self._enter("link_lost", self.last_t_s, reason)
+        with self._lock:
+            if self.state not in ("landed", "perched", "link_lost"):
+                self._enter("link_lost", self.last_t_s, reason)
 
     def abort(self, t_s: float, reason: str = "stopped by the user") -> None:
         """Stop perching: land if flying; otherwise never take over."""
-        if self.flying and self.state != "landing":
-            self._start_landing(t_s, reason)
-        elif self.state == "waiting":
-            self._enter("landed", t_s, reason)
+        with self._lock:
+            if self.flying and self.state != "landing":
+                self._start_landing(t_s, reason)
+            elif self.state == "waiting":
+                self._enter("landed", t_s, reason)
 
     # -- setpoints ------------------------------------------------------------------------
 
@@ -244,7 +252,42 @@ class PerchingPilot:
 
     def update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         """One frame: the estimate (None, not valid or too old: no target) at time ``t_s``."""
+        with self._lock:
+            return self._update(estimate, t_s)
+
+    def tick_now(self) -> PilotStep | None:
+        """``tick`` at the present moment on the frames' clock (the last frame's ``t_s`` plus
+        the time since it was handed over): what a vehicle link calls on each state-estimate
+        sample it receives."""
+        with self._lock:
+            if self._frame_clock is None:
+                return None
+            t_frame, then = self._frame_clock
+            return self.tick(t_frame + max(0.0, self.clock() - then))
+
+    def tick(self, t_s: float) -> PilotStep | None:
+        """Between camera frames, on a new odometry sample at ``t_s`` (the frames' clock):
+        while perching, a setpoint from the controller's odometry loop
+        (``PerchingController.between_frames``) and the contact check; None when nothing was
+        sent (not perching, no odometry, nothing held to steer on)."""
+        with self._lock:
+            if self.state != "perching" or self.odometry is None or t_s < self.last_t_s:
+                return None
+            motion = self.odometry()
+            if motion is None:
+                return None
+            odometry = Odometry(t_s, motion[0], motion[1])
+            command = self.controller.between_frames(t_s, self.attitude(), odometry)
+            if command is None:
+                return None
+            self.last_t_s = t_s
+            if command.phase == "commit" and self._contact.touched(t_s, self._height()):
+                return self._stop(t_s, "perched", "the final climb stopped against the plate")
+            return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
+
+    def _update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         self.last_t_s = t_s
+        self._frame_clock = (t_s, self.clock())
         limit_s = self.controller.settings.max_estimate_age_s
         fresh = usable(estimate, t_s, limit_s)
         if self.state == "waiting":
@@ -298,5 +341,6 @@ class PerchingPilot:
         every ``setpoint_period_s`` until landed."""
         t0 = clock() - self.last_t_s
         while self.state == "landing":
-            self._land_step(clock() - t0)
+            with self._lock:
+                self._land_step(clock() - t0)
             sleep(self.settings.setpoint_period_s)

@@ -38,7 +38,9 @@ def R_world_body_from_quaternion(qw: float, qx: float, qy: float, qz: float) -> 
 class CrazyflieConnection:
     """An open cflib link with the vehicle's attitude, height, position and velocity streamed
     from its state estimate (``stateEstimate.qw/qx/qy/qz`` and ``.z`` in one log block,
-    ``stateEstimate.x/y/vx/vy/vz`` in a second: a block holds at most 26 bytes; 50 Hz)."""
+    ``stateEstimate.x/y/vx/vy/vz`` in a second: a block holds at most 26 bytes; 50 Hz). Each
+    odometry sample ticks the pilots it handed out (``PerchingPilot.tick_now``): their lateral
+    loop closes at 50 Hz on odometry between camera frames."""
 
     def __init__(self, uri: str, report: Callable[[str], None] | None = None) -> None:
         try:
@@ -55,6 +57,7 @@ class CrazyflieConnection:
         self._R_world_body = np.eye(3)
         self._height_m: float | None = None
         self._odometry: tuple[Array, Array] | None = None
+        self._pilots: list[PerchingPilot] = []
         cflib.crtp.init_drivers()
         self.cf: Any = Crazyflie()
         self._sync = SyncCrazyflie(uri, cf=self.cf)
@@ -97,6 +100,8 @@ class CrazyflieConnection:
             np.float64,
         )
         self._odometry = (p, v)
+        for pilot in self._pilots:  # the lateral loop closes at the state estimate's rate
+            pilot.tick_now()
 
     def attitude(self) -> Array:
         return self._R_world_body
@@ -119,6 +124,7 @@ class CrazyflieConnection:
             **kwargs,
         )
         pilot.watch_link(self.cf)
+        self._pilots.append(pilot)
         return pilot
 
     def close(self) -> None:

@@ -65,6 +65,7 @@ class PerchSetup:
     latency_frames: int = 1
     drop_probability: float = 0.05
     physics_hz: float = 500.0
+    odometry_hz: float = 50.0
     duration_s: float = 20.0
     wind: str = "none"
     wind_mps: float | None = None
@@ -85,6 +86,8 @@ class PerchSetup:
             raise VehicleConfigError("start_below_m must be 0 < low <= high")
         if not (self.fps > 0 and self.physics_hz >= self.fps and self.duration_s > 0):
             raise VehicleConfigError("need fps > 0, physics_hz >= fps and duration_s > 0")
+        if not 0 <= self.odometry_hz <= self.physics_hz:
+            raise VehicleConfigError("need 0 <= odometry_hz <= physics_hz")
         if abs(self.controller.camera_period_s - 1.0 / self.fps) > 1e-9:
             raise VehicleConfigError("the controller's camera_period_s must be 1 / fps")
         self.check_start_box()
@@ -288,15 +291,15 @@ class _Flight:
                 estimate = self.estimator.update(np.asarray(payload, np.uint8), t_capture)
         return estimate
 
-    def fly_frame(self, t_s: float, steps: int, p_magnet_body: Array) -> int | None:
-        """The vehicle through one frame period in this frame's wind; the contact step or
-        None."""
+    def fly(self, t_s: float, steps: int, p_magnet_body: Array) -> int | None:
+        """The vehicle through ``steps`` physics steps from ``t_s`` on the setpoint it holds;
+        the odometry follows at the end. The contact step or None."""
         s = self.setup
         v = self.vehicle
-        v.wind_mps = self.wind.step()
         v.thrust_scale = self.draw.thrust_scale(t_s)
+        dt_s = 1.0 / s.physics_hz
         contact = v.fly(
-            1.0 / s.physics_hz,
+            dt_s,
             steps,
             self.commander.v_mps,
             self.commander.yaw_rate_rad_s,
@@ -304,7 +307,7 @@ class _Flight:
             stop_z_m=s.plate_z_m,
             p_body_point_m=p_magnet_body,
         )
-        self.odometry.update(v.p_m, v.v_mps, 1.0 / s.fps)
+        self.odometry.update(v.p_m, v.v_mps, dt_s * (steps if contact is None else contact + 1))
         return contact
 
     def crashed(self) -> bool:
@@ -313,13 +316,31 @@ class _Flight:
         return bool(v.p_m[2] < 0.02 or tilt > MAX_TILT_DEG or not np.isfinite(v.p_m).all())
 
 
+def _step_of(n: int, rate_hz: float, physics_hz: float) -> int:
+    """The first physics step at or after the ``n``-th tick of a ``rate_hz`` clock."""
+    return int(math.ceil(n * physics_hz / rate_hz - 1e-9))
+
+
+def event_steps(setup: PerchSetup) -> list[tuple[int, int | None]]:
+    """The physics steps at which something happens, in order: (step, frame index) for a
+    camera frame, (step, None) for an odometry sample between frames."""
+    hz = setup.physics_hz
+    total = int(round(setup.duration_s * hz))
+    frames = {_step_of(k, setup.fps, hz): k for k in range(int(setup.duration_s * setup.fps) + 1)}
+    ticks: set[int] = set()
+    if setup.odometry_hz > 0:
+        count = int(setup.duration_s * setup.odometry_hz) + 1
+        ticks = {_step_of(j, setup.odometry_hz, hz) for j in range(count)}
+    steps = sorted(i for i in frames.keys() | ticks if i < total)
+    return [(i, frames.get(i)) for i in steps]
+
+
 def run_perch(
     setup: PerchSetup, seed: int, renderer: Renderer[TargetSpec] | None = None
 ) -> PerchResult:
     """One perching run from a random start drawn with ``seed``."""
     flight = _Flight(setup, seed, renderer or setup.renderer())
     p_magnet_body = np.asarray(setup.controller.p_body_magnet_m, np.float64)
-    steps_per_frame = max(1, int(round(setup.physics_hz / setup.fps)))
     ts: list[float] = []
     magnets: list[Array] = []
     stages: list[int] = []
@@ -342,18 +363,30 @@ def run_perch(
             flight.wind_direction_rad,
         )
 
-    phase = "waiting"
-    for k in range(int(round(setup.duration_s * setup.fps))):
-        t = k / setup.fps
-        flight.capture(k, t)
-        estimate = flight.arrived(k)
-        step = flight.pilot.update(estimate, t)
-        phase = step.phase or step.state
-        contact = flight.fly_frame(t, steps_per_frame, p_magnet_body)
-        ts.append(t)
-        magnets.append(np.array(flight.vehicle.point_in_world(tuple(p_magnet_body))))
-        stages.append(estimate.stage if estimate is not None else 0)
-        phases.append(phase)
+    events = event_steps(setup)
+    dt_s = 1.0 / setup.physics_hz
+    end = int(round(setup.duration_s * setup.physics_hz))
+    for n, (i, k) in enumerate(events):
+        t = i * dt_s
+        if k is None:  # an odometry sample between frames
+            flight.pilot.tick(t)
+        else:
+            flight.vehicle.wind_mps = flight.wind.step()
+            flight.capture(k, t)
+            estimate = flight.arrived(k)
+            step = flight.pilot.update(estimate, t)
+            ts.append(t)
+            stages.append(estimate.stage if estimate is not None else 0)
+            phases.append(step.phase or step.state)
+        steps = (events[n + 1][0] if n + 1 < len(events) else end) - i
+        contact = flight.fly(t, steps, p_magnet_body)
+        if k is not None or contact is not None:
+            magnet = np.array(flight.vehicle.point_in_world(tuple(p_magnet_body)))
+            if k is None:  # contact between frames: its row
+                ts.append(t)
+                stages.append(0)
+                phases.append(flight.controller.phase)
+            magnets.append(magnet)
         if contact is not None:
             magnet = magnets[-1]
             offset_mm = float(np.hypot(magnet[0], magnet[1]) * 1000.0)
@@ -365,7 +398,8 @@ def run_perch(
                 if ok_offset and ok_speed
                 else ("off-centre" if not ok_offset else "too-fast")
             )
-            return result(ok_offset and ok_speed, reason, offset_mm, speed, t)
+            t_contact = t + (contact + 1) * dt_s
+            return result(ok_offset and ok_speed, reason, offset_mm, speed, t_contact)
         if flight.crashed():
             return result(False, "crash", math.nan, math.nan, math.nan)
         if flight.pilot.state in ("landing", "landed"):
