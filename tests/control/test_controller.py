@@ -150,6 +150,8 @@ def test_heading_error_turns_towards_the_target() -> None:
 def test_unstable_gains_are_refused() -> None:
     with pytest.raises(ControllerConfigError, match="unstable"):
         ControllerSettings(k_xy=10.0)
+    with pytest.raises(ControllerConfigError, match=r"k_xy \* commit_gain = 9 /s is unstable"):
+        ControllerSettings(k_xy=3.0, commit_gain=3.0)  # stable, but not stiffened for the climb
     with pytest.raises(ControllerConfigError, match="must be positive"):
         ControllerSettings(max_z_mps=-1.0)
 
@@ -204,7 +206,7 @@ def test_the_last_centimetres_are_flown_on_odometry() -> None:
     # it steers back
     blind = c.update(None, 4 / 30, np.eye(3), _odometry(4 / 30, x_m=0.005))
     assert blind.phase == "commit"
-    assert blind.v_mps[0] == pytest.approx(-s.k_xy * 0.005, abs=2e-3)
+    assert blind.v_mps[0] == pytest.approx(-s.k_xy * s.commit_gain * 0.005, abs=2e-3)
     assert blind.v_mps[2] == pytest.approx(s.commit_speed_mps)
 
 

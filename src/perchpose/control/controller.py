@@ -89,13 +89,17 @@ class ControllerSettings:
     it removes what the velocity integrator cannot see, a bias of the odometry's own velocity;
     max_integral_xy_mps : its clamp. integrate_within_m : the integral runs only while the
     lateral error is under this (the approach from a far start would wind it up).
-    capture_speed_mps : the largest sideways speed at which the final climb may start, measured
+    commit_gain : the lateral gain is this many times k_xy during the final climb (the errors
+    are small there and the time short, so a stiffer loop holds the magnet on the centre
+    without the overshoot it would cause across a long approach). capture_speed_mps : the
+    largest sideways speed at which the final climb may start, measured
     over the last speed_window_s of odometry positions.
     retry_below_m : how far under the target a backed-off climb descends before aligning
     again. max_tries : failed final climbs before giving up.
     """
 
     k_xy: float = 2.5
+    commit_gain: float = 1.5
     k_z: float = 0.9
     k_yaw: float = 1.5
     max_xy_mps: float = 0.35
@@ -159,6 +163,7 @@ class ControllerSettings:
             "max_integral_xy_mps",
             "integrate_within_m",
             "onboard_velocity_gain",
+            "commit_gain",
         )
         require_positive(self, positive, ControllerConfigError)
         if self.commit_frames < 1:
@@ -179,11 +184,17 @@ class ControllerSettings:
             )
         # a proportional loop closed through a sampled, one-frame-late measurement is stable
         # only while gain * period stays well under 1
-        for name in ("k_xy", "k_z", "k_yaw"):
-            loop = getattr(self, name) * self.camera_period_s * 2.0
+        gains = {
+            "k_xy": self.k_xy,
+            "k_xy * commit_gain": self.k_xy * self.commit_gain,
+            "k_z": self.k_z,
+            "k_yaw": self.k_yaw,
+        }
+        for name, gain in gains.items():
+            loop = gain * self.camera_period_s * 2.0
             if loop >= 0.5:
                 raise ControllerConfigError(
-                    f"{name} = {getattr(self, name)} /s is unstable at a "
+                    f"{name} = {gain:g} /s is unstable at a "
                     f"{self.camera_period_s:.3f} s camera period with a frame of latency "
                     f"(need {name} < "
                     f"{0.25 / self.camera_period_s:.1f} /s)"
@@ -408,8 +419,9 @@ class PerchingController:
         (saturated at ``max_xy_mps``) plus the position integral."""
         s = self.settings
         lateral = float(np.hypot(d[0], d[1]))
-        scale = min(1.0, s.max_xy_mps / max(1e-9, s.k_xy * lateral))
-        return s.k_xy * np.asarray(d[:2], np.float64) * scale + self._integrate(
+        k = s.k_xy * (s.commit_gain if self.phase == "commit" else 1.0)
+        scale = min(1.0, s.max_xy_mps / max(1e-9, k * lateral))
+        return k * np.asarray(d[:2], np.float64) * scale + self._integrate(
             d, t_s, wind=lateral < s.integrate_within_m
         )
 
