@@ -164,6 +164,9 @@ class Estimate:
         faces the camera); with ``yaw_rad`` the whole rotation (``T_camera_target``). NaN
         when unknown.
     covariance_flat : the 36 entries (row by row) of ``covariance``; empty when unknown.
+    grabbed_s : ``time.monotonic()`` when its frame was grabbed, where the caller knows it
+        (``perchpose track`` does); NaN otherwise. The MAVLink link maps it to the
+        autopilot's clock (TIMESYNC) for ``time_usec``.
 
     ``x_cm``, ``y_cm``, ``z_cm`` and ``yaw_deg`` are the same pose in the paper's units.
     """
@@ -181,6 +184,7 @@ class Estimate:
     roll_rad: float = math.nan
     pitch_rad: float = math.nan
     covariance_flat: tuple[float, ...] = ()
+    grabbed_s: float = math.nan
 
     @classmethod
     def none(cls, t_s: float, markers: tuple[MarkerState, ...] = ()) -> Estimate:

@@ -4,6 +4,7 @@ import math
 import socket
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -37,9 +38,13 @@ class Receiver:
         attitude: tuple[float, float, float] | None = None,
         p_ned_m: tuple[float, float, float] | None = None,
         scheme: str = "udpin",
+        clock_offset_ns: int | None = None,
     ) -> None:
         self.conn = mavutil_module().mavlink_connection(f"{scheme}:127.0.0.1:{port}")
         self.messages: list[Any] = []
+        # an autopilot's own clock (time since its boot): answers TIMESYNC, asks once itself
+        self.clock_offset_ns = clock_offset_ns
+        self.asked_ns: int | None = None
         self.attitude = attitude
         self.p_ned_m = p_ned_m
         self._stop = threading.Event()
@@ -51,11 +56,22 @@ class Receiver:
             msg = self.conn.recv_match(blocking=True, timeout=0.05)
             if msg is not None and msg.get_type() != "BAD_DATA":
                 self.messages.append(msg)
+                if msg.get_type() == "TIMESYNC" and self.clock_offset_ns is not None:
+                    self._timesync(msg)
             if self.messages and self.attitude is not None:
                 roll, pitch, yaw = self.attitude
                 self.conn.mav.attitude_send(0, roll, pitch, yaw, 0.0, 0.0, 0.0)
                 if self.p_ned_m is not None:
                     self.conn.mav.local_position_ned_send(0, *self.p_ned_m, 0.0, 0.0, 0.0)
+
+    def _timesync(self, msg: Any) -> None:
+        assert self.clock_offset_ns is not None
+        now = time.monotonic_ns() + self.clock_offset_ns
+        if msg.tc1 == 0:
+            self.conn.mav.timesync_send(now, msg.ts1)
+            if self.asked_ns is None:  # and ask the companion once
+                self.asked_ns = now
+                self.conn.mav.timesync_send(0, now)
 
     def of_type(self, name: str) -> list[Any]:
         return [m for m in self.messages if m.get_type() == name]
@@ -158,6 +174,39 @@ def test_local_ned_uses_the_vehicles_attitude_and_position() -> None:
     assert [msg.x, msg.y, msg.z] == pytest.approx(expected, abs=1e-4)
     assert msg.time_usec == 2_500_000
     assert not reports
+
+
+def test_time_usec_is_the_grab_on_the_autopilots_clock() -> None:
+    port = free_udp_port()
+    offset_ns = 7_000_000_000_000 - time.monotonic_ns()  # the vehicle booted 7000 s ago
+    receiver = Receiver(port, clock_offset_ns=offset_ns)
+    sink = LandingTargetSink(f"udpout:127.0.0.1:{port}", T_body_camera=DOWN)
+    try:
+        deadline = time.monotonic() + 5.0
+        while sink.timesync.offset_ns is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        grabbed = time.monotonic() - 0.04  # its frame was grabbed 40 ms ago
+        estimate = replace(estimate_at(0.5, (1.0, 2.0, 60.0), 0.0), grabbed_s=grabbed)
+        assert sink.send(estimate)
+        assert sink.send(estimate_at(0.6, (1.0, 2.0, 60.0), 0.0))  # no grab time known
+    finally:
+        sink.close()
+        receiver.stop()
+    # an answer read late (the link's thread polls) or sent late (the vehicle's) biases the
+    # offset by half the difference, never more than half the round trip it came from
+    rtt_ns = sink.timesync.rtt_ns
+    assert rtt_ns is not None
+    assert rtt_ns < 50_000_000
+    bound_ns = rtt_ns / 2 + 100_000
+    assert sink.timesync.offset_ns == pytest.approx(offset_ns, abs=bound_ns)
+    with_grab, without = receiver.of_type("LANDING_TARGET")
+    expected_usec = (grabbed * 1e9 + offset_ns) / 1000
+    assert with_grab.time_usec == pytest.approx(expected_usec, abs=bound_ns / 1000 + 1)
+    assert without.time_usec == 600_000  # the frame's own time, as before TIMESYNC
+    # the vehicle's own request was answered with the companion's clock, its ts1 echoed
+    answers = [m for m in receiver.of_type("TIMESYNC") if m.tc1 != 0]
+    assert [m.ts1 for m in answers] == [receiver.asked_ns]
+    assert sink.timesync.answered == 1
 
 
 def test_local_ned_waits_for_attitude() -> None:

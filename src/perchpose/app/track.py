@@ -113,10 +113,12 @@ class FrameView(Protocol):
 
 
 def _with_latency(estimate: Estimate, frame: Frame) -> Estimate:
-    """``estimate`` with the time from the frame's grab to now."""
+    """``estimate`` with the moment its frame was grabbed and the time from then to now."""
     if not math.isfinite(frame.grabbed_s):
         return estimate
-    return replace(estimate, latency_s=time.monotonic() - frame.grabbed_s)
+    return replace(
+        estimate, latency_s=time.monotonic() - frame.grabbed_s, grabbed_s=frame.grabbed_s
+    )
 
 
 def track(

@@ -96,9 +96,11 @@ def landing_target(
     frame: str = "body_frd",
     R_ned_frd: Array | None = None,
     p_ned_vehicle_m: Array | None = None,
+    time_usec: int | None = None,
 ) -> LandingTarget:
     """LANDING_TARGET for a valid estimate; ``frame`` is ``body_frd`` or ``local_ned`` (which
-    needs ``R_ned_frd``; ``p_ned_vehicle_m`` makes the position absolute)."""
+    needs ``R_ned_frd``; ``p_ned_vehicle_m`` makes the position absolute). ``time_usec``: the
+    capture time on the autopilot's clock (default: the estimate's ``t_s``)."""
     if frame not in FRAMES:
         raise LinkError(f"unknown LANDING_TARGET frame {frame!r} (choose {', '.join(FRAMES)})")
     if not estimate.valid:
@@ -123,7 +125,7 @@ def landing_target(
     depth = max(float(p_camera_m[2]), 1e-9)
     size = 2.0 * math.atan(0.5 * target_side_m / max(distance, 1e-9))
     message = LandingTarget(
-        time_usec=round(estimate.t_s * 1e6),
+        time_usec=round(estimate.t_s * 1e6) if time_usec is None else time_usec,
         frame=frame,
         x_m=float(p_m[0]),
         y_m=float(p_m[1]),

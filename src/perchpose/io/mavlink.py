@@ -8,7 +8,9 @@ One ``LandingTargetSink`` owns one connection, and only its own thread touches i
 opens the link, sends the LANDING_TARGET messages ``send`` queues, sends a HEARTBEAT every
 second (an onboard computer: ``MAV_TYPE_ONBOARD_CONTROLLER``, component
 ``MAV_COMP_ID_ONBOARD_COMPUTER``), reads the vehicle's ATTITUDE and LOCAL_POSITION_NED (needed
-for ``frame="local_ned"``) and reopens a link that failed, so tracking never waits on the
+for ``frame="local_ned"``), answers the autopilot's TIMESYNC requests and sends its own every
+second (``perchpose.io.timesync``: once answered, ``time_usec`` is the frame's grab time on
+the autopilot's clock) and reopens a link that failed, so tracking never waits on the
 network. A link that cannot be opened or goes down (a TCP peer that closes included) is
 reported once through ``report``; estimates arriving meanwhile are dropped, and tracking goes
 on. pymavlink's own messages about its TCP socket never reach stdout: the sink detects a
@@ -18,6 +20,7 @@ closed peer itself and reconnects on its own schedule.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import threading
 import time
@@ -40,6 +43,7 @@ from perchpose.io.landing_target import (
     check_line_of_sight,
     landing_target,
 )
+from perchpose.io.timesync import TimeSync
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
@@ -94,6 +98,10 @@ def _landing_target_send(mav: Any, *, msg: LandingTarget) -> None:
     )
 
 
+def _timesync_send(mav: Any, *, tc1: int, ts1: int) -> None:
+    mav.timesync_send(tc1, ts1)
+
+
 def check_url(url: str) -> str:
     """A pymavlink connection string: ``udpout:host:port`` and the other network forms, or a
     serial device with an optional baud rate (``/dev/ttyUSB0,57600``)."""
@@ -128,7 +136,11 @@ class LandingTargetSink:
     url : pymavlink connection string. frame : ``body_frd`` (ArduPilot) or ``local_ned`` (PX4).
     T_body_camera : the camera's mounting on the body (FLU), default
     ``control.default_T_body_camera()``. target : sets the angular size fields.
-    time_offset_s : added to the frame times for ``time_usec``. max_age_s : an estimate whose
+    time_offset_s : added to the frame times for ``time_usec`` until TIMESYNC has mapped this
+    computer's clock to the autopilot's (or for estimates without ``grabbed_s``); then
+    ``time_usec`` is ``Estimate.grabbed_s`` on the autopilot's clock. timesync_period_s : how
+    often a TIMESYNC request is sent (0: never; requests from the vehicle are answered all the
+    same). max_age_s : an estimate whose
     newest measurement is older than this (``Estimate.age_s``) is not sent; default 0.5 s, well
     inside the autopilots' own LANDING_TARGET timeouts (ArduPilot 2 s, PX4 ``PLD_BTOUT`` 5 s).
     report : receives the one-line link reports (default: the ``perchpose.io.mavlink`` logger).
@@ -145,6 +157,7 @@ class LandingTargetSink:
         source_component: int = MAV_COMP_ID_ONBOARD_COMPUTER,
         time_offset_s: float = 0.0,
         heartbeat_period_s: float = 1.0,
+        timesync_period_s: float = 1.0,
         retry_period_s: float = 2.0,
         position_max_age_s: float = 1.0,
         max_age_s: float = 0.5,
@@ -167,6 +180,9 @@ class LandingTargetSink:
         self.source_component = source_component
         self.time_offset_s = time_offset_s
         self.heartbeat_period_s = heartbeat_period_s
+        self.timesync_period_s = timesync_period_s
+        self.timesync = TimeSync()
+        self._next_timesync = 0.0
         self.retry_period_s = retry_period_s
         self.position_max_age_s = position_max_age_s
         if not max_age_s > 0:
@@ -280,6 +296,10 @@ class LandingTargetSink:
                 if now >= self._next_heartbeat:
                     self._next_heartbeat = now + self.heartbeat_period_s
                     self._send(self._heartbeat, "HEARTBEAT")
+                if self.timesync_period_s > 0 and now >= self._next_timesync:
+                    self._next_timesync = now + self.timesync_period_s
+                    tc1, ts1 = self.timesync.request()
+                    self._send(partial(_timesync_send, tc1=tc1, ts1=ts1), "TIMESYNC")
                 self._receive()
             self._wake.wait(0.01)
             self._wake.clear()
@@ -297,14 +317,20 @@ class LandingTargetSink:
             if self._conn is None:
                 return
             try:
-                msg = self._conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED"], blocking=False)
+                msg = self._conn.recv_match(
+                    type=["ATTITUDE", "LOCAL_POSITION_NED", "TIMESYNC"], blocking=False
+                )
             except OSError as exc:
                 self._link_down(f"{self.url} down while reading: {exc}")
                 return
             if msg is None:
                 return
             now = time.monotonic()
-            if msg.get_type() == "ATTITUDE":
+            if msg.get_type() == "TIMESYNC":
+                answer = self.timesync.handle(int(msg.tc1), int(msg.ts1))
+                if answer is not None:
+                    self._send(partial(_timesync_send, tc1=answer[0], ts1=answer[1]), "TIMESYNC")
+            elif msg.get_type() == "ATTITUDE":
                 self.vehicle.R_ned_frd = R_ned_frd_from_euler(msg.roll, msg.pitch, msg.yaw)
                 self.vehicle.attitude_t_s = now
             else:
@@ -345,6 +371,9 @@ class LandingTargetSink:
             if self.vehicle.p_ned_m is not None and age < self.position_max_age_s:
                 p_ned = self.vehicle.p_ned_m
         shifted = replace(estimate, t_s=estimate.t_s + self.time_offset_s)
+        time_usec = None
+        if math.isfinite(estimate.grabbed_s):
+            time_usec = self.timesync.remote_usec(estimate.grabbed_s)
         try:
             return landing_target(
                 shifted,
@@ -353,6 +382,7 @@ class LandingTargetSink:
                 frame=self.frame,
                 R_ned_frd=R_ned_frd,
                 p_ned_vehicle_m=p_ned,
+                time_usec=time_usec,
             )
         except LinkError as exc:
             self._refuse(str(exc))
