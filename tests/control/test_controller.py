@@ -314,6 +314,12 @@ def test_between_frames_the_lateral_loop_steers_on_odometry() -> None:
     assert tick.v_mps[0] == pytest.approx(-s.k_xy * 0.008, rel=1e-6)
     assert tick.v_mps[2] == pytest.approx(frame.v_mps[2])
     assert c.phase == "climb"
+    # the camera stalls: still aligned on odometry, but no longer climbing blind
+    stalled = c.between_frames(0.2, np.eye(3), _odometry(0.2, x_m=0.008))
+    assert stalled is not None
+    assert stalled.v_mps[0] == pytest.approx(-s.k_xy * 0.008, rel=1e-6)
+    assert stalled.v_mps[2] == 0.0
+    assert c.between_frames(0.1 + s.hold_target_s, np.eye(3), _odometry(1.1)) is None
     # a lost target steers on nothing between frames
     c.update(None, 2.0, np.eye(3), _odometry(2.0))
     assert c.phase == "lost"

@@ -58,6 +58,7 @@ from perchpose.values import Estimate
 Array = NDArray[np.float64]
 
 STEERED = ("align", "climb", "commit")  # the phases that steer on the target
+STALL_FRAMES = 3  # camera periods without a frame after which odometry steering holds height
 
 
 @dataclass(frozen=True)
@@ -260,6 +261,7 @@ class PerchingController:
         self._last_sp: Array | None = None
         # the last frame's command before the observer's offset (flown on between frames)
         self._frame_command: Command | None = None
+        self._frame_t = -math.inf
 
     @property
     def disturbance_mps(self) -> Array:
@@ -384,6 +386,7 @@ class PerchingController:
         command = self._command(estimate, t_s, R_world_body, odometry)
         steered = command.phase in STEERED and command.error_m is not None
         self._frame_command = command if steered else None
+        self._frame_t = t_s
         if command.phase in ("search", "give-up"):
             return command
         return Command(
@@ -400,7 +403,9 @@ class PerchingController:
         to steer on: no held target, or the last frame did not steer (search, lost, give-up).
 
         A flight controller reports its state several times per camera frame; closing the
-        lateral loop at that rate takes out gusts a frame-rate loop lets through."""
+        lateral loop at that rate takes out gusts a frame-rate loop lets through. When no frame
+        has come for ``STALL_FRAMES`` camera periods (a stalled camera) the vehicle holds its
+        height, except in the final climb, and after ``hold_target_s`` nothing is sent."""
         s = self.settings
         last = self._frame_command
         if last is None or self.phase not in STEERED:
@@ -412,6 +417,8 @@ class PerchingController:
             return None
         v = np.array(last.v_mps, np.float64)
         v[:2] = self._lateral_mps(held, t_s)
+        if self.phase != "commit" and t_s - self._frame_t > STALL_FRAMES * s.camera_period_s:
+            v[2] = 0.0  # the camera has stalled mid-approach: hold height, stay aligned
         return Command(self._reject(v, t_s, odometry), last.yaw_rate_rad_s, last.phase, held)
 
     def _lateral_mps(self, d: Array, t_s: float) -> Array:
