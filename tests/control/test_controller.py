@@ -268,23 +268,28 @@ def test_a_camera_dropout_mid_approach_holds_height_on_odometry() -> None:
     assert lost.phase == "lost"
 
 
+class Recorder:
+    """A commander that keeps what it is sent: velocities as 4-tuples, a stop as ()."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[float, ...]] = []
+
+    def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yr: float) -> None:
+        self.sent.append((vx, vy, vz, yr))
+
+    def send_stop_setpoint(self) -> None:
+        self.sent.append(())
+
+    def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
+        pass
+
+
 def test_pilot_lands_when_the_controller_gives_up() -> None:
     s = ControllerSettings(observer_rate=0.0, max_tries=1)
-    sent: list[tuple[float, ...]] = []
-
-    class Commander:
-        def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yr: float) -> None:
-            sent.append((vx, vy, vz, yr))
-
-        def send_stop_setpoint(self) -> None:
-            sent.append(())
-
-        def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
-            pass
-
+    commander = Recorder()
     position = {"x": 0.0}
     pilot = PerchingPilot(
-        Commander(),
+        commander,
         lambda: np.eye(3),
         controller=PerchingController(s),
         height_m=lambda: 1.0,
@@ -328,22 +333,13 @@ def test_between_frames_the_lateral_loop_steers_on_odometry() -> None:
 
 def test_pilot_ticks_between_frames_only_while_perching() -> None:
     s = ControllerSettings(observer_rate=0.0, k_i_xy=0.0)
-    sent: list[tuple[float, ...]] = []
-
-    class Commander:
-        def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yr: float) -> None:
-            sent.append((vx, vy, vz, yr))
-
-        def send_stop_setpoint(self) -> None:
-            sent.append(())
-
-        def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
-            pass
+    commander = Recorder()
+    sent = commander.sent
 
     now = {"t": 100.0}
     position = {"x": 0.0}
     pilot = PerchingPilot(
-        Commander(),
+        commander,
         lambda: np.eye(3),
         controller=PerchingController(s),
         height_m=lambda: 1.0,

@@ -310,6 +310,10 @@ class PerchingController:
         )
         return magnet
 
+    def _remember(self, odometry: Odometry) -> None:
+        """Add an odometry sample to the history fixes are matched against."""
+        self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
+
     def _position_at(self, t_s: float) -> Array | None:
         """The odometry's position at ``t_s`` (interpolated; None before its history)."""
         if not self._track or t_s < self._track[0][0] - 1e-9:
@@ -410,7 +414,7 @@ class PerchingController:
         last = self._frame_command
         if last is None or self.phase not in STEERED:
             return None
-        self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
+        self._remember(odometry)
         limit = s.commit_timeout_s if self.phase == "commit" else s.hold_target_s
         held = self._held_error(t_s, R_world_body, odometry, limit)
         if held is None:
@@ -441,7 +445,7 @@ class PerchingController:
     ) -> Command:
         s = self.settings
         if odometry is not None:
-            self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
+            self._remember(odometry)
         since = self._commit_since
         if self.phase == "commit" and since is not None and t_s - since >= s.commit_timeout_s:
             self.back_off(t_s)

@@ -102,6 +102,11 @@ class PerchSetup:
             level.turbulence_sigma_mps if self.gust_mps is None else self.gust_mps,
         )
 
+    @property
+    def physics_steps(self) -> int:
+        """The physics steps of a whole run."""
+        return int(round(self.duration_s * self.physics_hz))
+
     def renderer(self) -> Renderer[TargetSpec]:
         """The renderer of this setup's frames (sensor noise from a bank: see ``Renderer``)."""
         return Renderer(self.camera, self.target, supersample=self.supersample, noise_bank=True)
@@ -325,13 +330,12 @@ def event_steps(setup: PerchSetup) -> list[tuple[int, int | None]]:
     """The physics steps at which something happens, in order: (step, frame index) for a
     camera frame, (step, None) for an odometry sample between frames."""
     hz = setup.physics_hz
-    total = int(round(setup.duration_s * hz))
     frames = {_step_of(k, setup.fps, hz): k for k in range(int(setup.duration_s * setup.fps) + 1)}
     ticks: set[int] = set()
     if setup.odometry_hz > 0:
         count = int(setup.duration_s * setup.odometry_hz) + 1
         ticks = {_step_of(j, setup.odometry_hz, hz) for j in range(count)}
-    steps = sorted(i for i in frames.keys() | ticks if i < total)
+    steps = sorted(i for i in frames.keys() | ticks if i < setup.physics_steps)
     return [(i, frames.get(i)) for i in steps]
 
 
@@ -365,7 +369,6 @@ def run_perch(
 
     events = event_steps(setup)
     dt_s = 1.0 / setup.physics_hz
-    end = int(round(setup.duration_s * setup.physics_hz))
     for n, (i, k) in enumerate(events):
         t = i * dt_s
         if k is None:  # an odometry sample between frames
@@ -378,7 +381,7 @@ def run_perch(
             ts.append(t)
             stages.append(estimate.stage if estimate is not None else 0)
             phases.append(step.phase or step.state)
-        steps = (events[n + 1][0] if n + 1 < len(events) else end) - i
+        steps = (events[n + 1][0] if n + 1 < len(events) else setup.physics_steps) - i
         contact = flight.fly(t, steps, p_magnet_body)
         if k is not None or contact is not None:
             magnet = np.array(flight.vehicle.point_in_world(tuple(p_magnet_body)))
@@ -388,7 +391,6 @@ def run_perch(
                 phases.append(flight.controller.phase)
             magnets.append(magnet)
         if contact is not None:
-            magnet = magnets[-1]
             offset_mm = float(np.hypot(magnet[0], magnet[1]) * 1000.0)
             speed = float(flight.vehicle.v_mps[2])
             ok_offset = offset_mm <= CONTACT_RADIUS_MM
