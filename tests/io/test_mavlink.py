@@ -183,7 +183,10 @@ def test_time_usec_is_the_grab_on_the_autopilots_clock() -> None:
     sink = LandingTargetSink(f"udpout:127.0.0.1:{port}", T_body_camera=DOWN)
     try:
         deadline = time.monotonic() + 5.0
-        while sink.timesync.offset_ns is None and time.monotonic() < deadline:
+        # synchronised, and the vehicle's own request answered
+        while (
+            sink.timesync.offset_ns is None or not sink.timesync.answered
+        ) and time.monotonic() < deadline:
             time.sleep(0.02)
         grabbed = time.monotonic() - 0.04  # its frame was grabbed 40 ms ago
         estimate = replace(estimate_at(0.5, (1.0, 2.0, 60.0), 0.0), grabbed_s=grabbed)
