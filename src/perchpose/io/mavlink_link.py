@@ -1,0 +1,350 @@
+"""One MAVLink connection to a vehicle, served by its own thread.
+
+Needs the ``mavlink`` extra (``pip install perchpose[mavlink]``). LANDING_TARGET's position
+fields are MAVLink 2 extensions, so this module sets ``MAVLINK20=1`` before pymavlink is
+imported (and switches pymavlink's dialect to MAVLink 2 if it was imported without it).
+
+Only the link's thread touches the connection: it opens the link, sends what ``post`` queues,
+sends a HEARTBEAT every second (an onboard computer: ``MAV_TYPE_ONBOARD_CONTROLLER``, component
+``MAV_COMP_ID_ONBOARD_COMPUTER``), reads the vehicle's HEARTBEAT, ATTITUDE and
+LOCAL_POSITION_NED into ``vehicle``, answers the autopilot's TIMESYNC requests and sends its own
+every second (``perchpose.io.timesync``) and reopens a link that failed, so that whoever posts
+never waits on the network. A link that cannot be opened or goes down (a TCP peer that closes
+included) is reported once through ``report``; messages posted meanwhile are dropped.
+pymavlink's own messages about its TCP socket never reach stdout: the link detects a closed
+peer itself and reconnects on its own schedule.
+
+The senders (``perchpose.io.mavlink``'s LANDING_TARGET sink, ``perchpose.io.mavlink_pilot``'s
+setpoints) are built on it; ``listeners`` are called on the link's thread with each message
+received from the vehicle, and ``pollers`` with the time on each turn of its loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.errors import LinkError
+from perchpose.io.landing_target import R_ned_frd_from_euler
+from perchpose.io.timesync import TimeSync
+
+Array = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+URL_PREFIXES = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
+# MAVLink enum values (common.xml); kept here so that the module imports without pymavlink
+MAV_TYPE_GCS = 6
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_ACTIVE = 4
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+MAV_COMP_ID_ONBOARD_COMPUTER = 191
+# messages waiting for the link's thread; a link this far behind drops the oldest
+QUEUE_LENGTH = 8
+
+Send = Callable[[Any], None]  # given pymavlink's ``conn.mav``, sends one message
+
+
+def mavutil_module() -> Any:
+    """pymavlink's ``mavutil``, speaking MAVLink 2."""
+    os.environ.setdefault("MAVLINK20", "1")
+    try:
+        from pymavlink import mavutil
+    except ImportError as exc:
+        raise LinkError("MAVLink needs pymavlink: pip install 'perchpose[mavlink]'") from exc
+    if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
+        os.environ["MAVLINK20"] = "1"
+        mavutil.set_dialect(mavutil.current_dialect)
+    return mavutil
+
+
+def _peer_closed() -> None:
+    raise ConnectionResetError("closed by the peer")
+
+
+def _timesync_send(mav: Any, *, tc1: int, ts1: int) -> None:
+    mav.timesync_send(tc1, ts1)
+
+
+def check_url(url: str) -> str:
+    """A pymavlink connection string: ``udpout:host:port`` and the other network forms, or a
+    serial device with an optional baud rate (``/dev/ttyUSB0,57600``)."""
+    if url.startswith(URL_PREFIXES):
+        rest = url.split(":", 1)[1]
+        host, _, port = rest.rpartition(":")
+        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise LinkError(f"MAVLink URL {url!r}: expected {url.split(':', 1)[0]}:HOST:PORT")
+        return url
+    device, _, baud = url.partition(",")
+    if device.startswith(("/", "COM")) and (not baud or baud.isdigit()):
+        return url
+    raise LinkError(
+        f"MAVLink URL {url!r}: expected udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT "
+        "or a serial device such as /dev/ttyUSB0,57600"
+    )
+
+
+@dataclass
+class VehicleState:
+    """What the link has heard from the vehicle (times on ``time.monotonic``).
+
+    The autopilot's HEARTBEAT: ``autopilot`` (MAV_AUTOPILOT: 3 ArduPilot, 12 PX4),
+    ``custom_mode``, ``base_mode``, and the system id it came from; ATTITUDE as ``R_ned_frd``;
+    LOCAL_POSITION_NED as ``p_ned_m`` and ``v_ned_mps``.
+    """
+
+    R_ned_frd: Array | None = None
+    p_ned_m: Array | None = None
+    v_ned_mps: Array | None = None
+    attitude_t_s: float = float("nan")
+    position_t_s: float = float("nan")
+    autopilot: int | None = None
+    custom_mode: int = 0
+    base_mode: int = 0
+    system_id: int = 1
+    heartbeat_t_s: float = float("nan")
+
+    @property
+    def armed(self) -> bool:
+        return bool(self.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+
+    def heard(self, msg: Any, now: float) -> bool:
+        """Take in one received message; True if it was one of the vehicle's."""
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in (
+                MAV_TYPE_GCS,
+                MAV_TYPE_ONBOARD_CONTROLLER,
+            ):
+                return False  # a ground station or another companion, not the autopilot
+            self.autopilot = int(msg.autopilot)
+            self.custom_mode = int(msg.custom_mode)
+            self.base_mode = int(msg.base_mode)
+            self.system_id = int(msg.get_srcSystem())
+            self.heartbeat_t_s = now
+        elif kind == "ATTITUDE":
+            self.R_ned_frd = R_ned_frd_from_euler(msg.roll, msg.pitch, msg.yaw)
+            self.attitude_t_s = now
+        elif kind == "LOCAL_POSITION_NED":
+            self.p_ned_m = np.array([msg.x, msg.y, msg.z], dtype=float)
+            self.v_ned_mps = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+            self.position_t_s = now
+        else:
+            return False
+        return True
+
+
+class MavlinkLink:
+    """A pymavlink connection to one vehicle, served by a thread of its own.
+
+    url : pymavlink connection string. timesync_period_s : how often a TIMESYNC request is
+    sent (0: never; requests from the vehicle are answered all the same). report : receives
+    the one-line link reports (default: this module's logger).
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        source_system: int = 1,
+        source_component: int = MAV_COMP_ID_ONBOARD_COMPUTER,
+        heartbeat_period_s: float = 1.0,
+        timesync_period_s: float = 1.0,
+        retry_period_s: float = 2.0,
+        report: Callable[[str], None] | None = None,
+    ) -> None:
+        self.url = check_url(url)
+        self.source_system = source_system
+        self.source_component = source_component
+        self.heartbeat_period_s = heartbeat_period_s
+        self.timesync_period_s = timesync_period_s
+        self.retry_period_s = retry_period_s
+        self.report = report or log.warning
+        self.timesync = TimeSync()
+        self.vehicle = VehicleState()
+        self.listeners: list[Callable[[Any], None]] = []
+        self.pollers: list[Callable[[float], None]] = []
+        self.sent = 0
+        self.dropped = 0
+        self._mavutil = mavutil_module()
+        self._lock = threading.Lock()
+        self._conn: Any = None
+        self._down = False
+        self._down_reported = False
+        self._next_retry = 0.0
+        self._next_heartbeat = 0.0
+        self._next_timesync = 0.0
+        self._queue: deque[tuple[Send, str]] = deque()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._service, name="mavlink", daemon=True)
+        self._thread.start()
+
+    # -- the connection -------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self._conn is not None
+
+    @property
+    def down(self) -> bool:
+        """True while the link is known to be down (posting now drops the message)."""
+        return self._down
+
+    def _open(self) -> None:
+        try:
+            conn = self._mavutil.mavlink_connection(
+                self.url,
+                source_system=self.source_system,
+                source_component=self.source_component,
+                autoreconnect=False,
+                retries=0,  # TCP: one attempt; the service thread retries on its schedule
+            )
+        except Exception as exc:  # pymavlink raises whatever the transport raises
+            self._link_down(f"cannot open {self.url}: {exc}")
+            return
+        if self.url.startswith("tcp:"):
+            # pymavlink prints and carries on when a TCP peer closes; make it an error instead
+            conn.handle_eof = _peer_closed
+            conn.handle_disconnect = _peer_closed
+        with self._lock:
+            self._conn = conn
+            self._down = False
+        self._next_heartbeat = 0.0
+        if self._down_reported:
+            self.report(f"MAVLink {self.url}: link up again")
+            self._down_reported = False
+
+    def _link_down(self, why: str) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except Exception:  # the link is already broken; closing is best effort
+                log.debug("closing %s failed", self.url, exc_info=True)
+        with self._lock:
+            self._conn = None
+            self._down = True
+            self.dropped += len(self._queue)
+            self._queue.clear()
+        self._next_retry = time.monotonic() + self.retry_period_s
+        if not self._down_reported:
+            self.report(
+                f"MAVLink {why}; retrying every {self.retry_period_s:g} s, tracking goes on"
+            )
+            self._down_reported = True
+
+    def _send(self, send: Send, what: str) -> bool:
+        """Send on the service thread; a transport error takes the link down."""
+        if self._conn is None:
+            return False
+        try:
+            send(self._conn.mav)
+        except OSError as exc:
+            self._link_down(f"{self.url} down while sending {what}: {exc}")
+            return False
+        return True
+
+    def _drain(self) -> None:
+        while True:
+            with self._lock:
+                if not self._queue:
+                    return
+                send, what = self._queue.popleft()
+            sent = self._send(send, what)
+            with self._lock:
+                if not sent:  # the link went down with this message in hand
+                    self.dropped += 1
+                    return
+                self.sent += 1
+
+    def _service(self) -> None:
+        while True:
+            stopping = self._stop.is_set()
+            now = time.monotonic()
+            if self._conn is None:
+                if stopping:
+                    break
+                if now >= self._next_retry:
+                    self._open()
+            else:
+                self._drain()
+                if stopping:
+                    break
+                if now >= self._next_heartbeat:
+                    self._next_heartbeat = now + self.heartbeat_period_s
+                    self._send(self._heartbeat, "HEARTBEAT")
+                if self.timesync_period_s > 0 and now >= self._next_timesync:
+                    self._next_timesync = now + self.timesync_period_s
+                    tc1, ts1 = self.timesync.request()
+                    self._send(partial(_timesync_send, tc1=tc1, ts1=ts1), "TIMESYNC")
+                self._receive()
+            for poll in self.pollers:
+                poll(time.monotonic())
+            self._wake.wait(0.01)
+            self._wake.clear()
+        with self._lock:
+            self.dropped += len(self._queue)
+            self._queue.clear()
+
+    def _heartbeat(self, mav: Any) -> None:
+        mav.heartbeat_send(
+            MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
+        )
+
+    def _receive(self) -> None:
+        for _ in range(100):
+            if self._conn is None:
+                return
+            try:
+                msg = self._conn.recv_match(
+                    type=["HEARTBEAT", "ATTITUDE", "LOCAL_POSITION_NED", "TIMESYNC"],
+                    blocking=False,
+                )
+            except OSError as exc:
+                self._link_down(f"{self.url} down while reading: {exc}")
+                return
+            if msg is None:
+                return
+            if msg.get_type() == "TIMESYNC":
+                answer = self.timesync.handle(int(msg.tc1), int(msg.ts1))
+                if answer is not None:
+                    self._send(partial(_timesync_send, tc1=answer[0], ts1=answer[1]), "TIMESYNC")
+            elif self.vehicle.heard(msg, time.monotonic()):
+                for listener in self.listeners:
+                    listener(msg)
+
+    # -- for the senders ------------------------------------------------------------------
+
+    def post(self, send: Send, what: str) -> bool:
+        """Queue one message for the link's thread (``send`` gets pymavlink's ``conn.mav``);
+        False if the link is down and it is dropped. Never waits on the network."""
+        with self._lock:
+            if self._down:
+                self.dropped += 1
+                return False
+            if len(self._queue) >= QUEUE_LENGTH:  # a stalled link: the oldest is least useful
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append((send, what))
+        self._wake.set()
+        return True
+
+    def close(self) -> None:
+        """Send what is queued, stop the service thread and close the connection."""
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=2.0)
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
