@@ -360,3 +360,30 @@ def test_pilot_ticks_between_frames_only_while_perching() -> None:
     assert pilot.tick(0.01) is None  # never back in time
     pilot.abort(0.03)
     assert pilot.tick_now() is None  # landing: the landing sends its own setpoints
+
+
+def test_a_released_pilot_sends_nothing_more() -> None:
+    """An autopilot that takes control back (``release``) ends the flight: no frame, tick or
+    abort sends anything after it, and a second release changes nothing."""
+    s = ControllerSettings(observer_rate=0.0)
+    commander = Recorder()
+    reports: list[str] = []
+    pilot = PerchingPilot(
+        commander,
+        lambda: np.eye(3),
+        controller=PerchingController(s),
+        height_m=lambda: 1.0,
+        odometry=lambda: (np.array([0.0, 0.0, 1.0]), np.zeros(3)),
+        report=reports.append,
+    )
+    pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
+    sent = len(commander.sent)
+    pilot.release("the vehicle left GUIDED")
+    pilot.release("again")
+    assert pilot.state == "released"
+    assert pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.1), 0.1).v_mps is None
+    assert pilot.tick(0.12) is None
+    pilot.abort(0.2)
+    assert len(commander.sent) == sent
+    assert pilot.transitions[-1][1:] == ("perching", "released")
+    assert sum("released" in r for r in reports) == 1

@@ -24,6 +24,8 @@ from perchpose.cli.common import (
 from perchpose.cli.group import group
 from perchpose.target import TargetSpec
 
+MAVLINK_READY_WAIT_S = 3.0  # how long --mavlink-pilot waits for the vehicle before the frames
+
 
 @contextmanager
 def _vehicle_links(
@@ -32,6 +34,7 @@ def _vehicle_links(
     mavlink_frame: str,
     crazyflie_uri: str | None,
     mount_file: str | None,
+    mavlink_pilot: bool = False,
 ) -> Iterator[list[Callable[[Any, float], None]]]:
     """The per-frame hooks of the requested vehicle links; lands and closes them at the end."""
     from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
@@ -40,8 +43,22 @@ def _vehicle_links(
     hooks: list[Callable[[Any, float], None]] = []
     closers: list[Callable[[], None]] = []
     pilot = None
+    settings = (
+        ControllerSettings()
+        if T_body_camera is None
+        else ControllerSettings(T_body_camera=T_body_camera)
+    )
     try:
-        if mavlink_url is not None:
+        if mavlink_url is not None and mavlink_pilot:
+            from perchpose.io.mavlink_pilot import MavlinkPilot
+
+            autopilot = MavlinkPilot(
+                mavlink_url, controller=PerchingController(settings), report=warn
+            )
+            closers.append(autopilot.close)
+            hooks.append(autopilot)
+            autopilot.wait_until_ready(MAVLINK_READY_WAIT_S)
+        elif mavlink_url is not None:
             from perchpose.io.mavlink import LandingTargetSink
 
             sink = LandingTargetSink(
@@ -60,11 +77,6 @@ def _vehicle_links(
             logging.getLogger("cflib").addHandler(logging.NullHandler())
             link = connect(crazyflie_uri, report=warn)
             closers.append(link.close)
-            settings = (
-                ControllerSettings()
-                if T_body_camera is None
-                else ControllerSettings(T_body_camera=T_body_camera)
-            )
             pilot = link.pilot(controller=PerchingController(settings))
             hooks.append(pilot)
         try:
@@ -162,6 +174,13 @@ def _camera(source: str, camera_file: str | None, camera_info_topic: str | None)
     "ATTITUDE and LOCAL_POSITION_NED).",
 )
 @click.option(
+    "--mavlink-pilot",
+    is_flag=True,
+    help="Perch with the autopilot behind --mavlink: velocity and yaw-rate setpoints "
+    "(SET_POSITION_TARGET_LOCAL_NED) from the perching controller, only while the vehicle is "
+    "armed in GUIDED (ArduPilot) or OFFBOARD (PX4); instead of LANDING_TARGET.",
+)
+@click.option(
     "--crazyflie",
     "crazyflie_uri",
     default=None,
@@ -205,6 +224,7 @@ def track(
     quiet: bool,
     mavlink_url: str | None,
     mavlink_frame: str,
+    mavlink_pilot: bool,
     crazyflie_uri: str | None,
     mount_file: str | None,
     sigmas_file: str | None,
@@ -219,6 +239,8 @@ def track(
 
     With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
     """
+    if mavlink_pilot and mavlink_url is None:
+        raise click.UsageError("--mavlink-pilot needs --mavlink URL (the autopilot's link).")
     from perchpose.app.track import track as run_track
     from perchpose.estimator import PerchingEstimator
     from perchpose.fusion import FusionSigmas
@@ -235,7 +257,9 @@ def track(
         check_overlay_path(overlay)  # before any vehicle link takes over
     with (
         _live_view(view, view_port, spec) as live,
-        _vehicle_links(spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file) as hooks,
+        _vehicle_links(
+            spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file, mavlink_pilot
+        ) as hooks,
     ):
         summary = run_track(
             source,

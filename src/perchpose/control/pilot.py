@@ -17,9 +17,10 @@ run it.
   ``contact_rise_m`` over ``contact_window_s`` while climbing): a stop setpoint cuts the motors
   and the magnet holds the vehicle. Time alone never stops the motors; without a height source
   there is no contact evidence, and a final climb that does not end backs off;
-- ``landed``, ``link_lost``: nothing more is sent. After a link loss the Crazyflie's own
-  commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s and 2 s without
-  setpoints).
+- ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
+  Crazyflie's own commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s
+  and 2 s without setpoints); ``released`` is an autopilot taking control back (it left the
+  mode that takes our setpoints, or its heartbeat stopped: ``perchpose.io.mavlink_pilot``).
 
 Every setpoint passes ``safe_setpoint`` last: nothing non-finite is sent, and speeds and yaw
 rate are clamped to ``PilotSettings.limits``.
@@ -47,7 +48,17 @@ from perchpose.values import Estimate
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-STATES = ("waiting", "perching", "lost", "landing", "perched", "landed", "link_lost")
+STATES = (
+    "waiting",
+    "perching",
+    "lost",
+    "landing",
+    "perched",
+    "landed",
+    "link_lost",
+    "released",
+)
+DONE = ("landed", "perched", "link_lost", "released")
 FLYING = ("perching", "lost", "landing")
 
 
@@ -199,9 +210,13 @@ class PerchingPilot:
 
     def link_lost(self, reason: str = "link lost") -> None:
         """The radio link is gone: send nothing more (the firmware's watchdog takes over)."""
+        self.release(reason, "link_lost")
+
+    def release(self, reason: str, state: str = "released") -> None:
+        """Control is taken back from the pilot (``reason`` says why): send nothing more."""
         with self._lock:
-            if self.state not in ("landed", "perched", "link_lost"):
-                self._enter("link_lost", self.last_t_s, reason)
+            if self.state not in DONE:
+                self._enter(state, self.last_t_s, reason)
 
     def abort(self, t_s: float, reason: str = "stopped by the user") -> None:
         """Stop perching: land if flying; otherwise never take over."""
@@ -228,9 +243,9 @@ class PerchingPilot:
         return PilotStep(t_s, self.state, sp.v_mps, yaw_rate_deg_s, phase)
 
     def _stop(self, t_s: float, state: str, why: str) -> PilotStep:
+        self._enter(state, t_s, why)  # first: a commander may ask which stop this is
         self.commander.send_stop_setpoint()
         self.commander.send_notify_setpoint_stop(0)
-        self._enter(state, t_s, why)
         return PilotStep(t_s, self.state, None, None, None)
 
     def _start_landing(self, t_s: float, why: str) -> None:
@@ -294,7 +309,7 @@ class PerchingPilot:
             if not fresh:
                 return PilotStep(t_s, self.state, None, None, None)
             self._enter("perching", t_s, "target in view")
-        if self.state in ("landed", "perched", "link_lost"):
+        if self.state in DONE:
             return PilotStep(t_s, self.state, None, None, None)
         if self.state == "landing":
             return self._land_step(t_s)
