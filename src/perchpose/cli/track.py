@@ -35,6 +35,7 @@ def _vehicle_links(
     crazyflie_uri: str | None,
     mount_file: str | None,
     mavlink_pilot: bool = False,
+    mavlink_target_relative: bool = False,
 ) -> Iterator[list[Callable[[Any, float], None]]]:
     """The per-frame hooks of the requested vehicle links; lands and closes them at the end."""
     from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
@@ -66,6 +67,7 @@ def _vehicle_links(
                 frame=mavlink_frame,
                 T_body_camera=T_body_camera,
                 target=target,
+                target_relative=mavlink_target_relative,
                 report=warn,
             )
             closers.append(sink.close)
@@ -174,6 +176,12 @@ def _camera(source: str, camera_file: str | None, camera_info_topic: str | None)
     "ATTITUDE and LOCAL_POSITION_NED).",
 )
 @click.option(
+    "--mavlink-target-relative",
+    is_flag=True,
+    help="Also send TARGET_RELATIVE (PX4's vision target estimator) with the covariance's "
+    "standard deviations, in --mavlink-frame.",
+)
+@click.option(
     "--mavlink-pilot",
     is_flag=True,
     help="Perch with the autopilot behind --mavlink: velocity and yaw-rate setpoints "
@@ -224,6 +232,7 @@ def track(
     quiet: bool,
     mavlink_url: str | None,
     mavlink_frame: str,
+    mavlink_target_relative: bool,
     mavlink_pilot: bool,
     crazyflie_uri: str | None,
     mount_file: str | None,
@@ -239,8 +248,9 @@ def track(
 
     With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
     """
-    if mavlink_pilot and mavlink_url is None:
-        raise click.UsageError("--mavlink-pilot needs --mavlink URL (the autopilot's link).")
+    if (mavlink_pilot or mavlink_target_relative) and mavlink_url is None:
+        flag = "--mavlink-pilot" if mavlink_pilot else "--mavlink-target-relative"
+        raise click.UsageError(f"{flag} needs --mavlink URL (the autopilot's link).")
     from perchpose.app.track import track as run_track
     from perchpose.estimator import PerchingEstimator
     from perchpose.fusion import FusionSigmas
@@ -258,7 +268,13 @@ def track(
     with (
         _live_view(view, view_port, spec) as live,
         _vehicle_links(
-            spec, mavlink_url, mavlink_frame, crazyflie_uri, mount_file, mavlink_pilot
+            spec,
+            mavlink_url,
+            mavlink_frame,
+            crazyflie_uri,
+            mount_file,
+            mavlink_pilot,
+            mavlink_target_relative,
         ) as hooks,
     ):
         summary = run_track(

@@ -38,6 +38,7 @@ from perchpose.io.mavlink_link import (
     check_url,
     mavutil_module,
 )
+from perchpose.io.target_relative import dialect, target_relative, target_relative_send
 from perchpose.io.timesync import TimeSync
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
@@ -84,7 +85,11 @@ class LandingTargetSink:
     same). max_age_s : an estimate whose
     newest measurement is older than this (``Estimate.age_s``) is not sent; default 0.5 s, well
     inside the autopilots' own LANDING_TARGET timeouts (ArduPilot 2 s, PX4 ``PLD_BTOUT`` 5 s).
-    report : receives the one-line link reports (default: the ``perchpose.io.mavlink`` logger).
+    target_relative : also send TARGET_RELATIVE (PX4's vision target estimator;
+    ``perchpose.io.target_relative``) with each LANDING_TARGET, in the same frame, with the
+    covariance's standard deviations (estimates without a covariance send LANDING_TARGET only,
+    reported once). report : receives the one-line link reports (default: the
+    ``perchpose.io.mavlink`` logger).
     """
 
     def __init__(
@@ -102,6 +107,7 @@ class LandingTargetSink:
         retry_period_s: float = 2.0,
         position_max_age_s: float = 1.0,
         max_age_s: float = 0.5,
+        target_relative: bool = False,
         report: Callable[[str], None] | None = None,
     ) -> None:
         if frame not in FRAMES:
@@ -124,6 +130,10 @@ class LandingTargetSink:
         self.max_age_s = max_age_s
         self.refused = 0
         self._refused_reported = False
+        self.target_relative = target_relative
+        self._relative_reported = False
+        if target_relative:
+            dialect()  # generated now: a broken pymavlink fails here, not on the first frame
         self._no_attitude_reported = False
         self.link = MavlinkLink(
             self.url,
@@ -220,7 +230,26 @@ class LandingTargetSink:
         msg = self.message(estimate)
         if msg is None:
             return False
-        return self.link.post(partial(_landing_target_send, msg=msg), "LANDING_TARGET")
+        posted = self.link.post(partial(_landing_target_send, msg=msg), "LANDING_TARGET")
+        if posted and self.target_relative:
+            self._send_relative(estimate, msg.time_usec)
+        return posted
+
+    def _send_relative(self, estimate: Estimate, time_usec: int) -> None:
+        try:
+            relative = target_relative(
+                estimate,
+                self.T_body_camera,
+                frame=self.frame,
+                R_ned_frd=self.vehicle.R_ned_frd,
+                timestamp_usec=time_usec,
+            )
+        except LinkError as exc:
+            if not self._relative_reported:
+                self.report(f"MAVLink {self.url}: {exc} (reported once)")
+                self._relative_reported = True
+            return
+        self.link.post(partial(target_relative_send, msg=relative), "TARGET_RELATIVE")
 
     def __call__(self, estimate: Estimate | None, t_s: float) -> None:
         """The per-frame hook ``track`` calls."""
