@@ -215,3 +215,76 @@ def test_files_are_stamped_when_read(tmp_path: Path) -> None:
     before = time.monotonic()
     frames = list(open_source(str(tmp_path)))
     assert before <= frames[0].grabbed_s <= frames[1].grabbed_s <= time.monotonic()
+
+
+class _Server:
+    """An HTTP server on loopback that serves ``folder`` ``times`` times, then answers 404: a
+    network stream that drops, comes back once, then stays down."""
+
+    def __init__(self, folder: Path, times: int) -> None:
+        import functools
+        import http.server
+        import threading
+
+        served = self.served = [0]
+
+        class Handler(http.server.SimpleHTTPRequestHandler):
+            def do_GET(self) -> None:
+                if served[0] >= times:
+                    self.send_error(404)
+                    return
+                served[0] += 1
+                super().do_GET()
+
+            def log_message(self, *args: object) -> None:
+                pass
+
+        self.httpd = http.server.ThreadingHTTPServer(
+            ("127.0.0.1", 0), functools.partial(Handler, directory=str(folder))
+        )
+        self.port = self.httpd.server_address[1]
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def test_a_network_stream_is_read_live_and_reopened_when_it_drops(tmp_path: Path) -> None:
+    """http:// through OpenCV's FFmpeg backend: every frame of the first connection, then,
+    after the stream drops, every frame of the second (one reconnect); the source ends once
+    the stream stays down past reconnect_for_s. Indices and grab times go on across the drop."""
+    _numbered_video(tmp_path / "v.avi", 20)
+    server = _Server(tmp_path, times=2)
+    try:
+        source = open_source(f"http://127.0.0.1:{server.port}/v.avi")
+        assert isinstance(source, VideoSource)
+        assert source.live
+        source.reconnect_for_s = 1.0
+        frames = list(source)
+    finally:
+        server.close()
+    assert server.served == [2]
+    assert source.reconnects == 1
+    assert [f.index for f in frames] == list(range(40))
+    assert all(f.file == f"http://127.0.0.1:{server.port}/v.avi#{f.index}" for f in frames)
+    grabbed = [f.grabbed_s for f in frames]
+    assert grabbed == sorted(grabbed)
+    # each connection's frames in order (a stale one, overtaken before it was taken, has no
+    # image), and the second starts the video again
+    parts = [
+        [round(float(f.image.mean()) / 4) for f in part if f.image is not None]
+        for part in (frames[:20], frames[20:])
+    ]
+    assert all(part == sorted(part) and part for part in parts)
+    assert parts[1][0] < parts[0][-1]
+
+
+def test_a_stream_that_never_answers_is_one_clear_error() -> None:
+    import socket
+
+    with socket.socket() as s:  # a port where nothing listens
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(SourceError, match=rf"http://127.0.0.1:{port}/x.avi: cannot open"):
+        open_source(f"http://127.0.0.1:{port}/x.avi")

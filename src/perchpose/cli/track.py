@@ -244,7 +244,8 @@ def track(
     view_port: int,
 ) -> None:
     """Track the target in SOURCE: a folder of images, a glob, a video file, a camera index,
-    or a ROS bag (with --image-topic).
+    a network stream (rtsp://, udp://, http://...; reopened when it drops), or a ROS bag
+    (with --image-topic).
 
     With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
     """

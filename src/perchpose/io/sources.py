@@ -1,4 +1,6 @@
-"""Frame sources: a folder of images, a glob, a video file, a single image, or a camera index."""
+"""Frame sources: a folder of images, a glob, a video file, a single image, a camera index, or a
+network stream (``rtsp://``, ``udp://``, ``http://`` and the other schemes of OpenCV's FFmpeg
+backend), reopened when it drops."""
 
 from __future__ import annotations
 
@@ -7,7 +9,7 @@ import math
 import re
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,10 @@ IMAGE_SUFFIXES = frozenset(
     {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
 )
 VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg"})
+STREAM_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "udp://", "tcp://", "http://", "https://")
+STREAM_TIMEOUT_MS = 5000  # opening, and each read, of a network stream
+RECONNECT_FOR_S = 10.0  # a dropped stream is reopened for this long before the source ends
+RECONNECT_PERIOD_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -91,11 +97,22 @@ class VideoSource(FrameSource):
     Files: t_s = index / fps; cameras: seconds since the first frame.
     """
 
-    def __init__(self, capture: cv2.VideoCapture, fps: float, description: str, live: bool) -> None:
+    def __init__(
+        self,
+        capture: cv2.VideoCapture,
+        fps: float,
+        description: str,
+        live: bool,
+        reopen: Callable[[], cv2.VideoCapture | None] | None = None,
+        reconnect_for_s: float = RECONNECT_FOR_S,
+    ) -> None:
         count = None if live else int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
         super().__init__(description, count, fps)
         self.capture = capture
         self.live = live
+        self.reopen = reopen
+        self.reconnect_for_s = reconnect_for_s
+        self.reconnects = 0
 
     def __iter__(self) -> Iterator[Frame]:
         if self.live:
@@ -137,7 +154,7 @@ class VideoSource(FrameSource):
         """A camera's frames, grabbed on a thread of their own (``LatestFrame``): each is the
         newest when the caller asks; those a newer one overtook come as stale frames, without
         an image. t_s: seconds from the first frame's grab to this one's."""
-        grabber = LatestFrame(self.capture)
+        grabber = LatestFrame(self.capture, self._reconnect if self.reopen else None)
         t0: float | None = None
         try:
             for index, grabbed, image in grabber:
@@ -154,7 +171,19 @@ class VideoSource(FrameSource):
                 )
         finally:
             grabber.close()
-            self.capture.release()
+            grabber.capture.release()
+
+    def _reconnect(self) -> cv2.VideoCapture | None:
+        """A dropped stream, opened again (None: it stayed down ``reconnect_for_s``)."""
+        assert self.reopen is not None
+        deadline = time.monotonic() + self.reconnect_for_s
+        while time.monotonic() < deadline:
+            capture = self.reopen()
+            if capture is not None:
+                self.reconnects += 1
+                return capture
+            time.sleep(RECONNECT_PERIOD_S)
+        return None
 
     def _index_of_last_read(self, expected: int) -> int:
         """The index of the frame just read, from its presentation time and the file's own
@@ -179,10 +208,16 @@ class LatestFrame:
     time, image) for the newest frame, and (index, grab time, None) first for each frame a
     newer one overtook before it was taken (stale: dropped, not queued). Grab times are
     ``time.monotonic()`` just after ``grab()``, before the frame is decoded. Ends when the
-    capture stops delivering or ``close`` is called."""
+    capture stops delivering (and ``reconnect``, when given, cannot open it again) or ``close``
+    is called."""
 
-    def __init__(self, capture: cv2.VideoCapture) -> None:
+    def __init__(
+        self,
+        capture: cv2.VideoCapture,
+        reconnect: Callable[[], cv2.VideoCapture | None] | None = None,
+    ) -> None:
         self.capture = capture
+        self.reconnect = reconnect
         self._ready = threading.Condition()
         self._newest: tuple[int, float, NDArray[Any]] | None = None
         self._overtaken: list[tuple[int, float]] = []
@@ -195,12 +230,18 @@ class LatestFrame:
         index = 0
         try:
             while not self._closing.is_set():
-                if not self.capture.grab():
-                    break
+                ok = self.capture.grab()
                 grabbed = time.monotonic()
-                ok, image = self.capture.retrieve()
-                if not ok or image is None:
-                    break
+                image = self.capture.retrieve()[1] if ok else None
+                if image is None:
+                    if self.reconnect is None or self._closing.is_set():
+                        break
+                    self.capture.release()
+                    capture = self.reconnect()
+                    if capture is None:
+                        break
+                    self.capture = capture
+                    continue
                 with self._ready:
                     if self._newest is not None:
                         self._overtaken.append(self._newest[:2])
@@ -279,6 +320,31 @@ def _camera(index: str, rate: float, size: tuple[int, int] | None) -> VideoSourc
     return VideoSource(capture, rate, f"camera {index}", live=True)
 
 
+def _open_stream(url: str) -> cv2.VideoCapture | None:
+    """``url`` through OpenCV's FFmpeg backend, with open and read timeouts; None if it
+    cannot be opened now."""
+    timeouts = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, STREAM_TIMEOUT_MS]
+    timeouts += [cv2.CAP_PROP_READ_TIMEOUT_MSEC, STREAM_TIMEOUT_MS]
+    with native_stderr_silenced():
+        capture = cv2.VideoCapture(url, cv2.CAP_FFMPEG, timeouts)
+    if capture.isOpened():
+        return capture
+    capture.release()
+    return None
+
+
+def _stream(url: str, rate: float) -> VideoSource:
+    """A network stream, read live (``LatestFrame``: each frame's grab time, stale frames
+    dropped) and reopened for ``RECONNECT_FOR_S`` when it drops."""
+    capture = _open_stream(url)
+    if capture is None:
+        raise SourceError(
+            f"{url}: cannot open the stream (nothing answers, or OpenCV's FFmpeg cannot read "
+            f"it) within {STREAM_TIMEOUT_MS / 1000:g} s"
+        )
+    return VideoSource(capture, rate, url, live=True, reopen=lambda: _open_stream(url))
+
+
 def _image_files(source: str) -> list[Path] | None:
     """The image files a glob or a folder names, in natural order; None for anything else."""
     if any(ch in source for ch in "*?["):
@@ -327,6 +393,8 @@ def open_source(
     rate = fps or 30.0
     if source.isdigit():
         return _camera(source, rate, size)
+    if source.lower().startswith(STREAM_SCHEMES):
+        return _stream(source, rate)
     images = _image_files(source)
     if images is not None:
         described = str(Path(source)) if Path(source).is_dir() else source
