@@ -406,3 +406,48 @@ def test_tcp_link_survives_the_vehicle_restarting(capfd: pytest.CaptureFixture[s
     ups = [r for r in reports if "link up again" in r]
     assert len(downs) == 2
     assert len(ups) == 2
+
+
+def test_distance_sensor_gives_the_range_along_the_bodys_vertical() -> None:
+    """The downward camera 12 mm under the centre sees the target 80 cm along its axis: a
+    rangefinder looking down (PITCH_270) reads 81 cm, with the depth variance in cm^2; the
+    upward camera's reading looks up (PITCH_90); nothing for a sideways camera."""
+    from perchpose.control import default_T_body_camera
+    from perchpose.geometry import make_transform, rot_x
+    from perchpose.io.landing_target import distance_reading
+
+    estimate = replace(
+        estimate_at(0.5, (3.0, -2.0, 80.0), 0.0),
+        covariance_flat=tuple(float(v) for v in np.diag([1e-6, 1e-6, 4e-4, 0, 0, 0]).ravel()),
+    )
+    down = distance_reading(estimate, DOWN, 500)
+    assert down is not None
+    assert (down.current_cm, down.covariance_cm2, down.orientation) == (81, 4, 25)
+    up = distance_reading(estimate, default_T_body_camera(), 500)
+    assert up is not None
+    assert (up.current_cm, up.orientation) == (81, 24)
+    sideways = make_transform(rot_x(math.pi / 2), np.zeros(3))
+    assert distance_reading(estimate, sideways, 500) is None
+    assert distance_reading(estimate, DOWN, 50) is None  # beyond the sensor's range
+    no_covariance = distance_reading(estimate_at(0.5, (0.0, 0.0, 80.0), 0.0), DOWN, 500)
+    assert no_covariance is not None
+    assert no_covariance.covariance_cm2 == 255  # unknown
+
+
+def test_distance_sensor_goes_out_with_each_landing_target() -> None:
+    port = free_udp_port()
+    receiver = Receiver(port)
+    sink = LandingTargetSink(f"udpout:127.0.0.1:{port}", T_body_camera=DOWN, distance_sensor=True)
+    try:
+        for k in range(3):
+            assert sink.send(estimate_at(k / 30, (0.0, 0.0, 60.0 + k), 0.0))
+        deadline = time.monotonic() + 5.0
+        while len(receiver.of_type("DISTANCE_SENSOR")) < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        sink.close()
+        receiver.stop()
+    readings = receiver.of_type("DISTANCE_SENSOR")
+    assert [m.current_distance for m in readings] == [61, 62, 63]
+    assert all(m.orientation == 25 and m.min_distance == 5 for m in readings)
+    assert all(m.max_distance == 500 and m.covariance == 255 for m in readings)

@@ -36,6 +36,7 @@ def _vehicle_links(
     mount_file: str | None,
     mavlink_pilot: bool = False,
     mavlink_target_relative: bool = False,
+    mavlink_distance: bool = False,
 ) -> Iterator[list[Callable[[Any, float], None]]]:
     """The per-frame hooks of the requested vehicle links; lands and closes them at the end."""
     from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
@@ -68,6 +69,7 @@ def _vehicle_links(
                 T_body_camera=T_body_camera,
                 target=target,
                 target_relative=mavlink_target_relative,
+                distance_sensor=mavlink_distance,
                 report=warn,
             )
             closers.append(sink.close)
@@ -182,6 +184,13 @@ def _camera(source: str, camera_file: str | None, camera_info_topic: str | None)
     "standard deviations, in --mavlink-frame.",
 )
 @click.option(
+    "--mavlink-distance-sensor",
+    "mavlink_distance",
+    is_flag=True,
+    help="Also send DISTANCE_SENSOR: the target's distance along the body's vertical axis, "
+    "for a vehicle without a rangefinder.",
+)
+@click.option(
     "--mavlink-pilot",
     is_flag=True,
     help="Perch with the autopilot behind --mavlink: velocity and yaw-rate setpoints "
@@ -233,6 +242,7 @@ def track(
     mavlink_url: str | None,
     mavlink_frame: str,
     mavlink_target_relative: bool,
+    mavlink_distance: bool,
     mavlink_pilot: bool,
     crazyflie_uri: str | None,
     mount_file: str | None,
@@ -249,8 +259,14 @@ def track(
 
     With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
     """
-    if (mavlink_pilot or mavlink_target_relative) and mavlink_url is None:
-        flag = "--mavlink-pilot" if mavlink_pilot else "--mavlink-target-relative"
+    extras = {
+        "--mavlink-pilot": mavlink_pilot,
+        "--mavlink-target-relative": mavlink_target_relative,
+        "--mavlink-distance-sensor": mavlink_distance,
+    }
+    asked = [flag for flag, on in extras.items() if on]
+    if asked and mavlink_url is None:
+        flag = asked[0]
         raise click.UsageError(f"{flag} needs --mavlink URL (the autopilot's link).")
     from perchpose.app.track import track as run_track
     from perchpose.estimator import PerchingEstimator
@@ -276,6 +292,7 @@ def track(
             mount_file,
             mavlink_pilot,
             mavlink_target_relative,
+            mavlink_distance,
         ) as hooks,
     ):
         summary = run_track(

@@ -144,3 +144,39 @@ def landing_target(
             "(estimate, attitude or vehicle position); not sent"
         )
     return message
+
+
+@dataclass(frozen=True)
+class DistanceReading:
+    """DISTANCE_SENSOR's fields: the distance to the target's plane along the body's vertical
+    axis (cm), its variance (cm^2, 255: unknown) and which way it looks
+    (``MAV_SENSOR_ROTATION_PITCH_270``: down, ``PITCH_90``: up)."""
+
+    current_cm: int
+    covariance_cm2: int
+    orientation: int
+
+
+MAV_SENSOR_ROTATION_PITCH_90 = 24  # looking up
+MAV_SENSOR_ROTATION_PITCH_270 = 25  # looking down
+
+
+def distance_reading(
+    estimate: Estimate, T_body_camera: Array, max_cm: int
+) -> DistanceReading | None:
+    """The marker's range as a rangefinder along the body's vertical axis would give it, for a
+    camera looking up or down (within 60 degrees); None for one looking sideways, a target on
+    the wrong side, or a range outside (0, max_cm]."""
+    axis_flu = np.asarray(T_body_camera, np.float64)[:3, 2]
+    if abs(float(axis_flu[2])) < MIN_DOWN_COSINE:
+        return None
+    up = float(axis_flu[2]) > 0
+    p_flu = T_body_camera[:3, :3] @ estimate.t_m + T_body_camera[:3, 3]
+    along_m = float(p_flu[2]) if up else -float(p_flu[2])
+    current_cm = round(along_m * 100.0)
+    if not math.isfinite(along_m) or not 0 < current_cm <= max_cm:
+        return None
+    variance = float(estimate.covariance[2, 2]) * 1e4  # the optical axis is near the body's
+    covariance = min(254, max(0, round(variance))) if math.isfinite(variance) else 255
+    orientation = MAV_SENSOR_ROTATION_PITCH_90 if up else MAV_SENSOR_ROTATION_PITCH_270
+    return DistanceReading(current_cm, covariance, orientation)

@@ -27,8 +27,10 @@ from perchpose.errors import LinkError
 from perchpose.geometry import check_transform
 from perchpose.io.landing_target import (
     FRAMES,
+    DistanceReading,
     LandingTarget,
     check_line_of_sight,
+    distance_reading,
     landing_target,
 )
 from perchpose.io.mavlink_link import (
@@ -51,6 +53,25 @@ __all__ = ["LandingTargetSink", "check_url", "mavutil_module"]
 # MAVLink enum values (common.xml); kept here so that the module imports without pymavlink
 MAV_FRAME_IDS = {"local_ned": 1, "body_frd": 12}
 LANDING_TARGET_TYPE_VISION_FIDUCIAL = 2
+
+
+DISTANCE_MAX_CM = 500  # the large marker is read to about 5 m (DESIGN 3b)
+DISTANCE_MIN_CM = 5
+MAV_DISTANCE_SENSOR_UNKNOWN = 4
+DISTANCE_SENSOR_ID = 191  # one per sender: the onboard computer's component id
+
+
+def _distance_send(mav: Any, *, reading: DistanceReading) -> None:
+    mav.distance_sensor_send(
+        int(time.monotonic() * 1000) & 0xFFFFFFFF,
+        DISTANCE_MIN_CM,
+        DISTANCE_MAX_CM,
+        reading.current_cm,
+        MAV_DISTANCE_SENSOR_UNKNOWN,
+        DISTANCE_SENSOR_ID,
+        reading.orientation,
+        reading.covariance_cm2,
+    )
 
 
 def _landing_target_send(mav: Any, *, msg: LandingTarget) -> None:
@@ -88,7 +109,9 @@ class LandingTargetSink:
     target_relative : also send TARGET_RELATIVE (PX4's vision target estimator;
     ``perchpose.io.target_relative``) with each LANDING_TARGET, in the same frame, with the
     covariance's standard deviations (estimates without a covariance send LANDING_TARGET only,
-    reported once). report : receives the one-line link reports (default: the
+    reported once). distance_sensor : also send DISTANCE_SENSOR, the target's distance along
+    the body's vertical axis, for a vehicle without a rangefinder (a camera looking up or
+    down only). report : receives the one-line link reports (default: the
     ``perchpose.io.mavlink`` logger).
     """
 
@@ -108,6 +131,7 @@ class LandingTargetSink:
         position_max_age_s: float = 1.0,
         max_age_s: float = 0.5,
         target_relative: bool = False,
+        distance_sensor: bool = False,
         report: Callable[[str], None] | None = None,
     ) -> None:
         if frame not in FRAMES:
@@ -131,6 +155,7 @@ class LandingTargetSink:
         self.refused = 0
         self._refused_reported = False
         self.target_relative = target_relative
+        self.distance_sensor = distance_sensor
         self._relative_reported = False
         if target_relative:
             dialect()  # generated now: a broken pymavlink fails here, not on the first frame
@@ -233,6 +258,10 @@ class LandingTargetSink:
         posted = self.link.post(partial(_landing_target_send, msg=msg), "LANDING_TARGET")
         if posted and self.target_relative:
             self._send_relative(estimate, msg.time_usec)
+        if posted and self.distance_sensor:
+            reading = distance_reading(estimate, self.T_body_camera, DISTANCE_MAX_CM)
+            if reading is not None:
+                self.link.post(partial(_distance_send, reading=reading), "DISTANCE_SENSOR")
         return posted
 
     def _send_relative(self, estimate: Estimate, time_usec: int) -> None:
