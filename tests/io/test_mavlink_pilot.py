@@ -40,6 +40,7 @@ class Vehicle:
         )
         self.autopilot = autopilot
         self.mode = mode
+        self.armed = True
         self.silent = False
         self.received: list[tuple[int, Any]] = []  # (the mode it arrived in, message)
         self._stop = threading.Event()
@@ -52,7 +53,8 @@ class Vehicle:
 
     def _beat(self) -> None:
         if not self.silent and self.received:
-            self.conn.mav.heartbeat_send(2, self.autopilot, ARMED, self.mode, 4)
+            base_mode = ARMED if self.armed else 1
+            self.conn.mav.heartbeat_send(2, self.autopilot, base_mode, self.mode, 4)
 
     def _run(self) -> None:
         next_beat = next_state = 0.0
@@ -175,6 +177,25 @@ def test_px4_gets_a_proof_of_life_stream_then_offboard_setpoints_until_its_heart
     vy = np.array([msg.vy for msg in offboard])
     assert np.mean(vy) < -0.02  # west in NED is -y: towards the target on the left
     assert any("no HEARTBEAT" in r for r in reports)
+
+
+def test_a_vehicle_that_disarms_in_guided_releases_the_pilot() -> None:
+    port = free_udp_port()
+    vehicle = Vehicle(port, ARDUPILOT, GUIDED)
+    reports: list[str] = []
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{port}", report=reports.append)
+    t0 = time.monotonic()
+    try:
+        wait_for(pilot.ready)
+        fly(pilot, 0.3, (0.0, 0.0, 0.6), t0)
+        assert pilot.pilot.state == "perching"
+        vehicle.armed = False
+        vehicle.set_mode(GUIDED)  # a heartbeat now
+        wait_for(lambda: pilot.pilot.state == "released")
+    finally:
+        pilot.close()
+        vehicle.stop()
+    assert any("disarmed" in r for r in reports)
 
 
 def test_setpoints_and_stops_in_the_autopilots_frames() -> None:

@@ -12,9 +12,9 @@ The autopilot stays in charge:
 - the pilot takes over only while the vehicle is armed and its HEARTBEAT says GUIDED
   (ArduPilot Copter, custom mode 4) or OFFBOARD (PX4, main mode 6); no controller setpoint is
   ever sent in another mode;
-- it stops (state ``released``, nothing more sent, said once) when the vehicle leaves that mode
-  or its HEARTBEAT stops for ``heartbeat_timeout_s``: the autopilot's own mode or failsafe then
-  flies the vehicle;
+- it stops (state ``released``, nothing more sent, said once) when the vehicle leaves that
+  mode, disarms, or its HEARTBEAT stops for ``heartbeat_timeout_s``: the autopilot's own mode
+  or failsafe then flies the vehicle;
 - PX4 switches into OFFBOARD only while a setpoint stream is already coming in (more than 2 Hz
   for a second): while the pilot waits, an armed PX4 vehicle gets a zero-velocity setpoint at
   ``proof_of_life_hz``, which outside OFFBOARD it ignores and inside holds it still;
@@ -289,12 +289,15 @@ class MavlinkPilot:
         kind = msg.get_type()
         if kind == "LOCAL_POSITION_NED":
             self.pilot.tick_now()
-        elif kind == "HEARTBEAT" and self.pilot.flying and not takes_setpoints(self.vehicle):
-            mode = setpoint_mode(self.vehicle) or "the setpoint mode"
-            self.pilot.release(
-                f"the vehicle left {mode} (custom mode {self.vehicle.custom_mode}): "
-                "the autopilot flies it now"
-            )
+        elif kind == "HEARTBEAT" and self.pilot.flying:
+            if not takes_setpoints(self.vehicle):
+                mode = setpoint_mode(self.vehicle) or "the setpoint mode"
+                self.pilot.release(
+                    f"the vehicle left {mode} (custom mode {self.vehicle.custom_mode}): "
+                    "the autopilot flies it now"
+                )
+            elif not self.vehicle.armed:
+                self.pilot.release("the vehicle disarmed")
 
     def _poll(self, now: float) -> None:
         if self.pilot.flying and not self.alive():
