@@ -88,6 +88,12 @@ def R_ned_frd_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> A
     )
 
 
+def target_in_body_m(estimate: Estimate, T_body_camera: Array) -> Array:
+    """(3,) the target centre in the body frame (FLU), metres."""
+    T = np.asarray(T_body_camera, np.float64)
+    return T[:3, :3] @ estimate.t_m + T[:3, 3]
+
+
 def landing_target(
     estimate: Estimate,
     T_body_camera: Array,
@@ -107,7 +113,7 @@ def landing_target(
         raise LinkError(f"frame at t = {estimate.t_s:.3f} s has no valid estimate to send")
     p_camera_m = estimate.t_m
     R_body_camera = T_body_camera[:3, :3]
-    p_frd_m = R_FRD_FLU @ (R_body_camera @ p_camera_m + T_body_camera[:3, 3])
+    p_frd_m = R_FRD_FLU @ target_in_body_m(estimate, T_body_camera)
     yaw = estimate.yaw_rad
     x_target_frd = R_FRD_FLU @ R_body_camera @ np.array([math.cos(yaw), math.sin(yaw), 0.0])
     if frame == "local_ned":
@@ -171,7 +177,7 @@ def distance_reading(
     if abs(float(axis_flu[2])) < MIN_DOWN_COSINE:
         return None
     up = float(axis_flu[2]) > 0
-    p_flu = T_body_camera[:3, :3] @ estimate.t_m + T_body_camera[:3, 3]
+    p_flu = target_in_body_m(estimate, T_body_camera)
     along_m = float(p_flu[2]) if up else -float(p_flu[2])
     current_cm = round(along_m * 100.0)
     if not math.isfinite(along_m) or not 0 < current_cm <= max_cm:

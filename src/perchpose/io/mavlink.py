@@ -58,7 +58,6 @@ LANDING_TARGET_TYPE_VISION_FIDUCIAL = 2
 DISTANCE_MAX_CM = 500  # the large marker is read to about 5 m (DESIGN 3b)
 DISTANCE_MIN_CM = 5
 MAV_DISTANCE_SENSOR_UNKNOWN = 4
-DISTANCE_SENSOR_ID = 191  # one per sender: the onboard computer's component id
 
 
 def _distance_send(mav: Any, *, reading: DistanceReading) -> None:
@@ -68,7 +67,7 @@ def _distance_send(mav: Any, *, reading: DistanceReading) -> None:
         DISTANCE_MAX_CM,
         reading.current_cm,
         MAV_DISTANCE_SENSOR_UNKNOWN,
-        DISTANCE_SENSOR_ID,
+        MAV_COMP_ID_ONBOARD_COMPUTER,  # the sensor's id: one per sender
         reading.orientation,
         reading.covariance_cm2,
     )
@@ -167,7 +166,7 @@ class LandingTargetSink:
             heartbeat_period_s=heartbeat_period_s,
             timesync_period_s=timesync_period_s,
             retry_period_s=retry_period_s,
-            report=report,
+            report=report or log.warning,
         )
         self.report = self.link.report
 

@@ -196,11 +196,6 @@ class MavlinkLink:
     def connected(self) -> bool:
         return self._conn is not None
 
-    @property
-    def down(self) -> bool:
-        """True while the link is known to be down (posting now drops the message)."""
-        return self._down
-
     def _open(self) -> None:
         try:
             conn = self._mavutil.mavlink_connection(

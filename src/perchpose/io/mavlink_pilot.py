@@ -183,7 +183,7 @@ class MavlinkPilot:
         report: Callable[[str], None] | None = None,
         link: MavlinkLink | None = None,
     ) -> None:
-        self.link = link or MavlinkLink(url, report=report)
+        self.link = link or MavlinkLink(url, report=report or log.warning)
         self.report = self.link.report
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.odometry_max_age_s = odometry_max_age_s

@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from perchpose.errors import LinkError
 from perchpose.geometry import quaternion_xyzw
-from perchpose.io.landing_target import R_FRD_FLU
+from perchpose.io.landing_target import R_FRD_FLU, target_in_body_m
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -88,7 +88,7 @@ def target_relative(
             "deviations; not sent"
         )
     R_frd_camera = R_FRD_FLU @ T_body_camera[:3, :3]
-    p_frd_m = R_FRD_FLU @ (T_body_camera[:3, :3] @ estimate.t_m + T_body_camera[:3, 3])
+    p_frd_m = R_FRD_FLU @ target_in_body_m(estimate, T_body_camera)
     q_sensor = (0.0, 0.0, 0.0, 0.0)
     if frame == "local_ned":
         if R_ned_frd is None:
