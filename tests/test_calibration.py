@@ -6,17 +6,23 @@ import cv2
 import numpy as np
 import pytest
 
+import perchpose.calibration
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
+from perchpose.app.calibrate import format_report
 from perchpose.calibration import (
+    BoardView,
     CalibrationError,
     CharucoBoardSpec,
+    SolverFailedError,
     calibrate,
+    calibrate_views,
     detect_board,
     select_views,
 )
 from perchpose.cli import main
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Renderer
+from perchpose.sim.scenarios import spread_board_poses
 
 # OpenCV's tutorial board, which the real photos show and the rendered views use
 TUTORIAL_BOARD = CharucoBoardSpec(square_mm=40.0, marker_mm=20.0)
@@ -89,6 +95,118 @@ def test_rendered_boards_recover_the_camera(camera_name: str, z_m: tuple[float, 
     assert K[1, 2] == pytest.approx(camera.K[1, 2], rel=0.01)
     # the fit leaves the corner noise the renderer put there, less what the parameters absorb
     assert 0.5 * corner_noise_px < result.rms_px < 1.2 * corner_noise_px
+
+
+# a 7x9 board of 30 mm squares with DICT_5X5_100 markers, as people print for wide lenses
+WIDE_BOARD = CharucoBoardSpec(
+    squares=(7, 9), square_mm=30.0, marker_mm=22.0, dictionary="DICT_5X5_100"
+)
+
+
+def _spread_views(
+    camera: CameraModel, n: int, seed: int, width_px: tuple[float, float]
+) -> list[tuple[str, np.ndarray]]:
+    """Rendered views of WIDE_BOARD ``width_px`` across, anywhere in 95 % of the image (to the
+    edges of a fisheye's field), turned and tilted up to 35 degrees."""
+    renderer = Renderer(camera, WIDE_BOARD)
+    rng = np.random.default_rng(seed)
+    poses = spread_board_poses(camera, WIDE_BOARD.size_m[0], n, rng, width_px)
+    return [(f"view{k:02d}", renderer.render(T, ImageQuality(), rng)) for k, T in enumerate(poses)]
+
+
+def _assert_intrinsics_within(camera: CameraModel, truth: CameraModel, rel: float) -> None:
+    for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)):
+        assert camera.K[i, j] == pytest.approx(truth.K[i, j], rel=rel), (i, j)
+
+
+@pytest.mark.parametrize(("camera_name", "width_px"), [("fpv", (110, 180)), ("webcam", (130, 250))])
+def test_boards_spread_to_the_edges_calibrate(
+    camera_name: str, width_px: tuple[float, float]
+) -> None:
+    """18 views of a small board over the whole field of a 150-degree fisheye (and of a
+    webcam): the solver starts near the answer, and fx, fy, cx, cy come within 1 %."""
+    camera = CameraModel.preset(camera_name)
+    result = calibrate(_spread_views(camera, 18, 0, width_px), WIDE_BOARD, camera.model)
+    assert len(result.used) >= 8
+    _assert_intrinsics_within(result.camera, camera, 0.01)
+
+
+def test_small_markers_are_read_in_an_enlarged_image() -> None:
+    """Boards 80-130 px across on the fisheye (markers of 1-2 px a bit): the enlarged search
+    reads views the plain one misses, and their corners stay true to a fraction of a pixel."""
+    camera = CameraModel.preset("fpv")
+    renderer = Renderer(camera, WIDE_BOARD)
+    obj = np.asarray(WIDE_BOARD.cv_board.getChessboardCorners(), np.float64)
+    rng = np.random.default_rng(3)
+    plain = enlarged = 0
+    errors = []
+    for _ in range(12):
+        z = camera.K[0, 0] * WIDE_BOARD.size_m[0] / rng.uniform(80, 130)
+        T = facing_pose(
+            rng.uniform(-0.3, 0.3) * z, rng.uniform(-0.3, 0.3) * z, z, rng.uniform(-0.5, 0.5), 0.3
+        )
+        image = renderer.render(T, ImageQuality(), rng)
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        first = perchpose.calibration._detect_board_at(WIDE_BOARD, grey, "x", 1)
+        found = detect_board(WIDE_BOARD, image, "x")
+        plain += 0 if isinstance(first, str) else first.ids.size
+        if isinstance(found, str):
+            continue
+        enlarged += found.ids.size
+        T_board = T @ WIDE_BOARD.T_pattern_board()
+        true_uv, _ = camera.project((T_board[:3, :3] @ obj[found.ids].T).T + T_board[:3, 3])
+        errors.append(np.linalg.norm(true_uv - found.corners_px, axis=1))
+    assert enlarged > 2 * plain
+    e = np.concatenate(errors)
+    assert np.sqrt(np.mean(e**2)) < 0.25
+    assert np.median(e) < 0.15
+
+
+def test_a_view_the_solver_stops_on_is_dropped(monkeypatch: pytest.MonkeyPatch) -> None:
+    """From a poor start (f = width / 3, OpenCV's usual first guess) the fisheye solver stops
+    on one of these views; the calibration finds that view, drops it, says so, and the rest
+    give the camera within 1 %."""
+    camera = CameraModel.preset("fpv")
+    images = _spread_views(camera, 18, 19, (110, 180))
+    monkeypatch.setattr(
+        perchpose.calibration, "equidistant_focal_guess_px", lambda _v, _b, size: size[0] / 3
+    )
+    views = [
+        v
+        for name, image in images
+        if not isinstance(v := detect_board(WIDE_BOARD, image, name), str)
+    ]
+    with pytest.raises(SolverFailedError):  # the premise: it does stop on the whole set
+        perchpose.calibration._solve(views, WIDE_BOARD, camera.size, "equidistant", "x")
+    result = calibrate_views(views, WIDE_BOARD, camera.size, "equidistant")
+    dropped = {k: v for k, v in result.rejected.items() if "dropped" in v}
+    assert len(dropped) == 1
+    assert "ill-conditioned" in next(iter(dropped.values()))
+    assert len(result.used) == len(views) - 1
+    _assert_intrinsics_within(result.camera, camera, 0.01)
+    report = format_report(result, WIDE_BOARD, "views/", len(images))
+    assert f"- {next(iter(dropped))}: the fisheye solver stops" in report
+
+
+def test_a_view_with_misread_corners_is_dropped() -> None:
+    """A view whose corner ids are shifted by one square (a misread board) stands out from
+    the others' reprojection error: it is dropped with its error, the camera is unharmed, and
+    the plain views are all kept."""
+    camera = CameraModel.preset("webcam")
+    images, _ = _board_views(camera, TUTORIAL_BOARD, 12, seed=4, z_m=(0.35, 0.55))
+    views = [
+        v
+        for name, image in images
+        if not isinstance(v := detect_board(TUTORIAL_BOARD, image, name), str)
+    ]
+    bad = views[3]
+    shifted = np.where(bad.ids + 1 < 24, bad.ids + 1, bad.ids - 1).astype(np.int32)
+    views[3] = BoardView(bad.name, bad.corners_px, shifted, bad.markers)
+    result = calibrate_views(views, TUTORIAL_BOARD, camera.size)
+    assert list(result.rejected) == [bad.name]
+    assert "reprojection error" in result.rejected[bad.name]
+    assert len(result.used) == len(views) - 1
+    _assert_intrinsics_within(result.camera, camera, 0.01)
 
 
 def test_calibrate_command_drives_track(tmp_path: Path) -> None:

@@ -10,6 +10,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any
 
 import cv2
 import numpy as np
@@ -142,9 +143,39 @@ class BoardView:
     markers: int
 
 
+# a board with corners missing is searched again in the image enlarged these many times:
+# OpenCV's marker search reads small markers (a pixel or two a bit) far better there
+UPSCALES = (2, 4)
+
+
 def detect_board(board: CharucoBoardSpec, image: NDArray[np.uint8], name: str) -> BoardView | str:
-    """The board's ChArUco corners in ``image``, or a string saying why there are none."""
+    """The board's ChArUco corners in ``image``, or a string saying why there are none.
+
+    While corners are missing the image is searched again enlarged (bicubic, ``UPSCALES``)
+    and the search that gives the most corners wins; its corners are mapped back to the
+    image's pixels."""
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    found = _detect_board_at(board, grey, name, 1)
+    all_corners = (board.squares[0] - 1) * (board.squares[1] - 1)
+    for scale in UPSCALES:
+        if isinstance(found, BoardView) and found.ids.size == all_corners:
+            break
+        enlarged = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        again = _detect_board_at(board, enlarged, name, scale)
+        if isinstance(again, BoardView) and (
+            isinstance(found, str) or again.ids.size > found.ids.size
+        ):
+            found = again
+    return found
+
+
+def _detect_board_at(
+    board: CharucoBoardSpec,
+    grey: NDArray[np.integer[Any] | np.floating[Any]],
+    name: str,
+    scale: int,
+) -> BoardView | str:
+    """``detect_board`` on an image enlarged ``scale`` times; corners in the original's px."""
     detector = cv2.aruco.CharucoDetector(board.cv_board)
     corners, ids, _marker_corners, marker_ids = detector.detectBoard(grey)
     n_markers = 0 if marker_ids is None else len(marker_ids)
@@ -153,7 +184,8 @@ def detect_board(board: CharucoBoardSpec, image: NDArray[np.uint8], name: str) -
     if ids is None or len(ids) < MIN_CORNERS_PER_VIEW:
         found = 0 if ids is None else len(ids)
         return f"{n_markers} markers but only {found} ChArUco corners (need {MIN_CORNERS_PER_VIEW})"
-    corners = np.asarray(corners, np.float64).reshape(-1, 2)
+    # pixel centres: x in the enlarged image is (x + 0.5) * scale - 0.5 in this one
+    corners = (np.asarray(corners, np.float64).reshape(-1, 2) + 0.5) / scale - 0.5
     ids = np.asarray(ids, np.int32).reshape(-1)
     if board.cv_board.checkCharucoCornersCollinear(ids):
         return "ChArUco corners are collinear"
@@ -246,9 +278,10 @@ def calibrate(
     """Calibrate from (name, image) pairs showing ``board``.
 
     Views where the board is missing, has fewer than 6 corners, collinear corners, or corners
-    that no board of these parameters could give are rejected with a reason. Raises
-    CalibrationError when images differ in size, when no image shows the board, or when fewer
-    views than the model needs remain.
+    that no board of these parameters could give are rejected with a reason; so are views on
+    which the solver stops (ill-conditioned) and views whose reprojection error stands out
+    (``calibrate_views``). Raises CalibrationError when images differ in size, when no image
+    shows the board, or when fewer views than the model needs remain.
     """
     if model not in ("plumb_bob", "equidistant"):
         raise CalibrationError(f"unknown model {model!r} (plumb_bob or equidistant)")
@@ -264,20 +297,37 @@ def calibrate(
             f"consistent ChArUco corners: check --squares, --square-mm and --marker-mm "
             f"(now {board.describe()})"
         )
+    return calibrate_views(views, board, size, model, name, rejected)
+
+
+def calibrate_views(
+    views: list[BoardView],
+    board: CharucoBoardSpec,
+    size: tuple[int, int],
+    model: DistortionModel = "plumb_bob",
+    name: str = "camera",
+    rejected: dict[str, str] | None = None,
+) -> CalibrationResult:
+    """Calibrate from board views already found in images of ``size`` (width, height) px.
+
+    When the solver stops on a view (ill-conditioned) or a view's reprojection error stands
+    out from the others' (``outlier_views``), the view whose removal mends it is found by
+    solving without each suspect in turn, dropped with the reason in ``rejected`` (which also
+    holds the views rejected before, by name), and the rest solved again. Raises
+    CalibrationError when fewer views than the model needs are left, or when the solver
+    fails on every set without one view."""
+    if model not in ("plumb_bob", "equidistant"):
+        raise CalibrationError(f"unknown model {model!r} (plumb_bob or equidistant)")
+    rejected = {} if rejected is None else dict(rejected)
     needed = MIN_VIEWS[model]
     if len(views) < needed:
         raise CalibrationError(
             f"only {len(views)} usable views; the {model} model needs at least {needed} "
             f"(rejected: {'; '.join(f'{k}: {v}' for k, v in rejected.items()) or 'none'})"
         )
-    camera, per_view, rms = _solve(views, board, size, model, name)
-    # a second pass without views whose corners do not fit the model (wrong ids, motion blur)
-    bad = [v.name for v in views if per_view[v.name] > max(1.0, 5.0 * rms)]
-    if bad and len(views) - len(bad) >= needed:
-        for v in bad:
-            rejected[v] = f"reprojection error {per_view[v]:.2f} px, far above the others"
-        views = [v for v in views if v.name not in bad]
-        camera, per_view, rms = _solve(views, board, size, model, name)
+    views, (camera, per_view, rms) = _solve_without_bad_views(
+        views, board, size, model, name, rejected
+    )
     all_corners = np.concatenate([v.corners_px for v in views])
     grid = coverage_grid(all_corners, size)
     coverage = float(np.count_nonzero(grid) / grid.size)
@@ -304,30 +354,197 @@ def calibrate(
     )
 
 
+# a view whose corners reproject this many times worse than the median view's, and worse than
+# OUTLIER_FLOOR_PX, does not fit the model: wrong ids, motion blur, a bent board, or a pose
+# that the solver could not find
+OUTLIER_FACTOR = 5.0
+OUTLIER_FLOOR_PX = 1.0
+
+Solution = tuple[CameraModel, dict[str, float], float]
+
+
+class SolverFailedError(CalibrationError):
+    """OpenCV's solver stopped on this set of views (an ill-conditioned view)."""
+
+
+def outlier_views(per_view_rms_px: dict[str, float]) -> list[str]:
+    """Names of the views whose RMS error stands out from the median view's, worst first."""
+    median = float(np.median([e for e in per_view_rms_px.values() if math.isfinite(e)] or [0.0]))
+    limit = max(OUTLIER_FLOOR_PX, OUTLIER_FACTOR * median)
+    bad = [view for view, e in per_view_rms_px.items() if not e <= limit]
+    return sorted(bad, key=lambda view: -per_view_rms_px[view])
+
+
+def _solve_without_bad_views(
+    views: list[BoardView],
+    board: CharucoBoardSpec,
+    size: tuple[int, int],
+    model: DistortionModel,
+    name: str,
+    rejected: dict[str, str],
+) -> tuple[list[BoardView], Solution]:
+    """Solve, and while the solver fails or views stand out (``outlier_views``), drop the one
+    view whose removal mends it best (among all views when the solver failed, among those
+    standing out otherwise) and solve again; then offer each dropped view back to the final
+    fit (a view can look bad only because the fit it was judged by was wrong). The views left
+    out are named in ``rejected`` with why. Stops dropping when the model's minimum number of
+    views would not remain; raises CalibrationError when the solver fails on every set of
+    views it may try."""
+    needed = MIN_VIEWS[model]
+    kept = list(views)
+    dropped: dict[str, tuple[BoardView, str]] = {}
+    while True:
+        solution, failure = _try_solve(kept, board, size, model, name)
+        if solution is not None:
+            suspects = outlier_views(solution[1])
+            if not suspects:
+                break
+        else:
+            suspects = [v.name for v in kept]
+        mend = (
+            _best_removal(kept, suspects, board, size, model, name) if len(kept) > needed else None
+        )
+        if mend is None:
+            if solution is not None:
+                break  # the views that stand out stay: too few would be left, or none mends it
+            raise CalibrationError(
+                f"{failure} on these {len(kept)} views and on every set without one of them: "
+                "add views with the board nearer the image centre and tilted less"
+            )
+        view = next(v for v in kept if v.name == mend)
+        dropped[mend] = (view, _why_dropped(view, solution, failure))
+        kept = [v for v in kept if v.name != mend]
+    for view_name, (view, _why) in list(dropped.items()):
+        trial, _ = _try_solve([*kept, view], board, size, model, name)
+        if trial is not None and not outlier_views(trial[1]):
+            kept.append(view)
+            del dropped[view_name]
+            solution = trial
+    rejected.update({view_name: why for view_name, (_view, why) in dropped.items()})
+    order = [v.name for v in views]
+    kept.sort(key=lambda v: order.index(v.name))
+    camera, per_view, rms = solution
+    return kept, (camera, {v.name: per_view[v.name] for v in kept}, rms)
+
+
+def _try_solve(
+    views: list[BoardView],
+    board: CharucoBoardSpec,
+    size: tuple[int, int],
+    model: DistortionModel,
+    name: str,
+) -> tuple[Solution | None, str]:
+    """``_solve``, or None and what the solver said when it stopped."""
+    try:
+        return _solve(views, board, size, model, name), ""
+    except SolverFailedError as exc:
+        return None, str(exc)
+
+
+def _why_dropped(view: BoardView, solution: Solution | None, failure: str) -> str:
+    """The report's line for a view left out of the fit."""
+    if solution is None:
+        return f"{failure} with this view and not without it (ill-conditioned): dropped"
+    per_view = solution[1]
+    median = float(np.median([e for e in per_view.values() if math.isfinite(e)]))
+    if math.isfinite(per_view[view.name]):
+        return (
+            f"reprojection error {per_view[view.name]:.2f} px against a median view's "
+            f"{median:.2f} px: dropped"
+        )
+    return f"no pose of the board fits its {view.ids.size} corners: dropped"
+
+
+def _best_removal(
+    views: list[BoardView],
+    suspects: list[str],
+    board: CharucoBoardSpec,
+    size: tuple[int, int],
+    model: DistortionModel,
+    name: str,
+) -> str | None:
+    """Of the ``suspects``, the view without which the solver succeeds with the lowest RMS
+    error; None when it fails without each of them."""
+    best: tuple[float, str] | None = None
+    for suspect in suspects:
+        solution, _ = _try_solve([v for v in views if v.name != suspect], board, size, model, name)
+        if solution is not None and (best is None or solution[2] < best[0]):
+            best = (solution[2], suspect)
+    return None if best is None else best[1]
+
+
+def equidistant_focal_guess_px(
+    views: list[BoardView], board: CharucoBoardSpec, size: tuple[int, int]
+) -> float:
+    """A first focal length (px) for the equidistant model, so that the fisheye solver starts
+    near the answer (from a guess far off, it fails on views near the edge of a wide lens).
+
+    For each trial focal length the views' corners are unprojected with the principal point at
+    the image centre and no distortion (angle from the axis = radius / f), a homography from
+    the board is fitted to each, and its points are projected back: the focal length whose
+    planes reproject best over all views wins (a log grid, then a finer one around the best).
+    """
+    obj_all = np.asarray(board.cv_board.getChessboardCorners(), np.float64)[:, :2]
+    centre = np.array([size[0] / 2.0, size[1] / 2.0])
+
+    def misfit(f_px: float) -> float:
+        total = 0.0
+        for v in views:
+            d = v.corners_px - centre
+            r = np.linalg.norm(d, axis=1)
+            theta = r / f_px
+            if np.any(theta > math.radians(85.0)):
+                return math.inf  # a plane in front of the lens cannot reach so far out
+            scale = np.divide(np.tan(theta), r, out=np.full_like(r, 1.0 / f_px), where=r > 0)
+            m = d * scale[:, None]
+            H, _ = cv2.findHomography(obj_all[v.ids], m, 0)
+            if H is None:
+                return math.inf
+            q = np.concatenate([obj_all[v.ids], np.ones((v.ids.size, 1))], 1) @ H.T
+            if not (np.all(q[:, 2] > 1e-12) or np.all(q[:, 2] < -1e-12)):
+                return math.inf  # the plane would pass through the lens
+            mq = q[:, :2] / q[:, 2:3]
+            rq = np.linalg.norm(mq, axis=1)
+            back = np.divide(np.arctan(rq) * f_px, rq, out=np.full_like(rq, f_px), where=rq > 0)
+            total += float(np.sum((mq * back[:, None] - d) ** 2))
+        return total if math.isfinite(total) else math.inf
+
+    diagonal = math.hypot(*size)
+    grid = np.geomspace(diagonal / 20.0, diagonal * 2.0, 48)
+    best = float(grid[int(np.argmin([misfit(float(f)) for f in grid]))])
+    fine = np.geomspace(best / 1.1, best * 1.1, 21)
+    return float(fine[int(np.argmin([misfit(float(f)) for f in fine]))])
+
+
 def _solve(
     views: list[BoardView],
     board: CharucoBoardSpec,
     size: tuple[int, int],
     model: DistortionModel,
     name: str,
-) -> tuple[CameraModel, dict[str, float], float]:
+) -> Solution:
+    """One solve over ``views``; raises SolverFailedError when OpenCV's solver stops."""
     obj_all = np.asarray(board.cv_board.getChessboardCorners(), np.float64)
     obj = [obj_all[v.ids] for v in views]
     img = [v.corners_px for v in views]
     w, h = size
     if model == "plumb_bob":
-        _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-            [o.astype(np.float32) for o in obj],
-            [i.astype(np.float32) for i in img],
-            size,
-            None,
-            None,
-            flags=0,
-        )
+        try:
+            _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+                [o.astype(np.float32) for o in obj],
+                [i.astype(np.float32) for i in img],
+                size,
+                None,
+                None,
+                flags=0,
+            )
+        except cv2.error as exc:
+            raise SolverFailedError("the pinhole solver stops") from exc
         dist = np.asarray(dist, np.float64).reshape(-1)[:5]
     else:
         flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
-        K0 = np.array([[w / 3.0, 0, w / 2.0], [0, w / 3.0, h / 2.0], [0, 0, 1.0]])
+        f0 = equidistant_focal_guess_px(views, board, size)
+        K0 = np.array([[f0, 0, w / 2.0], [0, f0, h / 2.0], [0, 0, 1.0]])
         criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-10)
         try:
             _, K, dist, rvecs, tvecs = cv2.fisheye.calibrate(
@@ -340,12 +557,12 @@ def _solve(
                 criteria=criteria,
             )
         except cv2.error as exc:
-            raise CalibrationError(
-                "the fisheye solver failed (a view is ill-conditioned): add views with the "
-                "board tilted and nearer the image centre"
-            ) from exc
+            raise SolverFailedError("the fisheye solver stops") from exc
         dist = np.asarray(dist, np.float64).reshape(-1)
-    camera = CameraModel(np.asarray(K, np.float64), dist, w, h, model, name)
+    try:
+        camera = CameraModel(np.asarray(K, np.float64), dist, w, h, model, name)
+    except PerchposeError as exc:
+        raise SolverFailedError(f"the solver gives no valid camera ({exc})") from exc
     per_view = {}
     sq = []
     for v, o, rvec, tvec in zip(views, obj, rvecs, tvecs, strict=True):

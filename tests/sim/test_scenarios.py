@@ -10,6 +10,7 @@ from perchpose.sim.scenarios import (
     approach,
     markers_in_view,
     scenario_by_name,
+    spread_board_poses,
     static_grid,
     truncated,
 )
@@ -54,3 +55,23 @@ def test_bad_scenarios() -> None:
     with pytest.raises(ScenarioError, match="--frames"):
         truncated(approach(), 0)
     assert len(truncated(approach(), 10)) == 10
+
+
+def test_spread_board_poses_cover_the_field_at_the_asked_size() -> None:
+    camera = CameraModel.preset("fpv")
+    rng = np.random.default_rng(0)
+    poses = spread_board_poses(camera, 0.21, 200, rng, width_px=(110.0, 180.0), field=0.9)
+    centres_px, _ = camera.project(np.array([T[:3, 3] for T in poses]))
+    assert np.all(centres_px[:, 0] > 0.05 * 640 - 1e-6)
+    assert np.all(centres_px[:, 0] < 0.95 * 640 + 1e-6)
+    assert np.all(centres_px[:, 1] > 0.05 * 480 - 1e-6)
+    assert np.all(centres_px[:, 1] < 0.95 * 480 + 1e-6)
+    # the whole field is used, not only its middle
+    assert centres_px[:, 0].min() < 0.15 * 640
+    assert centres_px[:, 0].max() > 0.85 * 640
+    distances_m = np.array([np.linalg.norm(T[:3, 3]) for T in poses])
+    widths_px = 300.0 * 0.21 / distances_m
+    assert widths_px.min() >= 110.0 - 1e-6
+    assert widths_px.max() <= 180.0 + 1e-6
+    tilts_deg = [math.degrees(math.acos(abs(T[2, 2]))) for T in poses]
+    assert 0 < max(tilts_deg) < 50.0

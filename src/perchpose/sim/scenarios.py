@@ -155,3 +155,37 @@ def truncated(scenario: Scenario, max_frames: int) -> Scenario:
     return Scenario(
         scenario.name, scenario.t_s[:k], scenario.poses[:k], scenario.dropout[:k], scenario.quality
     )
+
+
+def spread_board_poses(
+    camera: CameraModel,
+    board_width_m: float,
+    n: int,
+    rng: np.random.Generator,
+    width_px: tuple[float, float] = (110.0, 180.0),
+    field: float = 0.95,
+    max_tilt_deg: float = 35.0,
+) -> list[Array]:
+    """``n`` poses (T_camera_target, metres) of a calibration board ``board_width_m`` wide,
+    as a person waves one in front of a camera: about ``width_px`` across (at the focal length
+    of the image centre), centred anywhere in the middle ``field`` of the image (to the edges of
+    a fisheye's view), turned up to 0.5 rad and tilted up to ``max_tilt_deg`` about both axes."""
+    poses = []
+    size = np.array([camera.width_px, camera.height_px], np.float64)
+    for _ in range(n):
+        z_m = camera.K[0, 0] * board_width_m / rng.uniform(*width_px)
+        uv = (0.5 + field * rng.uniform(-0.5, 0.5, (1, 2))) * size
+        ray = camera.pixel_rays(uv)[0]
+        centre = ray / np.linalg.norm(ray) * z_m
+        tilt = math.radians(max_tilt_deg)
+        poses.append(
+            facing_pose(
+                float(centre[0]),
+                float(centre[1]),
+                float(centre[2]),
+                rng.uniform(-0.5, 0.5),
+                rng.uniform(-tilt, tilt),
+                rng.uniform(-tilt, tilt),
+            )
+        )
+    return poses
