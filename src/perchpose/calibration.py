@@ -483,37 +483,45 @@ def equidistant_focal_guess_px(
     the image centre and no distortion (angle from the axis = radius / f), a homography from
     the board is fitted to each, and its points are projected back: the focal length whose
     planes reproject best over all views wins (a log grid, then a finer one around the best).
+    A view that no trial focal length makes a plane of has no say; with none left, the guess
+    is a third of the image width, OpenCV's usual start.
     """
     obj_all = np.asarray(board.cv_board.getChessboardCorners(), np.float64)[:, :2]
     centre = np.array([size[0] / 2.0, size[1] / 2.0])
-
-    def misfit(f_px: float) -> float:
-        total = 0.0
-        for v in views:
-            d = v.corners_px - centre
-            r = np.linalg.norm(d, axis=1)
-            theta = r / f_px
-            if np.any(theta > math.radians(85.0)):
-                return math.inf  # a plane in front of the lens cannot reach so far out
-            scale = np.divide(np.tan(theta), r, out=np.full_like(r, 1.0 / f_px), where=r > 0)
-            m = d * scale[:, None]
-            H, _ = cv2.findHomography(obj_all[v.ids], m, 0)
-            if H is None:
-                return math.inf
-            q = np.concatenate([obj_all[v.ids], np.ones((v.ids.size, 1))], 1) @ H.T
-            if not (np.all(q[:, 2] > 1e-12) or np.all(q[:, 2] < -1e-12)):
-                return math.inf  # the plane would pass through the lens
-            mq = q[:, :2] / q[:, 2:3]
-            rq = np.linalg.norm(mq, axis=1)
-            back = np.divide(np.arctan(rq) * f_px, rq, out=np.full_like(rq, f_px), where=rq > 0)
-            total += float(np.sum((mq * back[:, None] - d) ** 2))
-        return total if math.isfinite(total) else math.inf
-
     diagonal = math.hypot(*size)
     grid = np.geomspace(diagonal / 20.0, diagonal * 2.0, 48)
-    best = float(grid[int(np.argmin([misfit(float(f)) for f in grid]))])
+    table = np.array([[_plane_misfit_px2(v, obj_all, centre, f) for f in grid] for v in views])
+    heard = [k for k in range(len(views)) if np.any(np.isfinite(table[k]))]
+    total = table[heard].sum(axis=0) if heard else np.full(grid.size, math.inf)
+    if not np.any(np.isfinite(total)):
+        return size[0] / 3.0
+    best = float(grid[int(np.argmin(total))])
     fine = np.geomspace(best / 1.1, best * 1.1, 21)
-    return float(fine[int(np.argmin([misfit(float(f)) for f in fine]))])
+    fine_total = [sum(_plane_misfit_px2(views[k], obj_all, centre, f) for k in heard) for f in fine]
+    return float(fine[int(np.argmin(fine_total))])
+
+
+def _plane_misfit_px2(view: BoardView, obj_xy: Array, centre_px: Array, f_px: float) -> float:
+    """Sum of squared px by which ``view``'s corners miss the best plane through them, for an
+    undistorted equidistant lens of focal length ``f_px`` centred at ``centre_px``; inf when
+    no plane in front of such a lens can show them."""
+    d = view.corners_px - centre_px
+    r = np.linalg.norm(d, axis=1)
+    theta = r / f_px
+    if np.any(theta > math.radians(85.0)):
+        return math.inf  # a plane in front of the lens cannot reach so far out
+    scale = np.divide(np.tan(theta), r, out=np.full_like(r, 1.0 / f_px), where=r > 0)
+    H, _ = cv2.findHomography(obj_xy[view.ids], d * scale[:, None], 0)
+    if H is None:
+        return math.inf
+    q = np.concatenate([obj_xy[view.ids], np.ones((view.ids.size, 1))], 1) @ H.T
+    if not (np.all(q[:, 2] > 1e-12) or np.all(q[:, 2] < -1e-12)):
+        return math.inf  # the plane would pass through the lens
+    m = q[:, :2] / q[:, 2:3]
+    rm = np.linalg.norm(m, axis=1)
+    back = np.divide(np.arctan(rm) * f_px, rm, out=np.full_like(rm, f_px), where=rm > 0)
+    total = float(np.sum((m * back[:, None] - d) ** 2))
+    return total if math.isfinite(total) else math.inf
 
 
 def _solve(
