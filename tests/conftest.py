@@ -77,14 +77,30 @@ def approach_fpv_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _short_approach_dir(tmp_path_factory, "fpv")
 
 
+def _free_port(kind: socket.SocketKind) -> int:
+    """A port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 @pytest.fixture
-def silent_scheduler(monkeypatch: pytest.MonkeyPatch) -> str:
+def udp_port() -> int:
+    """A free UDP port on 127.0.0.1, for a loopback MAVLink link."""
+    return _free_port(socket.SOCK_DGRAM)
+
+
+@pytest.fixture
+def tcp_port() -> int:
+    """A free TCP port on 127.0.0.1: a peer that is not there yet, or a server to start."""
+    return _free_port(socket.SOCK_STREAM)
+
+
+@pytest.fixture
+def silent_scheduler(monkeypatch: pytest.MonkeyPatch, tcp_port: int) -> str:
     """A tcp:// address on which nothing listens, and a 1 s wait for a scheduler to answer."""
     pytest.importorskip("dask.distributed")
     from perchpose.sim import campaign
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     monkeypatch.setattr(campaign, "SCHEDULER_TIMEOUT_S", 1)
-    return f"tcp://127.0.0.1:{port}"
+    return f"tcp://127.0.0.1:{tcp_port}"

@@ -1,7 +1,6 @@
 """LANDING_TARGET over a real pymavlink UDP endpoint on the loopback interface."""
 
 import math
-import socket
 import threading
 import time
 from dataclasses import replace
@@ -20,12 +19,6 @@ from perchpose.io.sinks import read_track_csv
 from perchpose.values import Estimate
 
 DOWN = downward_T_body_camera()  # ArduPilot takes LANDING_TARGET only from a camera looking down
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Receiver:
@@ -91,10 +84,11 @@ def frd_from_camera(x_cm: float, y_cm: float, z_cm: float) -> np.ndarray:
 
 
 def test_track_sends_one_landing_target_per_valid_row(
-    approach_fpv_dir: Path, tmp_path: Path
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    udp_port: int,
 ) -> None:
-    port = free_udp_port()
-    receiver = Receiver(port)
+    receiver = Receiver(udp_port)
     out = tmp_path / "poses.csv"
     try:
         code = main(
@@ -107,7 +101,7 @@ def test_track_sends_one_landing_target_per_valid_row(
                 str(out),
                 "--quiet",
                 "--mavlink",
-                f"udpout:127.0.0.1:{port}",
+                f"udpout:127.0.0.1:{udp_port}",
                 "--mount",
                 "down",
             ]
@@ -149,14 +143,13 @@ def estimate_at(t_s: float, xyz_cm: tuple[float, float, float], yaw_deg: float) 
     return Estimate.of_pose(t_s, (x, y, z), math.radians(yaw_deg), stage=1)
 
 
-def test_local_ned_uses_the_vehicles_attitude_and_position() -> None:
-    port = free_udp_port()
+def test_local_ned_uses_the_vehicles_attitude_and_position(udp_port: int) -> None:
     roll, pitch, yaw = 0.1, -0.05, 1.2
     p_vehicle = (3.0, -2.0, -1.5)
-    receiver = Receiver(port, attitude=(roll, pitch, yaw), p_ned_m=p_vehicle)
+    receiver = Receiver(udp_port, attitude=(roll, pitch, yaw), p_ned_m=p_vehicle)
     reports: list[str] = []
     sink = LandingTargetSink(
-        f"udpout:127.0.0.1:{port}", frame="local_ned", T_body_camera=DOWN, report=reports.append
+        f"udpout:127.0.0.1:{udp_port}", frame="local_ned", T_body_camera=DOWN, report=reports.append
     )
     try:
         deadline = time.monotonic() + 5.0
@@ -176,11 +169,10 @@ def test_local_ned_uses_the_vehicles_attitude_and_position() -> None:
     assert not reports
 
 
-def test_time_usec_is_the_grab_on_the_autopilots_clock() -> None:
-    port = free_udp_port()
+def test_time_usec_is_the_grab_on_the_autopilots_clock(udp_port: int) -> None:
     offset_ns = 7_000_000_000_000 - time.monotonic_ns()  # the vehicle booted 7000 s ago
-    receiver = Receiver(port, clock_offset_ns=offset_ns)
-    sink = LandingTargetSink(f"udpout:127.0.0.1:{port}", T_body_camera=DOWN)
+    receiver = Receiver(udp_port, clock_offset_ns=offset_ns)
+    sink = LandingTargetSink(f"udpout:127.0.0.1:{udp_port}", T_body_camera=DOWN)
     try:
         deadline = time.monotonic() + 5.0
         # synchronised, and the vehicle's own request answered
@@ -212,10 +204,10 @@ def test_time_usec_is_the_grab_on_the_autopilots_clock() -> None:
     assert sink.timesync.answered == 1
 
 
-def test_local_ned_waits_for_attitude() -> None:
+def test_local_ned_waits_for_attitude(udp_port: int) -> None:
     reports: list[str] = []
     sink = LandingTargetSink(
-        f"udpout:127.0.0.1:{free_udp_port()}", frame="local_ned", report=reports.append
+        f"udpout:127.0.0.1:{udp_port}", frame="local_ned", report=reports.append
     )
     try:
         assert not sink.send(estimate_at(0.0, (0.0, 0.0, 50.0), 0.0))
@@ -226,16 +218,17 @@ def test_local_ned_waits_for_attitude() -> None:
     assert "ATTITUDE" in reports[0]
 
 
-def test_stale_and_non_finite_estimates_are_never_sent() -> None:
+def test_stale_and_non_finite_estimates_are_never_sent(udp_port: int) -> None:
     """Only fresh, finite poses leave: a coasted estimate older than max_age_s, or one whose
     vehicle attitude is NaN, is refused (reported once); a fresh one still goes out."""
-    port = free_udp_port()
-    receiver = Receiver(port, attitude=(math.nan, 0.0, 0.0))
+    receiver = Receiver(udp_port, attitude=(math.nan, 0.0, 0.0))
     reports: list[str] = []
     body = LandingTargetSink(
-        f"udpout:127.0.0.1:{port}", T_body_camera=DOWN, max_age_s=0.3, report=reports.append
+        f"udpout:127.0.0.1:{udp_port}", T_body_camera=DOWN, max_age_s=0.3, report=reports.append
     )
-    ned = LandingTargetSink(f"udpout:127.0.0.1:{port}", frame="local_ned", report=reports.append)
+    ned = LandingTargetSink(
+        f"udpout:127.0.0.1:{udp_port}", frame="local_ned", report=reports.append
+    )
     try:
         fresh = estimate_at(1.0, (2.0, 1.0, 50.0), 10.0)
         old = Estimate.of_pose(1.1, fresh.t_camera_target_m, fresh.yaw_rad, age_s=0.5)
@@ -311,7 +304,10 @@ def test_arducopter_would_drop_a_target_above_so_it_is_refused() -> None:
 
 
 def test_cli_refuses_landing_target_to_ardupilot_from_an_upward_camera(
-    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    udp_port: int,
 ) -> None:
     out = tmp_path / "p.csv"
     code = main(
@@ -323,7 +319,7 @@ def test_cli_refuses_landing_target_to_ardupilot_from_an_upward_camera(
             "--out",
             str(out),
             "--mavlink",
-            f"udpout:127.0.0.1:{free_udp_port()}",
+            f"udpout:127.0.0.1:{udp_port}",
         ]
     )
     assert code == 2
@@ -354,12 +350,6 @@ def test_cli_reports_a_bad_url(
     assert "udpout:localhost" in err[0]
 
 
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _send_until(sink: LandingTargetSink, vehicle: Receiver, count: int, t0: float) -> None:
     deadline = time.monotonic() + 10.0
     k = 0
@@ -369,13 +359,14 @@ def _send_until(sink: LandingTargetSink, vehicle: Receiver, count: int, t0: floa
         time.sleep(1 / 30)
 
 
-def test_tcp_link_survives_the_vehicle_restarting(capfd: pytest.CaptureFixture[str]) -> None:
+def test_tcp_link_survives_the_vehicle_restarting(
+    capfd: pytest.CaptureFixture[str], tcp_port: int
+) -> None:
     """Peer down at the start, up, closed, up again: reported once per outage, reconnected
     each time, and nothing printed to stdout."""
-    port = free_tcp_port()
     reports: list[str] = []
     sink = LandingTargetSink(
-        f"tcp:127.0.0.1:{port}", T_body_camera=DOWN, retry_period_s=0.1, report=reports.append
+        f"tcp:127.0.0.1:{tcp_port}", T_body_camera=DOWN, retry_period_s=0.1, report=reports.append
     )
     vehicle = None
     try:
@@ -391,7 +382,7 @@ def test_tcp_link_survives_the_vehicle_restarting(capfd: pytest.CaptureFixture[s
                     sink.send(estimate_at(2.0, (0.0, 0.0, 50.0), 0.0))
                     time.sleep(0.05)
                 assert not sink.connected
-            vehicle = Receiver(port, scheme="tcpin")
+            vehicle = Receiver(tcp_port, scheme="tcpin")
             _send_until(sink, vehicle, 3, t0)
             received = vehicle.of_type("LANDING_TARGET")
             assert len(received) >= 3
@@ -434,10 +425,11 @@ def test_distance_sensor_gives_the_range_along_the_bodys_vertical() -> None:
     assert no_covariance.covariance_cm2 == 255  # unknown
 
 
-def test_distance_sensor_goes_out_with_each_landing_target() -> None:
-    port = free_udp_port()
-    receiver = Receiver(port)
-    sink = LandingTargetSink(f"udpout:127.0.0.1:{port}", T_body_camera=DOWN, distance_sensor=True)
+def test_distance_sensor_goes_out_with_each_landing_target(udp_port: int) -> None:
+    receiver = Receiver(udp_port)
+    sink = LandingTargetSink(
+        f"udpout:127.0.0.1:{udp_port}", T_body_camera=DOWN, distance_sensor=True
+    )
     try:
         for k in range(3):
             assert sink.send(estimate_at(k / 30, (0.0, 0.0, 60.0 + k), 0.0))

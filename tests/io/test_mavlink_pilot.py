@@ -3,7 +3,6 @@ loopback that plays the vehicle: HEARTBEAT with its mode, ATTITUDE and LOCAL_POS
 50 Hz, and what it receives kept with the mode it was in."""
 
 import math
-import socket
 import threading
 import time
 from pathlib import Path
@@ -22,12 +21,6 @@ ARDUPILOT, PX4 = 3, 12
 LOITER, GUIDED = 5, 4  # ArduCopter custom modes
 POSCTL, OFFBOARD = 3 << 16, 6 << 16  # PX4 main modes in custom_mode's third byte
 ARMED = 128 | 1  # MAV_MODE_FLAG_SAFETY_ARMED | MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Vehicle:
@@ -103,11 +96,12 @@ def wait_for(condition: Any, seconds: float = 5.0) -> None:
     assert condition()
 
 
-def test_ardupilot_gets_setpoints_only_in_guided_and_the_pilot_stops_when_it_leaves() -> None:
-    port = free_udp_port()
-    vehicle = Vehicle(port, ARDUPILOT, LOITER)
+def test_ardupilot_gets_setpoints_only_in_guided_and_the_pilot_stops_when_it_leaves(
+    udp_port: int,
+) -> None:
+    vehicle = Vehicle(udp_port, ARDUPILOT, LOITER)
     reports: list[str] = []
-    pilot = MavlinkPilot(f"udpout:127.0.0.1:{port}", report=reports.append)
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append)
     ahead = (0.10, 0.0, 0.6)  # the upward camera's x is the body's front: the target is ahead
     t0 = time.monotonic()
     try:
@@ -143,13 +137,14 @@ def test_ardupilot_gets_setpoints_only_in_guided_and_the_pilot_stops_when_it_lea
     assert not any("hover setpoint" in r for r in reports)  # already released, not twice
 
 
-def test_px4_gets_a_proof_of_life_stream_then_offboard_setpoints_until_its_heartbeat_stops() -> (
-    None
-):
-    port = free_udp_port()
-    vehicle = Vehicle(port, PX4, POSCTL)
+def test_px4_gets_a_proof_of_life_stream_then_offboard_setpoints_until_its_heartbeat_stops(
+    udp_port: int,
+) -> None:
+    vehicle = Vehicle(udp_port, PX4, POSCTL)
     reports: list[str] = []
-    pilot = MavlinkPilot(f"udpout:127.0.0.1:{port}", heartbeat_timeout_s=0.5, report=reports.append)
+    pilot = MavlinkPilot(
+        f"udpout:127.0.0.1:{udp_port}", heartbeat_timeout_s=0.5, report=reports.append
+    )
     left = (0.0, 0.10, 0.6)  # the camera's y is the body's left
     t0 = time.monotonic()
     try:
@@ -179,11 +174,10 @@ def test_px4_gets_a_proof_of_life_stream_then_offboard_setpoints_until_its_heart
     assert any("no HEARTBEAT" in r for r in reports)
 
 
-def test_a_vehicle_that_disarms_in_guided_releases_the_pilot() -> None:
-    port = free_udp_port()
-    vehicle = Vehicle(port, ARDUPILOT, GUIDED)
+def test_a_vehicle_that_disarms_in_guided_releases_the_pilot(udp_port: int) -> None:
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
     reports: list[str] = []
-    pilot = MavlinkPilot(f"udpout:127.0.0.1:{port}", report=reports.append)
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append)
     t0 = time.monotonic()
     try:
         wait_for(pilot.ready)
@@ -198,12 +192,11 @@ def test_a_vehicle_that_disarms_in_guided_releases_the_pilot() -> None:
     assert any("disarmed" in r for r in reports)
 
 
-def test_setpoints_and_stops_in_the_autopilots_frames() -> None:
+def test_setpoints_and_stops_in_the_autopilots_frames(udp_port: int) -> None:
     """World z up to NED (y and z negated, the yaw rate too, in rad/s); a stop on the plate is
     a forced disarm, any other a normal one; nothing at all while not allowed."""
-    port = free_udp_port()
-    vehicle = Vehicle(port, ARDUPILOT, GUIDED)
-    link = MavlinkLink(f"udpout:127.0.0.1:{port}")
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
+    link = MavlinkLink(f"udpout:127.0.0.1:{udp_port}")
     allowed = [True]
     force = [False]
     commander = SetpointCommander(link, lambda: allowed[0], lambda: force[0])
@@ -231,10 +224,12 @@ def test_setpoints_and_stops_in_the_autopilots_frames() -> None:
 
 
 def test_track_flies_the_autopilot_and_hands_it_back_at_the_end(
-    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    udp_port: int,
 ) -> None:
-    port = free_udp_port()
-    vehicle = Vehicle(port, ARDUPILOT, GUIDED)
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
     try:
         code = main(
             [
@@ -246,7 +241,7 @@ def test_track_flies_the_autopilot_and_hands_it_back_at_the_end(
                 str(tmp_path / "p.csv"),
                 "--quiet",
                 "--mavlink",
-                f"udpout:127.0.0.1:{port}",
+                f"udpout:127.0.0.1:{udp_port}",
                 "--mavlink-pilot",
             ]
         )

@@ -285,11 +285,7 @@ def test_a_network_stream_is_read_live_and_reopened_when_it_drops(tmp_path: Path
     assert all(value == index % 20 for index, value in shown)
 
 
-def test_a_stream_that_never_answers_is_one_clear_error() -> None:
-    import socket
-
-    with socket.socket() as s:  # a port where nothing listens
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    with pytest.raises(SourceError, match=rf"http://127.0.0.1:{port}/x.avi: cannot open"):
-        open_source(f"http://127.0.0.1:{port}/x.avi")
+def test_a_stream_that_never_answers_is_one_clear_error(tcp_port: int) -> None:
+    # nothing listens on tcp_port
+    with pytest.raises(SourceError, match=rf"http://127.0.0.1:{tcp_port}/x.avi: cannot open"):
+        open_source(f"http://127.0.0.1:{tcp_port}/x.avi")
