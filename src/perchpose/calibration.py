@@ -369,10 +369,14 @@ class SolverFailedError(CalibrationError):
 
 def outlier_views(per_view_rms_px: dict[str, float]) -> list[str]:
     """Names of the views whose RMS error stands out from the median view's, worst first."""
-    median = float(np.median([e for e in per_view_rms_px.values() if math.isfinite(e)] or [0.0]))
-    limit = max(OUTLIER_FLOOR_PX, OUTLIER_FACTOR * median)
+    limit = max(OUTLIER_FLOOR_PX, OUTLIER_FACTOR * _median_view_rms_px(per_view_rms_px))
     bad = [view for view, e in per_view_rms_px.items() if not e <= limit]
     return sorted(bad, key=lambda view: -per_view_rms_px[view])
+
+
+def _median_view_rms_px(per_view_rms_px: dict[str, float]) -> float:
+    """The median of the views' finite RMS errors (0 when none is finite)."""
+    return float(np.median([e for e in per_view_rms_px.values() if math.isfinite(e)] or [0.0]))
 
 
 def _solve_without_bad_views(
@@ -446,11 +450,10 @@ def _why_dropped(view: BoardView, solution: Solution | None, failure: str) -> st
     if solution is None:
         return f"{failure} with this view and not without it (ill-conditioned): dropped"
     per_view = solution[1]
-    median = float(np.median([e for e in per_view.values() if math.isfinite(e)]))
     if math.isfinite(per_view[view.name]):
         return (
             f"reprojection error {per_view[view.name]:.2f} px against a median view's "
-            f"{median:.2f} px: dropped"
+            f"{_median_view_rms_px(per_view):.2f} px: dropped"
         )
     return f"no pose of the board fits its {view.ids.size} corners: dropped"
 
