@@ -269,6 +269,12 @@ def _collect_views(
     return views, rejected, size, saw_markers
 
 
+def check_model(model: str) -> None:
+    """Raises CalibrationError unless ``model`` is one the calibration solves."""
+    if model not in MIN_VIEWS:
+        raise CalibrationError(f"unknown model {model!r} (plumb_bob or equidistant)")
+
+
 def calibrate(
     images: Iterable[tuple[str, NDArray[np.uint8]]],
     board: CharucoBoardSpec,
@@ -283,8 +289,7 @@ def calibrate(
     (``calibrate_views``). Raises CalibrationError when images differ in size, when no image
     shows the board, or when fewer views than the model needs remain.
     """
-    if model not in ("plumb_bob", "equidistant"):
-        raise CalibrationError(f"unknown model {model!r} (plumb_bob or equidistant)")
+    check_model(model)
     views, rejected, size, saw_markers = _collect_views(images, board)
     if not saw_markers:
         raise CalibrationError(
@@ -316,8 +321,7 @@ def calibrate_views(
     holds the views rejected before, by name), and the rest solved again. Raises
     CalibrationError when fewer views than the model needs are left, or when the solver
     fails on every set without one view."""
-    if model not in ("plumb_bob", "equidistant"):
-        raise CalibrationError(f"unknown model {model!r} (plumb_bob or equidistant)")
+    check_model(model)
     rejected = {} if rejected is None else dict(rejected)
     needed = MIN_VIEWS[model]
     if len(views) < needed:
