@@ -9,7 +9,7 @@ turned and tilted up to 35 degrees (``perchpose.sim.scenarios.spread_board_poses
 0 .. sets-1. Each set is calibrated with the camera's own model (``equidistant`` for the fpv
 presets) and fx, fy, cx, cy are compared with the camera that rendered it. Prints one line a
 set and a summary: sets solved, sets with all four within 1 %, views used, views dropped by
-the solver check, and the worst error of each parameter.
+the solver check, stray corners left out, and the worst error of each parameter.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def main() -> None:
     args = parser.parse_args()
     camera = CameraModel.preset(args.camera)
     renderer = Renderer(camera, BOARD)
-    solved = within = used = dropped = 0
+    solved = within = used = dropped = strays = 0
     worst = dict.fromkeys((p[2] for p in PARAMETERS), 0.0)
     for seed in range(args.sets):
         rng = np.random.default_rng(seed)
@@ -58,17 +58,21 @@ def main() -> None:
         within += all(abs(e) <= 1.0 for e in errors.values())
         used += len(result.used)
         dropped += n_dropped
+        n_strays = sum(result.corners_left_out.values())
+        strays += n_strays
         for name, e in errors.items():
             worst[name] = max(worst[name], abs(e))
         print(
-            f"set {seed:3d}: {len(result.used):2d} views ({n_dropped} dropped), "
+            f"set {seed:3d}: {len(result.used):2d} views ({n_dropped} dropped, "
+            f"{n_strays} stray corners), "
             f"rms {result.rms_px:.3f} px, "
             + ", ".join(f"{name} {e:+.2f} %" for name, e in errors.items())
         )
     print(
         f"\n{args.camera}, boards {args.width_px[0]:g}-{args.width_px[1]:g} px, {args.views} views "
         f"a set: {solved}/{args.sets} sets calibrated, {within}/{args.sets} with fx, fy, cx, cy "
-        f"within 1 %; {used / max(solved, 1):.1f} views used a set, {dropped} dropped in all; "
+        f"within 1 %; {used / max(solved, 1):.1f} views used a set, {dropped} dropped and "
+        f"{strays} stray corners left out in all; "
         "worst " + ", ".join(f"{name} {e:.2f} %" for name, e in worst.items())
     )
 

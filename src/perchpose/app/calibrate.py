@@ -91,10 +91,20 @@ def format_report(
         f"- distortion: {', '.join(f'{v:.5g}' for v in cam.dist)}",
         f"- corners cover {result.coverage:.0%} of the image (10x10 cells)",
         "",
-        "| view | RMS (px) |",
-        "|---|---|",
-        *(f"| {name} | {err:.3f} |" for name, err in result.per_view_rms_px.items()),
+        "| view | RMS (px) | corners left out |",
+        "|---|---|---|",
+        *(
+            f"| {name} | {err:.3f} | {result.corners_left_out.get(name, 0)} |"
+            for name, err in result.per_view_rms_px.items()
+        ),
     ]
+    if result.corners_left_out:
+        lines += [
+            "",
+            f"{sum(result.corners_left_out.values())} corners were left out of the fit: their "
+            "reprojection errors stood out from the other corners' (a steeply seen board pulls "
+            "the corner finder).",
+        ]
     if result.rejected:
         lines += ["", "Rejected:", *(f"- {k}: {v}" for k, v in result.rejected.items())]
     if result.warnings:
