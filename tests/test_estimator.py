@@ -360,16 +360,20 @@ def test_the_whole_pose_and_its_covariance(renderers: dict[str, Renderer], fusio
     assert np.all(np.isnan(Estimate.none(0.0).T_camera_target))
 
 
-def test_the_covariance_follows_the_spread_of_the_estimates(approach_fpv_dir: Path) -> None:
+@pytest.mark.parametrize("use_filter", [True, False])
+def test_the_covariance_follows_the_spread_of_the_estimates(
+    approach_fpv_dir: Path, use_filter: bool
+) -> None:
     """On a rendered approach the errors over their standard deviations (x, y, z, yaw) spread
-    by 0.2-1.3: the covariance is conservative, never overconfident by more than 30 %, and
-    not off by more than five times. (This approach measured 0.24-0.43, the demo's approach
-    0.5-0.9: the goal of 0.8-1.2 is not reached. With the corner noise fixed at the 0.1 px the
-    filter assumes, rather than pooled from the joint poses' residuals, it was 0.05-0.2.)"""
+    by 0.75-1.25 (the goal is 0.8-1.2; this approach measures 0.80-1.11 filtered and
+    1.09-1.17 unfiltered). The covariance comes from the corners' own covariances (the edge
+    fit's, with neighbouring corners correlated through the side they share); with the
+    corners taken as independent at the residuals' pooled noise it was 0.24-0.43, and at the
+    filter's fixed 0.1 px 0.05-0.2."""
     import csv
 
     camera = CameraModel.load(approach_fpv_dir / "camera.yaml")
-    est = PerchingEstimator(camera, TargetSpec.paper())
+    est = PerchingEstimator(camera, TargetSpec.paper(), use_filter=use_filter)
     with (approach_fpv_dir / "truth.csv").open() as f:
         truth = {int(row["frame"]): row for row in csv.DictReader(f)}
     normalised = []
@@ -386,4 +390,4 @@ def test_the_covariance_follows_the_spread_of_the_estimates(approach_fpv_dir: Pa
         normalised.append(d / sigma)
     spread = np.array(normalised).std(axis=0)
     assert len(normalised) > 50
-    assert np.all((spread > 0.2) & (spread < 1.3)), spread
+    assert np.all((spread > 0.75) & (spread < 1.25)), spread

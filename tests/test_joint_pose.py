@@ -7,7 +7,13 @@ import pytest
 
 from perchpose import CameraModel, TargetSpec
 from perchpose.geometry import facing_pose
-from perchpose.joint_pose import pose_covariance, solve_joint_pose, target_points, uncertainty
+from perchpose.joint_pose import (
+    pose_covariance,
+    sandwich_covariance,
+    solve_joint_pose,
+    target_points,
+    uncertainty,
+)
 from perchpose.pose import solve_marker_pose
 from perchpose.values import MarkerDetection
 
@@ -91,3 +97,38 @@ def test_bound_grows_with_distance() -> None:
         uncertainty(facing_pose(0, 0, 1.5), far).z_m / uncertainty(facing_pose(0, 0, 0.5), near).z_m
     )
     assert 6.0 < ratio < 12.0
+
+
+def test_sandwich_covariance_of_correlated_corners() -> None:
+    """With the weights' own independent noise it is the plain covariance; with corner errors
+    that are correlated (the outer marker's corners all shifted together by one draw, plus a
+    little of their own) it matches the spread of the poses that ``solve_joint_pose``
+    actually fits to 400 such draws."""
+    camera = CameraModel.preset("fpv")
+    target = TargetSpec.paper()
+    T = facing_pose(0.02, -0.01, 0.6, 0.3)
+    points = target.markers[0].corners_target_m
+    plain = pose_covariance(camera, T, points, 0.05)
+    same = sandwich_covariance(camera, T, points, 0.05, 0.05**2 * np.eye(8))
+    assert plain is not None
+    assert same is not None
+    assert np.allclose(same, plain, rtol=1e-9, atol=0.0)
+    S = 0.05**2 * (np.kron(np.ones((4, 4)), np.eye(2)) + 0.2 * np.eye(8))
+    together = sandwich_covariance(camera, T, points, 0.05, S)
+    assert together is not None
+    uv, _ = camera.project(points @ T[:3, :3].T + T[:3, 3])
+    rng = np.random.default_rng(0)
+    draws = rng.multivariate_normal(np.zeros(8), S, 400)
+    positions = []
+    for draw in draws:
+        detection = MarkerDetection(0, uv + draw.reshape(4, 2), "raw")
+        joint = solve_joint_pose(camera, target, (detection,), T, 0.05)
+        assert joint is not None
+        positions.append(joint.T_camera_target[:3, 3])
+    spread = np.std(positions, axis=0)
+    predicted = uncertainty(T, together)
+    assert spread[0] == pytest.approx(predicted.x_m, rel=0.1)
+    assert spread[1] == pytest.approx(predicted.y_m, rel=0.1)
+    assert spread[2] == pytest.approx(predicted.z_m, rel=0.1)
+    # and not what independent corners of the same size would give
+    assert abs(uncertainty(T, plain).x_m / predicted.x_m - 1.0) > 0.2

@@ -354,10 +354,25 @@ def _bilinear(grey: NDArray[np.uint8], points_px: Array) -> Array:
     return np.where(inside, top + fy * (bottom - top), np.nan)
 
 
-def _lines_tls(points: Array, usable: NDArray[np.bool_]) -> tuple[Array, Array] | None:
+@dataclass(frozen=True)
+class _Lines:
+    """S lines n . x = c (``normals`` (S, 2), ``offsets`` (S,)) fitted to points, with what
+    the points' scatter about them says of their uncertainty: each line's centre (S, 2), the
+    variance of its angle (rad^2) and of its shift along the normal at the centre (S,)."""
+
+    normals: Array
+    offsets: Array
+    centres: Array
+    angle_var: Array
+    shift_var: Array
+
+
+def _lines_tls(points: Array, usable: NDArray[np.bool_]) -> _Lines | None:
     """Lines n . x = c through each of S sets of 2-D points (S, K, 2) where ``usable`` (S, K):
-    total least squares, then again without the points beyond 3 RMS. Returns normals (S, 2) and
-    offsets (S,), or None when a set has under 3 points."""
+    total least squares, then again without the points beyond 3 RMS; or None when a set has
+    under 3 points. The points' scatter normal to their line (with 2 degrees of freedom
+    taken by the line) gives the line's uncertainty, as for independent points: its shift at
+    the centre has variance s^2 / n, its angle s^2 / sum(along^2)."""
     keep = usable.copy()
     normals = np.zeros((points.shape[0], 2))
     offsets = np.zeros(points.shape[0])
@@ -378,16 +393,22 @@ def _lines_tls(points: Array, usable: NDArray[np.bool_]) -> tuple[Array, Array] 
         residual = np.einsum("skj,sj->sk", points, normals) - offsets[:, None]
         rms = np.sqrt((residual * residual * weight).sum(axis=1) / count) + 1e-12
         keep = usable & (np.abs(residual) < 3.0 * rms[:, None])
-    return normals, offsets
+    scatter = (residual * residual * weight).sum(axis=1) / np.maximum(count - 2.0, 1.0)
+    direction = np.stack([normals[:, 1], -normals[:, 0]], axis=1)
+    along = np.einsum("skj,sj->sk", points - centre[:, None, :], direction)
+    spread = np.maximum((along * along * weight).sum(axis=1), 1e-30)
+    return _Lines(normals, offsets, centre, scatter / spread, scatter / count)
 
 
 @dataclass(frozen=True)
 class EdgeFit:
-    """A marker's corners (4, 2) from its fitted border edges, and the blur sigma the fit found
-    (pixels; with the pixels' own area in it)."""
+    """A marker's corners (4, 2) from its fitted border edges, the blur sigma the fit found
+    (pixels; with the pixels' own area in it), and the corners' covariance (8, 8; px^2,
+    x0, y0, x1, ...) from the edge points' scatter about the fitted sides."""
 
     corners_px: Array
     blur_px: float
+    covariance_px2: Array
 
 
 @dataclass(frozen=True)
@@ -444,20 +465,46 @@ class _Profiles:
         return edge_n
 
 
-def _corners_of_lines(camera: CameraModel, normals: Array, line_offsets: Array) -> Array | None:
-    """The four corners (pixels) where the fitted side lines meet; None where two are
-    parallel or a corner does not project."""
-    # corner i joins side i - 1 (from corner i - 1) and side i (to corner i + 1)
-    previous = [3, 0, 1, 2]
-    A = np.stack([normals[previous], normals], axis=1)  # (4, 2, 2)
+_PREVIOUS = [3, 0, 1, 2]  # corner i joins side i - 1 (from corner i - 1) and side i
+_STEP_N = 1e-6  # normalised-plane step of the lens model's numerical Jacobian
+
+
+def _corners_of_lines(camera: CameraModel, lines: _Lines) -> tuple[Array, Array] | None:
+    """The four corners where the fitted side lines meet, in pixels (4, 2), and their
+    covariance (8, 8; px^2, x0, y0, x1, ...) from the lines' own; None where two lines are
+    parallel or a corner does not project.
+
+    A corner moves with the two lines through it: a line's shift moves both its corners
+    alike, its turn moves them apart, so neighbouring corners' errors are correlated (on
+    rendered markers the two corners of a side err against each other along its normal)."""
+    normals, offsets = lines.normals, lines.offsets
+    A = np.stack([normals[_PREVIOUS], normals], axis=1)  # (4, 2, 2)
     if np.any(np.abs(np.linalg.det(A)) < 1e-12):
         return None
-    refined_n = np.linalg.solve(A, np.stack([line_offsets[previous], line_offsets], 1)[..., None])
-    refined_n = refined_n[..., 0]
-    refined_px, ok = camera.project(np.hstack([refined_n, np.ones((4, 1))]))
+    A_inv = np.linalg.inv(A)
+    corners_n = np.einsum("iab,ib->ia", A_inv, np.stack([offsets[_PREVIOUS], offsets], 1))
+    # the normalised plane to pixels, at each corner and a step along x and y
+    probes = np.concatenate([corners_n, corners_n + [_STEP_N, 0.0], corners_n + [0.0, _STEP_N]])
+    projected, ok = camera.project(np.hstack([probes, np.ones((12, 1))]))
     if not np.all(ok):
         return None
-    return np.asarray(refined_px, np.float64)
+    corners_px = np.asarray(projected[:4], np.float64)
+    lens = np.stack([projected[4:8] - corners_px, projected[8:] - corners_px], axis=2) / _STEP_N
+    # d(corner) / d(angle, shift) of each side: the line n . x = c turns by a about its
+    # centre m (dn = a * (-n_y, n_x)... = -a * u, u its direction) and shifts by e there
+    # (dc = e - a * u . m); then A dx = dc - dn . x for the two lines through the corner
+    direction = np.stack([normals[:, 1], -normals[:, 0]], axis=1)
+    G = np.zeros((8, 8))
+    for i in range(4):
+        for row, side in enumerate((_PREVIOUS[i], i)):
+            u = direction[side]
+            d_angle = -(u @ lines.centres[side]) + u @ corners_n[i]
+            dx_angle = A_inv[i][:, row] * d_angle
+            dx_shift = A_inv[i][:, row]
+            G[2 * i : 2 * i + 2, 2 * side] += lens[i] @ dx_angle
+            G[2 * i : 2 * i + 2, 2 * side + 1] += lens[i] @ dx_shift
+    variances = np.stack([lines.angle_var, lines.shift_var], axis=1).reshape(8)
+    return corners_px, (G * variances) @ G.T
 
 
 def fit_marker_edges(
@@ -535,9 +582,9 @@ def fit_marker_edges(
     good = np.isfinite(d) & (d > -reach_in) & (d < reach_out)
     edge_n = profiles.edge_points_n(d)
     fitted = _lines_tls(edge_n.reshape(4, K, 2), good.reshape(4, K))
-    refined_px = None if fitted is None else _corners_of_lines(camera, *fitted)
-    if refined_px is None or (
-        np.max(np.linalg.norm(refined_px - corners, axis=1)) > cfg.max_shift_cells * cell_px
+    refined = None if fitted is None else _corners_of_lines(camera, fitted)
+    if refined is None or (
+        np.max(np.linalg.norm(refined[0] - corners, axis=1)) > cfg.max_shift_cells * cell_px
     ):
         return None
-    return EdgeFit(refined_px, blur_px)
+    return EdgeFit(refined[0], blur_px, refined[1])

@@ -32,9 +32,12 @@ from perchpose.geometry import (
     yaw_rad,
 )
 from perchpose.joint_pose import (
+    JointPose,
     measurement_jacobian,
     pose_covariance,
+    sandwich_covariance,
     solve_joint_pose,
+    target_points,
 )
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
 from perchpose.target import TargetSpec
@@ -397,6 +400,31 @@ class CornerNoise:
         return max(self.floor_px2, self.sum_px2 / self.dof)
 
 
+class ComponentRatio:
+    """Per component (yaw, x, y, z), the ratio of the variances the corners' own covariances
+    give a joint pose to those the filter's assumed corner noise gives it, pooled over frames
+    that fade with a time constant of ``frames`` frames (1 before any frame)."""
+
+    def __init__(self, frames: float = 30.0) -> None:
+        self.keep = math.exp(-1.0 / frames)
+        self.own = np.zeros(4)
+        self.assumed = np.zeros(4)
+
+    def add(self, own: Array, assumed: Array) -> None:
+        """One frame's variances (4,): from the corners' own covariances, and from the
+        filter's assumed noise."""
+        if not (np.all(np.isfinite(own)) and np.all(np.isfinite(assumed))):
+            return
+        self.own = self.keep * self.own + own
+        self.assumed = self.keep * self.assumed + assumed
+
+    @property
+    def ratio(self) -> Array:
+        """(4,) own over assumed."""
+        out: Array = np.where(self.assumed > 0, self.own / np.maximum(self.assumed, 1e-300), 1.0)
+        return out
+
+
 class CovarianceFusion:
     """One PnP over every measured marker's corners, through one filter of the fused pose
     corrected with each measurement's own covariance (``CovarianceTrack``)."""
@@ -415,6 +443,7 @@ class CovarianceFusion:
         self.use_filter = use_filter
         self.track = CovarianceTrack(settings)
         self.noise = CornerNoise(settings.corner_sigma_px)
+        self.ratio = ComponentRatio()
         # the target's tilt from the last joint pose, and that pose's covariance over
         # [roll, pitch, yaw, x, y, z]
         self._tilt: tuple[float, float] = (math.nan, math.nan)
@@ -429,9 +458,10 @@ class CovarianceFusion:
 
     def _joint(
         self, detections: tuple[MarkerDetection, ...], measurements: dict[int, MarkerPose]
-    ) -> tuple[Array, Array] | None:
-        """This frame's joint pose T_camera_target (4, 4) and its covariance over (w, dt),
-        or None."""
+    ) -> tuple[Array, Array, Array | None] | None:
+        """This frame's joint pose T_camera_target (4, 4), its covariance over (w, dt) for
+        the filter's assumed corner noise, and from the corners' own covariances (None when
+        degenerate); or None."""
         if not measurements:
             return None
         used = tuple(d for d in detections if d.marker_index in measurements)
@@ -445,10 +475,28 @@ class CovarianceFusion:
         )
         if joint is None:
             return None
-        # the corner noise the frames show, for the covariance the estimate reports
+        # the corner noise the frames show, for markers whose corner fit gives no covariance
         n_points = 4 * len(used)
         self.noise.add(joint.reproj_rms_px**2 * n_points, 2 * n_points - 6)
-        return joint.T_camera_target, joint.covariance
+        return joint.T_camera_target, joint.covariance, self._corners_covariance(used, joint)
+
+    def _corners_covariance(
+        self, used: tuple[MarkerDetection, ...], joint: JointPose
+    ) -> Array | None:
+        """The joint pose's covariance over (w, dt) from its corners' own covariances (the
+        edge fit's; a marker without one: independent noise at the pooled residuals')."""
+        iid = self.noise.variance_px2 * np.eye(8)
+        blocks = [iid if d.corner_covariance_px2 is None else d.corner_covariance_px2 for d in used]
+        S = np.zeros((8 * len(blocks), 8 * len(blocks)))
+        for k, block in enumerate(blocks):
+            S[8 * k : 8 * k + 8, 8 * k : 8 * k + 8] = block
+        return sandwich_covariance(
+            self.camera,
+            joint.T_camera_target,
+            target_points(self.target, used),
+            self.settings.corner_sigma_px,
+            S,
+        )
 
     def fuse(
         self,
@@ -464,12 +512,17 @@ class CovarianceFusion:
         if joint is None:
             self.track.missed_frame(t_s)
         else:
-            T, covariance = joint
+            T, covariance, from_corners = joint
             J = measurement_jacobian(T)
             measured = np.array([yaw_rad(T[:3, :3]), *T[:3, 3]])
-            self.track.measured(measured, J @ covariance @ J.T, t_s)
+            if from_corners is None:  # degenerate: independent corners at the pooled noise
+                scale = self.noise.variance_px2 / self.settings.corner_sigma_px**2
+                from_corners = covariance * scale
+            assumed = J @ covariance @ J.T
+            self.track.measured(measured, assumed, t_s)
+            self.ratio.add(np.diag(J @ from_corners @ J.T), np.diag(assumed))
             self._tilt = tilt_rad(T[:3, :3])
-            self._angles_covariance = angles_covariance(T, covariance)
+            self._angles_covariance = angles_covariance(T, from_corners)
         filtered = self.track.pose if stage != STAGE_NONE else None
         pose = filtered if self.use_filter else measured
         if pose is None:
@@ -478,12 +531,13 @@ class CovarianceFusion:
         return Fused(pose, stage, frozenset(poses), age, self._tilt, self._covariance(pose))
 
     def _covariance(self, pose: Array) -> Array | None:
-        """The output's covariance: the tilt's from the last joint pose; yaw and position
-        from the filter (without it, the joint pose's own, whole). The filter runs with the
-        corner noise it is set to assume (``corner_sigma_px``, 0.1 px: a tuning that keeps it
-        steady on analog video); what it reports is scaled to the noise the frames show
-        (``CornerNoise``), as a covariance scales with the corners' variance."""
-        scale = self.noise.variance_px2 / self.settings.corner_sigma_px**2
+        """The output's covariance, from the corners' own covariances (the edge fit's;
+        ``_corners_covariance``): the tilt's from the last joint pose; yaw and position from
+        the filter (without it, the joint pose's, whole). The filter runs with the
+        independent corner noise it is set to assume (``corner_sigma_px``, 0.1 px: a tuning
+        that keeps it steady on analog video); its covariance is scaled per component by
+        how the corners' own covariances compare with that assumption over the last frames
+        (``ComponentRatio``), as a covariance scales with its measurements' variance."""
         angles = self._angles_covariance
         if angles is None:
             return None
@@ -491,7 +545,8 @@ class CovarianceFusion:
             filtered = self.track.pose_covariance
             if filtered is None:
                 return None
+            root = np.sqrt(self.ratio.ratio)
             angles = angles.copy()
             angles[2:, :] = angles[:, 2:] = 0.0  # the tilt keeps its own block
-            angles[2:, 2:] = filtered
-        return camera_covariance(float(pose[0]), self._tilt[1], angles * scale)
+            angles[2:, 2:] = root[:, None] * filtered * root[None, :]
+        return camera_covariance(float(pose[0]), self._tilt[1], angles)

@@ -139,6 +139,37 @@ def pose_covariance(
     return _covariance(projected[1], _weights(sigma_px, points_target_m.shape[0]), rvec)
 
 
+def sandwich_covariance(
+    camera: CameraModel,
+    T: Array,
+    points_target_m: Array,
+    sigma_px: float | Array,
+    corner_covariance_px2: Array,
+) -> Array | None:
+    """The covariance over (w, dt) of the pose fitted at ``T`` to corners ``points_target_m``
+    (N, 3) weighted by ``1 / sigma_px^2`` (one value, or one per corner) when their errors
+    have the covariance ``corner_covariance_px2`` (2N, 2N; px^2, x0, y0, x1, ...):
+    ``H^-1 J^T W S W J H^-1`` with ``H = J^T W J``. Where S is the weights' own iid noise
+    this is ``pose_covariance``; where the corners' errors are correlated (neighbouring
+    corners share a fitted side) it is what the weights' covariance gets wrong. None if
+    degenerate or a corner is behind the camera."""
+    rvec3, tvec3 = rvec_tvec_from_transform(T)
+    rvec, tvec = rvec3.reshape(3), tvec3.reshape(3)
+    projected = _project_with_jacobian(camera, rvec, tvec, points_target_m)
+    if projected is None:
+        return None
+    J = projected[1]
+    Jw = J * _weights(sigma_px, points_target_m.shape[0])[:, None]
+    info = J.T @ Jw
+    if np.linalg.cond(info) > 1e14:
+        return None
+    H_inv = np.linalg.inv(info)
+    cov_rt = H_inv @ (Jw.T @ corner_covariance_px2 @ Jw) @ H_inv
+    A = np.eye(6)
+    A[:3, :3] = _rotation_jacobian(rvec)
+    return np.asarray(A @ cov_rt @ A.T, np.float64)
+
+
 def uncertainty(T: Array, covariance: Array) -> PoseUncertainty:
     """Standard deviations of x, y, z (m) and yaw (rad) for a covariance over (w, dt)."""
     J = measurement_jacobian(T)

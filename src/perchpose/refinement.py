@@ -48,6 +48,7 @@ class CornerFitter:
         cells = self.target.markers[i].cells
         edges = self.fit_edges(grey, det)
         corners = None if edges is None else edges.corners_px
+        covariance = None if edges is None else edges.covariance_px2
         printed = self.patterns[i]
         if (
             printed is not None
@@ -62,11 +63,12 @@ class CornerFitter:
             fitted = refine_corners_pattern(
                 grey, start, self.camera, printed, self.pattern_settings, blur
             )
-            corners = fitted if fitted is not None else corners
+            if fitted is not None:
+                corners, covariance = fitted, None
             self.pattern_s = time.perf_counter() - t0
-        return (
-            None if corners is None else MarkerDetection(det.marker_index, corners, det.image_pass)
-        )
+        if corners is None:
+            return None
+        return MarkerDetection(det.marker_index, corners, det.image_pass, covariance)
 
     def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> EdgeFit | None:
         """The edge fit alone of ``det`` (with the marker's cells and white margin), or None
