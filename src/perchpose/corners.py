@@ -494,17 +494,17 @@ def _corners_of_lines(camera: CameraModel, lines: _Lines) -> tuple[Array, Array]
     # centre m (dn = a * (-n_y, n_x)... = -a * u, u its direction) and shifts by e there
     # (dc = e - a * u . m); then A dx = dc - dn . x for the two lines through the corner
     direction = np.stack([normals[:, 1], -normals[:, 0]], axis=1)
-    G = np.zeros((8, 8))
-    for i in range(4):
-        for row, side in enumerate((_PREVIOUS[i], i)):
-            u = direction[side]
-            d_angle = -(u @ lines.centres[side]) + u @ corners_n[i]
-            dx_angle = A_inv[i][:, row] * d_angle
-            dx_shift = A_inv[i][:, row]
-            G[2 * i : 2 * i + 2, 2 * side] += lens[i] @ dx_angle
-            G[2 * i : 2 * i + 2, 2 * side + 1] += lens[i] @ dx_shift
+    sides = np.stack([_PREVIOUS, np.arange(4)], axis=1)  # (4, 2): the sides through corner i
+    # pixels per unit of each of the two lines' offsets, (4, 2 px, 2 lines)
+    per_offset = lens @ A_inv
+    lever = np.einsum("isj,isj->is", direction[sides], corners_n[:, None, :] - lines.centres[sides])
+    G = np.zeros((4, 2, 4, 2))  # corner, px axis, side, (angle, shift)
+    for row in range(2):
+        G[np.arange(4), :, sides[:, row], 0] = per_offset[:, :, row] * lever[:, row, None]
+        G[np.arange(4), :, sides[:, row], 1] = per_offset[:, :, row]
+    G8 = G.reshape(8, 8)
     variances = np.stack([lines.angle_var, lines.shift_var], axis=1).reshape(8)
-    return corners_px, (G * variances) @ G.T
+    return corners_px, (G8 * variances) @ G8.T
 
 
 def fit_marker_edges(

@@ -32,12 +32,9 @@ from perchpose.geometry import (
     yaw_rad,
 )
 from perchpose.joint_pose import (
-    JointPose,
     measurement_jacobian,
     pose_covariance,
-    sandwich_covariance,
     solve_joint_pose,
-    target_points,
 )
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
 from perchpose.target import TargetSpec
@@ -472,31 +469,24 @@ class CovarianceFusion:
             used,
             measurements[start].T_camera_target,
             self.settings.corner_sigma_px,
+            corner_covariance_px2=self._corners_covariance_px2(used),
         )
         if joint is None:
             return None
         # the corner noise the frames show, for markers whose corner fit gives no covariance
         n_points = 4 * len(used)
         self.noise.add(joint.reproj_rms_px**2 * n_points, 2 * n_points - 6)
-        return joint.T_camera_target, joint.covariance, self._corners_covariance(used, joint)
+        return joint.T_camera_target, joint.covariance, joint.corners_covariance
 
-    def _corners_covariance(
-        self, used: tuple[MarkerDetection, ...], joint: JointPose
-    ) -> Array | None:
-        """The joint pose's covariance over (w, dt) from its corners' own covariances (the
-        edge fit's; a marker without one: independent noise at the pooled residuals')."""
-        iid = self.noise.variance_px2 * np.eye(8)
-        blocks = [iid if d.corner_covariance_px2 is None else d.corner_covariance_px2 for d in used]
-        S = np.zeros((8 * len(blocks), 8 * len(blocks)))
-        for k, block in enumerate(blocks):
+    def _corners_covariance_px2(self, used: tuple[MarkerDetection, ...]) -> Array:
+        """The corners' own covariance (8N, 8N; px^2): the edge fit's, and for a marker
+        without one independent corners at the noise pooled from the joint poses' residuals."""
+        S = np.zeros((8 * len(used), 8 * len(used)))
+        for k, d in enumerate(used):
+            own = d.corner_covariance_px2
+            block = self.noise.variance_px2 * np.eye(8) if own is None else own
             S[8 * k : 8 * k + 8, 8 * k : 8 * k + 8] = block
-        return sandwich_covariance(
-            self.camera,
-            joint.T_camera_target,
-            target_points(self.target, used),
-            self.settings.corner_sigma_px,
-            S,
-        )
+        return S
 
     def fuse(
         self,

@@ -43,12 +43,15 @@ class PoseUncertainty:
 @dataclass(frozen=True)
 class JointPose:
     """T_camera_target from all corners; covariance (6, 6) over (w, dt) for the corner noise
-    it was computed with; reproj_rms_px over all corners; markers used."""
+    it was computed with; reproj_rms_px over all corners; markers used; corners_covariance
+    (6, 6) over (w, dt) for the corners' own covariance where one was given
+    (``sandwich_covariance``)."""
 
     T_camera_target: Array
     covariance: Array
     reproj_rms_px: float
     markers: tuple[int, ...]
+    corners_covariance: Array | None = None
 
     @property
     def std(self) -> PoseUncertainty:
@@ -113,17 +116,6 @@ def _weights(sigma_px: float | Array, n_points: int) -> Array:
     return np.repeat(1.0 / sigma**2, 2)
 
 
-def _covariance(J: Array, w: Array, rvec: Array) -> Array | None:
-    """Covariance over (w, dt) from the (rvec, tvec) Jacobian of the corners."""
-    info = J.T @ (J * w[:, None])
-    if np.linalg.cond(info) > 1e14:
-        return None
-    cov_rt = np.linalg.inv(info)
-    A = np.eye(6)
-    A[:3, :3] = _rotation_jacobian(rvec)
-    return np.asarray(A @ cov_rt @ A.T, np.float64)
-
-
 def pose_covariance(
     camera: CameraModel, T: Array, points_target_m: Array, sigma_px: float | Array
 ) -> Array | None:
@@ -136,7 +128,7 @@ def pose_covariance(
     projected = _project_with_jacobian(camera, rvec, tvec, points_target_m)
     if projected is None:
         return None
-    return _covariance(projected[1], _weights(sigma_px, points_target_m.shape[0]), rvec)
+    return _covariances(projected[1], _weights(sigma_px, points_target_m.shape[0]), rvec)[0]
 
 
 def sandwich_covariance(
@@ -158,16 +150,28 @@ def sandwich_covariance(
     projected = _project_with_jacobian(camera, rvec, tvec, points_target_m)
     if projected is None:
         return None
-    J = projected[1]
-    Jw = J * _weights(sigma_px, points_target_m.shape[0])[:, None]
+    w = _weights(sigma_px, points_target_m.shape[0])
+    return _covariances(projected[1], w, rvec, corner_covariance_px2)[1]
+
+
+def _covariances(
+    J: Array, w: Array, rvec: Array, corner_covariance_px2: Array | None = None
+) -> tuple[Array | None, Array | None]:
+    """Over (w, dt), from the (rvec, tvec) Jacobian of the corners and their weights: the
+    weights' own covariance, and with ``corner_covariance_px2`` the sandwich
+    (``sandwich_covariance``; else None). Both None if degenerate."""
+    Jw = J * w[:, None]
     info = J.T @ Jw
     if np.linalg.cond(info) > 1e14:
-        return None
+        return None, None
     H_inv = np.linalg.inv(info)
-    cov_rt = H_inv @ (Jw.T @ corner_covariance_px2 @ Jw) @ H_inv
     A = np.eye(6)
     A[:3, :3] = _rotation_jacobian(rvec)
-    return np.asarray(A @ cov_rt @ A.T, np.float64)
+    plain = np.asarray(A @ H_inv @ A.T, np.float64)
+    if corner_covariance_px2 is None:
+        return plain, None
+    cov_rt = H_inv @ (Jw.T @ corner_covariance_px2 @ Jw) @ H_inv
+    return plain, np.asarray(A @ cov_rt @ A.T, np.float64)
 
 
 def uncertainty(T: Array, covariance: Array) -> PoseUncertainty:
@@ -205,10 +209,12 @@ def solve_joint_pose(
     T_initial: Array,
     sigma_px: float | Array,
     iterations: int = 6,
+    corner_covariance_px2: Array | None = None,
 ) -> JointPose | None:
     """Least-squares pose from every corner of ``detections`` (pixel residuals through the
     lens model weighted by ``1 / sigma_px^2``, one value or one per detection; Gauss-Newton
-    from ``T_initial``, e.g. the best single-marker pose)."""
+    from ``T_initial``, e.g. the best single-marker pose). ``corner_covariance_px2`` (8N, 8N;
+    px^2, detection order): the corners' own covariance, for ``corners_covariance``."""
     if not detections:
         return None
     points = target_points(target, detections)
@@ -236,9 +242,9 @@ def solve_joint_pose(
     projected = _project_with_jacobian(camera, rvec, tvec, points)
     if projected is None:
         return None
-    cov = _covariance(projected[1], w, rvec)
+    cov, own = _covariances(projected[1], w, rvec, corner_covariance_px2)
     if cov is None:
         return None
     rms = float(np.sqrt(np.mean(np.sum((projected[0] - uv).reshape(-1, 2) ** 2, axis=1))))
     T = transform_from_rvec_tvec(rvec, tvec)
-    return JointPose(T, cov, rms, tuple(d.marker_index for d in detections))
+    return JointPose(T, cov, rms, tuple(d.marker_index for d in detections), own)
