@@ -123,12 +123,7 @@ def pose_covariance(
     (N, 3) with pixel noise ``sigma_px`` per axis (one value, or one per corner), over
     (w, dt): the pose's covariance, and at the true pose the Cramer-Rao bound. None if
     degenerate or a corner is behind the camera."""
-    rvec3, tvec3 = rvec_tvec_from_transform(T)
-    rvec, tvec = rvec3.reshape(3), tvec3.reshape(3)
-    projected = _project_with_jacobian(camera, rvec, tvec, points_target_m)
-    if projected is None:
-        return None
-    return _covariances(projected[1], _weights(sigma_px, points_target_m.shape[0]), rvec)[0]
+    return _covariances_at(camera, T, points_target_m, sigma_px)[0]
 
 
 def sandwich_covariance(
@@ -145,13 +140,24 @@ def sandwich_covariance(
     this is ``pose_covariance``; where the corners' errors are correlated (neighbouring
     corners share a fitted side) it is what the weights' covariance gets wrong. None if
     degenerate or a corner is behind the camera."""
+    return _covariances_at(camera, T, points_target_m, sigma_px, corner_covariance_px2)[1]
+
+
+def _covariances_at(
+    camera: CameraModel,
+    T: Array,
+    points_target_m: Array,
+    sigma_px: float | Array,
+    corner_covariance_px2: Array | None = None,
+) -> tuple[Array | None, Array | None]:
+    """``_covariances`` at the pose ``T``; both None where a corner does not project."""
     rvec3, tvec3 = rvec_tvec_from_transform(T)
     rvec, tvec = rvec3.reshape(3), tvec3.reshape(3)
     projected = _project_with_jacobian(camera, rvec, tvec, points_target_m)
     if projected is None:
-        return None
+        return None, None
     w = _weights(sigma_px, points_target_m.shape[0])
-    return _covariances(projected[1], w, rvec, corner_covariance_px2)[1]
+    return _covariances(projected[1], w, rvec, corner_covariance_px2)
 
 
 def _covariances(
