@@ -197,3 +197,17 @@ def test_component_ratio_pools_own_over_assumed() -> None:
         ratio.add(np.array([4.0, 1.0, 0.25, 9.0]), np.ones(4))
     ratio.add(np.array([np.nan, 1.0, 1.0, 1.0]), np.ones(4))  # a degenerate frame: left out
     assert np.allclose(ratio.ratio, [4.0, 1.0, 0.25, 9.0])
+
+
+def test_variance_factor_is_pooled_and_never_under_one() -> None:
+    from perchpose.fusion import VarianceFactor
+
+    misfit = VarianceFactor(frames=30.0)
+    assert misfit.factor == 1.0
+    for _ in range(50):
+        misfit.add(0.5, 2.0)  # residuals smaller than the covariance says: kept at 1
+    assert misfit.factor == 1.0
+    for _ in range(300):
+        misfit.add(18.0, 2.0)
+    misfit.add(math.nan, 2.0)  # a degenerate frame: left out
+    assert misfit.factor == pytest.approx(9.0, rel=1e-3)

@@ -132,3 +132,30 @@ def test_sandwich_covariance_of_correlated_corners() -> None:
     assert spread[2] == pytest.approx(predicted.z_m, rel=0.1)
     # and not what independent corners of the same size would give
     assert abs(uncertainty(T, plain).x_m / predicted.x_m - 1.0) > 0.2
+
+
+def test_corner_misfit_is_the_variance_factor() -> None:
+    """Corner errors drawn from the covariance the fit is told: the residuals' squared length
+    in its metric averages its expected value (factor 1); errors twice as large give 4."""
+    from perchpose.joint_pose import corner_misfit
+
+    camera = CameraModel.preset("fpv")
+    target = TargetSpec.paper()
+    T = facing_pose(0.02, -0.01, 0.6, 0.3)
+    points = target.markers[0].corners_target_m
+    uv, _ = camera.project(points @ T[:3, :3].T + T[:3, 3])
+    S = 0.05**2 * (np.eye(8) - 0.5 * np.kron(np.eye(4), np.ones((2, 2))) + 0.5 * np.eye(8))
+    rng = np.random.default_rng(1)
+    for scale, factor in ((1.0, 1.0), (2.0, 4.0)):
+        observed = expected = 0.0
+        for draw in rng.multivariate_normal(np.zeros(8), scale**2 * S, 300):
+            detection = MarkerDetection(0, uv + draw.reshape(4, 2), "raw")
+            joint = solve_joint_pose(camera, target, (detection,), T, 0.05, corner_covariance_px2=S)
+            assert joint is not None
+            observed += joint.misfit[0]
+            expected += joint.misfit[1]
+        assert observed / expected == pytest.approx(factor, rel=0.15)
+    # the statistic itself, on residuals of a known size
+    J = np.zeros((8, 6))
+    J[:6, :6] = np.eye(6)
+    assert corner_misfit(J, np.ones(8), np.zeros(8), np.eye(8)) == (0.0, pytest.approx(2.0))

@@ -422,6 +422,28 @@ class ComponentRatio:
         return out
 
 
+class VarianceFactor:
+    """The corners' covariance's a-posteriori variance factor (``joint_pose.corner_misfit``)
+    pooled over frames that fade with a time constant of ``frames`` frames: the observed
+    squared residuals over their expected value, never under 1 (1 before any frame)."""
+
+    def __init__(self, frames: float = 30.0) -> None:
+        self.keep = math.exp(-1.0 / frames)
+        self.observed = 0.0
+        self.expected = 0.0
+
+    def add(self, observed: float, expected: float) -> None:
+        """One frame's misfit: observed and expected ``r^T S^-1 r``."""
+        if not (math.isfinite(observed) and math.isfinite(expected) and expected > 0):
+            return
+        self.observed = self.keep * self.observed + observed
+        self.expected = self.keep * self.expected + expected
+
+    @property
+    def factor(self) -> float:
+        return max(1.0, self.observed / self.expected) if self.expected > 0 else 1.0
+
+
 class CovarianceFusion:
     """One PnP over every measured marker's corners, through one filter of the fused pose
     corrected with each measurement's own covariance (``CovarianceTrack``)."""
@@ -441,6 +463,7 @@ class CovarianceFusion:
         self.track = CovarianceTrack(settings)
         self.noise = CornerNoise(settings.corner_sigma_px)
         self.ratio = ComponentRatio()
+        self.misfit = VarianceFactor()
         # the target's tilt from the last joint pose, and that pose's covariance over
         # [roll, pitch, yaw, x, y, z]
         self._tilt: tuple[float, float] = (math.nan, math.nan)
@@ -476,7 +499,13 @@ class CovarianceFusion:
         # the corner noise the frames show, for markers whose corner fit gives no covariance
         n_points = 4 * len(used)
         self.noise.add(joint.reproj_rms_px**2 * n_points, 2 * n_points - 6)
-        return joint.T_camera_target, joint.covariance, joint.corners_covariance
+        self.misfit.add(*joint.misfit)
+        own = joint.corners_covariance
+        return (
+            joint.T_camera_target,
+            joint.covariance,
+            None if own is None else own * self.misfit.factor,
+        )
 
     def _corners_covariance_px2(self, used: tuple[MarkerDetection, ...]) -> Array:
         """The corners' own covariance (8N, 8N; px^2): the edge fit's, and for a marker
@@ -522,12 +551,13 @@ class CovarianceFusion:
 
     def _covariance(self, pose: Array) -> Array | None:
         """The output's covariance, from the corners' own covariances (the edge fit's;
-        ``_corners_covariance``): the tilt's from the last joint pose; yaw and position from
-        the filter (without it, the joint pose's, whole). The filter runs with the
-        independent corner noise it is set to assume (``corner_sigma_px``, 0.1 px: a tuning
-        that keeps it steady on analog video); its covariance is scaled per component by
-        how the corners' own covariances compare with that assumption over the last frames
-        (``ComponentRatio``), as a covariance scales with its measurements' variance."""
+        ``_corners_covariance_px2``, scaled by ``VarianceFactor``): the tilt's from the last
+        joint pose; yaw and position from the filter (without it, the joint pose's, whole).
+        The filter runs with the independent corner noise it is set to assume
+        (``corner_sigma_px``, 0.1 px: a tuning that keeps it steady on analog video); its
+        covariance is scaled per component by how the corners' own covariances compare with
+        that assumption over the last frames (``ComponentRatio``), as a covariance scales
+        with its measurements' variance."""
         angles = self._angles_covariance
         if angles is None:
             return None

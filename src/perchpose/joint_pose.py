@@ -45,13 +45,16 @@ class JointPose:
     """T_camera_target from all corners; covariance (6, 6) over (w, dt) for the corner noise
     it was computed with; reproj_rms_px over all corners; markers used; corners_covariance
     (6, 6) over (w, dt) for the corners' own covariance where one was given
-    (``sandwich_covariance``)."""
+    (``sandwich_covariance``); misfit: then also the residuals' squared length in that
+    covariance's metric, and what it would be on average were the covariance right
+    (``corner_misfit``)."""
 
     T_camera_target: Array
     covariance: Array
     reproj_rms_px: float
     markers: tuple[int, ...]
     corners_covariance: Array | None = None
+    misfit: tuple[float, float] = (math.nan, math.nan)
 
     @property
     def std(self) -> PoseUncertainty:
@@ -251,6 +254,28 @@ def solve_joint_pose(
     cov, own = _covariances(projected[1], w, rvec, corner_covariance_px2)
     if cov is None:
         return None
-    rms = float(np.sqrt(np.mean(np.sum((projected[0] - uv).reshape(-1, 2) ** 2, axis=1))))
+    residual = uv - projected[0]
+    rms = float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 2) ** 2, axis=1))))
     T = transform_from_rvec_tvec(rvec, tvec)
-    return JointPose(T, cov, rms, tuple(d.marker_index for d in detections), own)
+    misfit = (
+        (math.nan, math.nan)
+        if corner_covariance_px2 is None
+        else corner_misfit(projected[1], w, residual, corner_covariance_px2)
+    )
+    return JointPose(T, cov, rms, tuple(d.marker_index for d in detections), own, misfit)
+
+
+def corner_misfit(J: Array, w: Array, residual: Array, S: Array) -> tuple[float, float]:
+    """How well the corners' covariance ``S`` explains the fit's residuals: ``r^T S^-1 r``,
+    and its expected value were S right, ``trace(S^-1 M S M^T)`` with ``M = I - J H^-1 J^T W``
+    (the residuals of a fit weighted by ``w`` are M times the corners' errors). Their ratio
+    is the a-posteriori variance factor: about 1 where S is right, over 1 where the corners
+    err more than S says (blur, rolling shutter: errors the edge points' scatter misses).
+    (nan, nan) where S is singular."""
+    Jw = J * w[:, None]
+    M = np.eye(len(residual)) - J @ np.linalg.solve(J.T @ Jw, Jw.T)
+    try:
+        S_inv = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return math.nan, math.nan
+    return float(residual @ S_inv @ residual), float(np.trace(S_inv @ M @ S @ M.T))
