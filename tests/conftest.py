@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -75,6 +76,19 @@ def approach_webcam_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def approach_fpv_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The same approach through the equidistant FPV camera."""
     return _short_approach_dir(tmp_path_factory, "fpv")
+
+
+@pytest.fixture(scope="session")
+def track_argv() -> Callable[..., list[str]]:
+    """``perchpose track`` arguments: ``track_argv(frames_dir, out, *options, camera=...)``
+    reads the rendered sequence in ``frames_dir`` with its own ``camera.yaml`` (or
+    ``camera``), writes the track file ``out``, then the options."""
+
+    def argv(frames_dir: Path, out: Path, *options: str, camera: str | None = None) -> list[str]:
+        chosen = str(frames_dir / "camera.yaml") if camera is None else camera
+        return ["track", str(frames_dir), "--camera", chosen, "--out", str(out), *options]
+
+    return argv
 
 
 def _free_port(kind: socket.SocketKind) -> int:

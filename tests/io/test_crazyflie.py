@@ -7,6 +7,7 @@ the firmware's protocol-version handshake, so cflib picks today's setpoint encod
 import math
 import queue
 import struct
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -303,20 +304,14 @@ def test_bad_uri_and_settings() -> None:
 
 
 def test_cli_without_a_radio_is_one_line(
-    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    track_argv: Callable[..., list[str]],
 ) -> None:
     uri = "radio://0/80/2M/E7E7E7E7E7"
     code = main(
-        [
-            "track",
-            str(approach_fpv_dir),
-            "--camera",
-            "preset:fpv",
-            "--out",
-            str(tmp_path / "p.csv"),
-            "--crazyflie",
-            uri,
-        ]
+        track_argv(approach_fpv_dir, tmp_path / "p.csv", "--crazyflie", uri, camera="preset:fpv")
     )
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()

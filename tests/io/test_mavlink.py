@@ -3,6 +3,7 @@
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -87,24 +88,21 @@ def test_track_sends_one_landing_target_per_valid_row(
     approach_fpv_dir: Path,
     tmp_path: Path,
     udp_port: int,
+    track_argv: Callable[..., list[str]],
 ) -> None:
     receiver = Receiver(udp_port)
     out = tmp_path / "poses.csv"
     try:
         code = main(
-            [
-                "track",
-                str(approach_fpv_dir),
-                "--camera",
-                str(approach_fpv_dir / "camera.yaml"),
-                "--out",
-                str(out),
+            track_argv(
+                approach_fpv_dir,
+                out,
                 "--quiet",
                 "--mavlink",
                 f"udpout:127.0.0.1:{udp_port}",
                 "--mount",
                 "down",
-            ]
+            )
         )
     finally:
         receiver.stop()
@@ -308,20 +306,10 @@ def test_cli_refuses_landing_target_to_ardupilot_from_an_upward_camera(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     udp_port: int,
+    track_argv: Callable[..., list[str]],
 ) -> None:
     out = tmp_path / "p.csv"
-    code = main(
-        [
-            "track",
-            str(approach_fpv_dir),
-            "--camera",
-            str(approach_fpv_dir / "camera.yaml"),
-            "--out",
-            str(out),
-            "--mavlink",
-            f"udpout:127.0.0.1:{udp_port}",
-        ]
-    )
+    code = main(track_argv(approach_fpv_dir, out, "--mavlink", f"udpout:127.0.0.1:{udp_port}"))
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
@@ -330,19 +318,19 @@ def test_cli_refuses_landing_target_to_ardupilot_from_an_upward_camera(
 
 
 def test_cli_reports_a_bad_url(
-    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    track_argv: Callable[..., list[str]],
 ) -> None:
     code = main(
-        [
-            "track",
-            str(approach_fpv_dir),
-            "--camera",
-            "preset:fpv",
-            "--out",
-            str(tmp_path / "p.csv"),
+        track_argv(
+            approach_fpv_dir,
+            tmp_path / "p.csv",
             "--mavlink",
             "udpout:localhost",
-        ]
+            camera="preset:fpv",
+        )
     )
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()

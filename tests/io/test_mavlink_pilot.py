@@ -5,6 +5,7 @@ loopback that plays the vehicle: HEARTBEAT with its mode, ATTITUDE and LOCAL_POS
 import math
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -228,22 +229,19 @@ def test_track_flies_the_autopilot_and_hands_it_back_at_the_end(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     udp_port: int,
+    track_argv: Callable[..., list[str]],
 ) -> None:
     vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
     try:
         code = main(
-            [
-                "track",
-                str(approach_fpv_dir),
-                "--camera",
-                str(approach_fpv_dir / "camera.yaml"),
-                "--out",
-                str(tmp_path / "p.csv"),
+            track_argv(
+                approach_fpv_dir,
+                tmp_path / "p.csv",
                 "--quiet",
                 "--mavlink",
                 f"udpout:127.0.0.1:{udp_port}",
                 "--mavlink-pilot",
-            ]
+            )
         )
     finally:
         vehicle.stop()
@@ -260,18 +258,13 @@ def test_track_flies_the_autopilot_and_hands_it_back_at_the_end(
 
 
 def test_mavlink_pilot_needs_a_link(
-    approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    track_argv: Callable[..., list[str]],
 ) -> None:
     code = main(
-        [
-            "track",
-            str(approach_fpv_dir),
-            "--camera",
-            "preset:fpv",
-            "--out",
-            str(tmp_path / "p.csv"),
-            "--mavlink-pilot",
-        ]
+        track_argv(approach_fpv_dir, tmp_path / "p.csv", "--mavlink-pilot", camera="preset:fpv")
     )
     assert code == 2
     assert "--mavlink-pilot needs --mavlink" in capsys.readouterr().err

@@ -5,6 +5,7 @@ import math
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -108,7 +109,9 @@ def receive(sock: socket.socket, seconds: float) -> bytes:
     return data
 
 
-def test_track_sends_one_per_valid_row(approach_fpv_dir: Path, tmp_path: Path) -> None:
+def test_track_sends_one_per_valid_row(
+    approach_fpv_dir: Path, tmp_path: Path, track_argv: Callable[..., list[str]]
+) -> None:
     """Through the CLI: each valid frame's covariance goes out as TARGET_RELATIVE, its
     standard deviations the track file's own (a downward camera: x and y swap in FRD)."""
     out = tmp_path / "poses.csv"
@@ -126,20 +129,16 @@ def test_track_sends_one_per_valid_row(approach_fpv_dir: Path, tmp_path: Path) -
         collector.start()
         try:
             code = main(
-                [
-                    "track",
-                    str(approach_fpv_dir),
-                    "--camera",
-                    str(approach_fpv_dir / "camera.yaml"),
-                    "--out",
-                    str(out),
+                track_argv(
+                    approach_fpv_dir,
+                    out,
                     "--quiet",
                     "--mavlink",
                     f"udpout:127.0.0.1:{vehicle.getsockname()[1]}",
                     "--mount",
                     "down",
                     "--mavlink-target-relative",
-                ]
+                )
             )
             time.sleep(0.3)
         finally:

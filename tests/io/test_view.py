@@ -6,6 +6,7 @@ import json
 import struct
 import subprocess
 import sys
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -103,23 +104,15 @@ def test_without_view_nothing_of_it_is_imported() -> None:
 
 
 def test_track_serves_the_view_while_it_runs(
-    approach_webcam_dir: Any, tmp_path: Any, capsys: pytest.CaptureFixture[str]
+    approach_webcam_dir: Any,
+    tmp_path: Any,
+    capsys: pytest.CaptureFixture[str],
+    track_argv: Callable[..., list[str]],
 ) -> None:
     from perchpose.cli import main
 
     code = main(
-        [
-            "track",
-            str(approach_webcam_dir),
-            "--camera",
-            str(approach_webcam_dir / "camera.yaml"),
-            "--out",
-            str(tmp_path / "p.csv"),
-            "--quiet",
-            "--view",
-            "--view-port",
-            "0",
-        ]
+        track_argv(approach_webcam_dir, tmp_path / "p.csv", "--quiet", "--view", "--view-port", "0")
     )
     assert code == 0
     assert "live view for Foxglove at ws://127.0.0.1:" in capsys.readouterr().err
