@@ -661,27 +661,23 @@ def _without_stray_corners(
 ) -> tuple[list[BoardView], Solution, dict[str, int]]:
     """Leave the corner that stands out most in each view (``stray_corners``) out and solve
     again, for up to ``STRAY_ROUNDS`` rounds; a view keeps at least
-    ``MIN_CORNERS_PER_VIEW`` corners (its best), and a solve that fails keeps the last one.
-    Returns the views, the solution and how many corners each view lost."""
+    ``MIN_CORNERS_PER_VIEW`` corners, and a solve that fails keeps the last one. Returns the
+    views, the solution and how many corners each view lost."""
     lost: dict[str, int] = {}
     for _ in range(STRAY_ROUNDS):
         stray = stray_corners(solution.errors_px)
-        if not stray:
-            break
         trimmed = []
         lost_now: dict[str, int] = {}
         for view in views:
             out = stray.get(view.name)
-            if out is not None and int(np.count_nonzero(~out)) < MIN_CORNERS_PER_VIEW:
-                order = np.argsort(solution.errors_px[view.name], kind="stable")
-                out = np.ones_like(out)
-                out[order[:MIN_CORNERS_PER_VIEW]] = False
-            if out is None or not out.any():
+            if out is None or out.size - int(np.count_nonzero(out)) < MIN_CORNERS_PER_VIEW:
                 trimmed.append(view)
                 continue
             keep = ~out
             trimmed.append(replace(view, corners_px=view.corners_px[keep], ids=view.ids[keep]))
             lost_now[view.name] = int(np.count_nonzero(out))
+        if not lost_now:  # no strays, or none a view can spare
+            break
         again, _ = _try_solve(trimmed, board, size, model, name)
         if again is None:
             break
