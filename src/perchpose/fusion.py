@@ -397,51 +397,53 @@ class CornerNoise:
         return max(self.floor_px2, self.sum_px2 / self.dof)
 
 
-class ComponentRatio:
-    """Per component (yaw, x, y, z), the ratio of the variances the corners' own covariances
-    give a joint pose to those the filter's assumed corner noise gives it, pooled over frames
-    that fade with a time constant of ``frames`` frames (1 before any frame)."""
+class PooledRatio:
+    """Per component, the ratio of two sums that fade with a time constant of ``frames``
+    frames (1 before any frame, and where the denominator's sum is not positive); a frame
+    with a non-finite value is left out."""
 
-    def __init__(self, frames: float = 30.0) -> None:
+    def __init__(self, components: int, frames: float = 30.0) -> None:
         self.keep = math.exp(-1.0 / frames)
-        self.own = np.zeros(4)
-        self.assumed = np.zeros(4)
+        self.numerator = np.zeros(components)
+        self.denominator = np.zeros(components)
 
-    def add(self, own: Array, assumed: Array) -> None:
-        """One frame's variances (4,): from the corners' own covariances, and from the
-        filter's assumed noise."""
-        if not (np.all(np.isfinite(own)) and np.all(np.isfinite(assumed))):
+    def add(self, numerator: Array | float, denominator: Array | float) -> None:
+        """One frame's values (components,), or a number for one component."""
+        if not (np.all(np.isfinite(numerator)) and np.all(np.isfinite(denominator))):
             return
-        self.own = self.keep * self.own + own
-        self.assumed = self.keep * self.assumed + assumed
+        self.numerator = self.keep * self.numerator + numerator
+        self.denominator = self.keep * self.denominator + denominator
 
     @property
     def ratio(self) -> Array:
-        """(4,) own over assumed."""
-        out: Array = np.where(self.assumed > 0, self.own / np.maximum(self.assumed, 1e-300), 1.0)
+        """(components,) the pooled numerator over the pooled denominator."""
+        positive = self.denominator > 0
+        out: Array = np.where(
+            positive, self.numerator / np.where(positive, self.denominator, 1.0), 1.0
+        )
         return out
 
 
-class VarianceFactor:
-    """The corners' covariance's a-posteriori variance factor (``joint_pose.corner_misfit``)
-    pooled over frames that fade with a time constant of ``frames`` frames: the observed
-    squared residuals over their expected value, never under 1 (1 before any frame)."""
+class ComponentRatio(PooledRatio):
+    """Per component (yaw, x, y, z), the ratio of the variances the corners' own covariances
+    give a joint pose to those the filter's assumed corner noise gives it, pooled over frames
+    (``add(own, assumed)``)."""
 
     def __init__(self, frames: float = 30.0) -> None:
-        self.keep = math.exp(-1.0 / frames)
-        self.observed = 0.0
-        self.expected = 0.0
+        super().__init__(4, frames)
 
-    def add(self, observed: float, expected: float) -> None:
-        """One frame's misfit: observed and expected ``r^T S^-1 r``."""
-        if not (math.isfinite(observed) and math.isfinite(expected) and expected > 0):
-            return
-        self.observed = self.keep * self.observed + observed
-        self.expected = self.keep * self.expected + expected
+
+class VarianceFactor(PooledRatio):
+    """The corners' covariance's a-posteriori variance factor (``joint_pose.corner_misfit``)
+    pooled over frames (``add(observed, expected)``, each frame's ``r^T S^-1 r`` and its
+    expected value): the observed over the expected, never under 1 (1 before any frame)."""
+
+    def __init__(self, frames: float = 30.0) -> None:
+        super().__init__(1, frames)
 
     @property
     def factor(self) -> float:
-        return max(1.0, self.observed / self.expected) if self.expected > 0 else 1.0
+        return max(1.0, float(self.ratio[0]))
 
 
 class CovarianceFusion:
