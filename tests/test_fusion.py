@@ -187,18 +187,6 @@ def test_corner_noise_pools_the_residuals_and_forgets_slowly() -> None:
     assert quiet.variance_px2 == before
 
 
-def test_component_ratio_pools_own_over_assumed() -> None:
-    """1 before any frame; then the faded sums' ratio per component."""
-    from perchpose.fusion import ComponentRatio
-
-    ratio = ComponentRatio(frames=30.0)
-    assert np.allclose(ratio.ratio, 1.0)
-    for _ in range(100):
-        ratio.add(np.array([4.0, 1.0, 0.25, 9.0]), np.ones(4))
-    ratio.add(np.array([np.nan, 1.0, 1.0, 1.0]), np.ones(4))  # a degenerate frame: left out
-    assert np.allclose(ratio.ratio, [4.0, 1.0, 0.25, 9.0])
-
-
 def test_variance_factor_is_pooled_and_never_under_one() -> None:
     from perchpose.fusion import VarianceFactor
 

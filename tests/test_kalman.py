@@ -13,6 +13,7 @@ from perchpose.kalman import (
     MarkerTrack,
     PaperKalmanFilter,
     transition,
+    white_acceleration_noise,
 )
 
 
@@ -153,6 +154,55 @@ def test_covariance_track_weighs_measurements_by_their_covariance() -> None:
     for f in (precise.filter, noisy.filter):
         np.testing.assert_allclose(f.P, f.P.T, atol=1e-15)
         assert np.all(np.linalg.eigvalsh(f.P) > 0)
+
+
+def test_actual_covariance_is_the_filters_when_the_noise_is_as_assumed() -> None:
+    """Told the measurements' actual covariance is the one it assumes, the track's actual
+    pose covariance is its own; without an actual covariance it has none."""
+    R = np.diag([1e-5, 4e-6, 4e-6, 9e-6])
+    told, untold = (
+        CovarianceTrack(CovarianceFilterSettings()),
+        CovarianceTrack(CovarianceFilterSettings()),
+    )
+    for k in range(20):
+        z = np.array([0.1, 0.01 * k, 0.0, 1.0])
+        told.measured(z, R, k / 30, R)
+        untold.measured(z, R, k / 30)
+    assert told.actual_pose_covariance is not None
+    assert told.pose_covariance is not None
+    np.testing.assert_allclose(told.actual_pose_covariance, told.pose_covariance, rtol=1e-12)
+    assert untold.actual_pose_covariance is None
+
+
+def test_actual_covariance_matches_the_errors_of_a_mistuned_filter() -> None:
+    """A filter that assumes 20 times the measurements' actual variance, on motion drawn from
+    its own white-acceleration model: its errors spread as the actual covariance says (within
+    10 % in standard deviation over 400 seeded tracks), while its own covariance is far off."""
+    settings = CovarianceFilterSettings()
+    q = np.array([settings.q_yaw, settings.q_position, settings.q_position, settings.q_position])
+    dt = 1 / 30
+    R_actual = np.diag([1e-6, 2.5e-7, 2.5e-7, 1e-6])
+    R_assumed = 20.0 * R_actual
+    Q = white_acceleration_noise(dt, q)
+    F = transition(dt)
+    rng = np.random.default_rng(3)
+    errors, actual, own = [], [], []
+    for _ in range(400):
+        track = CovarianceTrack(settings)
+        x = np.zeros(8)
+        x[6] = 1.0
+        for k in range(40):
+            if k:
+                x = F @ x + rng.multivariate_normal(np.zeros(8), Q)
+            z = H @ x + rng.multivariate_normal(np.zeros(4), R_actual)
+            track.measured(z, R_assumed, k * dt, R_actual)
+        assert track.pose is not None
+        errors.append(track.pose - H @ x)
+        actual.append(np.sqrt(np.diag(track.actual_pose_covariance)))
+        own.append(np.sqrt(np.diag(track.pose_covariance)))
+    spread = np.std(np.array(errors) / np.array(actual), axis=0)
+    assert np.all(np.abs(spread - 1.0) < 0.1), spread
+    assert np.all(np.std(np.array(errors) / np.array(own), axis=0) < 0.7)
 
 
 def test_covariance_track_wraps_yaw_and_follows_constant_velocity() -> None:

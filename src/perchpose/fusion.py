@@ -397,53 +397,29 @@ class CornerNoise:
         return max(self.floor_px2, self.sum_px2 / self.dof)
 
 
-class PooledRatio:
-    """Per component, the ratio of two sums that fade with a time constant of ``frames``
-    frames (1 before any frame, and where the denominator's sum is not positive); a frame
-    with a non-finite value is left out."""
-
-    def __init__(self, components: int, frames: float = 30.0) -> None:
-        self.keep = math.exp(-1.0 / frames)
-        self.numerator = np.zeros(components)
-        self.denominator = np.zeros(components)
-
-    def add(self, numerator: Array | float, denominator: Array | float) -> None:
-        """One frame's values (components,), or a number for one component."""
-        if not (np.all(np.isfinite(numerator)) and np.all(np.isfinite(denominator))):
-            return
-        self.numerator = self.keep * self.numerator + numerator
-        self.denominator = self.keep * self.denominator + denominator
-
-    @property
-    def ratio(self) -> Array:
-        """(components,) the pooled numerator over the pooled denominator."""
-        positive = self.denominator > 0
-        out: Array = np.where(
-            positive, self.numerator / np.where(positive, self.denominator, 1.0), 1.0
-        )
-        return out
-
-
-class ComponentRatio(PooledRatio):
-    """Per component (yaw, x, y, z), the ratio of the variances the corners' own covariances
-    give a joint pose to those the filter's assumed corner noise gives it, pooled over frames
-    (``add(own, assumed)``)."""
-
-    def __init__(self, frames: float = 30.0) -> None:
-        super().__init__(4, frames)
-
-
-class VarianceFactor(PooledRatio):
+class VarianceFactor:
     """The corners' covariance's a-posteriori variance factor (``joint_pose.corner_misfit``)
     pooled over frames (``add(observed, expected)``, each frame's ``r^T S^-1 r`` and its
-    expected value): the observed over the expected, never under 1 (1 before any frame)."""
+    expected value, both sums fading with a time constant of ``frames`` frames): the observed
+    over the expected, never under 1 (1 before any frame); a frame with a non-finite value is
+    left out."""
 
     def __init__(self, frames: float = 30.0) -> None:
-        super().__init__(1, frames)
+        self.keep = math.exp(-1.0 / frames)
+        self.observed = 0.0
+        self.expected = 0.0
+
+    def add(self, observed: float, expected: float) -> None:
+        if not (math.isfinite(observed) and math.isfinite(expected)):
+            return
+        self.observed = self.keep * self.observed + observed
+        self.expected = self.keep * self.expected + expected
 
     @property
     def factor(self) -> float:
-        return max(1.0, float(self.ratio[0]))
+        if not self.expected > 0:
+            return 1.0
+        return max(1.0, self.observed / self.expected)
 
 
 class CovarianceFusion:
@@ -464,7 +440,6 @@ class CovarianceFusion:
         self.use_filter = use_filter
         self.track = CovarianceTrack(settings)
         self.noise = CornerNoise(settings.corner_sigma_px)
-        self.ratio = ComponentRatio()
         self.misfit = VarianceFactor()
         # the target's tilt from the last joint pose, and that pose's covariance over
         # [roll, pitch, yaw, x, y, z]
@@ -540,8 +515,7 @@ class CovarianceFusion:
                 scale = self.noise.variance_px2 / self.settings.corner_sigma_px**2
                 from_corners = covariance * scale
             assumed = J @ covariance @ J.T
-            self.track.measured(measured, assumed, t_s)
-            self.ratio.add(np.diag(J @ from_corners @ J.T), np.diag(assumed))
+            self.track.measured(measured, assumed, t_s, J @ from_corners @ J.T)
             self._tilt = tilt_rad(T[:3, :3])
             self._angles_covariance = angles_covariance(T, from_corners)
         filtered = self.track.pose if stage != STAGE_NONE else None
@@ -557,18 +531,17 @@ class CovarianceFusion:
         joint pose; yaw and position from the filter (without it, the joint pose's, whole).
         The filter runs with the independent corner noise it is set to assume
         (``corner_sigma_px``, 0.1 px: a tuning that keeps it steady on analog video); its
-        covariance is scaled per component by how the corners' own covariances compare with
-        that assumption over the last frames (``ComponentRatio``), as a covariance scales
-        with its measurements' variance."""
+        gains come from that, and the covariance reported is the one its errors have when the
+        measurements' noise is what the corners say while the gains stay those
+        (``CovarianceTrack.actual_pose_covariance``), with the filter's own motion model."""
         angles = self._angles_covariance
         if angles is None:
             return None
         if self.use_filter:
-            filtered = self.track.pose_covariance
+            filtered = self.track.actual_pose_covariance
             if filtered is None:
                 return None
-            root = np.sqrt(self.ratio.ratio)
             angles = angles.copy()
             angles[2:, :] = angles[:, 2:] = 0.0  # the tilt keeps its own block
-            angles[2:, 2:] = root[:, None] * filtered * root[None, :]
+            angles[2:, 2:] = filtered
         return camera_covariance(float(pose[0]), self._tilt[1], angles)

@@ -97,13 +97,18 @@ class ConstantVelocityFilter:
     x : (8,) state [psi, psi_dot, tx, tx_dot, ty, ty_dot, tz, tz_dot]; P : (8, 8) covariance.
     x_prior, P_prior : after the last predict. y : (4,) the last innovation (yaw wrapped),
     S : (4, 4) its covariance.
+    P_actual : with ``P0_actual``, the state's covariance when the measurements' noise is
+    what ``update_with`` is told it actually is (``R_actual``) while the gains stay those of
+    ``R``: the same recursion with the filter's own gains (a fixed-gain filter's error
+    covariance, as in a Kalman filter's sensitivity analysis); None otherwise.
     """
 
-    def __init__(self, z: Array, P0: Array) -> None:
+    def __init__(self, z: Array, P0: Array, P0_actual: Array | None = None) -> None:
         self.x = np.zeros(8)
         self.x[[0, 2, 4, 6]] = z
         self.x[0] = wrap_angle_rad(float(z[0]))
         self.P = np.asarray(P0, dtype=np.float64).copy()
+        self.P_actual = None if P0_actual is None else np.asarray(P0_actual, np.float64).copy()
         self.x_prior = self.x.copy()
         self.P_prior = self.P.copy()
         self.y = np.zeros(4)
@@ -115,6 +120,8 @@ class ConstantVelocityFilter:
         self.x = F @ self.x
         self.x[0] = wrap_angle_rad(float(self.x[0]))
         self.P = F @ self.P @ F.T + Q
+        if self.P_actual is not None:
+            self.P_actual = F @ self.P_actual @ F.T + Q
         self.x_prior = self.x.copy()
         self.P_prior = self.P.copy()
 
@@ -125,15 +132,18 @@ class ConstantVelocityFilter:
         y[0] = angle_diff_rad(float(z[0]), float(self.x[0]))
         return y, H @ self.P @ H.T + R
 
-    def update_with(self, z: Array, R: Array) -> None:
+    def update_with(self, z: Array, R: Array, R_actual: Array | None = None) -> None:
         """Correct with z = [psi, tx, ty, tz] of covariance R (4, 4); the yaw innovation is
-        wrapped. The Joseph form keeps P symmetric and positive definite."""
+        wrapped. The Joseph form keeps P symmetric and positive definite. ``R_actual``: the
+        measurement's actual covariance, carried into ``P_actual`` with the same gain."""
         y, S = self.innovation(z, R)
         K = np.linalg.solve(S, H @ self.P).T
         self.x = self.x + K @ y
         self.x[0] = wrap_angle_rad(float(self.x[0]))
         I_KH = np.eye(8) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
+        if self.P_actual is not None and R_actual is not None:
+            self.P_actual = I_KH @ self.P_actual @ I_KH.T + K @ R_actual @ K.T
         self.y = y
         self.S = S
 
@@ -220,7 +230,9 @@ class Track(ABC):
         return t_s - self.t_measured_s > self.max_coast_s + _TIME_SLACK_S
 
     @abstractmethod
-    def _start(self, z: Array, R: Array | None) -> ConstantVelocityFilter:
+    def _start(
+        self, z: Array, R: Array | None, R_actual: Array | None = None
+    ) -> ConstantVelocityFilter:
         """The first filter of a track."""
 
     @abstractmethod
@@ -231,18 +243,20 @@ class Track(ABC):
     def _coast(self, dt_s: float) -> None:
         """Predict by ``dt_s`` without a measurement."""
 
-    def _measure(self, z: Array, R: Array | None, t_s: float) -> None:
+    def _measure(
+        self, z: Array, R: Array | None, t_s: float, R_actual: Array | None = None
+    ) -> None:
         if self.filter is None or self._too_old(t_s):
-            self.filter = self._start(z, R)
+            self.filter = self._start(z, R, R_actual)
         else:
             self._coast(t_s - self.t_s)
             R_used = self._noise(R)
             y, S = self.filter.innovation(z, R_used)
             if float(y @ np.linalg.solve(S, y)) > self.reinit_chi2:
-                self.filter = self._start(z, R)
+                self.filter = self._start(z, R, R_actual)
                 self.reinitialised += 1
             else:
-                self.filter.update_with(z, R_used)
+                self.filter.update_with(z, R_used, R_actual)
         self.t_s = self.t_measured_s = t_s
         self.missed = 0
 
@@ -272,7 +286,7 @@ class MarkerTrack(Track):
         super().__init__(settings.alpha, settings.n_max, settings.max_coast_s, settings.reinit_chi2)
         self.settings = settings
 
-    def _start(self, z: Array, R: Array | None) -> PaperKalmanFilter:
+    def _start(self, z: Array, R: Array | None, R_actual: Array | None = None) -> PaperKalmanFilter:
         return PaperKalmanFilter(z, self.settings)
 
     def _noise(self, R: Array | None) -> Array:
@@ -338,12 +352,13 @@ class CovarianceTrack(Track):
         self._q = np.array([settings.q_yaw, settings.q_position, settings.q_position,
                             settings.q_position])  # fmt: skip
 
-    def _start(self, z: Array, R: Array | None) -> ConstantVelocityFilter:
+    def _start(
+        self, z: Array, R: Array | None, R_actual: Array | None = None
+    ) -> ConstantVelocityFilter:
         assert R is not None
-        P0 = np.zeros((8, 8))
-        P0[np.ix_([0, 2, 4, 6], [0, 2, 4, 6])] = R
-        P0[_VELOCITIES, _VELOCITIES] = 1.0
-        return ConstantVelocityFilter(z, P0)
+        return ConstantVelocityFilter(
+            z, _first_covariance(R), None if R_actual is None else _first_covariance(R_actual)
+        )
 
     def _coast(self, dt_s: float) -> None:
         assert self.filter is not None
@@ -353,9 +368,28 @@ class CovarianceTrack(Track):
         assert R is not None
         return R
 
-    def measured(self, z: Array, R: Array, t_s: float) -> None:
-        """A measurement z = [psi, tx, ty, tz] with covariance R (4, 4) at ``t_s``."""
-        self._measure(z, R, t_s)
+    def measured(self, z: Array, R: Array, t_s: float, R_actual: Array | None = None) -> None:
+        """A measurement z = [psi, tx, ty, tz] with covariance R (4, 4) at ``t_s``; with
+        ``R_actual``, what its covariance actually is (``actual_pose_covariance``)."""
+        self._measure(z, R, t_s, R_actual)
+
+    @property
+    def actual_pose_covariance(self) -> Array | None:
+        """(4, 4) covariance of ``pose`` for the measurements' actual covariances (each
+        ``R_actual``) through the gains their assumed ones gave, or None where the track has
+        none (no track, or one started without ``R_actual``)."""
+        if self.filter is None or self.filter.P_actual is None:
+            return None
+        return np.asarray(H @ self.filter.P_actual @ H.T)
+
+
+def _first_covariance(R: Array) -> Array:
+    """A track's first state covariance (8, 8): the measurement's R for the pose, 1 for each
+    velocity (m^2/s^2, rad^2/s^2: unknown)."""
+    P0 = np.zeros((8, 8))
+    P0[np.ix_([0, 2, 4, 6], [0, 2, 4, 6])] = R
+    P0[_VELOCITIES, _VELOCITIES] = 1.0
+    return P0
 
 
 class MarkerFilters:

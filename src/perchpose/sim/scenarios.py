@@ -110,6 +110,44 @@ def approach(
     return Scenario("approach", t, poses, dropout, quality or ImageQuality())
 
 
+def random_motion(
+    seed: int,
+    duration_s: float = 5.0,
+    fps: float = 30.0,
+    centre: tuple[float, float, float, float] = (0.0, 0.0, 0.8, 0.3),
+    q: tuple[float, float, float, float] = (0.05, 0.05, 0.05, 0.5),
+    spring_rad_s: float = 1.0,
+    quality: ImageQuality | None = None,
+) -> Scenario:
+    """A target that moves as the fused pose's filter assumes a target moves: white-noise
+    acceleration of spectral densities ``q`` (x, y, z in m^2/s^3, yaw in rad^2/s^3; the
+    defaults are ``CovarianceFilterSettings``'), held about ``centre`` (x, y, z in m, yaw in
+    rad) by a weak spring of ``spring_rad_s`` (damping 0.7) so that it stays in view: with the
+    defaults each axis wanders by about 13 cm (yaw by 0.4 rad) about the centre, while over a
+    frame's few tens of milliseconds it moves as the filter's model. A fixed tilt of a couple
+    of degrees; integrated at 20 steps a frame; seeded."""
+    if duration_s <= 0 or fps <= 0 or spring_rad_s <= 0 or min(q) < 0:
+        raise ScenarioError("duration, fps and spring must be positive and q not negative")
+    n = max(2, int(round(duration_s * fps)))
+    rng = np.random.default_rng(seed)
+    sub = 20
+    dt = 1.0 / (fps * sub)
+    home = np.array([centre[3], centre[0], centre[1], centre[2]])  # yaw, x, y, z
+    kick = np.sqrt(np.array([q[3], q[0], q[1], q[2]]) / dt)
+    p, v = home.copy(), np.zeros(4)
+    poses = []
+    for _ in range(n):
+        for _ in range(sub):
+            a = -(spring_rad_s**2) * (p - home) - 1.4 * spring_rad_s * v
+            v = v + (a + kick * rng.standard_normal(4)) * dt
+            p = p + v * dt
+        poses.append(facing_pose(p[1], p[2], p[3], wrap_angle_rad(p[0]), 0.03, -0.02))
+    t = np.arange(n) / fps
+    return Scenario(
+        "random motion", t, np.stack(poses), np.zeros(n, bool), quality or ImageQuality()
+    )
+
+
 def static_grid(
     frames_per_pose: int = 5,
     fps: float = 30.0,
