@@ -135,15 +135,17 @@ class ConstantVelocityFilter:
     def update_with(self, z: Array, R: Array, R_actual: Array | None = None) -> None:
         """Correct with z = [psi, tx, ty, tz] of covariance R (4, 4); the yaw innovation is
         wrapped. The Joseph form keeps P symmetric and positive definite. ``R_actual``: the
-        measurement's actual covariance, carried into ``P_actual`` with the same gain."""
+        measurement's actual covariance, carried into ``P_actual`` with the same gain (R
+        where it is not given)."""
         y, S = self.innovation(z, R)
         K = np.linalg.solve(S, H @ self.P).T
         self.x = self.x + K @ y
         self.x[0] = wrap_angle_rad(float(self.x[0]))
         I_KH = np.eye(8) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
-        if self.P_actual is not None and R_actual is not None:
-            self.P_actual = I_KH @ self.P_actual @ I_KH.T + K @ R_actual @ K.T
+        if self.P_actual is not None:
+            R_a = R if R_actual is None else R_actual
+            self.P_actual = I_KH @ self.P_actual @ I_KH.T + K @ R_a @ K.T
         self.y = y
         self.S = S
 
