@@ -154,6 +154,8 @@ def test_unstable_gains_are_refused() -> None:
         ControllerSettings(k_xy=3.0, commit_gain=3.0)  # stable, but not stiffened for the climb
     with pytest.raises(ControllerConfigError, match="must be positive"):
         ControllerSettings(max_z_mps=-1.0)
+    with pytest.raises(ControllerConfigError, match="commit_observer_rate = 40"):
+        ControllerSettings(commit_observer_rate=40.0)
 
 
 def test_mount_file(tmp_path: Path) -> None:
@@ -208,6 +210,19 @@ def test_the_last_centimetres_are_flown_on_odometry() -> None:
     assert blind.phase == "commit"
     assert blind.v_mps[0] == pytest.approx(-s.k_xy * s.commit_gain * 0.005, abs=2e-3)
     assert blind.v_mps[2] == pytest.approx(s.commit_speed_mps)
+
+
+def test_the_observer_is_faster_only_in_the_final_climb() -> None:
+    s = ControllerSettings()
+    c = PerchingController(s)
+    rates = []
+    for k in range(5):
+        t = k / 30
+        c.update(_seen(s, [0.0, 0.0, 0.05 if k >= 2 else 0.3], t), t, np.eye(3), _odometry(t))
+        rates.append((c.phase, c._observer.rate))
+    assert rates[0] == ("climb", s.observer_rate)
+    assert rates[-1] == ("commit", s.commit_observer_rate)
+    assert s.commit_observer_rate > s.observer_rate
 
 
 def test_a_climb_out_of_the_cone_backs_off_and_gives_up_after_its_tries() -> None:

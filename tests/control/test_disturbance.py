@@ -55,3 +55,19 @@ def test_the_offset_stays_within_its_clamp() -> None:
     # anti-windup: once the push is gone the estimate comes back within a second
     _fly(observer, np.zeros(3), np.zeros(3), 1.0)
     assert np.abs(observer.offset_mps).max() < 0.05
+
+
+def test_faster_poles_cancel_a_new_push_sooner() -> None:
+    """Moving the poles keeps the estimates and changes how fast a new push is taken out:
+    after 0.2 s of a sudden push the faster observer has left less of it uncancelled."""
+    push = np.array([0.4, 0.0, 0.0])
+    residual = {}
+    for rate in (5.0, 12.0):
+        observer = DisturbanceObserver(K_V, 2.0, (0.6, 0.6, 0.3))
+        _fly(observer, np.zeros(3), np.zeros(3), 1.0)
+        observer.rate = rate
+        assert observer.l2 == rate * rate
+        assert observer.l1 == 2.0 * rate - K_V
+        _fly(observer, push, np.zeros(3), 0.2)
+        residual[rate] = float(push[0] - observer.a_mps2[0])
+    assert 0.0 <= residual[12.0] < 0.5 * residual[5.0]

@@ -84,7 +84,10 @@ class ControllerSettings:
     flown on. fix_weight : the weight of a new fix against the held position (the target does
     not move; the odometry drifts slowly). onboard_velocity_gain : the flight controller's
     velocity-loop gain, 1/s (its model in the disturbance observer). observer_rate : the
-    observer's poles, rad/s (0: no observer). max_disturbance_xy_mps, max_disturbance_z_mps :
+    observer's poles, rad/s (0: no observer). commit_observer_rate : its poles during the
+    final climb (0: observer_rate): faster there, where a gust has a few tenths of a second to
+    push the magnet aside, and the climb ends before the oscillation that a fast observer
+    brings across a long approach can build. max_disturbance_xy_mps, max_disturbance_z_mps :
     the largest setpoint offset it may add. k_i_xy :
     integral gain on the lateral position error, 1/s^2 (with k_xy, a critically damped loop):
     it removes what the velocity integrator cannot see, a bias of the odometry's own velocity;
@@ -121,6 +124,7 @@ class ControllerSettings:
     hold_target_s: float = 1.0
     onboard_velocity_gain: float = 4.3
     observer_rate: float = 12.0
+    commit_observer_rate: float = 18.0
     k_i_xy: float = 1.5
     max_integral_xy_mps: float = 0.1
     integrate_within_m: float = 0.03
@@ -177,6 +181,11 @@ class ControllerSettings:
             raise ControllerConfigError(
                 f"k_i_xy must be between 0 and k_xy^2 = {self.k_xy**2:.2f} /s^2 "
                 f"(an oscillating loop beyond), got {self.k_i_xy}"
+            )
+        if not 0 <= self.commit_observer_rate * self.camera_period_s < 1.0:
+            raise ControllerConfigError(
+                f"commit_observer_rate = {self.commit_observer_rate} rad/s must be >= 0 and "
+                f"under {1.0 / self.camera_period_s:.1f} rad/s at this camera period"
             )
         if not 0 <= self.observer_rate * self.camera_period_s < 0.5:
             raise ControllerConfigError(
@@ -371,6 +380,8 @@ class PerchingController:
         if odometry is None or s.observer_rate == 0:
             return v_cmd
         previous = self._last_sp if self._last_sp is not None else np.zeros(3)
+        fast = self.phase == "commit" and s.commit_observer_rate > 0
+        self._observer.rate = s.commit_observer_rate if fast else s.observer_rate
         self._observer.update(previous, odometry.v_mps, dt)
         v_sp = v_cmd + self._observer.offset_mps
         self._last_sp = v_sp

@@ -29,11 +29,23 @@ class DisturbanceObserver:
         self, velocity_gain: float, rate: float, max_offset_mps: tuple[float, float, float]
     ) -> None:
         self.k_v = velocity_gain
-        self.l1 = max(0.0, 2.0 * rate - velocity_gain)
-        self.l2 = rate * rate
+        self.l1 = self.l2 = 0.0
+        self.rate = rate
         self.max_offset_mps = np.asarray(max_offset_mps, np.float64)
         self.v_mps: Array | None = None
         self.a_mps2 = np.zeros(3)
+
+    @property
+    def rate(self) -> float:
+        """The observer's error poles, rad/s."""
+        return self._rate
+
+    @rate.setter
+    def rate(self, rate: float) -> None:
+        """Move the poles (the estimates carry on from where they are)."""
+        self._rate = rate
+        self.l1 = max(0.0, 2.0 * rate - self.k_v)
+        self.l2 = rate * rate
 
     @property
     def offset_mps(self) -> Array:
