@@ -29,8 +29,7 @@ class DisturbanceObserver:
         self, velocity_gain: float, rate: float, max_offset_mps: tuple[float, float, float]
     ) -> None:
         self.k_v = velocity_gain
-        self.l1 = self.l2 = 0.0
-        self.rate = rate
+        self.rate = rate  # sets the gains l1, l2
         self.max_offset_mps = np.asarray(max_offset_mps, np.float64)
         self.v_mps: Array | None = None
         self.a_mps2 = np.zeros(3)
