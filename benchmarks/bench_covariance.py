@@ -21,12 +21,11 @@ checked.
 from __future__ import annotations
 
 import argparse
-import math
 
 import numpy as np
 
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
-from perchpose.geometry import yaw_rad
+from perchpose.evaluation.metrics import normalised_error
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import Scenario, approach, random_motion
 
@@ -73,9 +72,7 @@ def main() -> None:
                 e = estimator.update(image, float(scenario.t_s[i]))
                 if i < settle or not e.valid or e.predicted:
                     continue
-                yaw_error = math.remainder(e.yaw_rad - yaw_rad(T[:3, :3]), 2 * math.pi)
-                d = np.array([*(e.t_m - T[:3, 3]), yaw_error])
-                rows.append(d / np.array(e.std))
+                rows.append(normalised_error(e, T))
             normalised[use_filter].append(np.array(rows))
     name = (
         "random motion" if args.random_motion else "demo approach" if args.demo else "3 s approach"

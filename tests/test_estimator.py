@@ -7,7 +7,8 @@ import pytest
 
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.errors import ImageError, TimestampError
-from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
+from perchpose.evaluation.metrics import normalised_error
+from perchpose.geometry import facing_pose, wrap_angle_deg
 from perchpose.io.sources import open_source
 from perchpose.sim.render import Renderer
 from perchpose.sim.scenarios import markers_in_view, random_motion
@@ -410,8 +411,7 @@ def test_the_filtered_covariance_follows_the_spread_on_motion_the_filter_models(
         e = est.update(r.render(T, rng=rng), float(scenario.t_s[k]))
         if k < 10 or not e.valid or e.predicted:
             continue
-        yaw_error = math.remainder(e.yaw_rad - yaw_rad(T[:3, :3]), 2 * math.pi)
-        normalised.append(np.array([*(e.t_m - T[:3, 3]), yaw_error]) / np.array(e.std))
+        normalised.append(normalised_error(e, T))
     spread = np.array(normalised).std(axis=0)
     assert len(normalised) > 100
     assert np.all((spread > 0.75) & (spread < 1.25)), spread

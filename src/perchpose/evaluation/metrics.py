@@ -9,7 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import PerchposeError
-from perchpose.geometry import wrap_angle_deg
+from perchpose.geometry import wrap_angle_deg, yaw_rad
+from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
 
@@ -35,6 +36,17 @@ class FrameErrors:
     yaw_error_deg: Array
     z_true_cm: Array
     predicted: NDArray[np.bool_]
+
+
+def normalised_error(estimate: Estimate, T_camera_target: Array) -> Array:
+    """(4,) the estimate's x, y, z and yaw errors against the true pose ``T_camera_target``,
+    each over the standard deviation the estimate reports for it (``Estimate.std``): over
+    many frames, a covariance that matches the errors spreads these by 1."""
+    true_yaw = yaw_rad(np.asarray(T_camera_target)[:3, :3])
+    yaw_error = math.remainder(estimate.yaw_rad - true_yaw, 2 * math.pi)
+    error = np.array([*(estimate.t_m - np.asarray(T_camera_target)[:3, 3]), yaw_error])
+    out: Array = error / np.array(estimate.std)
+    return out
 
 
 def _f(row: dict[str, str], key: str) -> float:
