@@ -315,3 +315,47 @@ def test_tracking_searches_the_whole_frame_at_an_interval(
     hint = late.detect(image, hint, deadline_s=0.0)
     assert late.skipped[0] == "interval search"
     assert whole == []
+
+
+def test_a_marker_the_tracking_pass_misses_is_fitted_from_its_prediction(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """When the window's quad pass finds nothing (as on blurred, noisy frames), a hinted
+    marker a pixel or so from where it was (what carrying the hint on leaves) is fitted from
+    there and kept because its cells read as printed, with corners as close to the truth as
+    the found quad's; a blank frame gives nothing (the search then runs) and so does a hint
+    turned by a quarter."""
+    from perchpose.quads import QuadFinder
+
+    r = renderers["fpv"]
+    T0 = facing_pose(0.01, 0.0, 0.3, 0.2)
+    T1 = facing_pose(0.0105, 0.0002, 0.299, 0.205)
+    rng = np.random.default_rng(8)
+    first, second = r.render(T0, rng=rng), r.render(T1, rng=rng)
+    detector = MarkerDetector(r.camera, r.target)
+    hint = detector.detect(first)
+    found = {d.marker_index: d for d in detector.detect(second, hint)}
+    find = QuadFinder.find
+
+    def blind(self, grey, image_pass, offset=(0, 0), detector=None, scale=1.0):  # type: ignore[no-untyped-def]
+        if detector is not None:  # the tracking passes see nothing
+            return {}
+        return find(self, grey, image_pass, offset, None, scale)
+
+    monkeypatch.setattr(QuadFinder, "find", blind)
+    tracked = {d.marker_index: d for d in detector.detect(second, hint)}
+    true = r.corners_px(T1)
+    assert set(tracked) == set(found) == {0, 1}
+    for i, d in tracked.items():
+        assert d.image_pass == "tracked"
+        t = true[i]
+        assert t is not None
+        error = np.max(np.linalg.norm(d.corners_px - t, axis=1))
+        assert error < 0.05
+        assert error < 2.0 * np.max(np.linalg.norm(found[i].corners_px - t, axis=1)) + 0.01
+    blank = np.full_like(second, 128)
+    assert detector._track_edges(blank, blank, hint) is None
+    turned = tuple(
+        type(d)(d.marker_index, np.roll(d.corners_px, 1, axis=0), d.image_pass) for d in hint
+    )
+    assert detector._fit_direct(second, list(turned)) == {}

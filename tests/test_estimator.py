@@ -415,3 +415,22 @@ def test_the_filtered_covariance_follows_the_spread_on_motion_the_filter_models(
     spread = np.array(normalised).std(axis=0)
     assert len(normalised) > 100
     assert np.all((spread > 0.75) & (spread < 1.25)), spread
+
+
+def test_tracking_hints_move_on_at_the_pace_of_the_last_two_frames() -> None:
+    """The hint for the next frame carries each corner on at the velocity it had between the
+    last two frames; a marker seen once stays where it was, and a gap longer than twice the
+    frames' spacing leaves every marker where it was."""
+    from perchpose.values import MarkerDetection
+    from perchpose.windows import extrapolated
+
+    square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    earlier = (MarkerDetection(0, square, "raw"),)
+    hint = (MarkerDetection(0, square + [2.0, 1.0], "raw"), MarkerDetection(1, square, "raw"))
+    moved = extrapolated(hint, 0.1, earlier, 0.0, 0.2)
+    assert np.allclose(moved[0].corners_px, square + [4.0, 2.0])
+    assert np.array_equal(moved[1].corners_px, square)
+    half = extrapolated(hint, 0.1, earlier, 0.0, 0.15)
+    assert np.allclose(half[0].corners_px, square + [3.0, 1.5])
+    assert extrapolated(hint, 0.1, earlier, 0.0, 0.35) is hint
+    assert extrapolated(hint, 0.1, (), 0.0, 0.2) is hint

@@ -338,7 +338,7 @@ def _midpoint_crossings(values: Array, offsets: Array, level: float) -> Array:
     return np.where(np.isfinite(distance[rows, j]), position[rows, j], 0.0)
 
 
-def _bilinear(grey: NDArray[np.uint8], points_px: Array) -> Array:
+def bilinear(grey: NDArray[np.uint8], points_px: Array) -> Array:
     """Bilinear interpolation of ``grey`` at ``points_px`` (..., 2), NaN where a point's four
     neighbours are not all in the image. (Exact positions: ``cv2.remap`` rounds them to 1/32
     of a pixel.)"""
@@ -542,7 +542,7 @@ def fit_marker_edges(
         return None
     p_px, normal = profiles.p_px, profiles.normal
     samples = p_px[:, None, :] + offsets[None, :, None] * normal[:, None, :]
-    values = _bilinear(grey, samples)
+    values = bilinear(grey, samples)
     # the fit's data: the pixel nearest each sample, at its own offset across the edge
     nearest = np.round(samples)
     pixel_offsets = np.einsum("kmj,kj->km", nearest - p_px[:, None, :], normal)

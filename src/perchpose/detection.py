@@ -26,6 +26,7 @@ from perchpose.rectification import Rectification
 from perchpose.refinement import CornerFitter
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection, quad_side_px
+from perchpose.verification import CellPattern, read_cells
 from perchpose.windows import (
     Box,
     predicted_quads,
@@ -72,9 +73,21 @@ FULL_SEARCH_EVERY = 30
 # this much (never enlarged): the quads are a start for the fit at full resolution, and a
 # large marker costs the detector a fraction of its pixels.
 TRACKING_SIDE_PX = 48.0
+# While tracking, a hinted marker this large that the window's quad pass misses is fitted
+# straight from where it is predicted, and kept if its cells read back as printed.
+DIRECT_SIDE_PX = 20.0
 # A marker this many times smaller than another whose corners were fitted in the same frame
 # may go without the pattern fit (``MarkerDetector(pattern_beside_ratio=...)``).
 PATTERN_BESIDE_RATIO = 4.0
+
+
+def _in_image(quad: Array, grey: NDArray[np.uint8], margin_px: float = 2.0) -> bool:
+    """Whether all four corners of ``quad`` lie in ``grey``, ``margin_px`` from its border."""
+    h, w = grey.shape[:2]
+    x, y = quad[:, 0], quad[:, 1]
+    inside = (x >= margin_px) & (x <= w - 1 - margin_px)
+    inside &= (y >= margin_px) & (y <= h - 1 - margin_px)
+    return bool(np.all(inside))
 
 
 def has_glare(grey: NDArray[np.uint8]) -> bool:
@@ -110,6 +123,10 @@ class MarkerDetector:
         self._tracked_frames = 0
         self.quads = QuadFinder(target, max(camera.size))
         self.fitter = CornerFitter(camera, target)
+        self.cell_patterns = [CellPattern.of(target, i) for i in range(len(target.markers))]
+        # hinted markers this large that tracking's quad pass misses are fitted without a quad
+        # (None: never)
+        self.direct_side_px: float | None = DIRECT_SIDE_PX
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
         # seconds spent fitting corners during the last ``detect``
         self.corners_s = 0.0
@@ -219,13 +236,14 @@ class MarkerDetector:
         det: MarkerDetection,
         *,
         pattern: Callable[[MarkerDetection], bool] | None = None,
+        predicted: bool = False,
     ) -> MarkerDetection | None:
         """``det`` with corners fitted to the image, or None (``CornerFitter.fit_corners``);
         the time it takes counts in ``corners_s``, and a pattern fit's in the cost model that
         predicts the next one's."""
         t0 = time.perf_counter()
         try:
-            return self.fitter.fit_corners(grey, det, pattern=pattern)
+            return self.fitter.fit_corners(grey, det, pattern=pattern, predicted=predicted)
         finally:
             self.corners_s += time.perf_counter() - t0
             spent = self.fitter.pattern_s
@@ -234,13 +252,19 @@ class MarkerDetector:
                 self._pattern_s_per_px2 += 0.3 * (rate - self._pattern_s_per_px2)
 
     def _fit_all(
-        self, grey: NDArray[np.uint8], found: Iterable[MarkerDetection]
+        self,
+        grey: NDArray[np.uint8],
+        found: Iterable[MarkerDetection],
+        predicted: bool = False,
+        fitted_px: float = 0.0,
     ) -> dict[int, MarkerDetection | None]:
-        """Each of ``found`` with corners fitted (None where no fit succeeds), the largest
-        first. With ``pattern_beside_ratio`` set, a marker that many times smaller than one
-        whose corners were fitted goes without the pattern fit."""
+        """Each of ``found`` with corners fitted (None where no fit succeeds; ``predicted``:
+        see ``CornerFitter.fit_corners``), the largest first. With
+        ``pattern_beside_ratio`` set, a marker that many times smaller than one whose corners
+        were fitted (among these, or one of ``fitted_px`` fitted before) goes without the
+        pattern fit."""
         out: dict[int, MarkerDetection | None] = {}
-        largest_px = 0.0
+        largest_px = fitted_px
 
         def pattern(det: MarkerDetection) -> bool:
             ratio = self.pattern_beside_ratio
@@ -252,7 +276,7 @@ class MarkerDetector:
             return True
 
         for det in sorted(found, key=lambda d: -d.side_px):
-            fitted = self.fit_corners(grey, det, pattern=pattern)
+            fitted = self.fit_corners(grey, det, pattern=pattern, predicted=predicted)
             out[det.marker_index] = fitted
             if fitted is not None:
                 largest_px = max(largest_px, det.side_px)
@@ -274,35 +298,32 @@ class MarkerDetector:
         image (the whole image when the window would cover most of it), then the edge fit
         through the lens model, which also straightens what a fisheye bends.
 
-        Through a strongly distorted lens, hinted markers the pass missed, and a large marker
-        whose curved quad is too far off for the edge fit, are searched again in windows of the
-        rectified view around where they are predicted. None when a marker of 20 px or more is
-        still not found: the caller then runs the full search. A hinted marker under 20 px (at
-        the edge of detection, where markers come and go) may drop out without one. A small
-        marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads are
-        searched in ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
+        A hinted marker of ``direct_side_px`` or more that the pass missed (blur, noise,
+        interference: the quad does not close) is fitted straight from where it is predicted
+        and kept where its cells read back as printed (``_fit_direct``). Through a strongly
+        distorted lens, hinted markers still missing, and a large marker whose curved quad is
+        too far off for the edge fit, are searched again in windows of the rectified view
+        around where they are predicted. None when a marker of 20 px or more is still not
+        found: the caller then runs the full search. A hinted marker under 20 px (at the edge
+        of detection, where markers come and go) may drop out without one. A small marker
+        whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads are searched in
+        ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
         quads = predicted_quads(self.target, hint)
-        smallest = min((quad_side_px(q) for q in quads.values()), default=math.inf)
-        small = smallest < SMALL_MARKER_SIDE_PX
-        detector = self.quads.tracking_small if small else self.quads.tracking
-        box = tracking_window(grey.shape, quads)
-        # every predicted marker at least tracking_side_px across in the searched image
-        scale = min(1.0, self.tracking_side_px / smallest) if 0 < smallest < math.inf else 1.0
-        if box is None:
-            found = self.quads.find(seen, "raw", detector=detector, scale=scale)
-        else:
-            x0, y0, x1, y1 = box
-            found = self.quads.find(seen[y0:y1, x0:x1], "raw", (x0, y0), detector, scale)
+        found = self._window_pass(seen, quads)
         result: dict[int, MarkerDetection] = {}
-        missing = [d for d in hint if d.marker_index not in found]
-        required = [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
+        required: list[int] = []
         for index, fitted in self._fit_all(grey, found.values()).items():
             det = found[index]
             if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
                 required.append(index)  # a curved quad too far off for the fit
             else:
                 result[index] = fitted or det
-        again = required + [d.marker_index for d in missing if d.side_px < SMALL_MARKER_SIDE_PX]
+        missing = [d for d in hint if d.marker_index not in result]
+        fitted_px = max((d.side_px for d in result.values()), default=0.0)
+        result.update(self._fit_direct(grey, missing, fitted_px))
+        required += [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
+        again = [d.marker_index for d in missing if d.marker_index not in result]
+        again += [i for i in required if i not in result and i not in again]
         if again and self.rectify:
             retry = [quads[i] for i in again if i in quads]
             for det in self._rectified_tracking(seen, retry):
@@ -311,6 +332,48 @@ class MarkerDetector:
         if any(index not in result for index in required):
             return None
         return tuple(result[i] for i in sorted(result))
+
+    def _window_pass(
+        self, seen: NDArray[np.uint8], quads: dict[int, Array]
+    ) -> dict[int, MarkerDetection]:
+        """The tracking detector's quads in a window around the predicted ``quads``, searched
+        shrunk so that the smallest of them spans ``tracking_side_px``."""
+        smallest = min((quad_side_px(q) for q in quads.values()), default=math.inf)
+        small = smallest < SMALL_MARKER_SIDE_PX
+        detector = self.quads.tracking_small if small else self.quads.tracking
+        box = tracking_window(seen.shape, quads)
+        # every predicted marker at least tracking_side_px across in the searched image
+        scale = min(1.0, self.tracking_side_px / smallest) if 0 < smallest < math.inf else 1.0
+        if box is None:
+            return self.quads.find(seen, "raw", detector=detector, scale=scale)
+        x0, y0, x1, y1 = box
+        return self.quads.find(seen[y0:y1, x0:x1], "raw", (x0, y0), detector, scale)
+
+    def _fit_direct(
+        self, grey: NDArray[np.uint8], hint: list[MarkerDetection], fitted_px: float = 0.0
+    ) -> dict[int, MarkerDetection]:
+        """Hinted markers of ``direct_side_px`` or more fitted (``fit_corners``) from their
+        hinted corners, without a quad, kept where the marker's cells read through the fitted
+        corners as printed (``perchpose.verification``): a fit that slid to another edge or
+        onto something else reads wrong and is dropped. ``fitted_px``: the largest marker
+        fitted already in this frame (for ``pattern_beside_ratio``)."""
+        least = self.direct_side_px
+        if least is None:
+            return {}
+        starts = [
+            MarkerDetection(d.marker_index, d.corners_px, "tracked")
+            for d in hint
+            if d.side_px >= least and _in_image(d.corners_px, grey)
+        ]
+        out: dict[int, MarkerDetection] = {}
+        fits = self._fit_all(grey, starts, predicted=True, fitted_px=fitted_px)
+        for index, fitted in fits.items():
+            if fitted is None:
+                continue
+            reading = read_cells(grey, fitted.corners_px, self.camera, self.cell_patterns[index])
+            if reading is not None and reading.matches():
+                out[index] = fitted
+        return out
 
     def _rectified_tracking(
         self, grey: NDArray[np.uint8], quads: list[Array]

@@ -33,6 +33,7 @@ from perchpose.values import (
     PoseFailure,
     Timings,
 )
+from perchpose.windows import extrapolated
 
 FusionMethod = Literal["paper", "covariance"]
 FUSION_METHODS: tuple[FusionMethod, ...] = ("paper", "covariance")
@@ -143,7 +144,12 @@ class PerchingEstimator:
         self._fusion = self._new_fusion()
         self._last_R: list[Array | None] = [None] * len(self.target.markers)
         self._last_t_s: float | None = None
+        # the last two frames' detections and their times (tracking's hint: where the markers
+        # should be now, at the pace they moved between those frames)
         self._hint: tuple[MarkerDetection, ...] = ()
+        self._hint_t_s = math.nan
+        self._earlier: tuple[MarkerDetection, ...] = ()
+        self._earlier_t_s = math.nan
 
     def _check_time(self, t_s: float) -> float:
         try:
@@ -166,8 +172,10 @@ class PerchingEstimator:
         deadline = (
             None if self.budget_ms is None else t0 + self.budget_ms / 1e3 - self._after_detect_s
         )
-        detections = self.detector.detect(grey, self._hint, deadline)
-        self._hint = detections
+        hint = extrapolated(self._hint, self._hint_t_s, self._earlier, self._earlier_t_s, t)
+        detections = self.detector.detect(grey, hint, deadline)
+        self._earlier, self._earlier_t_s = self._hint, self._hint_t_s
+        self._hint, self._hint_t_s = detections, t
         estimate = self._estimate(t, detections, t0, self.detector.corners_s)
         timings = estimate.timings
         self._after_detect_s = (timings.pose_ms + timings.filter_ms + timings.fuse_ms) / 1e3

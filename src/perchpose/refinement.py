@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -15,6 +16,10 @@ from perchpose.corners import EdgeFit, fit_marker_edges
 from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
+
+# A predicted marker whose fitted corners end further than this (px) from where they were
+# predicted is fitted again from them (``CornerFitter.fit_corners``).
+SETTLE_PX = 0.3
 
 
 class CornerFitter:
@@ -36,17 +41,32 @@ class CornerFitter:
         det: MarkerDetection,
         *,
         pattern: Callable[[MarkerDetection], bool] | None = None,
+        predicted: bool = False,
     ) -> MarkerDetection | None:
         """``det`` with corners fitted to the image, or None if no fit succeeds: from the
         marker's four border edges; for a marker whose cells span only a few blur widths,
         where the one-edge model pulls corners inwards, from its whole printed pattern,
-        starting from the edges' corners. ``pattern``, when given, is asked before a pattern
-        fit and may refuse it (the edges' corners stay). ``pattern_s``: the seconds the
-        pattern fit of this call took (0 without one)."""
+        starting from the edges' corners (or from ``det``'s where the edges fail).
+        ``pattern``, when given, is asked before a pattern fit and may refuse it (the edges'
+        corners stay). ``pattern_s``: the seconds the pattern fit of this call took (0
+        without one).
+
+        predicted : ``det``'s corners are where the marker was predicted, not a quad found in
+        this image: without fitted edges there is no answer, and where the edges' corners
+        end over ``SETTLE_PX`` from the start the edge fit runs again from them (its profiles
+        then straddle the edges evenly: from a start a pixel or two off, the corners are
+        off by a few hundredths of a pixel, several times their noise on a large marker)."""
         self.pattern_s = 0.0
         i = det.marker_index
         cells = self.target.markers[i].cells
         edges = self.fit_edges(grey, det)
+        if predicted:
+            if edges is None:
+                return None
+            moved = np.linalg.norm(edges.corners_px - det.corners_px, axis=1)
+            if float(np.max(moved)) > SETTLE_PX:
+                again = replace(det, corners_px=edges.corners_px)
+                edges = self.fit_edges(grey, again) or edges
         corners = None if edges is None else edges.corners_px
         covariance = None if edges is None else edges.covariance_px2
         printed = self.patterns[i]

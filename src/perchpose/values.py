@@ -31,14 +31,16 @@ class MarkerDetection:
 
     marker_index : index into ``TargetSpec.markers``.
     corners_px : (4, 2) float64, pixels of the original image, ArUco order.
-    image_pass : ``raw`` (found on the image itself) or ``rectified``.
+    image_pass : ``raw`` (found on the image itself), ``rectified`` (found on the lens's
+    pinhole view, corners mapped back), or ``tracked`` (fitted straight from where tracking
+    predicted it and checked by reading its cells, without a quad search).
     corner_covariance_px2 : (8, 8) covariance of the corners (px^2; x0, y0, x1, ...) where
     the corner fit gives one (the edge fit), else None.
     """
 
     marker_index: int
     corners_px: Array
-    image_pass: Literal["raw", "rectified"]
+    image_pass: Literal["raw", "rectified", "tracked"]
     corner_covariance_px2: Array | None = field(default=None, repr=False, compare=False)
 
     @property

@@ -38,6 +38,34 @@ def predicted_quads(target: TargetSpec, hint: tuple[MarkerDetection, ...]) -> di
     return {i: q for i, q in quads.items() if np.all(np.isfinite(q))}
 
 
+def extrapolated(
+    hint: tuple[MarkerDetection, ...],
+    hint_t_s: float,
+    earlier: tuple[MarkerDetection, ...],
+    earlier_t_s: float,
+    t_s: float,
+    max_ratio: float = 2.0,
+) -> tuple[MarkerDetection, ...]:
+    """``hint`` (a frame's detections at ``hint_t_s``) carried on to ``t_s``: each corner at
+    the velocity it had from ``earlier`` (the detections at ``earlier_t_s``). A marker not in
+    both stays where it was, and so does every marker when the step ahead is over
+    ``max_ratio`` times the step between the two frames (a gap: the motion then is unknown)."""
+    step_s = hint_t_s - earlier_t_s
+    if not hint or not earlier or not step_s > 0 or not 0 <= t_s - hint_t_s <= max_ratio * step_s:
+        return hint
+    ratio = (t_s - hint_t_s) / step_s
+    before = {d.marker_index: d.corners_px for d in earlier}
+    out = []
+    for d in hint:
+        last = before.get(d.marker_index)
+        if last is None:
+            out.append(d)
+            continue
+        corners = d.corners_px + ratio * (d.corners_px - last)
+        out.append(MarkerDetection(d.marker_index, corners, d.image_pass))
+    return tuple(out)
+
+
 def padded_box(
     quads: list[Array], shape: tuple[int, ...], pad_fraction: float, pad_px: float
 ) -> Box | None:
