@@ -93,6 +93,14 @@ class CameraModel:
         """Mean focal length in pixels."""
         return 0.5 * float(self.K[0, 0] + self.K[1, 1])
 
+    def in_image(self, uv_px: Array, margin_px: float = 0.0) -> bool:
+        """Whether all points ``uv_px`` (N, 2) lie in the image, ``margin_px`` from its
+        border (pixel centres at 0 .. width - 1 and 0 .. height - 1)."""
+        x, y = uv_px[:, 0], uv_px[:, 1]
+        inside = (x >= margin_px) & (x <= self.width_px - 1 - margin_px)
+        inside &= (y >= margin_px) & (y <= self.height_px - 1 - margin_px)
+        return bool(np.all(inside))
+
     # ------------------------------------------------------------------ projection
     def project(self, points_camera_m: Array) -> tuple[Array, NDArray[np.bool_]]:
         """Project 3-D points of the camera frame to pixels.

@@ -76,18 +76,11 @@ TRACKING_SIDE_PX = 48.0
 # While tracking, a hinted marker this large that the window's quad pass misses is fitted
 # straight from where it is predicted, and kept if its cells read back as printed.
 DIRECT_SIDE_PX = 20.0
+# A marker fitted so lies this far (px) inside the image: the edge fit's profiles reach past it.
+DIRECT_MARGIN_PX = 2.0
 # A marker this many times smaller than another whose corners were fitted in the same frame
 # may go without the pattern fit (``MarkerDetector(pattern_beside_ratio=...)``).
 PATTERN_BESIDE_RATIO = 4.0
-
-
-def _in_image(quad: Array, grey: NDArray[np.uint8], margin_px: float = 2.0) -> bool:
-    """Whether all four corners of ``quad`` lie in ``grey``, ``margin_px`` from its border."""
-    h, w = grey.shape[:2]
-    x, y = quad[:, 0], quad[:, 1]
-    inside = (x >= margin_px) & (x <= w - 1 - margin_px)
-    inside &= (y >= margin_px) & (y <= h - 1 - margin_px)
-    return bool(np.all(inside))
 
 
 def has_glare(grey: NDArray[np.uint8]) -> bool:
@@ -363,7 +356,7 @@ class MarkerDetector:
         starts = [
             MarkerDetection(d.marker_index, d.corners_px, "tracked")
             for d in hint
-            if d.side_px >= least and _in_image(d.corners_px, grey)
+            if d.side_px >= least and self.camera.in_image(d.corners_px, DIRECT_MARGIN_PX)
         ]
         out: dict[int, MarkerDetection] = {}
         fits = self._fit_all(grey, starts, predicted=True, fitted_px=fitted_px)
@@ -467,8 +460,4 @@ class MarkerDetector:
         # the rectified view reaches past the image, where it is black: a marker running out
         # of the image closes there into a quad that is not the marker (OpenCV's own
         # minDistanceToBorder keeps such quads out of the plain pass)
-        w, h = self.camera.size
-        margin = self.quads.border_margin_px
-        inside = (uv[:, 0] >= margin) & (uv[:, 0] <= w - 1 - margin)
-        inside &= (uv[:, 1] >= margin) & (uv[:, 1] <= h - 1 - margin)
-        return uv if bool(np.all(inside)) else None
+        return uv if self.camera.in_image(uv, self.quads.border_margin_px) else None

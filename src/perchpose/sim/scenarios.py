@@ -45,18 +45,10 @@ def markers_in_view(
 ) -> tuple[bool, ...]:
     """For each marker: all four corners inside the image and its side at least 12 px."""
     out = []
-    w, h = camera.size
     for m in target.markers:
         p = (T_camera_target[:3, :3] @ m.corners_target_m.T).T + T_camera_target[:3, 3]
         uv, ok = camera.project(p)
-        inside = bool(np.all(ok)) and bool(
-            np.all(
-                (uv[:, 0] >= BORDER_MARGIN_PX)
-                & (uv[:, 0] <= w - 1 - BORDER_MARGIN_PX)
-                & (uv[:, 1] >= BORDER_MARGIN_PX)
-                & (uv[:, 1] <= h - 1 - BORDER_MARGIN_PX)
-            )
-        )
+        inside = bool(np.all(ok)) and camera.in_image(uv, BORDER_MARGIN_PX)
         side = float(np.mean(np.linalg.norm(np.roll(uv, -1, 0) - uv, axis=1))) if inside else 0.0
         out.append(inside and side >= MIN_SIDE_IN_VIEW_PX)
     return tuple(out)
