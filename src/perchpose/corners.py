@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
+from perchpose.step_model import MAX_BLUR_PX, MIN_BLUR_PX, fit_steps
 
 Array = NDArray[np.float64]
 _SQRT2 = math.sqrt(2.0)
@@ -101,21 +102,6 @@ class _Surround:
 # a step further beyond the end of the profiles than this many blur sigmas (first guess) is
 # left out of the model: its blur does not reach them, and its level could not be fitted
 _BEYOND_REACH_SIGMAS = 3.0
-# bounds of the fitted optical blur sigma, px
-_MIN_BLUR_PX, _MAX_BLUR_PX = 0.05, 6.0
-
-
-def _pixel_step(t: Array, sigma: float) -> tuple[Array, Array, Array]:
-    """A unit step at 0 blurred by a Gaussian of ``sigma`` and integrated over a pixel 1 wide,
-    at ``t`` (px): ``sigma * (psi((t + 1/2) / sigma) - psi((t - 1/2) / sigma))`` with
-    ``psi(x) = x Phi(x) + phi(x)``; its derivatives by t and by log sigma. (A pixel turned to
-    the edge projects onto its normal as a trapezoid of the same variance, 1/12.)"""
-    a = (t + 0.5) * (1.0 / sigma)
-    b = (t - 0.5) * (1.0 / sigma)
-    cdf_a, pdf_a = normal_cdf_pdf(a)
-    cdf_b, pdf_b = normal_cdf_pdf(b)
-    value = sigma * (a * cdf_a + pdf_a - b * cdf_b - pdf_b)
-    return value, cdf_a - cdf_b, sigma * (pdf_a - pdf_b)
 
 
 def _first_blur_px(values: Array, offsets: Array, contrast: float) -> float:
@@ -127,25 +113,28 @@ def _first_blur_px(values: Array, offsets: Array, contrast: float) -> float:
     sigma0 = _blur_from_rise(min(rise, 0.999), h) if rise > 0 else 1.0
     # that sigma holds the pixel's square (variance 1/12) and, from the interpolation, about
     # as much again
-    sigma0 = math.sqrt(max(sigma0 * sigma0 - 1.0 / 6.0, _MIN_BLUR_PX**2))
-    return min(_MAX_BLUR_PX, max(_MIN_BLUR_PX, sigma0))
+    sigma0 = math.sqrt(max(sigma0 * sigma0 - 1.0 / 6.0, MIN_BLUR_PX**2))
+    return min(MAX_BLUR_PX, max(MIN_BLUR_PX, sigma0))
 
 
-def _surround_terms(
-    surround: _Surround, offsets: Array, sigma_px: float
-) -> tuple[Array | None, Array | None, Array | None]:
-    """(white inside, border's inner edge, margin's end), each (K, 1) or None where the blur
-    of ``sigma_px`` does not reach it from the profiles' ends at ``offsets``."""
-    white = inner = margin = None
+def _surround_rows(
+    surround: _Surround | None, offsets: Array, sigma_px: float, n_profiles: int
+) -> tuple[Array, bool]:
+    """``step_model.fit_steps``'s surround (3, K): 1 where the cell inside the border is white
+    and its inner edge within reach of the blur of ``sigma_px`` from the profiles' ends at
+    ``offsets`` (else 0), how far inside that edge lies, and where the white margin outside
+    ends (1e6 px where out of reach); and whether any margin's end is within reach."""
+    rows = np.zeros((3, n_profiles))
+    rows[2] = 1e6
+    if surround is None:
+        return rows, False
     beyond = _BEYOND_REACH_SIGMAS * sigma_px + 0.5
     reach_in = surround.border_px < -float(offsets[0]) + beyond
-    if np.any(reach_in & (surround.white_inside > 0)):
-        white = np.where(reach_in, surround.white_inside, 0.0)[:, None]
-        inner = surround.border_px[:, None]
+    rows[0] = np.where(reach_in, surround.white_inside, 0.0)
+    rows[1] = surround.border_px
     near = surround.margin_px < float(offsets[-1]) + beyond
-    if np.any(near):
-        margin = np.where(near, surround.margin_px, 1e6)[:, None]
-    return white, inner, margin
+    rows[2] = np.where(near, surround.margin_px, 1e6)
+    return rows, bool(np.any(near))
 
 
 def _level_design(
@@ -159,57 +148,6 @@ def _level_design(
     member = (g_of[None, :] == np.arange(n_groups)[:, None]).astype(np.float64)  # (Q, K)
     W = member if along is None else np.vstack([member, member * along[None, :]])
     return W, n_groups
-
-
-def _shared_and_own_step(
-    J_d: Array, G: Array, r: Array, W: Array, extra: list[Array], M: int
-) -> tuple[Array, Array] | None:
-    """One Gauss-Newton step of the edge model: (the shared parameters' step: levels, contrasts
-    and ``extra``; each profile's own edge step), or None when the equations are singular.
-    ``J_d`` (K, M): the model's derivative by each profile's edge; ``G`` (K, M): the blurred
-    step; ``r`` (K, M): the residuals; ``W`` (R, K): the levels' design; ``M`` the samples
-    per profile the levels are weighed with."""
-    n_levels = W.shape[0]
-    # Gauss-Newton on every d_k, the levels of each group and the extras: each d_k touches
-    # only its own profile and each level only its group's, so the normal equations are
-    # assembled from per-profile sums and solved through the shared parameters' Schur
-    # complement
-    D = (J_d * J_d).sum(axis=1) + 1e-12  # (K,)
-    g_d = (J_d * r).sum(axis=1)
-    rows_G, rows_GG = G.sum(axis=1), (G * G).sum(axis=1)
-    C = np.concatenate(
-        [
-            W.T * J_d.sum(axis=1)[:, None],
-            W.T * (J_d * G).sum(axis=1)[:, None],
-            np.stack([(J_d * x).sum(axis=1) for x in extra], axis=1),
-        ],
-        axis=1,
-    )  # (K, P)
-    x_rows = [x.sum(axis=1) for x in extra]
-    xG_rows = [(x * G).sum(axis=1) for x in extra]
-    Q, P = n_levels, 2 * n_levels + len(extra)
-    E = np.zeros((P, P))
-    E[:Q, :Q] = (W * float(M)) @ W.T
-    E[:Q, Q : 2 * Q] = E[Q : 2 * Q, :Q] = (W * rows_G) @ W.T
-    E[Q : 2 * Q, Q : 2 * Q] = (W * rows_GG) @ W.T
-    for i, (xi, ri, rgi) in enumerate(zip(extra, x_rows, xG_rows, strict=True)):
-        E[:Q, 2 * Q + i] = E[2 * Q + i, :Q] = W @ ri
-        E[Q : 2 * Q, 2 * Q + i] = E[2 * Q + i, Q : 2 * Q] = W @ rgi
-        for j in range(i, len(extra)):
-            E[2 * Q + i, 2 * Q + j] = E[2 * Q + j, 2 * Q + i] = float((xi * extra[j]).sum())
-    g = np.concatenate(
-        [
-            W @ r.sum(axis=1),
-            W @ (G * r).sum(axis=1),
-            [float((x * r).sum()) for x in extra],
-        ]
-    )
-    S = E - (C / D[:, None]).T @ C
-    try:
-        step = np.linalg.solve(S, g - C.T @ (g_d / D))
-    except np.linalg.LinAlgError:
-        return None
-    return step, (g_d - C @ step) / D
 
 
 def _fit_side(
@@ -230,11 +168,11 @@ def _fit_side(
     and (K, M) their values (the samples give the starting values only).
 
     Model: ``a + b * F(s - d_k)``, F a step blurred by ``sigma`` and integrated over the pixel
-    (``_pixel_step``), fitted to the pixels themselves at their exact offsets. A Gaussian step
-    fitted to bilinearly interpolated samples instead locks the edge to the pixel grid by an
-    amount that depends on where the edge falls in a pixel: on a 25 px marker turned 0.5-2 deg
-    from the pixel rows (noise-free), up to 0.19 deg of yaw at an optical blur of 0.3 px and
-    0.016 deg at 0.6 px. With ``surround``, the model also holds the border's inner edge
+    (``step_model.pixel_step``), fitted to the pixels themselves at their exact offsets. A
+    Gaussian step fitted to bilinearly interpolated samples instead locks the edge to the pixel
+    grid by an amount that depends on where the edge falls in a pixel: on a 25 px marker turned
+    0.5-2 deg from the pixel rows (noise-free), up to 0.19 deg of yaw at an optical blur of
+    0.3 px and 0.016 deg at 0.6 px. With ``surround``, the model also holds the border's inner edge
     where the cell inside is white and the end of the white margin outside: blur mixes both
     into the profiles once they are within a few sigma, and left out they pull the edge (by
     0.1 px for a 30 px marker whose margin is under a cell, at a blur of 1.1 px). Gauss-Newton
@@ -251,49 +189,20 @@ def _fit_side(
     a_q = np.concatenate([np.full(n_groups, lo), np.zeros(n_levels - n_groups)])
     b_q = np.concatenate([np.full(n_groups, hi - lo), np.zeros(n_levels - n_groups)])
     d = _midpoint_crossings(values, offsets, lo + 0.5 * (hi - lo))
-    drop, log_sigma = 0.0, math.log(_first_blur_px(values, offsets, hi - lo))
-    white = inner = margin = None
-    if surround is not None:
-        white, inner, margin = _surround_terms(surround, offsets, math.exp(log_sigma))
-    at, data = pixels
-    for _ in range(iterations):
-        sigma = math.exp(log_sigma)
-        a, b = (a_q @ W)[:, None], (b_q @ W)[:, None]
-        t = at - d[:, None]
-        G, slope, dG_ds = _pixel_step(t, sigma)  # dG_ds: d/d(log sigma)
-        dG_dd = -slope  # d/d(d_k)
-        if white is not None and inner is not None:
-            F2, slope2, ds2 = _pixel_step(t + inner, sigma)
-            G = G + white * (1.0 - F2)
-            dG_dd = dG_dd + white * slope2
-            dG_ds = dG_ds - white * ds2
-        J_d = b * dG_dd
-        J_s = b * dG_ds
-        model = a + b * G
-        extra = []  # shared parameters besides the levels: the margin's drop, log sigma
-        if margin is not None:
-            F3, slope3, ds3 = _pixel_step(t - margin, sigma)
-            model = model - drop * F3
-            J_d = J_d + drop * slope3
-            J_s = J_s - drop * ds3
-            extra.append(-F3)
-        extra.append(J_s)
-        r = model - data
-        solved = _shared_and_own_step(J_d, G, r, W, extra, M)
-        if solved is None:
-            return None
-        step, step_d = solved
-        d = d - np.clip(step_d, -1.0, 1.0)
-        a_q = a_q - step[:n_levels]
-        b_q = b_q - step[n_levels : 2 * n_levels]
-        if margin is not None:
-            drop -= float(step[2 * n_levels])
-        step_s = float(np.clip(step[-1], -0.5, 0.5))
-        log_sigma = min(math.log(_MAX_BLUR_PX), max(math.log(_MIN_BLUR_PX), log_sigma - step_s))
-        # steps shrink about tenfold a round: after these the edges would move about 1e-3 px
-        if float(np.max(np.abs(step_d))) < 8e-3 and abs(step_s) < 8e-3:
-            break
-    if not (np.all(b_q @ W > 0) and np.all(np.isfinite(d))):
+    log_sigma = math.log(_first_blur_px(values, offsets, hi - lo))
+    around, with_margin = _surround_rows(surround, offsets, math.exp(log_sigma), len(d))
+    levels = np.stack([a_q, b_q])
+    ok, log_sigma = fit_steps(
+        np.stack(pixels),
+        d,
+        np.ascontiguousarray(W),
+        levels,
+        log_sigma,
+        around,
+        with_margin,
+        iterations,
+    )
+    if not ok:
         return None
     return d, math.exp(log_sigma)
 

@@ -1,0 +1,24 @@
+"""Compiled inner loops: ``compiled`` turns a function of numbers and numpy arrays into machine
+code with numba (on its first call, cached on disk beside the module for the next process).
+
+The fits' inner loops (the blurred-step edge model, the printed-pattern model) touch each
+pixel a few times per Gauss-Newton round; written as numpy expressions they spend most of
+their time making small temporary arrays. Compiled, the same loops run over the pixels once.
+``NUMBA_DISABLE_JIT=1`` in the environment runs them as plain Python (slowly): for a debugger
+or a coverage tool.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TypeVar, cast
+
+import numba
+
+F = TypeVar("F", bound=Callable[..., object])
+
+
+def compiled(function: F) -> F:
+    """``function`` compiled to machine code (no Python objects inside: numbers, numpy arrays
+    and tuples of them), releasing the GIL, cached on disk."""
+    return cast(F, numba.njit(cache=True, nogil=True)(function))

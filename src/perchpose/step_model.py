@@ -1,0 +1,279 @@
+"""The blurred-step model of a marker's border edges and its Gauss-Newton fit, compiled.
+
+``perchpose.corners`` samples K profiles across a marker's sides and fits them all at once
+with ``a + b * F(s - d_k)`` (F a step blurred by a Gaussian of ``sigma`` and integrated over
+the pixel), one edge offset ``d_k`` per profile and the levels, contrasts, the margin's drop
+and log sigma shared. This module holds that fit's arithmetic: the standard normal CDF and
+density, the pixel-integrated step and the Gauss-Newton rounds, each a loop over the
+samples (``perchpose.jit``); ``corners`` prepares the data and reads the result.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.jit import compiled
+
+Array = NDArray[np.float64]
+
+_SQRT2 = math.sqrt(2.0)
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+# Abramowitz and Stegun 7.1.26: erf to 1.5e-7
+_ERF_P = 0.3275911
+_ERF_A1, _ERF_A2, _ERF_A3, _ERF_A4, _ERF_A5 = (
+    0.254829592,
+    -0.284496736,
+    1.421413741,
+    -1.453152027,
+    1.061405429,
+)
+# bounds of the fitted optical blur sigma, px
+MIN_BLUR_PX, MAX_BLUR_PX = 0.05, 6.0
+_LOG_MIN_BLUR, _LOG_MAX_BLUR = math.log(MIN_BLUR_PX), math.log(MAX_BLUR_PX)
+# steps shrink about tenfold a round: after steps this small the edges would move ~1e-3 px
+_SETTLED = 8e-3
+
+
+@compiled
+def normal_cdf_pdf_at(u: float) -> tuple[float, float]:
+    """Standard normal CDF and density at ``u`` (the CDF via Abramowitz and Stegun 7.1.26,
+    which shares its exponential with the density)."""
+    z = abs(u) * (1.0 / _SQRT2)
+    t = 1.0 / (1.0 + _ERF_P * z)
+    gauss = math.exp(-z * z)
+    erf = 1.0 - t * (_ERF_A1 + t * (_ERF_A2 + t * (_ERF_A3 + t * (_ERF_A4 + t * _ERF_A5)))) * gauss
+    return 0.5 + 0.5 * math.copysign(erf, u), gauss * _INV_SQRT_2PI
+
+
+@compiled
+def pixel_step(t: float, sigma: float) -> tuple[float, float, float]:
+    """A unit step at 0 blurred by a Gaussian of ``sigma`` and integrated over a pixel 1 wide,
+    at ``t`` (px): ``sigma * (psi((t + 1/2) / sigma) - psi((t - 1/2) / sigma))`` with
+    ``psi(x) = x Phi(x) + phi(x)``; and its derivatives by t and by log sigma. (A pixel turned
+    to the edge projects onto its normal as a trapezoid of the same variance, 1/12.)"""
+    a = (t + 0.5) * (1.0 / sigma)
+    b = (t - 0.5) * (1.0 / sigma)
+    cdf_a, pdf_a = normal_cdf_pdf_at(a)
+    cdf_b, pdf_b = normal_cdf_pdf_at(b)
+    value = sigma * (a * cdf_a + pdf_a - b * cdf_b - pdf_b)
+    return value, cdf_a - cdf_b, sigma * (pdf_a - pdf_b)
+
+
+@compiled
+def _solve(A: Array, rhs: Array) -> bool:
+    """Solves ``A x = rhs`` in place (``rhs`` becomes x; ``A`` is overwritten) by Gaussian
+    elimination with partial pivoting; False where A is singular (a zero or NaN pivot)."""
+    n = rhs.shape[0]
+    for col in range(n):
+        pivot, best = -1, 0.0
+        for row in range(col, n):
+            if abs(A[row, col]) > best:
+                pivot, best = row, abs(A[row, col])
+        if pivot < 0:
+            return False
+        if pivot != col:
+            for j in range(n):
+                A[col, j], A[pivot, j] = A[pivot, j], A[col, j]
+            rhs[col], rhs[pivot] = rhs[pivot], rhs[col]
+        for row in range(col + 1, n):
+            f = A[row, col] / A[col, col]
+            if f != 0.0:
+                for j in range(col, n):
+                    A[row, j] -= f * A[col, j]
+                rhs[row] -= f * rhs[col]
+    for col in range(n - 1, -1, -1):
+        s = rhs[col]
+        for j in range(col + 1, n):
+            s -= A[col, j] * rhs[j]
+        rhs[col] = s / A[col, col]
+    return True
+
+
+@compiled
+def _model_rows(
+    pixels: Array,
+    d: Array,
+    W: Array,
+    levels: Array,
+    sigma: float,
+    surround: Array,
+    drop: float,
+    with_margin: bool,
+) -> tuple[Array, Array, Array, Array]:
+    """The step model at every sample: the blurred step G, the derivative by the profile's
+    edge J_d, the shared extras' derivatives (X, K, M: the margin's drop when fitted, then
+    log sigma) and the residuals, each (K, M)."""
+    at, data = pixels[0], pixels[1]
+    K, M = at.shape
+    R = W.shape[0]
+    X = 2 if with_margin else 1
+    G = np.empty((K, M))
+    J_d = np.empty((K, M))
+    xs = np.empty((X, K, M))
+    r = np.empty((K, M))
+    for k in range(K):
+        a = 0.0
+        b = 0.0
+        for q in range(R):
+            a += levels[0, q] * W[q, k]
+            b += levels[1, q] * W[q, k]
+        white, inner, margin = surround[0, k], surround[1, k], surround[2, k]
+        for m in range(M):
+            t = at[k, m] - d[k]
+            step, slope, dG_ds = pixel_step(t, sigma)
+            dG_dd = -slope
+            if white != 0.0:
+                F2, slope2, ds2 = pixel_step(t + inner, sigma)
+                step = step + white * (1.0 - F2)
+                dG_dd = dG_dd + white * slope2
+                dG_ds = dG_ds - white * ds2
+            J_dm = b * dG_dd
+            J_s = b * dG_ds
+            model = a + b * step
+            if with_margin:
+                F3, slope3, ds3 = pixel_step(t - margin, sigma)
+                model = model - drop * F3
+                J_dm = J_dm + drop * slope3
+                J_s = J_s - drop * ds3
+                xs[0, k, m] = -F3
+            xs[X - 1, k, m] = J_s
+            G[k, m] = step
+            J_d[k, m] = J_dm
+            r[k, m] = model - data[k, m]
+    return G, J_d, xs, r
+
+
+@compiled
+def _normal_equations(
+    G: Array, J_d: Array, xs: Array, r: Array, W: Array
+) -> tuple[Array, Array, Array, Array, Array]:
+    """The Gauss-Newton normal equations of the step model in two parts: the shared
+    parameters' own block E (P, P) and gradient g (P,) (levels, contrasts, then the extras),
+    each profile's coupling to them C (K, P), and its own edge's curvature D and gradient g_d
+    (K,)."""
+    K, M = G.shape
+    R = W.shape[0]
+    X = xs.shape[0]
+    P = 2 * R + X
+    # per profile: sums of G, G^2, r, G r, and J_d times 1, G, J_d, r
+    sums = np.zeros((K, 8))
+    x_sums = np.zeros((K, X, 4 + X))  # x, x G, x r, x J_d, then x times each extra
+    for k in range(K):
+        for m in range(M):
+            g_km, j_km, r_km = G[k, m], J_d[k, m], r[k, m]
+            sums[k, 0] += g_km
+            sums[k, 1] += g_km * g_km
+            sums[k, 2] += r_km
+            sums[k, 3] += g_km * r_km
+            sums[k, 4] += j_km
+            sums[k, 5] += j_km * g_km
+            sums[k, 6] += j_km * j_km
+            sums[k, 7] += j_km * r_km
+            for i in range(X):
+                x = xs[i, k, m]
+                x_sums[k, i, 0] += x
+                x_sums[k, i, 1] += x * g_km
+                x_sums[k, i, 2] += x * r_km
+                x_sums[k, i, 3] += x * j_km
+                for j in range(X):
+                    x_sums[k, i, 4 + j] += x * xs[j, k, m]
+    E = np.zeros((P, P))
+    g = np.zeros(P)
+    C = np.zeros((K, P))
+    for k in range(K):
+        for q in range(R):
+            w_q = W[q, k]
+            C[k, q] = sums[k, 4] * w_q
+            C[k, R + q] = sums[k, 5] * w_q
+            g[q] += sums[k, 2] * w_q
+            g[R + q] += sums[k, 3] * w_q
+            for p in range(R):
+                ww = w_q * W[p, k]
+                E[q, p] += M * ww
+                E[q, R + p] += sums[k, 0] * ww
+                E[R + q, R + p] += sums[k, 1] * ww
+            for i in range(X):
+                E[q, 2 * R + i] += x_sums[k, i, 0] * w_q
+                E[R + q, 2 * R + i] += x_sums[k, i, 1] * w_q
+        for i in range(X):
+            C[k, 2 * R + i] = x_sums[k, i, 3]
+            g[2 * R + i] += x_sums[k, i, 2]
+            for j in range(X):
+                E[2 * R + i, 2 * R + j] += x_sums[k, i, 4 + j]
+    for i in range(P):  # symmetric: the lower triangle from the upper
+        for j in range(i):
+            E[i, j] = E[j, i]
+    return E, g, C, sums[:, 6] + 1e-12, sums[:, 7].copy()
+
+
+@compiled
+def _schur_step(E: Array, g: Array, C: Array, D: Array, g_d: Array) -> tuple[bool, Array, Array]:
+    """(solved, the shared parameters' step, each profile's own edge step), through the Schur
+    complement of the shared parameters; not solved where the equations are singular."""
+    K, P = C.shape
+    S = E.copy()
+    rhs = g.copy()
+    for k in range(K):
+        for i in range(P):
+            c_i = C[k, i] / D[k]
+            rhs[i] -= c_i * g_d[k]
+            for j in range(P):
+                S[i, j] -= c_i * C[k, j]
+    step_d = np.empty(K)
+    if not _solve(S, rhs):
+        return False, rhs, step_d
+    for k in range(K):
+        s = g_d[k]
+        for i in range(P):
+            s -= C[k, i] * rhs[i]
+        step_d[k] = s / D[k]
+    return True, rhs, step_d
+
+
+@compiled
+def fit_steps(
+    pixels: Array,
+    d: Array,
+    W: Array,
+    levels: Array,
+    log_sigma: float,
+    surround: Array,
+    with_margin: bool,
+    iterations: int,
+) -> tuple[bool, float]:
+    """Gauss-Newton on the step model of K profiles: ``pixels`` (2, K, M) their offsets across
+    the edge (px) and grey values. Updated in place from their first values: the edges ``d``
+    (K,) and ``levels`` (2, R: dark levels, contrasts) of the design ``W`` (R, K: a profile's
+    dark level is ``W[:, k] . levels[0]``). ``surround`` (3, K): 1 where the cell inside the
+    border is white (else 0), how far inside the border's inner edge lies, and where the white
+    margin outside ends (px), a third step fitted with its own drop ``with_margin``. Returns
+    (whether the fit holds: finite edges and every contrast positive, the blur sigma's log).
+
+    Each d_k touches only its own profile and each level only its group's, so the normal
+    equations are assembled from per-profile sums and solved through the Schur complement of
+    the shared parameters (levels, contrasts, the margin's drop when fitted, log sigma)."""
+    R = W.shape[0]
+    drop = 0.0
+    for _ in range(iterations):
+        G, J_d, xs, r = _model_rows(
+            pixels, d, W, levels, math.exp(log_sigma), surround, drop, with_margin
+        )
+        solved, step, step_d = _schur_step(*_normal_equations(G, J_d, xs, r, W))
+        if not solved:
+            return False, log_sigma
+        for k in range(d.shape[0]):
+            d[k] -= min(1.0, max(-1.0, step_d[k]))
+        for q in range(R):
+            levels[0, q] -= step[q]
+            levels[1, q] -= step[R + q]
+        if with_margin:
+            drop -= step[2 * R]
+        step_s = min(0.5, max(-0.5, step[-1]))
+        log_sigma = min(_LOG_MAX_BLUR, max(_LOG_MIN_BLUR, log_sigma - step_s))
+        if np.max(np.abs(step_d)) < _SETTLED and abs(step_s) < _SETTLED:
+            break
+    contrasts = levels[1] @ W
+    return bool(np.all(np.isfinite(d)) and np.all(contrasts > 0.0)), log_sigma
