@@ -31,13 +31,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.step_model import MAX_BLUR_PX, MIN_BLUR_PX, fit_steps
+from perchpose.step_model import MAX_BLUR_PX, MIN_BLUR_PX, MIN_CONTRAST, fit_steps
 
 Array = NDArray[np.float64]
 _SQRT2 = math.sqrt(2.0)
-# Abramowitz and Stegun 7.1.26: erf to 1.5e-7
-_ERF_P = 0.3275911
-_ERF_A = (0.254829592, -0.284496736, 1.421413741, -1.453152027, 1.061405429)
 
 
 @dataclass(frozen=True)
@@ -70,17 +67,6 @@ class EdgeFitSettings:
     max_shift_cells: float = 0.6
     iterations: int = 4
     own_levels_from_px: float = 80.0
-
-
-def normal_cdf_pdf(u: Array) -> tuple[Array, Array]:
-    """Standard normal CDF and density of ``u`` (the CDF via Abramowitz and Stegun 7.1.26,
-    which shares its exponential with the density)."""
-    z = np.abs(u) * (1.0 / _SQRT2)
-    t = 1.0 / (1.0 + _ERF_P * z)
-    a1, a2, a3, a4, a5 = _ERF_A
-    gauss = np.exp(-z * z)
-    erf = 1.0 - t * (a1 + t * (a2 + t * (a3 + t * (a4 + t * a5)))) * gauss
-    return 0.5 + 0.5 * np.copysign(erf, u), gauss * (1.0 / math.sqrt(2.0 * math.pi))
 
 
 @dataclass(frozen=True)
@@ -182,7 +168,7 @@ def _fit_side(
     M = values.shape[1]
     lo = float(values[:, : max(1, M // 4)].mean())
     hi = float(values[:, -max(1, M // 4) :].mean())
-    if not hi - lo > 4.0:
+    if not hi - lo > MIN_CONTRAST:
         return None
     W, n_groups = _level_design(values.shape[0], groups, along)
     n_levels = W.shape[0]

@@ -26,7 +26,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.corners import normal_cdf_pdf
+from perchpose.pattern_model import normal_equations
+from perchpose.step_model import MIN_CONTRAST
 from perchpose.target import TargetSpec
 
 Array = NDArray[np.float64]
@@ -120,7 +121,9 @@ class PatternFitSettings:
     out_cells : how far beyond the marker's border the fitted pixels reach, in its cells
     (never past 90 % of the way to the sheet's edge). iterations : Gauss-Newton rounds at most.
     max_shift_cells : a corner further than this from its start fails the fit. min_blur_px,
-    max_blur_px : the blur's bounds; a fit that ends on one fails."""
+    max_blur_px : the blur's bounds; a fit that ends on one fails. min_contrast : grey levels
+    between the print's black and white under which there is no pattern to fit (the edge fit's
+    own threshold)."""
 
     all_below_px: float = 24.0
     below_cell_blurs: float = 5.0
@@ -130,6 +133,7 @@ class PatternFitSettings:
     max_shift_cells: float = 0.6
     min_blur_px: float = 0.15
     max_blur_px: float = 6.0
+    min_contrast: float = MIN_CONTRAST
 
     def applies(self, side_px: float, n_cells: int, blur_px: float | None) -> bool:
         """Whether a marker of ``side_px`` and ``n_cells`` across gets the pattern fit, given
@@ -169,18 +173,6 @@ def _apply(g: Array, q: Array) -> tuple[Array, Array, Array]:
     u = (g[0] * q[:, 0] + g[1] * q[:, 1] + g[2]) / w
     v = (g[3] * q[:, 0] + g[4] * q[:, 1] + g[5]) / w
     return u, v, w
-
-
-def _bands(x: Array, lines: Array, s: Array) -> tuple[Array, Array, Array]:
-    """Blurred coverage (P, N) of the N bands between ``lines`` at positions ``x`` (P,) for
-    blurs ``s`` (P,), and its derivatives in x and in log s."""
-    z = (x[:, None] - lines[None, :]) * (1.0 / s)[:, None]
-    cdf, pdf = normal_cdf_pdf(z)
-    cover = cdf[:, :-1] - cdf[:, 1:]
-    d_x = (pdf[:, :-1] - pdf[:, 1:]) / s[:, None]
-    pz = pdf * z
-    d_log_s = pz[:, 1:] - pz[:, :-1]
-    return cover, d_x, d_log_s
 
 
 @dataclass(frozen=True)
@@ -259,74 +251,6 @@ def _fitted_pixels(
     return px, q, values
 
 
-@dataclass(frozen=True)
-class _BlurredBands:
-    """The pattern's bands at each pixel under homography g and blur: positions (u, v) and the
-    homography's denominator w, and each axis's blurred band coverage with its derivatives in
-    position and in log sigma (``_bands``)."""
-
-    u: Array
-    v: Array
-    w: Array
-    cov_u: Array
-    du_u: Array
-    dls_u: Array
-    cov_v: Array
-    dv_v: Array
-    dls_v: Array
-
-    @staticmethod
-    def at(
-        g: Array,
-        q: Array,
-        sigma: float,
-        q_per_px: tuple[tuple[float, float], tuple[float, float]],
-        pattern: PrintedPattern,
-    ) -> _BlurredBands:
-        (qx_px, qy_px), (qx_py, qy_py) = q_per_px
-        u, v, w = _apply(g, q)
-        # d(u, v)/dq, then to pixels: the blur's width along u and along v
-        a_ux, a_uy = (g[0] - u * g[6]) / w, (g[1] - u * g[7]) / w  # d(u, v)/dq
-        a_vx, a_vy = (g[3] - v * g[6]) / w, (g[4] - v * g[7]) / w
-        s_u = sigma * np.hypot(a_ux * qx_px + a_uy * qy_px, a_ux * qx_py + a_uy * qy_py)
-        s_v = sigma * np.hypot(a_vx * qx_px + a_vy * qy_px, a_vx * qx_py + a_vy * qy_py)
-        cov_u, du_u, dls_u = _bands(u, pattern.lines_u, s_u)
-        cov_v, dv_v, dls_v = _bands(v, pattern.lines_v, s_v)
-        return _BlurredBands(u, v, w, cov_u, du_u, dls_u, cov_v, dv_v, dls_v)
-
-    def model_and_jacobian(
-        self, q: Array, basis: list[Array], levels: list[float]
-    ) -> tuple[Array, Array]:
-        """The modelled grey (P,) and its Jacobian (P, 9 + B) in the homography's 8 entries,
-        log sigma and the B grey levels."""
-        u, v, w = self.u, self.v, self.w
-        # each pixel's blurred cover of each basis (all non-off-sheet, white, off-sheet)
-        by_v = np.stack([self.cov_v @ b for b in basis])  # (B, P, Nu)
-        cover = np.einsum("bpi,pi->bp", by_v, self.cov_u)
-        level = np.asarray(levels)
-        rows_v = np.tensordot(level, by_v, 1)  # (P, Nu)
-        rows_u = self.cov_u @ np.tensordot(level, np.stack(basis), 1).T  # (P, Nv)
-        model = level @ cover
-        dm_du = np.einsum("pi,pi->p", rows_v, self.du_u)
-        dm_dv = np.einsum("pj,pj->p", rows_u, self.dv_v)
-        dm_dls = np.einsum("pi,pi->p", rows_v, self.dls_u) + np.einsum(
-            "pj,pj->p", rows_u, self.dls_v
-        )
-        qx, qy = q[:, 0], q[:, 1]
-        J = np.empty((q.shape[0], 9 + len(basis)))
-        J[:, 0] = dm_du * qx / w
-        J[:, 1] = dm_du * qy / w
-        J[:, 2] = dm_du / w
-        J[:, 3] = dm_dv * qx / w
-        J[:, 4] = dm_dv * qy / w
-        J[:, 5] = dm_dv / w
-        J[:, 6] = -(dm_du * u + dm_dv * v) * qx / w
-        J[:, 7] = -(dm_du * u + dm_dv * v) * qy / w
-        J[:, 8] = dm_dls
-        J[:, 9:] = cover.T
-        return model, J
-
-
 def _start(corners: Array, camera: CameraModel, n: int) -> tuple[_MarkerPlane, Array] | None:
     """The marker's plane and the homography from it to the cells square, from the corners;
     None where they do not give one."""
@@ -370,35 +294,52 @@ def refine_corners_pattern(
         return None
     plane, g = started
     _, q, values = region
-    q_per_px = plane.blur_jacobian(corners.mean(axis=0))
+    q_per_px = np.asarray(plane.blur_jacobian(corners.mean(axis=0)), np.float64)
     code = pattern.code
-    basis = [(code != _OFF_SHEET).astype(np.float64), (code == _WHITE).astype(np.float64)]
     off = (code == _OFF_SHEET).astype(np.float64)
-    levels = [float(np.percentile(values, 10)), 0.0]
-    levels[1] = float(np.percentile(values, 90)) - levels[0]
+    basis = np.stack([(code != _OFF_SHEET), (code == _WHITE)] + ([off] if off.any() else []))
+    basis = np.ascontiguousarray(basis, np.float64)
+    dark, light = float(np.percentile(values, 10)), float(np.percentile(values, 90))
+    levels = np.array([dark, light - dark, dark][: len(basis)])
     log_sigma = math.log(min(cfg.max_blur_px, max(cfg.min_blur_px, blur_px)))
+    q = np.ascontiguousarray(q)
     for it in range(cfg.iterations):
-        bands = _BlurredBands.at(g, q, math.exp(log_sigma), q_per_px, pattern)
-        if it == 0:
-            near_off = np.einsum("pi,pi->p", bands.cov_v @ off, bands.cov_u)
-            if float(near_off.max()) > 1e-3:
-                basis.append(off)
-                levels.append(levels[0])
-        model, J = bands.model_and_jacobian(q, basis, levels)
-        r = model - values
+        JtJ, Jtr, cover_max = normal_equations(
+            q,
+            values,
+            g,
+            math.exp(log_sigma) * q_per_px,
+            pattern.lines_u,
+            pattern.lines_v,
+            basis,
+            levels,
+        )
+        if it == 0 and len(basis) == 3 and not cover_max[2] > 1e-3:
+            # the sheet's edge is out of the blur's reach: its level could not be fitted
+            basis, levels = basis[:2], levels[:2]
+            JtJ, Jtr, _ = normal_equations(
+                q,
+                values,
+                g,
+                math.exp(log_sigma) * q_per_px,
+                pattern.lines_u,
+                pattern.lines_v,
+                basis,
+                levels,
+            )
         try:
-            step = np.linalg.solve(J.T @ J + 1e-9 * np.eye(J.shape[1]), J.T @ r)
+            step = np.linalg.solve(JtJ + 1e-9 * np.eye(len(Jtr)), Jtr)
         except np.linalg.LinAlgError:
             return None
         g = g - step[:8]
         log_sigma = log_sigma - float(np.clip(step[8], -0.5, 0.5))
-        levels = [lv - float(s) for lv, s in zip(levels, step[9:], strict=True)]
+        levels = levels - step[9:]
         # how far the corners moved, in pixels (about: q units are cells)
         moved_cells = float(np.max(np.abs(step[:8]) * np.array([n, n, 1, n, n, 1, n * n, n * n])))
         if moved_cells * cell_px < 3e-3 and abs(step[8]) < 3e-3:
             break
     sigma = math.exp(log_sigma)
-    if not (cfg.min_blur_px < sigma < cfg.max_blur_px) or not levels[1] > 0:
+    if not (cfg.min_blur_px < sigma < cfg.max_blur_px) or not levels[1] > cfg.min_contrast:
         return None
     refined, ok = plane.to_pixels(g, _square(n))
     if not np.all(ok) or not np.all(np.isfinite(refined)):

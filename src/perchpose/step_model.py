@@ -30,6 +30,8 @@ _ERF_A1, _ERF_A2, _ERF_A3, _ERF_A4, _ERF_A5 = (
     -1.453152027,
     1.061405429,
 )
+# grey levels between dark and light under which there is no edge (or pattern) to fit
+MIN_CONTRAST = 4.0
 # bounds of the fitted optical blur sigma, px
 MIN_BLUR_PX, MAX_BLUR_PX = 0.05, 6.0
 _LOG_MIN_BLUR, _LOG_MAX_BLUR = math.log(MIN_BLUR_PX), math.log(MAX_BLUR_PX)
