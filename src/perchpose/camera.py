@@ -21,6 +21,7 @@ import yaml
 from numpy.typing import NDArray
 
 from perchpose.errors import CameraFileError, ImageError
+from perchpose.jit import compiled
 
 Array = NDArray[np.float64]
 DistortionModel = Literal["plumb_bob", "equidistant"]
@@ -122,27 +123,7 @@ class CameraModel:
         return uv, in_front
 
     def _project_equidistant(self, p: Array) -> tuple[Array, NDArray[np.bool_]]:
-        k1, k2, k3, k4 = self.dist
-        r_xy = np.hypot(p[:, 0], p[:, 1])
-        theta = np.arctan2(r_xy, p[:, 2])
-        t2 = theta * theta
-        theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
-        scale = np.divide(theta_d, r_xy, out=np.ones_like(r_xy), where=r_xy > 1e-15)
-        x = p[:, 0] * scale
-        y = p[:, 1] * scale
-        uv = np.stack(
-            [self.K[0, 0] * x + self.K[0, 1] * y + self.K[0, 2], self.K[1, 1] * y + self.K[1, 2]],
-            axis=1,
-        )
-        # the polynomial must stay monotonic up to theta for the projection to be one-to-one
-        in_front = (theta < math.radians(110.0)) & self._equidistant_monotonic(theta)
-        return uv, in_front
-
-    def _equidistant_monotonic(self, theta: Array) -> NDArray[np.bool_]:
-        k1, k2, k3, k4 = self.dist
-        t2 = theta * theta
-        derivative = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-        return np.asarray(derivative > 0.0)
+        return _equidistant_project(np.ascontiguousarray(p), self.K, self.dist)
 
     def normalize(self, uv_px: Array) -> Array:
         """Undistort pixels to normalised image coordinates (x/z, y/z).
@@ -168,23 +149,7 @@ class CameraModel:
         return np.asarray(rays / np.linalg.norm(rays, axis=1, keepdims=True))
 
     def _rays_equidistant(self, uv: Array) -> Array:
-        k1, k2, k3, k4 = self.dist
-        fx, fy, cx, cy, skew = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2], self.K[0, 1]
-        y = (uv[:, 1] - cy) / fy
-        x = (uv[:, 0] - cx - skew * y) / fx
-        theta_d = np.hypot(x, y)
-        theta = theta_d.copy()
-        for _ in range(20):  # Newton on theta * (1 + k1 t^2 + ...) = theta_d
-            t2 = theta * theta
-            f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
-            df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-            step = f / np.where(np.abs(df) < 1e-9, 1e-9, df)
-            theta = theta - step
-            if not np.any(np.abs(step) > 1e-13):  # converged (NaN steps stop it too)
-                break
-        phi = np.arctan2(y, x)
-        s = np.sin(theta)
-        return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(theta)], axis=1)
+        return _equidistant_rays(np.ascontiguousarray(uv), self.K, self.dist)
 
     def max_distortion_px(self) -> float:
         """Largest distance between a pixel and its pinhole position, over the image border."""
@@ -442,3 +407,56 @@ def _size_field(node: Any, name: str, path: Path) -> int:
     if not (math.isfinite(value) and value == int(value) and 0 < value <= 100_000):
         raise CameraFileError(f"{path}: {name} must be a whole number of pixels, got {value:g}")
     return int(value)
+
+
+# The equidistant (fisheye) model's projection and its inverse, point by point.
+_EQUIDISTANT_MAX_THETA_RAD = math.radians(110.0)
+
+
+@compiled
+def _equidistant_project(p: Array, K: Array, dist: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """Pixels (N, 2) of camera-frame points ``p`` (N, 3) under intrinsics ``K`` and the
+    equidistant model's ``dist`` (k1..k4), and whether each projects one-to-one: within 110 deg
+    of the axis, where the polynomial still rises."""
+    k1, k2, k3, k4 = dist[0], dist[1], dist[2], dist[3]
+    n = p.shape[0]
+    uv = np.empty((n, 2))
+    in_front = np.empty(n, np.bool_)
+    for i in range(n):
+        r_xy = math.hypot(p[i, 0], p[i, 1])
+        theta = math.atan2(r_xy, p[i, 2])
+        t2 = theta * theta
+        theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        scale = theta_d / r_xy if r_xy > 1e-15 else 1.0
+        x, y = p[i, 0] * scale, p[i, 1] * scale
+        uv[i, 0] = K[0, 0] * x + K[0, 1] * y + K[0, 2]
+        uv[i, 1] = K[1, 1] * y + K[1, 2]
+        rising = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+        in_front[i] = theta < _EQUIDISTANT_MAX_THETA_RAD and rising > 0.0
+    return uv, in_front
+
+
+@compiled
+def _equidistant_rays(uv: Array, K: Array, dist: Array) -> Array:
+    """Unit rays (N, 3) of pixels ``uv`` (N, 2) under the equidistant model (Newton on the
+    angle from the axis; also beyond 90 deg)."""
+    k1, k2, k3, k4 = dist[0], dist[1], dist[2], dist[3]
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    rays = np.empty((uv.shape[0], 3))
+    for i in range(uv.shape[0]):
+        y = (uv[i, 1] - cy) / fy
+        x = (uv[i, 0] - cx - skew * y) / fx
+        theta_d = math.hypot(x, y)
+        theta = theta_d
+        for _ in range(20):  # Newton on theta * (1 + k1 t^2 + ...) = theta_d
+            t2 = theta * theta
+            f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
+            df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+            step = f / (df if abs(df) >= 1e-9 else 1e-9)
+            theta -= step
+            if not abs(step) > 1e-13:  # converged (a NaN step stops it too)
+                break
+        phi = math.atan2(y, x)
+        s = math.sin(theta)
+        rays[i, 0], rays[i, 1], rays[i, 2] = s * math.cos(phi), s * math.sin(phi), math.cos(theta)
+    return rays

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -21,8 +22,9 @@ Array = NDArray[np.float64]
 
 def quad_side_px(quad: Array) -> float:
     """Mean side length of a (4, 2) quadrilateral, pixels."""
-    d = quad[[1, 2, 3, 0]] - quad
-    return float(np.sqrt((d * d).sum(axis=1)).mean())
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = np.asarray(quad, np.float64).tolist()
+    sides = math.hypot(x1 - x0, y1 - y0) + math.hypot(x2 - x1, y2 - y1)
+    return 0.25 * (sides + math.hypot(x3 - x2, y3 - y2) + math.hypot(x0 - x3, y0 - y3))
 
 
 @dataclass(frozen=True)
@@ -43,7 +45,7 @@ class MarkerDetection:
     image_pass: Literal["raw", "rectified", "tracked"]
     corner_covariance_px2: Array | None = field(default=None, repr=False, compare=False)
 
-    @property
+    @cached_property
     def side_px(self) -> float:
         """Mean side length in pixels."""
         return quad_side_px(self.corners_px)
