@@ -57,8 +57,9 @@ CORNER_METHODS: tuple[CornerMethod, ...] = ("edges", "subpix")
 # full search; the tracking pass adds OpenCV's 3 px threshold window for such markers.
 SMALL_MARKER_SIDE_PX = 20.0
 # A pattern fit's first predicted cost, seconds per square pixel of the marker's side (about
-# 25 ms at 45 px on a 2-core x86 machine); each fit run updates the prediction.
-PATTERN_S_PER_PX2 = 1.2e-5
+# 10 ms at 45 px under the harsh preset's blur on a 2-core x86 machine); each fit run updates
+# the prediction.
+PATTERN_S_PER_PX2 = 5e-6
 # Glare: a frame with at least GLARE_FRACTION of its pixels at GLARE_LEVEL or above has its
 # quads searched in copies clipped at these levels (None: the frame as it is), tried in this
 # order, the next one whenever the current one finds nothing: a level between the black
@@ -128,8 +129,8 @@ class MarkerDetector:
         self._clip_level: int | None = None
         self._next_level = 0
         # the time budget of the current ``detect``, what it left out, and the pattern fit's
-        # cost per square pixel of marker side (learnt from the fits run; first guess from
-        # this machine: 25 ms at 45 px)
+        # cost per square pixel of marker side (learnt from the fits run; first guess
+        # ``PATTERN_S_PER_PX2``)
         self._deadline_s: float | None = None
         self.skipped: list[str] = []
         self._pattern_s_per_px2 = PATTERN_S_PER_PX2

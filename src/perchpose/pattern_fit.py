@@ -116,7 +116,8 @@ class PatternFitSettings:
     fit's blur: its corners are then pulled inwards, -0.03 px at 4 sigmas, -0.14 px at 2.3)
     or whose edge fit failed. Below all_below_px the choice does not hang on the blur measured
     in each frame: switching methods from frame to frame would add their difference to the
-    noise. The fit's cost grows with the marker's area: about 7 ms at 20 px, 25 ms at 45 px.
+    noise. The fit's cost grows with the marker's area and its blur: on harsh frames about 6 ms
+    at 30 px, 10-17 ms at 45-50 px.
 
     out_cells : how far beyond the marker's border the fitted pixels reach, in its cells
     (never past 90 % of the way to the sheet's edge). iterations : Gauss-Newton rounds at most.
