@@ -304,30 +304,16 @@ def refine_corners_pattern(
     levels = np.array([dark, light - dark, dark][: len(basis)])
     log_sigma = math.log(min(cfg.max_blur_px, max(cfg.min_blur_px, blur_px)))
     q = np.ascontiguousarray(q)
+    lines_u, lines_v = pattern.lines_u, pattern.lines_v
     for it in range(cfg.iterations):
+        blur_q = math.exp(log_sigma) * q_per_px
         JtJ, Jtr, cover_max = normal_equations(
-            q,
-            values,
-            g,
-            math.exp(log_sigma) * q_per_px,
-            pattern.lines_u,
-            pattern.lines_v,
-            basis,
-            levels,
+            q, values, g, blur_q, lines_u, lines_v, basis, levels
         )
         if it == 0 and len(basis) == 3 and not cover_max[2] > 1e-3:
             # the sheet's edge is out of the blur's reach: its level could not be fitted
             basis, levels = basis[:2], levels[:2]
-            JtJ, Jtr, _ = normal_equations(
-                q,
-                values,
-                g,
-                math.exp(log_sigma) * q_per_px,
-                pattern.lines_u,
-                pattern.lines_v,
-                basis,
-                levels,
-            )
+            JtJ, Jtr, _ = normal_equations(q, values, g, blur_q, lines_u, lines_v, basis, levels)
         try:
             step = np.linalg.solve(JtJ + 1e-9 * np.eye(len(Jtr)), Jtr)
         except np.linalg.LinAlgError:
