@@ -365,7 +365,21 @@ class PaperFusion:
         return None
 
 
-class CornerNoise:
+class _FadingSums:
+    """A ratio pooled over frames: each frame adds to a numerator and a denominator, and both
+    fade with a time constant of ``frames`` frames."""
+
+    def __init__(self, frames: float, numerator: float = 0.0, denominator: float = 0.0) -> None:
+        self.keep = math.exp(-1.0 / frames)
+        self.numerator = numerator
+        self.denominator = denominator
+
+    def _pool(self, numerator: float, denominator: float) -> None:
+        self.numerator = self.keep * self.numerator + numerator
+        self.denominator = self.keep * self.denominator + denominator
+
+
+class CornerNoise(_FadingSums):
     """The corners' noise per axis, pooled from the joint poses' residuals: each frame adds
     its squared residuals and their degrees of freedom (2 per corner, less the pose's 6), and
     both pools fade with a time constant of ``frames`` frames. Before the pools hold anything
@@ -379,25 +393,22 @@ class CornerNoise:
         prior_dof: float = 1.0,
         floor_px: float = 0.005,
     ) -> None:
-        self.keep = math.exp(-1.0 / frames)
+        super().__init__(frames, prior_px**2 * prior_dof, prior_dof)
         self.floor_px2 = floor_px**2
-        self.sum_px2 = prior_px**2 * prior_dof
-        self.dof = prior_dof
 
     def add(self, sum_squares_px2: float, dof: float) -> None:
         """One frame's residuals: their sum of squares (px^2) and degrees of freedom."""
         if dof <= 0 or not math.isfinite(sum_squares_px2):
             return
-        self.sum_px2 = self.keep * self.sum_px2 + sum_squares_px2
-        self.dof = self.keep * self.dof + dof
+        self._pool(sum_squares_px2, dof)
 
     @property
     def variance_px2(self) -> float:
         """The pooled variance per axis, px^2."""
-        return max(self.floor_px2, self.sum_px2 / self.dof)
+        return max(self.floor_px2, self.numerator / self.denominator)
 
 
-class VarianceFactor:
+class VarianceFactor(_FadingSums):
     """The corners' covariance's a-posteriori variance factor (``joint_pose.corner_misfit``)
     pooled over frames (``add(observed, expected)``, each frame's ``r^T S^-1 r`` and its
     expected value, both sums fading with a time constant of ``frames`` frames): the observed
@@ -405,21 +416,17 @@ class VarianceFactor:
     left out."""
 
     def __init__(self, frames: float = 30.0) -> None:
-        self.keep = math.exp(-1.0 / frames)
-        self.observed = 0.0
-        self.expected = 0.0
+        super().__init__(frames)
 
     def add(self, observed: float, expected: float) -> None:
-        if not (math.isfinite(observed) and math.isfinite(expected)):
-            return
-        self.observed = self.keep * self.observed + observed
-        self.expected = self.keep * self.expected + expected
+        if math.isfinite(observed) and math.isfinite(expected):
+            self._pool(observed, expected)
 
     @property
     def factor(self) -> float:
-        if not self.expected > 0:
+        if not self.denominator > 0:
             return 1.0
-        return max(1.0, self.observed / self.expected)
+        return max(1.0, self.numerator / self.denominator)
 
 
 class CovarianceFusion:
