@@ -13,6 +13,7 @@ from perchpose.errors import ScenarioError
 from perchpose.geometry import facing_pose, wrap_angle_rad
 from perchpose.sim.render import ImageQuality
 from perchpose.target import TargetSpec
+from perchpose.values import quad_side_px
 
 Array = NDArray[np.float64]
 
@@ -49,7 +50,7 @@ def markers_in_view(
         p = (T_camera_target[:3, :3] @ m.corners_target_m.T).T + T_camera_target[:3, 3]
         uv, ok = camera.project(p)
         inside = bool(np.all(ok)) and camera.in_image(uv, BORDER_MARGIN_PX)
-        side = float(np.mean(np.linalg.norm(np.roll(uv, -1, 0) - uv, axis=1))) if inside else 0.0
+        side = quad_side_px(uv) if inside else 0.0
         out.append(inside and side >= MIN_SIDE_IN_VIEW_PX)
     return tuple(out)
 
