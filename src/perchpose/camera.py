@@ -112,7 +112,7 @@ class CameraModel:
         """
         p = np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3)
         if self.model == "equidistant":
-            return self._project_equidistant(p)
+            return _equidistant_project(np.ascontiguousarray(p), self.K, self.dist)
         in_front = p[:, 2] > 1e-9
         uv = np.full((p.shape[0], 2), np.nan)
         if np.any(in_front):
@@ -121,9 +121,6 @@ class CameraModel:
             )
             uv[in_front] = projected.reshape(-1, 2)
         return uv, in_front
-
-    def _project_equidistant(self, p: Array) -> tuple[Array, NDArray[np.bool_]]:
-        return _equidistant_project(np.ascontiguousarray(p), self.K, self.dist)
 
     def normalize(self, uv_px: Array) -> Array:
         """Undistort pixels to normalised image coordinates (x/z, y/z).
@@ -141,15 +138,12 @@ class CameraModel:
         """
         uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
         if self.model == "equidistant":
-            return self._rays_equidistant(uv)
+            return _equidistant_rays(np.ascontiguousarray(uv), self.K, self.dist)
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
         xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, criteria=criteria)
         xy = xy.reshape(-1, 2)
         rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
         return np.asarray(rays / np.linalg.norm(rays, axis=1, keepdims=True))
-
-    def _rays_equidistant(self, uv: Array) -> Array:
-        return _equidistant_rays(np.ascontiguousarray(uv), self.K, self.dist)
 
     def max_distortion_px(self) -> float:
         """Largest distance between a pixel and its pinhole position, over the image border."""
