@@ -171,22 +171,14 @@ def _fit_side(
     if not hi - lo > MIN_CONTRAST:
         return None
     W, n_groups = _level_design(values.shape[0], groups, along)
-    n_levels = W.shape[0]
-    a_q = np.concatenate([np.full(n_groups, lo), np.zeros(n_levels - n_groups)])
-    b_q = np.concatenate([np.full(n_groups, hi - lo), np.zeros(n_levels - n_groups)])
+    # each group's dark level and contrast to start from; their slopes along the side at 0
+    levels = np.zeros((2, W.shape[0]))
+    levels[:, :n_groups] = [[lo], [hi - lo]]
     d = _midpoint_crossings(values, offsets, lo + 0.5 * (hi - lo))
     log_sigma = math.log(_first_blur_px(values, offsets, hi - lo))
     around, with_margin = _surround_rows(surround, offsets, math.exp(log_sigma), len(d))
-    levels = np.stack([a_q, b_q])
     ok, log_sigma = fit_steps(
-        np.stack(pixels),
-        d,
-        np.ascontiguousarray(W),
-        levels,
-        log_sigma,
-        around,
-        with_margin,
-        iterations,
+        np.stack(pixels), d, W, levels, log_sigma, around, with_margin, iterations
     )
     if not ok:
         return None
