@@ -23,6 +23,7 @@ back to pixels.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -31,7 +32,23 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.step_model import MAX_BLUR_PX, MIN_BLUR_PX, MIN_CONTRAST, fit_steps
+from perchpose.edge_geometry import (
+    bilinear_points,
+    corner_covariance,
+    edge_points_n,
+    fit_lines,
+    intersect_sides,
+    outward_normals,
+    sample_profiles,
+    side_probes,
+)
+from perchpose.step_model import (
+    MAX_BLUR_PX,
+    MIN_BLUR_PX,
+    MIN_CONTRAST,
+    fit_steps,
+    profile_start,
+)
 
 Array = NDArray[np.float64]
 _SQRT2 = math.sqrt(2.0)
@@ -90,12 +107,11 @@ class _Surround:
 _BEYOND_REACH_SIGMAS = 3.0
 
 
-def _first_blur_px(values: Array, offsets: Array, contrast: float) -> float:
-    """A first guess of the optical blur sigma (px) from the profiles' steepest rise."""
-    # the blur from the steepest rise between samples h apart, which for an edge midway
-    # between them is b * erf(h / (2 sqrt(2) sigma))
-    h = float(offsets[1] - offsets[0])
-    rise = float(np.mean(np.max(np.diff(values, axis=1), axis=1))) / contrast
+def _first_blur_px(rise: float, h: float, contrast: float) -> float:
+    """A first guess of the optical blur sigma (px) from the profiles' mean steepest ``rise``
+    between samples ``h`` px apart, for an edge of ``contrast``."""
+    # for an edge midway between two samples h apart, the rise is b * erf(h / (2 sqrt(2) sigma))
+    rise /= contrast
     sigma0 = _blur_from_rise(min(rise, 0.999), h) if rise > 0 else 1.0
     # that sigma holds the pixel's square (variance 1/12) and, from the interpolation, about
     # as much again
@@ -165,17 +181,14 @@ def _fit_side(
     from the midpoint crossings on all parameters at once: each ``d_k`` touches only its own
     profile, so the normal equations are solved through the Schur complement of the shared
     parameters (dark level, contrast, margin drop and log sigma)."""
-    M = values.shape[1]
-    lo = float(values[:, : max(1, M // 4)].mean())
-    hi = float(values[:, -max(1, M // 4) :].mean())
+    lo, hi, d, rise = profile_start(values, offsets)
     if not hi - lo > MIN_CONTRAST:
         return None
     W, n_groups = _level_design(values.shape[0], groups, along)
     # each group's dark level and contrast to start from; their slopes along the side at 0
     levels = np.zeros((2, W.shape[0]))
     levels[:, :n_groups] = [[lo], [hi - lo]]
-    d = _midpoint_crossings(values, offsets, lo + 0.5 * (hi - lo))
-    log_sigma = math.log(_first_blur_px(values, offsets, hi - lo))
+    log_sigma = math.log(_first_blur_px(rise, float(offsets[1] - offsets[0]), hi - lo))
     around, with_margin = _surround_rows(surround, offsets, math.exp(log_sigma), len(d))
     ok, log_sigma = fit_steps(
         np.stack(pixels), d, W, levels, log_sigma, around, with_margin, iterations
@@ -210,81 +223,31 @@ def _inner_cells_white(cells: NDArray[np.uint8], t: Array) -> Array:
     )
 
 
-def _midpoint_crossings(values: Array, offsets: Array, level: float) -> Array:
-    """Per profile, where it crosses ``level`` (linear interpolation; the crossing nearest the
-    profile's middle when noise makes several)."""
-    above = values >= level
-    change = above[:, 1:] != above[:, :-1]  # (K, M-1): a crossing between j and j+1
-    v0, v1 = values[:, :-1], values[:, 1:]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        frac = np.minimum(np.maximum((level - v0) / (v1 - v0), 0.0), 1.0)
-    position = offsets[:-1] + frac * (offsets[1:] - offsets[:-1])
-    distance = np.where(change, np.abs(position), np.inf)
-    j = np.argmin(distance, axis=1)
-    rows = np.arange(values.shape[0])
-    return np.where(np.isfinite(distance[rows, j]), position[rows, j], 0.0)
+@functools.lru_cache(maxsize=256)
+def _side_fractions(
+    K: int, trim: float, n_cells: int, cells_bytes: bytes | None
+) -> tuple[Array, Array]:
+    """Where K profiles cross each side, as fractions of it (K,), and whether the cell just
+    inside the border is white there (4K, sides one after the other; 0 everywhere without the
+    cells: ``cells_bytes`` None, else the (n_cells, n_cells) uint8 cells' bytes). The same
+    for every frame of a marker, so kept (read-only)."""
+    t = np.linspace(trim, 1.0 - trim, K)
+    if cells_bytes is None:
+        white = np.zeros(4 * K)
+    else:
+        cells = np.frombuffer(cells_bytes, np.uint8).reshape(n_cells, n_cells)
+        white = _inner_cells_white(cells, t).ravel()
+    t.setflags(write=False)
+    white.setflags(write=False)
+    return t, white
 
 
 def bilinear(grey: NDArray[np.uint8], points_px: Array) -> Array:
     """Bilinear interpolation of ``grey`` at ``points_px`` (..., 2), NaN where a point's four
     neighbours are not all in the image. (Exact positions: ``cv2.remap`` rounds them to 1/32
     of a pixel.)"""
-    h, w = grey.shape[:2]
-    x, y = points_px[..., 0], points_px[..., 1]
-    ix, iy = np.floor(x), np.floor(y)
-    inside = (ix >= 0) & (iy >= 0) & (ix < w - 1) & (iy < h - 1)
-    i = np.where(inside, iy, 0).astype(np.intp) * w + np.where(inside, ix, 0).astype(np.intp)
-    flat = grey.reshape(-1)
-    fx, fy = x - ix, y - iy
-    top = flat[i] + fx * (flat[i + 1] - flat[i].astype(np.float64))
-    bottom = flat[i + w] + fx * (flat[i + w + 1] - flat[i + w].astype(np.float64))
-    return np.where(inside, top + fy * (bottom - top), np.nan)
-
-
-@dataclass(frozen=True)
-class _Lines:
-    """S lines n . x = c (``normals`` (S, 2), ``offsets`` (S,)) fitted to points, with what
-    the points' scatter about them says of their uncertainty: each line's centre (S, 2), the
-    variance of its angle (rad^2) and of its shift along the normal at the centre (S,)."""
-
-    normals: Array
-    offsets: Array
-    centres: Array
-    angle_var: Array
-    shift_var: Array
-
-
-def _lines_tls(points: Array, usable: NDArray[np.bool_]) -> _Lines | None:
-    """Lines n . x = c through each of S sets of 2-D points (S, K, 2) where ``usable`` (S, K):
-    total least squares, then again without the points beyond 3 RMS; or None when a set has
-    under 3 points. The points' scatter normal to their line (with 2 degrees of freedom
-    taken by the line) gives the line's uncertainty, as for independent points: its shift at
-    the centre has variance s^2 / n, its angle s^2 / sum(along^2)."""
-    keep = usable.copy()
-    normals = np.zeros((points.shape[0], 2))
-    offsets = np.zeros(points.shape[0])
-    for _ in range(2):
-        weight = keep.astype(np.float64)
-        count = weight.sum(axis=1)
-        if np.any(count < 3):
-            return None
-        centre = np.einsum("sk,skj->sj", weight, points) / count[:, None]
-        q = (points - centre[:, None, :]) * weight[..., None]
-        sxx = np.einsum("sk,sk->s", q[..., 0], q[..., 0])
-        syy = np.einsum("sk,sk->s", q[..., 1], q[..., 1])
-        sxy = np.einsum("sk,sk->s", q[..., 0], q[..., 1])
-        # the line runs along the scatter's major axis; its normal is perpendicular
-        angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
-        normals = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
-        offsets = np.einsum("sj,sj->s", normals, centre)
-        residual = np.einsum("skj,sj->sk", points, normals) - offsets[:, None]
-        rms = np.sqrt((residual * residual * weight).sum(axis=1) / count) + 1e-12
-        keep = usable & (np.abs(residual) < 3.0 * rms[:, None])
-    scatter = (residual * residual * weight).sum(axis=1) / np.maximum(count - 2.0, 1.0)
-    direction = np.stack([normals[:, 1], -normals[:, 0]], axis=1)
-    along = np.einsum("skj,sj->sk", points - centre[:, None, :], direction)
-    spread = np.maximum((along * along * weight).sum(axis=1), 1e-30)
-    return _Lines(normals, offsets, centre, scatter / spread, scatter / count)
+    points = np.ascontiguousarray(points_px, np.float64)
+    return bilinear_points(grey, points.reshape(-1, 2)).reshape(points.shape[:-1])
 
 
 @dataclass(frozen=True)
@@ -298,100 +261,35 @@ class EdgeFit:
     covariance_px2: Array
 
 
-@dataclass(frozen=True)
-class _Profiles:
-    """Points along a marker's four sides (4K, flattened side by side) in the normalised plane
-    (``p_n``) and in pixels (``p_px``), the normalised steps along and across each side
-    (``step_n``, ``perp_n``) and their images (``q_px``, ``r_px``: ``p_n`` plus each step), and
-    each point's outward unit normal in the image (``normal``)."""
-
-    p_n: Array
-    step_n: Array
-    perp_n: Array
-    p_px: Array
-    q_px: Array
-    r_px: Array
-    normal: Array
-
-    @staticmethod
-    def along_sides(
-        camera: CameraModel, corners_px: Array, xy: Array, t: Array
-    ) -> _Profiles | None:
-        """Points at fractions ``t`` (K,) of each side from normalised corners ``xy``; None
-        where one does not project."""
-        K = len(t)
-        a_n = xy[:, None, :]
-        b_n = xy[[1, 2, 3, 0]][:, None, :]
-        p_n = (a_n + t[None, :, None] * (b_n - a_n)).reshape(-1, 2)
-        step_n = np.repeat((xy[[1, 2, 3, 0]] - xy) * 1e-3, K, axis=0)
-        perp_n = np.stack([-step_n[:, 1], step_n[:, 0]], 1)
-        ones = np.ones((4 * K, 1))
-        all_px, ok = camera.project(
-            np.vstack([np.hstack([p, ones]) for p in (p_n, p_n + step_n, p_n + perp_n)])
-        )
-        if not np.all(ok):
-            return None
-        p_px, q_px, r_px = all_px[: 4 * K], all_px[4 * K : 8 * K], all_px[8 * K :]
-        tangent = q_px - p_px
-        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-        normal = np.stack([tangent[:, 1], -tangent[:, 0]], 1)
-        outward = np.sign((normal * (p_px - corners_px.mean(axis=0))).sum(axis=1))[:, None]
-        normal = normal * np.where(outward == 0, 1.0, outward)
-        return _Profiles(p_n, step_n, perp_n, p_px, q_px, r_px, normal)
-
-    def edge_points_n(self, d_px: Array) -> Array:
-        """The edge points (4K, 2) in the normalised plane, ``d_px`` along each normal (NaN:
-        none), through the lens model's local Jacobian at each point (the offsets are a pixel
-        or two: the linearisation error is far below 1e-3 px)."""
-        shift_px = np.nan_to_num(d_px)[:, None] * self.normal
-        b1, b2 = self.q_px - self.p_px, self.r_px - self.p_px  # images of step_n and perp_n
-        det = b1[:, 0] * b2[:, 1] - b1[:, 1] * b2[:, 0]
-        c1 = (shift_px[:, 0] * b2[:, 1] - shift_px[:, 1] * b2[:, 0]) / det
-        c2 = (b1[:, 0] * shift_px[:, 1] - b1[:, 1] * shift_px[:, 0]) / det
-        edge_n: Array = self.p_n + c1[:, None] * self.step_n + c2[:, None] * self.perp_n
-        return edge_n
-
-
-_PREVIOUS = [3, 0, 1, 2]  # corner i joins side i - 1 (from corner i - 1) and side i
 _STEP_N = 1e-6  # normalised-plane step of the lens model's numerical Jacobian
 
 
-def _corners_of_lines(camera: CameraModel, lines: _Lines) -> tuple[Array, Array] | None:
-    """The four corners where the fitted side lines meet, in pixels (4, 2), and their
-    covariance (8, 8; px^2, x0, y0, x1, ...) from the lines' own; None where two lines are
-    parallel or a corner does not project.
-
-    A corner moves with the two lines through it: a line's shift moves both its corners
-    alike, its turn moves them apart, so neighbouring corners' errors are correlated (on
-    rendered markers the two corners of a side err against each other along its normal)."""
-    normals, offsets = lines.normals, lines.offsets
-    A = np.stack([normals[_PREVIOUS], normals], axis=1)  # (4, 2, 2)
-    if np.any(np.abs(np.linalg.det(A)) < 1e-12):
+def _corners_of_lines(
+    camera: CameraModel,
+    normals: Array,
+    offsets: Array,
+    centres: Array,
+    angle_var: Array,
+    shift_var: Array,
+) -> tuple[Array, Array] | None:
+    """The four corners where the side lines fitted by ``fit_lines`` meet, in pixels (4, 2),
+    and their covariance (8, 8; px^2, x0, y0, x1, ...) from the lines' own; None where two
+    lines are parallel or a corner does not project."""
+    met, corners_n, A_inv = intersect_sides(normals, offsets)
+    if not met:
         return None
-    A_inv = np.linalg.inv(A)
-    corners_n = np.einsum("iab,ib->ia", A_inv, np.stack([offsets[_PREVIOUS], offsets], 1))
     # the normalised plane to pixels, at each corner and a step along x and y
-    probes = np.concatenate([corners_n, corners_n + [_STEP_N, 0.0], corners_n + [0.0, _STEP_N]])
-    projected, ok = camera.project(np.hstack([probes, np.ones((12, 1))]))
+    probes = np.ones((12, 3))
+    probes[:, :2] = corners_n[[0, 1, 2, 3] * 3]
+    probes[4:8, 0] += _STEP_N
+    probes[8:, 1] += _STEP_N
+    projected, ok = camera.project(probes)
     if not np.all(ok):
         return None
     corners_px = np.asarray(projected[:4], np.float64)
     lens = np.stack([projected[4:8] - corners_px, projected[8:] - corners_px], axis=2) / _STEP_N
-    # d(corner) / d(angle, shift) of each side: the line n . x = c turns by a about its
-    # centre m (dn = a * (-n_y, n_x)... = -a * u, u its direction) and shifts by e there
-    # (dc = e - a * u . m); then A dx = dc - dn . x for the two lines through the corner
-    direction = np.stack([normals[:, 1], -normals[:, 0]], axis=1)
-    sides = np.stack([_PREVIOUS, np.arange(4)], axis=1)  # (4, 2): the sides through corner i
-    # pixels per unit of each of the two lines' offsets, (4, 2 px, 2 lines)
-    per_offset = lens @ A_inv
-    lever = np.einsum("isj,isj->is", direction[sides], corners_n[:, None, :] - lines.centres[sides])
-    G = np.zeros((4, 2, 4, 2))  # corner, px axis, side, (angle, shift)
-    for row in range(2):
-        G[np.arange(4), :, sides[:, row], 0] = per_offset[:, :, row] * lever[:, row, None]
-        G[np.arange(4), :, sides[:, row], 1] = per_offset[:, :, row]
-    G8 = G.reshape(8, 8)
-    variances = np.stack([lines.angle_var, lines.shift_var], axis=1).reshape(8)
-    return corners_px, (G8 * variances) @ G8.T
+    covariance = corner_covariance(lens, A_inv, corners_n, normals, centres, angle_var, shift_var)
+    return corners_px, covariance
 
 
 def fit_marker_edges(
@@ -423,26 +321,24 @@ def fit_marker_edges(
         return None
     # K points along each side, all four sides at once: (4, K) -> flattened (4K,)
     K = int(min(cfg.max_profiles, max(4.0, float(sides_px.min()) / 2.0)))
-    t = np.linspace(cfg.trim, 1.0 - cfg.trim, K)
-    profiles = _Profiles.along_sides(camera, corners, xy, t)
-    if profiles is None:
+    printed = None if isinstance(cells, int) else np.ascontiguousarray(cells, np.uint8).tobytes()
+    t, white = _side_fractions(K, cfg.trim, n_cells, printed)
+    p_n, step_n, perp_n, probes = side_probes(xy, t)
+    projected, ok = camera.project(probes)
+    if not np.all(ok):
         return None
-    p_px, normal = profiles.p_px, profiles.normal
-    samples = p_px[:, None, :] + offsets[None, :, None] * normal[:, None, :]
-    values = bilinear(grey, samples)
-    # the fit's data: the pixel nearest each sample, at its own offset across the edge
-    nearest = np.round(samples)
-    pixel_offsets = np.einsum("kmj,kj->km", nearest - p_px[:, None, :], normal)
-    pixel_values = grey[
-        np.clip(nearest[..., 1], 0, grey.shape[0] - 1).astype(np.intp),
-        np.clip(nearest[..., 0], 0, grey.shape[1] - 1).astype(np.intp),
-    ].astype(np.float64)
-    rows = np.all(np.isfinite(values), axis=1)
+    projected = np.ascontiguousarray(projected, np.float64)
+    centre = corners.mean(axis=0)
+    normal = outward_normals(projected, float(centre[0]), float(centre[1]))
+    # bilinear samples to start from; the fit's data: the pixel nearest each sample, at its
+    # own offset across the edge
+    values, pixel_offsets, pixel_values, rows = sample_profiles(
+        grey, projected[: 4 * K], normal, offsets
+    )
     if np.count_nonzero(rows) < 12:
         return None
     # a cell's width across side i: the perpendicular sides' lengths over n
     across = np.repeat((sides_px[[3, 0, 1, 2]] + sides_px[[1, 2, 3, 0]]) / (2.0 * n_cells), K)
-    white = np.zeros(4 * K) if isinstance(cells, int) else _inner_cells_white(cells, t).ravel()
     margins = np.full(4, np.inf) if margin_cells is None else np.asarray(margin_cells, float)
     surround = _Surround(white[rows], across[rows], (np.repeat(margins, K) * across)[rows])
     sides = along = None
@@ -467,9 +363,9 @@ def fit_marker_edges(
     d[rows], optical_blur_px = fit
     blur_px = math.sqrt(optical_blur_px**2 + 1.0 / 12.0)
     good = np.isfinite(d) & (d > -reach_in) & (d < reach_out)
-    edge_n = profiles.edge_points_n(d)
-    fitted = _lines_tls(edge_n.reshape(4, K, 2), good.reshape(4, K))
-    refined = None if fitted is None else _corners_of_lines(camera, fitted)
+    edge_n = edge_points_n(p_n, step_n, perp_n, projected, normal, d)
+    fitted, *lines = fit_lines(edge_n.reshape(4, K, 2), good.reshape(4, K))
+    refined = _corners_of_lines(camera, *lines) if fitted else None
     if refined is None or (
         np.max(np.linalg.norm(refined[0] - corners, axis=1)) > cfg.max_shift_cells * cell_px
     ):

@@ -95,6 +95,41 @@ def _solve(A: Array, rhs: Array) -> bool:
 
 
 @compiled
+def profile_start(values: Array, offsets: Array) -> tuple[float, float, Array, float]:
+    """Where the fit of profiles ``values`` (K, M, sampled at ``offsets`` (M,), dark to
+    light) starts: the dark and light levels (the means of each profile's first and last
+    quarter of samples), each profile's crossing of the level halfway between (linear
+    interpolation; the crossing nearest the middle where noise makes several, 0 where none),
+    and the profiles' mean steepest rise between neighbouring samples."""
+    K, M = values.shape
+    quarter = max(1, M // 4)
+    lo = hi = 0.0
+    for k in range(K):
+        for m in range(quarter):
+            lo += values[k, m]
+            hi += values[k, M - quarter + m]
+    lo /= K * quarter
+    hi /= K * quarter
+    level = lo + 0.5 * (hi - lo)
+    d = np.zeros(K)
+    rise = 0.0
+    for k in range(K):
+        nearest = np.inf
+        steepest = -np.inf
+        for m in range(M - 1):
+            v0, v1 = values[k, m], values[k, m + 1]
+            steepest = max(steepest, v1 - v0)
+            if (v0 >= level) != (v1 >= level):
+                frac = min(max((level - v0) / (v1 - v0), 0.0), 1.0)
+                position = offsets[m] + frac * (offsets[m + 1] - offsets[m])
+                if abs(position) < nearest:
+                    nearest = abs(position)
+                    d[k] = position
+        rise += steepest
+    return lo, hi, d, rise / K
+
+
+@compiled
 def _model_rows(
     pixels: Array,
     d: Array,
