@@ -13,13 +13,15 @@ marker, puts black cells where white ones belong and fails.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.corners import bilinear
+from perchpose.edge_geometry import bilinear_points
+from perchpose.jit import compiled
 from perchpose.target import TargetSpec
 
 Array = NDArray[np.float64]
@@ -62,6 +64,14 @@ class CellPattern:
         centres = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], axis=1)
         return CellPattern(centres[uniform], shade[uniform, 0] > 0.5, n)
 
+    @cached_property
+    def samples_uv(self) -> Array:
+        """Where each cell is sampled (P * S, 2; cell coordinates): ``_SUB_CELL`` around its
+        centre on both axes, the cells one after the other."""
+        du, dv = np.meshgrid(_SUB_CELL, _SUB_CELL)
+        offsets = np.stack([du.ravel(), dv.ravel()], axis=1)  # (S, 2)
+        return np.ascontiguousarray((self.uv[:, None, :] + offsets[None, :, :]).reshape(-1, 2))
+
 
 @dataclass(frozen=True)
 class CellReading:
@@ -94,19 +104,56 @@ def read_cells(
     n = float(pattern.n_cells)
     square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], np.float32)
     H = cv2.getPerspectiveTransform(square, corners_n.astype(np.float32))
-    du, dv = np.meshgrid(_SUB_CELL, _SUB_CELL)
-    offsets = np.stack([du.ravel(), dv.ravel()], axis=1)  # (S, 2)
-    uv = (pattern.uv[:, None, :] + offsets[None, :, :]).reshape(-1, 2)
-    xy = cv2.perspectiveTransform(uv.reshape(-1, 1, 2), H.astype(np.float64)).reshape(-1, 2)
-    px, ok = camera.project(np.hstack([xy, np.ones((len(xy), 1))]))
+    px, ok = camera.project(_through_homography(np.asarray(H, np.float64), pattern.samples_uv))
     if not np.all(ok):
         return None
-    values = bilinear(grey, np.asarray(px, np.float64)).reshape(len(pattern.uv), -1)
-    if not np.all(np.isfinite(values)):
+    values = bilinear_points(grey, np.ascontiguousarray(px, np.float64))
+    wrong, black, white = _cell_levels(values, pattern.white)
+    if not (np.isfinite(black) and np.isfinite(white)):
         return None
-    level = values.mean(axis=1)
-    black = float(level[~pattern.white].mean())
-    white = float(level[pattern.white].mean())
-    middle = 0.5 * (black + white)
-    wrong = int(np.count_nonzero((level > middle) != pattern.white))
-    return CellReading(wrong, len(level), black, white)
+    return CellReading(wrong, len(pattern.white), black, white)
+
+
+@compiled
+def _through_homography(H: Array, uv: Array) -> Array:
+    """Points ``uv`` (N, 2) through the homography ``H`` (3, 3), as (N, 3) with z = 1 (NaN
+    where one maps to infinity)."""
+    out = np.ones((uv.shape[0], 3))
+    for i in range(uv.shape[0]):
+        u, v = uv[i, 0], uv[i, 1]
+        w = H[2, 0] * u + H[2, 1] * v + H[2, 2]
+        if w == 0.0:
+            out[i, 0] = out[i, 1] = np.nan
+            continue
+        out[i, 0] = (H[0, 0] * u + H[0, 1] * v + H[0, 2]) / w
+        out[i, 1] = (H[1, 0] * u + H[1, 1] * v + H[1, 2]) / w
+    return out
+
+
+@compiled
+def _cell_levels(values: Array, white: NDArray[np.bool_]) -> tuple[int, float, float]:
+    """From ``values`` (P * S: S samples of each of P cells, one cell after the other): how
+    many cells read as the other shade than ``white`` (P,) says (against the level halfway
+    between), the black cells' and the white cells' mean level (NaN where a sample is)."""
+    P = white.shape[0]
+    S = values.shape[0] // P
+    level = np.empty(P)
+    black_sum = white_sum = 0.0
+    n_white = 0
+    for p in range(P):
+        total = 0.0
+        for s in range(S):
+            total += values[p * S + s]
+        level[p] = total / S
+        if white[p]:
+            white_sum += level[p]
+            n_white += 1
+        else:
+            black_sum += level[p]
+    black, bright = black_sum / (P - n_white), white_sum / n_white
+    middle = 0.5 * (black + bright)
+    wrong = 0
+    for p in range(P):
+        if (level[p] > middle) != white[p]:
+            wrong += 1
+    return wrong, black, bright
