@@ -359,3 +359,47 @@ def test_a_marker_the_tracking_pass_misses_is_fitted_from_its_prediction(
         type(d)(d.marker_index, np.roll(d.corners_px, 1, axis=0), d.image_pass) for d in hint
     )
     assert detector._fit_direct(second, list(turned)) == {}
+
+
+def test_hinted_markers_are_fitted_from_their_prediction_without_a_quad_search(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """While tracking, markers of 20 px or more that were found a frame before are fitted
+    straight from where they were (no quad search runs) and match the corners that a search
+    of the frame from scratch gives; a marker too small for that still gets its window, and
+    the outer marker (its margin 0.8 cells) only from about 90 px up (``DIRECT_CLEAR_PX``)."""
+    from perchpose.quads import QuadFinder
+
+    r = renderers["fpv"]
+    rng = np.random.default_rng(4)
+    searched: list[tuple[int, ...]] = []
+    find = QuadFinder.find
+
+    def counted(self, grey, image_pass, offset=(0, 0), detector=None, scale=1.0):  # type: ignore[no-untyped-def]
+        searched.append(grey.shape)
+        return find(self, grey, image_pass, offset, detector, scale)
+
+    detector = MarkerDetector(r.camera, r.target)
+    first = r.render(facing_pose(0.01, 0.0, 0.3, 0.2), rng=rng)
+    second = r.render(facing_pose(0.0102, 0.0001, 0.2995, 0.202), rng=rng)
+    hint = detector.detect(first)
+    assert {d.side_px >= 20 for d in hint} == {True}
+    fresh = {d.marker_index: d for d in detector.detect(second)}
+    monkeypatch.setattr(QuadFinder, "find", counted)
+    tracked = {d.marker_index: d for d in detector.detect(second, hint)}
+    assert searched == []
+    assert set(tracked) == set(fresh) == {0, 1}
+    for i, d in tracked.items():
+        assert d.image_pass == "tracked"
+        assert np.max(np.abs(d.corners_px - fresh[i].corners_px)) < 0.05
+    # further away (110 px) the inner marker is under 20 px: it alone is searched, in a small
+    # window
+    far = MarkerDetector(r.camera, r.target)
+    image = r.render(facing_pose(0.01, 0.0, 0.4, 0.2), rng=rng)
+    hint = far.detect(image)
+    assert sorted(d.side_px < 20 for d in hint) == [False, True]
+    searched.clear()
+    tracked = {d.marker_index: d for d in far.detect(image, hint)}
+    assert set(tracked) == {0, 1}
+    assert len(searched) == 1
+    assert searched[0][0] * searched[0][1] < 0.05 * image.shape[0] * image.shape[1]

@@ -57,7 +57,8 @@ _SQRT2 = math.sqrt(2.0)
 @dataclass(frozen=True)
 class EdgeFitSettings:
     """inside_cells, outside_cells : how far the profiles reach across the edge into the black
-    border (one cell wide, so well under 1) and into the white margin, in marker cells.
+    border (one cell wide, so well under 1) and into the white margin, in marker cells,
+    measured from the start (``outside_reach_px``).
     min/max_window_px : bounds of those reaches.
     max_profiles : profiles per side (one per 2 px of side below that).
     trim : fraction of each side left out at both ends (the corners' neighbourhoods).
@@ -292,6 +293,13 @@ def _corners_of_lines(
     return corners_px, covariance
 
 
+def outside_reach_px(cell_px: float, settings: EdgeFitSettings | None = None) -> float:
+    """How far (px) the profiles reach outwards from the start of a marker with cells of
+    ``cell_px``."""
+    cfg = settings or EdgeFitSettings()
+    return min(cfg.max_window_px, max(cfg.min_window_px, cfg.outside_cells * cell_px))
+
+
 def fit_marker_edges(
     grey: NDArray[np.uint8],
     corners_px: Array,
@@ -313,7 +321,7 @@ def fit_marker_edges(
     n_cells = cells if isinstance(cells, int) else int(cells.shape[0])
     cell_px = float(sides_px.mean()) / n_cells
     reach_in = min(cfg.max_window_px, max(cfg.min_window_px, cfg.inside_cells * cell_px))
-    reach_out = min(cfg.max_window_px, max(cfg.min_window_px, cfg.outside_cells * cell_px))
+    reach_out = outside_reach_px(cell_px, cfg)
     step = max(cfg.step_px, (reach_in + reach_out) / (cfg.max_samples - 1))
     offsets = np.arange(-reach_in, reach_out + 1e-9, step)
     xy = camera.normalize(corners)

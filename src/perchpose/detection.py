@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.corners import EdgeFit
+from perchpose.corners import EdgeFit, outside_reach_px
 from perchpose.quads import QuadFinder, QuadPass, refine_corners, target_dictionaries
 from perchpose.rectification import Rectification
 from perchpose.refinement import CornerFitter
@@ -74,9 +74,21 @@ FULL_SEARCH_EVERY = 30
 # this much (never enlarged): the quads are a start for the fit at full resolution, and a
 # large marker costs the detector a fraction of its pixels.
 TRACKING_SIDE_PX = 48.0
-# While tracking, a hinted marker this large that the window's quad pass misses is fitted
-# straight from where it is predicted, and kept if its cells read back as printed.
+# While tracking, a hinted marker this large is fitted straight from where it is predicted,
+# and kept if its cells read back as printed; only the others go through a quad search (and
+# when it misses them, are fitted from their prediction then).
 DIRECT_SIDE_PX = 20.0
+# ... where the edge fit's profiles end this far (px) short of the end of the white margin
+# around the marker. Nearer, the margin's blurred end at the profiles' far end makes the fit
+# depend on where it starts: on the fpv approach the outer marker's corners at 50-100 px (a
+# margin of 0.8 cells) erred by 0.0135 px RMS from 0.3 px outside the edge, 0.0094 from the
+# edge itself and 0.0082 from 0.3 px inside, where a quad's cornerSubPix corners start; from
+# 100 px up, and on the inner marker, 0.008-0.009 from all three.
+DIRECT_CLEAR_PX = 4.0
+# While tracking, a marker the target's plane puts in view without a hint is searched for
+# once it is predicted this large (a little under the smallest marker OpenCV's quad pass
+# finds, about 9 px on rendered frames).
+MIN_SEARCH_SIDE_PX = 7.0
 # A marker fitted so lies this far (px) inside the image: the edge fit's profiles reach past it.
 DIRECT_MARGIN_PX = 2.0
 # A marker this many times smaller than another whose corners were fitted in the same frame
@@ -288,35 +300,46 @@ class MarkerDetector:
     def _track_edges(
         self, grey: NDArray[np.uint8], seen: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
     ) -> tuple[MarkerDetection, ...] | None:
-        """Tracking with edge-fitted corners: one single-threshold pass over a window of the
-        image (the whole image when the window would cover most of it), then the edge fit
-        through the lens model, which also straightens what a fisheye bends.
+        """Tracking with edge-fitted corners. Each hinted marker of ``direct_side_px`` or more
+        is fitted straight from where it is predicted and kept where its cells read back as
+        printed (``_fit_direct``): no quad search for it. The markers left (smaller ones,
+        those whose fit failed or read wrong, and those the target's plane puts in view that
+        were not hinted) are searched in one single-threshold pass over a window around
+        them (the whole image when the window would cover most of it), then fitted through
+        the lens model, which also straightens what a fisheye bends.
 
-        A hinted marker of ``direct_side_px`` or more that the pass missed (blur, noise,
-        interference: the quad does not close) is fitted straight from where it is predicted
-        and kept where its cells read back as printed (``_fit_direct``). Through a strongly
-        distorted lens, hinted markers still missing, and a large marker whose curved quad is
-        too far off for the edge fit, are searched again in windows of the rectified view
-        around where they are predicted. None when a marker of 20 px or more is still not
-        found: the caller then runs the full search. A hinted marker under 20 px (at the edge
-        of detection, where markers come and go) may drop out without one. A small marker
-        whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads are searched in
-        ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
+        Through a strongly distorted lens, hinted markers still missing, and a large marker
+        whose curved quad is too far off for the edge fit, are searched again in windows of
+        the rectified view around where they are predicted. None when a marker of 20 px or
+        more is still not found: the caller then runs the full search. A hinted marker under
+        20 px (at the edge of detection, where markers come and go) may drop out without one.
+        A small marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads
+        are searched in ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
         quads = predicted_quads(self.target, hint)
-        found = self._window_pass(seen, quads)
-        result: dict[int, MarkerDetection] = {}
+        first = [d for d in hint if self._clear_of_margin(d)]
+        result = self._fit_direct(grey, first)
+        hinted = {d.marker_index for d in hint}
+        left = {
+            i: q for i, q in quads.items() if i not in result and self._may_be_found(q, i in hinted)
+        }
+        found = self._window_pass(seen, left) if left else {}
         required: list[int] = []
-        for index, fitted in self._fit_all(grey, found.values()).items():
-            det = found[index]
+        fitted_px = max((d.side_px for d in result.values()), default=0.0)
+        searched = {i: d for i, d in found.items() if i not in result}
+        for index, fitted in self._fit_all(grey, searched.values(), fitted_px=fitted_px).items():
+            det = searched[index]
             if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
                 required.append(index)  # a curved quad too far off for the fit
             else:
                 result[index] = fitted or det
-        missing = [d for d in hint if d.marker_index not in result]
+        # the others the quad pass missed (blur, noise, interference: the quad does not close)
+        tried = {d.marker_index for d in first}
         fitted_px = max((d.side_px for d in result.values()), default=0.0)
-        result.update(self._fit_direct(grey, missing, fitted_px))
+        late = [d for d in hint if d.marker_index not in result and d.marker_index not in tried]
+        result.update(self._fit_direct(grey, late, fitted_px))
+        missing = [d for d in hint if d.marker_index not in result]
         required += [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
-        again = [d.marker_index for d in missing if d.marker_index not in result]
+        again = [d.marker_index for d in missing]
         again += [i for i in required if i not in result and i not in again]
         if again and self.rectify:
             retry = [quads[i] for i in again if i in quads]
@@ -326,6 +349,25 @@ class MarkerDetector:
         if any(index not in result for index in required):
             return None
         return tuple(result[i] for i in sorted(result))
+
+    def _clear_of_margin(self, det: MarkerDetection) -> bool:
+        """Whether the edge fit's profiles around ``det`` end ``DIRECT_CLEAR_PX`` short of the
+        end of the white margin around it, so that where they start (a prediction a little
+        outside the edge, or a quad a little inside) does not change how much of that end
+        they see."""
+        cells = int(self.target.markers[det.marker_index].cells.shape[0])
+        cell_px = det.side_px / cells
+        margin_px = min(self.fitter.margins[det.marker_index]) * cell_px
+        return margin_px - outside_reach_px(cell_px) >= DIRECT_CLEAR_PX
+
+    def _may_be_found(self, quad: Array, hinted: bool) -> bool:
+        """Whether the window pass should look for a marker predicted at ``quad``: a hinted
+        one always; one the plane predicts (not hinted) where it lies wholly in the image
+        (OpenCV keeps no quad that crosses the border) and is large enough for OpenCV's
+        smallest quad (``MIN_SEARCH_SIDE_PX``)."""
+        if hinted:
+            return True
+        return quad_side_px(quad) >= MIN_SEARCH_SIDE_PX and self.camera.in_image(quad)
 
     def _window_pass(
         self, seen: NDArray[np.uint8], quads: dict[int, Array]

@@ -18,8 +18,14 @@ from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
 
 # A predicted marker whose fitted corners end further than this (px) from where they were
-# predicted is fitted again from them (``CornerFitter.fit_corners``).
+# predicted is fitted again from them, and that second fit must move them less than this
+# again (``CornerFitter.fit_corners``).
 SETTLE_PX = 0.3
+# A predicted marker's corners may move this far (in its cells) from the prediction: about
+# half the profiles' reach across the edge. Further, the edge lies near the profiles' ends
+# and a fit that ends there may not be the edge (a start 0.5-1 cell off, fitted 5-10 px from
+# a 70 px marker's corners, read back its cells as printed).
+PREDICTED_MAX_MOVE_CELLS = 0.25
 
 
 class CornerFitter:
@@ -52,10 +58,12 @@ class CornerFitter:
         without one).
 
         predicted : ``det``'s corners are where the marker was predicted, not a quad found in
-        this image: without fitted edges there is no answer, and where the edges' corners
-        end over ``SETTLE_PX`` from the start the edge fit runs again from them (its profiles
-        then straddle the edges evenly: from a start a pixel or two off, the corners are
-        off by a few hundredths of a pixel, several times their noise on a large marker)."""
+        this image: without fitted edges there is no answer, nor where they end further than
+        ``PREDICTED_MAX_MOVE_CELLS`` from the start; where they end over ``SETTLE_PX`` from
+        it the edge fit runs again from them (its profiles then straddle the edges evenly:
+        from a start a pixel or two off, the corners are off by a few hundredths of a pixel,
+        several times their noise on a large marker), and that fit must stay within
+        ``SETTLE_PX`` of the first (a fit that has found the edge does)."""
         self.pattern_s = 0.0
         i = det.marker_index
         cells = self.target.markers[i].cells
@@ -63,10 +71,17 @@ class CornerFitter:
         if predicted:
             if edges is None:
                 return None
-            moved = np.linalg.norm(edges.corners_px - det.corners_px, axis=1)
-            if float(np.max(moved)) > SETTLE_PX:
-                again = replace(det, corners_px=edges.corners_px)
-                edges = self.fit_edges(grey, again) or edges
+            moved = float(np.max(np.linalg.norm(edges.corners_px - det.corners_px, axis=1)))
+            if moved > PREDICTED_MAX_MOVE_CELLS * det.side_px / cells.shape[0]:
+                return None
+            if moved > SETTLE_PX:
+                again = self.fit_edges(grey, replace(det, corners_px=edges.corners_px))
+                if again is None:
+                    return None
+                settled = np.linalg.norm(again.corners_px - edges.corners_px, axis=1)
+                if float(np.max(settled)) > SETTLE_PX:
+                    return None
+                edges = again
         corners = None if edges is None else edges.corners_px
         covariance = None if edges is None else edges.covariance_px2
         printed = self.patterns[i]
