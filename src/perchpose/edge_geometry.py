@@ -87,6 +87,23 @@ def _round_half_even(x: float) -> float:
 
 
 @compiled
+def _bilinear_at(grey: NDArray[np.uint8], x: float, y: float) -> float:
+    """Bilinear interpolation of ``grey`` at (``x``, ``y``) px, NaN where the four pixels
+    around it are not all in the image."""
+    h, w = grey.shape
+    fx0, fy0 = math.floor(x), math.floor(y)
+    if not (fx0 >= 0 and fy0 >= 0 and fx0 < w - 1 and fy0 < h - 1):
+        return np.nan
+    ix, iy = int(fx0), int(fy0)
+    fx, fy = x - fx0, y - fy0
+    g00, g01 = float(grey[iy, ix]), float(grey[iy, ix + 1])
+    g10, g11 = float(grey[iy + 1, ix]), float(grey[iy + 1, ix + 1])
+    top = g00 + fx * (g01 - g00)
+    bottom = g10 + fx * (g11 - g10)
+    return top + fy * (bottom - top)
+
+
+@compiled
 def sample_profiles(
     grey: NDArray[np.uint8], p_px: Array, normal: Array, offsets: Array
 ) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
@@ -105,17 +122,8 @@ def sample_profiles(
         for m in range(M):
             x = px + offsets[m] * nx
             y = py + offsets[m] * ny
-            fx0, fy0 = math.floor(x), math.floor(y)
-            if fx0 >= 0 and fy0 >= 0 and fx0 < w - 1 and fy0 < h - 1:
-                ix, iy = int(fx0), int(fy0)
-                fx, fy = x - fx0, y - fy0
-                g00, g01 = float(grey[iy, ix]), float(grey[iy, ix + 1])
-                g10, g11 = float(grey[iy + 1, ix]), float(grey[iy + 1, ix + 1])
-                top = g00 + fx * (g01 - g00)
-                bottom = g10 + fx * (g11 - g10)
-                values[k, m] = top + fy * (bottom - top)
-            else:
-                values[k, m] = np.nan
+            values[k, m] = _bilinear_at(grey, x, y)
+            if not math.isfinite(values[k, m]):
                 whole[k] = False
             rx, ry = _round_half_even(x), _round_half_even(y)
             at[k, m] = (rx - px) * nx + (ry - py) * ny
@@ -129,21 +137,9 @@ def sample_profiles(
 def bilinear_points(grey: NDArray[np.uint8], points_px: Array) -> Array:
     """Bilinear interpolation of ``grey`` at ``points_px`` (N, 2), NaN where a point's four
     neighbours are not all in the image."""
-    h, w = grey.shape
     out = np.empty(points_px.shape[0])
     for i in range(points_px.shape[0]):
-        x, y = points_px[i, 0], points_px[i, 1]
-        fx0, fy0 = math.floor(x), math.floor(y)
-        if fx0 >= 0 and fy0 >= 0 and fx0 < w - 1 and fy0 < h - 1:
-            ix, iy = int(fx0), int(fy0)
-            fx, fy = x - fx0, y - fy0
-            g00, g01 = float(grey[iy, ix]), float(grey[iy, ix + 1])
-            g10, g11 = float(grey[iy + 1, ix]), float(grey[iy + 1, ix + 1])
-            top = g00 + fx * (g01 - g00)
-            bottom = g10 + fx * (g11 - g10)
-            out[i] = top + fy * (bottom - top)
-        else:
-            out[i] = np.nan
+        out[i] = _bilinear_at(grey, points_px[i, 0], points_px[i, 1])
     return out
 
 
