@@ -33,7 +33,6 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.edge_geometry import (
-    bilinear_points,
     corner_covariance,
     edge_points_n,
     fit_lines,
@@ -241,14 +240,6 @@ def _side_fractions(
     t.setflags(write=False)
     white.setflags(write=False)
     return t, white
-
-
-def bilinear(grey: NDArray[np.uint8], points_px: Array) -> Array:
-    """Bilinear interpolation of ``grey`` at ``points_px`` (..., 2), NaN where a point's four
-    neighbours are not all in the image. (Exact positions: ``cv2.remap`` rounds them to 1/32
-    of a pixel.)"""
-    points = np.ascontiguousarray(points_px, np.float64)
-    return bilinear_points(grey, points.reshape(-1, 2)).reshape(points.shape[:-1])
 
 
 @dataclass(frozen=True)

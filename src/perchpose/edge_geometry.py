@@ -136,7 +136,8 @@ def sample_profiles(
 @compiled
 def bilinear_points(grey: NDArray[np.uint8], points_px: Array) -> Array:
     """Bilinear interpolation of ``grey`` at ``points_px`` (N, 2), NaN where a point's four
-    neighbours are not all in the image."""
+    neighbours are not all in the image. (Exact positions: ``cv2.remap`` rounds them to 1/32
+    of a pixel.)"""
     out = np.empty(points_px.shape[0])
     for i in range(points_px.shape[0]):
         out[i] = _bilinear_at(grey, points_px[i, 0], points_px[i, 1])
