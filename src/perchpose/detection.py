@@ -21,8 +21,14 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.corners import EdgeFit, outside_reach_px
-from perchpose.quads import QuadFinder, QuadPass, refine_corners, target_dictionaries
-from perchpose.rectification import Rectification
+from perchpose.quads import (
+    ImagePass,
+    QuadFinder,
+    QuadPass,
+    refine_corners,
+    target_dictionaries,
+)
+from perchpose.rectification import COARSE_STEP, Rectification
 from perchpose.refinement import CornerFitter
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection, quad_side_px
@@ -136,10 +142,9 @@ class MarkerDetector:
         self.rectify = camera.max_distortion_px() > RECTIFY_ABOVE_PX
         # seconds spent fitting corners during the last ``detect``
         self.corners_s = 0.0
-        # glare: the clip level searched first (the one that found the markers last), and its
-        # place in the ladder
-        self._clip_level: int | None = None
-        self._next_level = 0
+        # the way of searching a whole frame tried first (``search_ladder``): the one that
+        # found the target last, or the next one to try
+        self._rung: tuple[int | None, ImagePass] = (None, "raw")
         # the time budget of the current ``detect``, what it left out, and the pattern fit's
         # cost per square pixel of marker side (learnt from the fits run; first guess
         # ``PATTERN_S_PER_PX2``)
@@ -156,47 +161,57 @@ class MarkerDetector:
     ) -> tuple[MarkerDetection, ...]:
         """Detect the target's markers in a grey (H, W) uint8 image of the camera's size.
 
-        hint : the previous frame's detections (see ``_find``). With ``corners="edges"`` (the
-        default) each marker's corners are then refitted from its four border edges through
-        the lens model (``perchpose.corners``); ``"subpix"`` keeps the ``cornerSubPix`` corners.
+        hint : the previous frame's detections (see ``_track_edges``). With ``corners="edges"``
+        (the default) each marker's corners are then refitted from its four border edges
+        through the lens model (``perchpose.corners``); ``"subpix"`` keeps the ``cornerSubPix``
+        corners.
+
+        Where nothing is tracked, the whole frame is searched, in one of the ways of
+        ``search_ladder``: the frame as it is, and through a strongly distorted lens its
+        pinhole view; under glare also the frame clipped at each level of
+        ``GLARE_CLIP_LEVELS`` (every level of the frame first: the pinhole view is for large
+        markers near contact). A frame starts with the way that found the target last and,
+        when that finds nothing, tries the next one, where the next frame then starts: a frame
+        costs at most two whole-frame searches, and a lost target is looked for every way in
+        turn over a few frames.
 
         Glare: where a large part of the frame is saturated (a bright sky or lamps around a
         target in shadow), the adaptive threshold sees the sheet's white margin as dark next to
         the surround and no quad closes. The quads are then searched in the frame clipped at a
         level between the sheet's black and white (corners are still fitted to the frame
-        itself): the level that found the markers last, and when it finds nothing, the next
-        level of ``GLARE_CLIP_LEVELS`` (so a frame costs at most two searches, and a frame
-        without room for the second still moves the next frame on to it).
+        itself).
 
         deadline_s : a ``time.perf_counter()`` reading by which the detection should be done.
         What would not end by then is left out where it can be (each step's cost predicted
         from its runs so far): a pattern fit, the whole-frame search after tracking lost a
-        marker, the search of another glare level, and the whole-frame search that tracking
-        runs every ``full_search_every`` frames (``FULL_SEARCH_EVERY``). ``skipped`` names
-        what this call left out.
+        marker, the second way of searching, and the whole-frame search that tracking runs
+        every ``full_search_every`` frames (``FULL_SEARCH_EVERY``). ``skipped`` names what
+        this call left out.
         """
         self.corners_s = 0.0
         self.skipped = []
         self._deadline_s = deadline_s
         hint = self._unless_interval(hint)
-        glare = has_glare(grey)
-        if not glare:
-            self._clip_level = None
-        found = self._detect_clipped(grey, hint, self._clip_level)
-        if found or not glare:
+        ladder = self.search_ladder(has_glare(grey))
+        if self._rung not in ladder:
+            self._rung = ladder[0]
+        found = self._detect_by(grey, hint, self._rung)
+        if found or len(ladder) == 1:
             return found
-        # nothing at this level: the next one of the ladder, now and as the next frame's start
-        # (so that a frame with no room in its budget for a second search still moves on)
-        self._next_level = (self._next_level + 1) % len(GLARE_CLIP_LEVELS)
-        tried, level = self._clip_level, GLARE_CLIP_LEVELS[self._next_level]
-        if level == tried:
-            self._next_level = (self._next_level + 1) % len(GLARE_CLIP_LEVELS)
-            level = GLARE_CLIP_LEVELS[self._next_level]
-        self._clip_level = level
+        # nothing this way: the next one, now and as the next frame's start (so that a frame
+        # with no room in its budget for a second search still moves on)
+        self._rung = ladder[(ladder.index(self._rung) + 1) % len(ladder)]
         if self._late(self._search_s):
-            self.skipped.append("glare search")
+            self.skipped.append("glare search" if self._rung[0] is not None else "second search")
             return found
-        return self._detect_clipped(grey, (), level)
+        return self._detect_by(grey, (), self._rung)
+
+    def search_ladder(self, glare: bool) -> list[tuple[int | None, ImagePass]]:
+        """The ways of searching a whole frame, in the order they are tried: (clip level or
+        None, ``raw`` or ``rectified``)."""
+        levels = GLARE_CLIP_LEVELS if glare else (None,)
+        views: tuple[ImagePass, ...] = ("raw", "rectified") if self.rectify else ("raw",)
+        return [(level, view) for view in views for level in levels]
 
     def _unless_interval(self, hint: tuple[MarkerDetection, ...]) -> tuple[MarkerDetection, ...]:
         """``hint``, or none when ``full_search_every`` tracked frames have passed since the
@@ -215,14 +230,19 @@ class MarkerDetector:
         self._tracked_frames = 0
         return ()
 
-    def _detect_clipped(
-        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...], clip_level: int | None
+    def _detect_by(
+        self,
+        grey: NDArray[np.uint8],
+        hint: tuple[MarkerDetection, ...],
+        rung: tuple[int | None, ImagePass],
     ) -> tuple[MarkerDetection, ...]:
-        """Quads found in ``grey`` clipped at ``clip_level`` (None: as it is), corners fitted
-        to ``grey``."""
+        """Markers tracked from ``hint``, or else searched for the ``rung`` way: quads found in
+        ``grey`` clipped at its level (None: as it is) and, for ``rectified``, in the lens's
+        pinhole view of it; corners fitted to ``grey``."""
+        clip_level, view = rung
         seen = grey if clip_level is None else np.minimum(grey, np.uint8(clip_level))
         if self.corners == "subpix":
-            return self._find(seen, hint)
+            return self._find(seen, hint, view)
         if hint:
             tracked = self._track_edges(grey, seen, hint)
             if tracked is not None:
@@ -231,7 +251,7 @@ class MarkerDetector:
                 self.skipped.append("search")
                 return ()
         t0 = time.perf_counter()
-        found = self._find(seen, hint)
+        found = self._find(seen, hint, view)
         self._search_s += 0.3 * (time.perf_counter() - t0 - self._search_s)
         fitted = self._fit_all(grey, found)
         return tuple(fitted[det.marker_index] or det for det in found)
@@ -432,18 +452,36 @@ class MarkerDetector:
         return out
 
     def _find(
-        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...] = ()
+        self,
+        grey: NDArray[np.uint8],
+        hint: tuple[MarkerDetection, ...] = (),
+        view: ImagePass = "raw",
     ) -> tuple[MarkerDetection, ...]:
-        """The target's markers with ``cornerSubPix`` corners.
+        """The target's markers with ``cornerSubPix`` corners, searched in ``grey`` (``raw``)
+        or in the whole of the lens's pinhole view of it (``rectified``; corners mapped back).
 
-        hint : the previous frame's detections. The search then starts in a window around them
-            and around where the target's plane puts its other markers, and falls back to the
-            whole image only when the window holds no marker.
+        hint : the previous frame's detections. The raw search then starts in a window around
+            them and around where the target's plane puts its other markers, and falls back to
+            the whole image only when the window holds no marker.
 
-        With a strongly distorted lens, markers found large (curved edges) and markers missing
-        but predicted by the plane through a found one are searched again in windows of the
-        rectified view; with nothing found, the whole rectified view is searched.
+        With a strongly distorted lens, markers the raw search finds large (curved edges) and
+        markers missing but predicted by the plane through a found one are searched again in
+        windows of the rectified view.
         """
+        maps = self._rectification.maps if self.rectify else None
+        if view == "rectified" and maps is not None:
+            # edge-fitted corners need only a start: the view at half its size, a quarter of
+            # the pixels to remap and search (it is larger than the image)
+            coarse = self.corners == "edges"
+            step = COARSE_STEP if coarse else 1
+            seen_maps = self._rectification.coarse_maps if coarse else maps
+            rect = np.asarray(cv2.remap(grey, *seen_maps, interpolation=cv2.INTER_LINEAR), np.uint8)
+            whole: dict[int, MarkerDetection] = {}
+            for index, det in self.quads.find(rect, "rectified").items():
+                mapped = self._unrectify(det.corners_px * step)
+                if mapped is not None:
+                    whole[index] = MarkerDetection(index, mapped, "rectified")
+            return tuple(whole[i] for i in sorted(whole))
         found: dict[int, MarkerDetection] = {}
         box = tracking_window(grey.shape, predicted_quads(self.target, hint)) if hint else None
         if box is not None:
@@ -451,17 +489,12 @@ class MarkerDetector:
             found = self.quads.find(grey[y0:y1, x0:x1], "raw", (x0, y0))
         if not found:
             found = self.quads.find(grey, "raw")
-        if not self.rectify:
+        if maps is None or not found:
             return tuple(found[i] for i in sorted(found))
-        maps = self._rectification.maps
-        if not found:
-            rect = np.asarray(cv2.remap(grey, *maps, interpolation=cv2.INTER_LINEAR), np.uint8)
-            rectified = self.quads.find(rect, "rectified")
-        else:
-            rectified = {}
-            for box in rectified_windows(self._rectification, self.target, found, CURVED_SIDE_PX):
-                for index, det in self._rectified_pass(grey, maps, box).items():
-                    rectified.setdefault(index, det)
+        rectified: dict[int, MarkerDetection] = {}
+        for box in rectified_windows(self._rectification, self.target, found, CURVED_SIDE_PX):
+            for index, det in self._rectified_pass(grey, maps, box).items():
+                rectified.setdefault(index, det)
         for det in rectified.values():
             raw = found.get(det.marker_index)
             if raw is not None and raw.side_px < CURVED_SIDE_PX:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,9 +25,11 @@ Maps = tuple[NDArray[np.float32], NDArray[np.float32]]
 RECTIFIED_HALF_FOV_DEG = 60.0
 RECTIFIED_MAX_SCALE = 1.5
 _KEPT = 8  # cameras whose tables are kept
+# The coarse view samples every this many pixels of the view (``Rectification.coarse_maps``).
+COARSE_STEP = 2
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Rectification:
     """Remap tables from the original image to a pinhole view (``maps``: x and y of the original
     pixel for each pixel of the view) and that view's ``K_rect``.
@@ -43,6 +46,17 @@ class Rectification:
         """(height, width) of the view."""
         h, w = self.maps[0].shape
         return h, w
+
+    @cached_property
+    def coarse_maps(self) -> Maps:
+        """``maps`` at every ``COARSE_STEP``-th pixel of the view both ways: a view of the same
+        lens at that fraction of the size (its pixel (i, j) is the view's (s i, s j)), for
+        whole-view searches where the corners are fitted again in the original."""
+        step = COARSE_STEP
+        return (
+            np.ascontiguousarray(self.maps[0][::step, ::step]),
+            np.ascontiguousarray(self.maps[1][::step, ::step]),
+        )
 
     @staticmethod
     def of(camera: CameraModel) -> Rectification:
