@@ -403,3 +403,44 @@ def test_hinted_markers_are_fitted_from_their_prediction_without_a_quad_search(
     assert set(tracked) == {0, 1}
     assert len(searched) == 1
     assert searched[0][0] * searched[0][1] < 0.05 * image.shape[0] * image.shape[1]
+
+
+def test_a_lost_target_is_looked_for_every_way_in_turn_two_searches_a_frame(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A frame under glare with no target in it: each frame searches it whole twice, first the
+    way that found the target last (none yet: the frame as it is) and then one way more, every
+    clip level of the frame itself, then each through the lens's pinhole view (searched at
+    half its size)."""
+    from perchpose import detection
+
+    r = renderers["fpv"]
+    detector = MarkerDetector(r.camera, r.target)
+    assert detector.rectify
+    frame = np.full((r.camera.height_px, r.camera.width_px), 40, np.uint8)
+    frame[:, : r.camera.width_px // 2] = 255
+    assert detection.has_glare(frame)
+    searched: list[tuple[str, int, tuple[int, ...]]] = []
+    real = detector.quads.find
+
+    def find(grey: np.ndarray, image_pass: str, *args: object, **kwargs: object) -> object:
+        searched.append((image_pass, int(grey.max()), grey.shape))
+        return real(grey, image_pass, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(detector.quads, "find", find)
+    ladder = detector.search_ladder(glare=True)
+    assert len(ladder) == 2 * len(detection.GLARE_CLIP_LEVELS)
+    per_frame = []
+    for _ in range(len(ladder) - 1):
+        searched.clear()
+        assert detector.detect(frame) == ()
+        per_frame.append(list(searched))
+    assert all(len(frame_searches) == 2 for frame_searches in per_frame)
+    tried = [[(view, level) for view, level, _ in searches] for searches in per_frame]
+    ways = [(view, 255 if level is None else level) for level, view in ladder]
+    assert tried == [[ways[0], way] for way in ways[1:]]
+    rectified_shape = detector._rectification.coarse_maps[0].shape
+    for frame_searches in per_frame:
+        for view, _, shape in frame_searches:
+            expected_shape = rectified_shape if view == "rectified" else frame.shape
+            assert shape == expected_shape

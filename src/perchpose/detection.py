@@ -145,6 +145,8 @@ class MarkerDetector:
         # the way of searching a whole frame tried first (``search_ladder``): the one that
         # found the target last, or the next one to try
         self._rung: tuple[int | None, ImagePass] = (None, "raw")
+        # where in the ladder the search for a lost target has got to
+        self._explored = 0
         # the time budget of the current ``detect``, what it left out, and the pattern fit's
         # cost per square pixel of marker side (learnt from the fits run; first guess
         # ``PATTERN_S_PER_PX2``)
@@ -170,10 +172,10 @@ class MarkerDetector:
         ``search_ladder``: the frame as it is, and through a strongly distorted lens its
         pinhole view; under glare also the frame clipped at each level of
         ``GLARE_CLIP_LEVELS`` (every level of the frame first: the pinhole view is for large
-        markers near contact). A frame starts with the way that found the target last and,
-        when that finds nothing, tries the next one, where the next frame then starts: a frame
-        costs at most two whole-frame searches, and a lost target is looked for every way in
-        turn over a few frames.
+        markers near contact). A frame starts with the way that found the target last
+        (``_found_by``) and, when that finds nothing, tries the next way not yet tried
+        since the target was lost: a frame costs at most two whole-frame searches, and a lost
+        target is looked for every way in turn, one more a frame.
 
         Glare: where a large part of the frame is saturated (a bright sky or lamps around a
         target in shadow), the adaptive threshold sees the sheet's white margin as dark next to
@@ -195,16 +197,33 @@ class MarkerDetector:
         ladder = self.search_ladder(has_glare(grey))
         if self._rung not in ladder:
             self._rung = ladder[0]
-        found = self._detect_by(grey, hint, self._rung)
+        first = self._rung
+        found = self._detect_by(grey, hint, first)
         if found or len(ladder) == 1:
-            return found
-        # nothing this way: the next one, now and as the next frame's start (so that a frame
-        # with no room in its budget for a second search still moves on)
-        self._rung = ladder[(ladder.index(self._rung) + 1) % len(ladder)]
+            return self._found_by(found, first)
+        # nothing this way: the next way not yet tried in this run of frames without the
+        # target
+        self._explored = (self._explored + 1) % len(ladder)
+        if ladder[self._explored] == first:
+            self._explored = (self._explored + 1) % len(ladder)
+        rung = ladder[self._explored]
         if self._late(self._search_s):
-            self.skipped.append("glare search" if self._rung[0] is not None else "second search")
+            # no room for it: it is the next frame's first
+            self.skipped.append("glare search" if rung[0] is not None else "second search")
+            self._rung = rung
             return found
-        return self._detect_by(grey, (), self._rung)
+        return self._found_by(self._detect_by(grey, (), rung), rung)
+
+    def _found_by(
+        self, found: tuple[MarkerDetection, ...], rung: tuple[int | None, ImagePass]
+    ) -> tuple[MarkerDetection, ...]:
+        """``found``; where it holds a marker, the next frame starts the way ``rung`` says,
+        but with ``cornerSubPix`` corners in the frame itself: their pinhole view is searched
+        at full size, two to three times the cost of the frame, and is needed only while no
+        quad closes there."""
+        if found:
+            self._rung = rung if self.corners == "edges" else (rung[0], "raw")
+        return found
 
     def search_ladder(self, glare: bool) -> list[tuple[int | None, ImagePass]]:
         """The ways of searching a whole frame, in the order they are tried: (clip level or
