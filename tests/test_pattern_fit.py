@@ -4,14 +4,39 @@ import math
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
-from perchpose.corners import fit_marker_edges
+from perchpose.corners import EdgeFit, fit_marker_edges
 from perchpose.detection import MarkerDetector
 from perchpose.evaluation.corner_accuracy import corner_error_px
 from perchpose.geometry import facing_pose
 from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.target import MarkerSpec, TargetSpec
+
+
+def _outer_marker_edges(
+    r: Renderer,
+    side_px: float,
+    quality: ImageQuality,
+    rng: np.random.Generator,
+    noise: np.random.Generator | None = None,
+) -> tuple[NDArray[np.uint8], NDArray[np.float64], EdgeFit]:
+    """A frame of the outer marker at about ``side_px`` (a random offset, heading and small
+    tilt from ``rng``), its true corners and its edge fit from the detector's quad."""
+    z = r.camera.focal_px * 0.15 / side_px
+    x, y = rng.uniform(-0.1, 0.1, 2) * z
+    T = facing_pose(x, y, z, rng.uniform(-3, 3), rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3))
+    image = r.render(T, quality, noise)
+    true = r.corners_px(T)[0]
+    assert true is not None
+    detector = MarkerDetector(r.camera, r.target, "subpix")
+    (det,) = [d for d in detector.detect(image) if d.marker_index == 0]
+    cells = r.target.markers[0].cells
+    margins = r.target.white_margin_cells(0)
+    edges = fit_marker_edges(image, det.corners_px, r.camera, cells, margin_cells=margins)
+    assert edges is not None
+    return image, true, edges
 
 
 def test_the_paper_targets_printed_pattern(paper_target: TargetSpec) -> None:
@@ -65,23 +90,12 @@ def test_small_blurred_markers_are_unbiased(renderers: dict[str, Renderer]) -> N
     sigmas. The one-edge model pulls the corners inwards; the pattern fit does not."""
     r = renderers["fpv"]
     quality = ImageQuality(blur_sigma_px=1.1, noise_sigma=0.0)
-    detector = MarkerDetector(r.camera, r.target, "subpix")
     pattern = printed_pattern(r.target, 0)
     assert pattern is not None
     rng = np.random.default_rng(21)
-    cells = r.target.markers[0].cells
-    margins = r.target.white_margin_cells(0)
     edge_radial, fit_radial, fit_ms = [], [], []
     for side_px in np.linspace(16.0, 24.0, 8):
-        z = r.camera.focal_px * 0.15 / side_px
-        x, y = rng.uniform(-0.1, 0.1, 2) * z
-        T = facing_pose(x, y, z, rng.uniform(-3, 3), rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3))
-        image = r.render(T, quality)
-        true = r.corners_px(T)[0]
-        (det,) = [d for d in detector.detect(image) if d.marker_index == 0]
-        assert true is not None
-        edges = fit_marker_edges(image, det.corners_px, r.camera, cells, margin_cells=margins)
-        assert edges is not None
+        image, true, edges = _outer_marker_edges(r, side_px, quality, rng)
         fitted = refine_corners_pattern(
             image, edges.corners_px, r.camera, pattern, blur_px=edges.blur_px
         )
@@ -140,24 +154,13 @@ def test_under_heavy_blur_the_fit_runs_on_2x2_blocks_as_well_as_on_pixels(
     biased."""
     r = renderers["fpv"]
     quality = ImageQuality(blur_sigma_px=2.0, noise_sigma=4.0)
-    detector = MarkerDetector(r.camera, r.target, "subpix")
     pattern = printed_pattern(r.target, 0)
     assert pattern is not None
     pixels = PatternFitSettings(bin_above_blur_px=math.inf)
     rng = np.random.default_rng(23)
-    cells = r.target.markers[0].cells
-    margins = r.target.white_margin_cells(0)
     binned_error, pixel_error, apart = [], [], []
     for side_px in np.linspace(30.0, 50.0, 6):
-        z = r.camera.focal_px * 0.15 / side_px
-        x, y = rng.uniform(-0.1, 0.1, 2) * z
-        T = facing_pose(x, y, z, rng.uniform(-3, 3), rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3))
-        image = r.render(T, quality, rng)
-        true = r.corners_px(T)[0]
-        (det,) = [d for d in detector.detect(image) if d.marker_index == 0]
-        assert true is not None
-        edges = fit_marker_edges(image, det.corners_px, r.camera, cells, margin_cells=margins)
-        assert edges is not None
+        image, true, edges = _outer_marker_edges(r, side_px, quality, rng, rng)
         assert edges.blur_px > 1.5
         fits = [
             refine_corners_pattern(image, edges.corners_px, r.camera, pattern, s, edges.blur_px)
