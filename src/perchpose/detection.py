@@ -270,9 +270,19 @@ class MarkerDetector:
                 self.skipped.append("search")
                 return ()
         t0 = time.perf_counter()
-        found = self._find(seen, hint, view)
+        found = self._find(seen, hint, view, refind_curved=False)
         self._search_s += 0.3 * (time.perf_counter() - t0 - self._search_s)
         fitted = self._fit_all(grey, found)
+        # a large marker whose curved quad is too far off for the fit: its quad from the
+        # pinhole view
+        curved = [
+            d.corners_px
+            for d in found
+            if fitted[d.marker_index] is None and self.rectify and d.side_px >= CURVED_SIDE_PX
+        ]
+        for det in self._rectified_tracking(seen, curved) if curved else []:
+            if det.marker_index in fitted and fitted[det.marker_index] is None:
+                fitted[det.marker_index] = self.fit_corners(grey, det)
         return tuple(fitted[det.marker_index] or det for det in found)
 
     def fit_corners(
@@ -475,6 +485,7 @@ class MarkerDetector:
         grey: NDArray[np.uint8],
         hint: tuple[MarkerDetection, ...] = (),
         view: ImagePass = "raw",
+        refind_curved: bool = True,
     ) -> tuple[MarkerDetection, ...]:
         """The target's markers with ``cornerSubPix`` corners, searched in ``grey`` (``raw``)
         or in the whole of the lens's pinhole view of it (``rectified``; corners mapped back).
@@ -483,9 +494,12 @@ class MarkerDetector:
             them and around where the target's plane puts its other markers, and falls back to
             the whole image only when the window holds no marker.
 
-        With a strongly distorted lens, markers the raw search finds large (curved edges) and
-        markers missing but predicted by the plane through a found one are searched again in
-        windows of the rectified view.
+        With a strongly distorted lens, markers missing but predicted by the plane through a
+        found one are searched again in windows of the rectified view, and with
+        ``refind_curved`` so are markers the raw search finds large (their edges curved: their
+        ``cornerSubPix`` corners are off; the edge fit through the lens model straightens
+        them, so the edge-fitted path leaves it out and falls back on such a window only where
+        the fit fails).
         """
         maps = self._rectification.maps if self.rectify else None
         if view == "rectified" and maps is not None:
@@ -511,12 +525,13 @@ class MarkerDetector:
         if maps is None or not found:
             return tuple(found[i] for i in sorted(found))
         rectified: dict[int, MarkerDetection] = {}
-        for box in rectified_windows(self._rectification, self.target, found, CURVED_SIDE_PX):
+        curved_px = CURVED_SIDE_PX if refind_curved else math.inf
+        for box in rectified_windows(self._rectification, self.target, found, curved_px):
             for index, det in self._rectified_pass(grey, maps, box).items():
                 rectified.setdefault(index, det)
         for det in rectified.values():
             raw = found.get(det.marker_index)
-            if raw is not None and raw.side_px < CURVED_SIDE_PX:
+            if raw is not None and raw.side_px < curved_px:
                 continue
             mapped = self._unrectify(det.corners_px)
             if mapped is not None:
