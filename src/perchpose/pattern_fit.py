@@ -337,7 +337,9 @@ def refine_corners_pattern(
         levels = levels - step[9:]
         # how far the corners moved, in pixels (about: q units are cells)
         moved_cells = float(np.max(np.abs(step[:8]) * np.array([n, n, 1, n, n, 1, n * n, n * n])))
-        if moved_cells * cell_px < 3e-3 and abs(step[8]) < 3e-3:
+        # a step under 0.01 px ends it: the next one would move the corners by about a tenth
+        # of that (on 78 harsh fits, at most 0.001 px against going on to 0.003 px)
+        if moved_cells * cell_px < 1e-2 and abs(step[8]) < 3e-3:
             break
     sigma = math.exp(log_sigma)
     if not (cfg.min_blur_px < sigma < cfg.max_blur_px) or not levels[1] > cfg.min_contrast:
