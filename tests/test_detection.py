@@ -54,6 +54,37 @@ def test_large_marker_on_a_fisheye_comes_from_the_rectified_pass(
         assert np.max(np.linalg.norm(raw[0].reshape(4, 2) - truth, axis=1)) > 2.0
 
 
+def test_a_large_marker_the_frame_shows_is_fitted_from_its_own_quad_on_a_fisheye(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Through the fisheye a 120 px marker's edges are curved, but its quad from the frame
+    itself is close enough for the edge fit through the lens model: no pinhole view is
+    built, and its corners are as good as any."""
+    from perchpose import detection
+
+    r = renderers["fpv_wide"]
+    T = facing_pose(0.04, -0.03, 0.25, 0.3)
+    image = r.render(T, rng=np.random.default_rng(3))
+    remapped: list[object] = []
+    real = detection.cv2.remap
+
+    def remap(*args: object, **kwargs: object) -> object:
+        remapped.append(args)
+        return real(*args, **kwargs)  # type: ignore[call-overload]
+
+    monkeypatch.setattr(detection.cv2, "remap", remap)
+    found = {d.marker_index: d for d in MarkerDetector(r.camera, r.target).detect(image)}
+    assert set(found) == {0, 1}
+    assert found[0].image_pass == "raw"
+    assert found[0].side_px > 100
+    assert remapped == []
+    truth = r.corners_px(T)
+    for index, det in found.items():
+        corners = truth[index]
+        assert corners is not None
+        assert np.max(np.abs(det.corners_px - corners)) < 0.05
+
+
 def test_markers_not_in_the_target_are_ignored(webcam: CameraModel) -> None:
     # render a target holding the paper's markers plus a stranger beside them
     stranger = MarkerSpec("DICT_4X4_1000", 42, 60.0, centre_mm=(-160.0, 0.0))
