@@ -276,14 +276,22 @@ class MarkerDetector:
         # a large marker whose curved quad is too far off for the fit: its quad from the
         # pinhole view
         curved = [
-            d.corners_px
+            d
             for d in found
             if fitted[d.marker_index] is None and self.rectify and d.side_px >= CURVED_SIDE_PX
         ]
-        for det in self._rectified_tracking(seen, curved) if curved else []:
-            if det.marker_index in fitted and fitted[det.marker_index] is None:
-                fitted[det.marker_index] = self.fit_corners(grey, det)
-        return tuple(fitted[det.marker_index] or det for det in found)
+        wanted = {d.marker_index for d in curved}
+        quads = [d.corners_px for d in curved]
+        again = {
+            d.marker_index: d
+            for d in (self._rectified_tracking(seen, quads, search=True) if quads else [])
+            if d.marker_index in wanted
+        }
+        refitted = self._fit_all(grey, again.values())
+        return tuple(
+            fitted[d.marker_index] or refitted.get(d.marker_index) or again.get(d.marker_index, d)
+            for d in found
+        )
 
     def fit_corners(
         self,
@@ -461,10 +469,11 @@ class MarkerDetector:
         return out
 
     def _rectified_tracking(
-        self, grey: NDArray[np.uint8], quads: list[Array]
+        self, grey: NDArray[np.uint8], quads: list[Array], search: bool = False
     ) -> list[MarkerDetection]:
-        """Markers found by the tracking detector in windows of the rectified view around the
-        predicted ``quads`` (original pixels), with corners mapped back to the original."""
+        """Markers found in windows of the rectified view around ``quads`` (original pixels),
+        with corners mapped back to the original: by the tracking detector (one threshold
+        window), or with ``search`` by the full search's (OpenCV's three)."""
         maps = self._rectification.maps
         out = []
         for quad in quads:
@@ -474,7 +483,9 @@ class MarkerDetector:
                 continue
             small = quad_side_px(rectified) < SMALL_MARKER_SIDE_PX
             detector = self.quads.tracking_small if small else self.quads.tracking
-            for index, det in self._rectified_pass(grey, maps, box, detector).items():
+            for index, det in self._rectified_pass(
+                grey, maps, box, None if search else detector
+            ).items():
                 mapped = self._unrectify(det.corners_px)
                 if mapped is not None:
                     out.append(MarkerDetection(index, mapped, "rectified"))
