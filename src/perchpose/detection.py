@@ -272,9 +272,10 @@ class MarkerDetector:
         t0 = time.perf_counter()
         found = self._find(seen, hint, view, refind_curved=False)
         self._search_s += 0.3 * (time.perf_counter() - t0 - self._search_s)
-        fitted = self._fit_all(grey, found)
-        # a large marker whose curved quad is too far off for the fit: its quad from the
-        # pinhole view
+        # a large marker whose curved quad is too far off for the edge fit: its quad from the
+        # pinhole view (not a pattern fit from the curved quad's corners)
+        curved_px = CURVED_SIDE_PX if self.rectify else math.inf
+        fitted = self._fit_all(grey, found, edges_from_px=curved_px)
         curved = [
             d
             for d in found
@@ -300,13 +301,16 @@ class MarkerDetector:
         *,
         pattern: Callable[[MarkerDetection], bool] | None = None,
         predicted: bool = False,
+        require_edges: bool = False,
     ) -> MarkerDetection | None:
         """``det`` with corners fitted to the image, or None (``CornerFitter.fit_corners``);
         the time it takes counts in ``corners_s``, and a pattern fit's in the cost model that
         predicts the next one's."""
         t0 = time.perf_counter()
         try:
-            return self.fitter.fit_corners(grey, det, pattern=pattern, predicted=predicted)
+            return self.fitter.fit_corners(
+                grey, det, pattern=pattern, predicted=predicted, require_edges=require_edges
+            )
         finally:
             self.corners_s += time.perf_counter() - t0
             spent = self.fitter.pattern_s
@@ -320,12 +324,14 @@ class MarkerDetector:
         found: Iterable[MarkerDetection],
         predicted: bool = False,
         fitted_px: float = 0.0,
+        edges_from_px: float = math.inf,
     ) -> dict[int, MarkerDetection | None]:
         """Each of ``found`` with corners fitted (None where no fit succeeds; ``predicted``:
         see ``CornerFitter.fit_corners``), the largest first. With
         ``pattern_beside_ratio`` set, a marker that many times smaller than one whose corners
         were fitted (among these, or one of ``fitted_px`` fitted before) goes without the
-        pattern fit."""
+        pattern fit. A marker of ``edges_from_px`` or more needs fitted edges (the
+        ``require_edges`` of ``CornerFitter.fit_corners``)."""
         out: dict[int, MarkerDetection | None] = {}
         largest_px = fitted_px
 
@@ -339,7 +345,13 @@ class MarkerDetector:
             return True
 
         for det in sorted(found, key=lambda d: -d.side_px):
-            fitted = self.fit_corners(grey, det, pattern=pattern, predicted=predicted)
+            fitted = self.fit_corners(
+                grey,
+                det,
+                pattern=pattern,
+                predicted=predicted,
+                require_edges=det.side_px >= edges_from_px,
+            )
             out[det.marker_index] = fitted
             if fitted is not None:
                 largest_px = max(largest_px, det.side_px)

@@ -48,6 +48,7 @@ class CornerFitter:
         *,
         pattern: Callable[[MarkerDetection], bool] | None = None,
         predicted: bool = False,
+        require_edges: bool = False,
     ) -> MarkerDetection | None:
         """``det`` with corners fitted to the image, or None if no fit succeeds: from the
         marker's four border edges; for a marker whose cells span only a few blur widths,
@@ -63,14 +64,17 @@ class CornerFitter:
         it the edge fit runs again from them (its profiles then straddle the edges evenly:
         from a start a pixel or two off, the corners are off by a few hundredths of a pixel,
         several times their noise on a large marker), and that fit must stay within
-        ``SETTLE_PX`` of the first (a fit that has found the edge does)."""
+        ``SETTLE_PX`` of the first (a fit that has found the edge does).
+
+        require_edges : without fitted edges there is no answer (no pattern fit from ``det``'s
+        own corners either): for a start that may be too far off for both."""
         self.pattern_s = 0.0
         i = det.marker_index
         cells = self.target.markers[i].cells
         edges = self.fit_edges(grey, det)
-        if predicted:
-            if edges is None:
-                return None
+        if edges is None and (predicted or require_edges):
+            return None
+        if predicted and edges is not None:
             moved = float(np.max(np.linalg.norm(edges.corners_px - det.corners_px, axis=1)))
             if moved > PREDICTED_MAX_MOVE_CELLS * det.side_px / cells.shape[0]:
                 return None
