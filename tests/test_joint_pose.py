@@ -2,6 +2,7 @@
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -159,3 +160,28 @@ def test_corner_misfit_is_the_variance_factor() -> None:
     J = np.zeros((8, 6))
     J[:6, :6] = np.eye(6)
     assert corner_misfit(J, np.ones(8), np.zeros(8), np.eye(8)) == (0.0, pytest.approx(2.0))
+
+
+@pytest.mark.parametrize(
+    "rvec", [(0.0, 0.0, 0.0), (2e-5, -1e-5, 3e-5), (0.3, -1.2, 0.7), (3.0, 0.2, -0.1)]
+)
+def test_the_rotation_jacobian_is_what_a_small_turn_of_the_rotation_vector_does(
+    rvec: tuple[float, float, float],
+) -> None:
+    """Columns of ``_rotation_jacobian``: the small rotation about the camera axes that a step
+    of the rotation vector along each axis makes, by central differences."""
+    from perchpose.joint_pose import _rotation_jacobian
+
+    r = np.array(rvec)
+    step = 1e-6
+    expected = np.zeros((3, 3))
+    for k in range(3):
+        plus, minus = r.copy(), r.copy()
+        plus[k] += step
+        minus[k] -= step
+        R_plus, _ = cv2.Rodrigues(plus.reshape(3, 1))
+        R_minus, _ = cv2.Rodrigues(minus.reshape(3, 1))
+        M = np.asarray(R_plus) @ np.asarray(R_minus).T
+        w = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+        expected[:, k] = w / (2 * step)
+    assert np.allclose(_rotation_jacobian(r), expected, atol=1e-8)

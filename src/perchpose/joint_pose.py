@@ -100,18 +100,17 @@ def _project_with_jacobian(
 
 def _rotation_jacobian(rvec: Array) -> Array:
     """d(w)/d(rvec) (3, 3): how a change of the rotation vector turns the rotation, as a small
-    rotation ``w`` about the camera axes (``exp([w]x) R``)."""
-    R, _ = cv2.Rodrigues(rvec.reshape(3, 1))
-    A = np.zeros((3, 3))
-    for k in range(3):
-        step = np.zeros(3)
-        step[k] = _STEP_RAD
-        Rk, _ = cv2.Rodrigues((rvec + step).reshape(3, 1))
-        M = np.asarray(Rk, np.float64) @ np.asarray(R, np.float64).T
-        # a rotation this small is I + [w]x to first order (cv2.Rodrigues rounds it to zero)
-        A[:, k] = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
-        A[:, k] /= _STEP_RAD
-    return A
+    rotation ``w`` about the camera axes (``exp([w]x) R``): the left Jacobian of SO(3),
+    ``I + (1 - cos t) / t^2 [r]x + (t - sin t) / t^3 [r]x^2`` with ``t = |r|`` (its series
+    near 0)."""
+    r = np.asarray(rvec, np.float64).reshape(3)
+    K = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    t = float(np.linalg.norm(r))
+    if t < 1e-4:
+        a, b = 0.5 - t * t / 24.0, 1.0 / 6.0 - t * t / 120.0
+    else:
+        a, b = (1.0 - math.cos(t)) / (t * t), (t - math.sin(t)) / (t * t * t)
+    return np.asarray(np.eye(3) + a * K + b * (K @ K), np.float64)
 
 
 def _weights(sigma_px: float | Array, n_points: int) -> Array:
@@ -171,7 +170,9 @@ def _covariances(
     (``sandwich_covariance``; else None). Both None if degenerate."""
     Jw = J * w[:, None]
     info = J.T @ Jw
-    if np.linalg.cond(info) > 1e14:
+    # its condition number (symmetric, positive semi-definite: the eigenvalues' ratio)
+    eigenvalues = np.linalg.eigvalsh(info)
+    if not eigenvalues[0] * 1e14 > eigenvalues[-1]:
         return None, None
     H_inv = np.linalg.inv(info)
     A = np.eye(6)
