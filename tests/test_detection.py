@@ -475,3 +475,37 @@ def test_a_lost_target_is_looked_for_every_way_in_turn_two_searches_a_frame(
         for view, _, shape in frame_searches:
             expected_shape = rectified_shape if view == "rectified" else frame.shape
             assert shape == expected_shape
+
+
+def test_a_tracked_marker_whose_quad_cannot_be_fitted_is_fitted_from_its_prediction(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """While tracking, a marker the window's quad pass finds but whose quad the corner fit
+    refuses (on a blurred frame such a quad can be pixels off) is fitted from where it was
+    predicted instead, and keeps the quad's corners only where that fails too."""
+    r = renderers["fpv"]
+    rng = np.random.default_rng(6)
+    detector = MarkerDetector(r.camera, r.target)
+    T = facing_pose(0.01, 0.0, 1.3, 0.2)  # the outer marker about 35 px: not fitted first
+    hint = tuple(d for d in detector.detect(r.render(T, rng=rng)) if d.marker_index == 0)
+    assert len(hint) == 1
+    assert not detector._clear_of_margin(hint[0])
+    assert hint[0].side_px < 40  # under CURVED_SIDE_PX: no pinhole view
+    image = r.render(facing_pose(0.0102, 0.0001, 1.299, 0.201), rng=rng)
+    fit_corners = MarkerDetector.fit_corners
+
+    def quads_refused(self, grey, det, **kwargs):  # type: ignore[no-untyped-def]
+        if not kwargs.get("predicted"):
+            return None
+        return fit_corners(self, grey, det, **kwargs)
+
+    monkeypatch.setattr(MarkerDetector, "fit_corners", quads_refused)
+    (tracked,) = [d for d in detector.detect(image, hint) if d.marker_index == 0]
+    assert tracked.image_pass == "tracked"
+    truth = r.corners_px(facing_pose(0.0102, 0.0001, 1.299, 0.201))[0]
+    assert truth is not None
+    assert np.max(np.abs(tracked.corners_px - truth)) < 0.1
+    # nor the prediction: the quad as found
+    monkeypatch.setattr(MarkerDetector, "fit_corners", lambda self, grey, det, **kwargs: None)
+    (kept,) = [d for d in detector.detect(image, hint) if d.marker_index == 0]
+    assert kept.image_pass == "raw"

@@ -395,10 +395,13 @@ class MarkerDetector:
         required: list[int] = []
         fitted_px = max((d.side_px for d in result.values()), default=0.0)
         searched = {i: d for i, d in found.items() if i not in result}
+        unfitted: dict[int, MarkerDetection] = {}
         for index, fitted in self._fit_all(grey, searched.values(), fitted_px=fitted_px).items():
             det = searched[index]
             if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
                 required.append(index)  # a curved quad too far off for the fit
+            elif fitted is None and index in hinted:
+                unfitted[index] = det  # the prediction's fit first (below), this quad after
             else:
                 result[index] = fitted or det
         # the others the quad pass missed (blur, noise, interference: the quad does not close)
@@ -406,6 +409,9 @@ class MarkerDetector:
         fitted_px = max((d.side_px for d in result.values()), default=0.0)
         late = [d for d in hint if d.marker_index not in result and d.marker_index not in tried]
         result.update(self._fit_direct(grey, late, fitted_px))
+        # a quad whose corners could not be fitted, where its prediction could not either:
+        # its cornerSubPix corners (on blurred frames they can be pixels off)
+        result.update({i: d for i, d in unfitted.items() if i not in result})
         missing = [d for d in hint if d.marker_index not in result]
         required += [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
         again = [d.marker_index for d in missing]
