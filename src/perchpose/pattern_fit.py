@@ -29,6 +29,7 @@ from perchpose.camera import CameraModel
 from perchpose.pattern_model import normal_equations
 from perchpose.step_model import MIN_CONTRAST
 from perchpose.target import TargetSpec
+from perchpose.values import quad_side_px
 
 Array = NDArray[np.float64]
 
@@ -299,7 +300,7 @@ def refine_corners_pattern(
     cfg = settings or PatternFitSettings()
     corners = np.asarray(corners_px, np.float64).reshape(4, 2)
     n = pattern.n_cells
-    cell_px = _px_per_cell(corners, n)
+    cell_px = quad_side_px(corners) / n
     started = _start(corners, camera, n)
     bin_px = 2 if blur_px >= cfg.bin_above_blur_px else 1
     region = None
@@ -350,7 +351,3 @@ def refine_corners_pattern(
     if np.max(np.linalg.norm(refined - corners, axis=1)) > cfg.max_shift_cells * cell_px:
         return None
     return np.asarray(refined, np.float64)
-
-
-def _px_per_cell(corners_px: Array, n: int) -> float:
-    return float(np.mean(np.linalg.norm(corners_px[[1, 2, 3, 0]] - corners_px, axis=1))) / n
