@@ -65,6 +65,11 @@ class CellPattern:
         return CellPattern(centres[uniform], shade[uniform, 0] > 0.5, n)
 
     @cached_property
+    def both_shades(self) -> bool:
+        """Whether the cells hold both shades (else there is nothing to read them against)."""
+        return bool(np.any(self.white) and not np.all(self.white))
+
+    @cached_property
     def samples_uv(self) -> Array:
         """Where each cell is sampled (P * S, 2; cell coordinates): ``_SUB_CELL`` around its
         centre on both axes, the cells one after the other."""
@@ -98,8 +103,7 @@ def read_cells(
     corner 0 at the marker's top left as printed), through the lens model; None where the
     corners make no quad or a cell falls outside the image."""
     corners_n = camera.normalize(np.asarray(corners_px, np.float64).reshape(4, 2))
-    both_shades = np.any(pattern.white) and not np.all(pattern.white)
-    if not (both_shades and np.all(np.isfinite(corners_n))):
+    if not (pattern.both_shades and np.all(np.isfinite(corners_n))):
         return None
     n = float(pattern.n_cells)
     square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], np.float32)
