@@ -276,11 +276,7 @@ class MarkerDetector:
         # pinhole view (not a pattern fit from the curved quad's corners)
         curved_px = CURVED_SIDE_PX if self.rectify else math.inf
         fitted = self._fit_all(grey, found, edges_from_px=curved_px)
-        curved = [
-            d
-            for d in found
-            if fitted[d.marker_index] is None and self.rectify and d.side_px >= CURVED_SIDE_PX
-        ]
+        curved = [d for d in found if fitted[d.marker_index] is None and d.side_px >= curved_px]
         wanted = {d.marker_index for d in curved}
         quads = [d.corners_px for d in curved]
         again = {
