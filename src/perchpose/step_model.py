@@ -312,5 +312,12 @@ def fit_steps(
         log_sigma = min(_LOG_MAX_BLUR, max(_LOG_MIN_BLUR, log_sigma - step_s))
         if np.max(np.abs(step_d)) < _SETTLED and abs(step_s) < _SETTLED:
             break
-    contrasts = levels[1] @ W
-    return bool(np.all(np.isfinite(d)) and np.all(contrasts > 0.0)), log_sigma
+    # every profile's contrast positive (a loop: numba's matrix product needs scipy's BLAS,
+    # which a plain install does not bring)
+    for k in range(d.shape[0]):
+        contrast = 0.0
+        for q in range(R):
+            contrast += levels[1, q] * W[q, k]
+        if not (math.isfinite(d[k]) and contrast > 0.0):
+            return False, log_sigma
+    return True, log_sigma
