@@ -58,9 +58,13 @@ def test_the_paper_targets_printed_pattern(paper_target: TargetSpec) -> None:
             iv = int(np.searchsorted(outer.lines_v, row + 0.5)) - 1
             assert outer.code[iv, iu] == cells[row, col]
     assert outer.code[0, 0] == -1  # off the sheet
+    # the inner marker: finer cells printed within the outer one's
+    assert len(outer.fine) == 1
+    assert outer.fine[0] == pytest.approx((2.5, 3.5, 2.5, 3.5))
     inner = printed_pattern(paper_target, 1)
     assert inner is not None
     assert inner.sheet_cells == (math.inf,) * 4
+    assert inner.fine == ()
 
 
 def test_a_marker_printed_at_an_angle_within_reach_is_refused() -> None:

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.pattern_model import normal_equations
+from perchpose.pattern_model import REACH_SIGMAS, fit_pattern
 from perchpose.step_model import MIN_CONTRAST
 from perchpose.target import TargetSpec
 from perchpose.values import quad_side_px
@@ -50,7 +50,8 @@ class PrintedPattern:
     grid of bands, the outermost reaching far beyond; code (Nv, Nu) : each grid cell's print
     (1 white, 0 black, -1 off the sheet). sheet_cells : per side (ArUco order: top, right,
     bottom, left) how far the sheet reaches beyond the marker, in its cells (inf: no edge
-    within reach).
+    within reach). fine : the boxes (u0, u1, v0, v1) of markers printed within this one with
+    smaller cells.
     """
 
     n_cells: int
@@ -58,6 +59,7 @@ class PrintedPattern:
     lines_v: Array
     code: NDArray[np.int8]
     sheet_cells: tuple[float, float, float, float]
+    fine: tuple[tuple[float, float, float, float], ...] = ()
 
 
 def printed_pattern(target: TargetSpec, index: int) -> PrintedPattern | None:
@@ -77,6 +79,7 @@ def printed_pattern(target: TargetSpec, index: int) -> PrintedPattern | None:
     lines_u: list[float] = [0.0, float(n)]
     lines_v: list[float] = [0.0, float(n)]
     lo, hi = -_PATTERN_REACH_CELLS, n + _PATTERN_REACH_CELLS
+    fine: list[tuple[float, float, float, float]] = []
     for other in target.markers:
         uv = to_cells(other.corners_target_m[:, :2])
         n_other = int(other.cells.shape[0])
@@ -87,6 +90,9 @@ def printed_pattern(target: TargetSpec, index: int) -> PrintedPattern | None:
             return None
         lines_u.extend(np.linspace(us[0], us[1], n_other + 1).tolist())
         lines_v.extend(np.linspace(vs[0], vs[1], n_other + 1).tolist())
+        inside = us[0] >= 0 and vs[0] >= 0 and us[1] <= n and vs[1] <= n
+        if inside and other.side_m / n_other < cell_m:
+            fine.append((float(us[0]), float(us[1]), float(vs[0]), float(vs[1])))
     half = target.sheet_half_extent_m
     sheet = to_cells(np.array([[-half, -half], [half, half]]))
     sheet_u, sheet_v = np.sort(sheet[:, 0]), np.sort(sheet[:, 1])
@@ -107,7 +113,8 @@ def printed_pattern(target: TargetSpec, index: int) -> PrintedPattern | None:
     code = np.where(np.isnan(albedo), _OFF_SHEET, np.where(albedo > 0.5, _WHITE, _BLACK))
     sheet_cells = (-sheet_v[0], sheet_u[1] - n, sheet_v[1] - n, -sheet_u[0])
     far = [math.inf if s > _PATTERN_REACH_CELLS else float(s) for s in sheet_cells]
-    return PrintedPattern(n, gu, gv, code.astype(np.int8), (far[0], far[1], far[2], far[3]))
+    reach = (far[0], far[1], far[2], far[3])
+    return PrintedPattern(n, gu, gv, code.astype(np.int8), reach, tuple(fine))
 
 
 @dataclass(frozen=True)
@@ -223,11 +230,16 @@ def _fitted_pixels(
     pattern: PrintedPattern,
     out_cells: float,
     bin_px: int = 1,
+    fine_margin_cells: float = 0.0,
 ) -> tuple[Array, Array, Array] | None:
     """The pixels fitted (P, 2), their marker-plane points q (P, 2) and grey values (P,):
     those whose centres fall within ``out_cells`` of the marker (and on the sheet), from a box
     around the region's outline; None when too few. With ``bin_px`` over 1, blocks of that
-    many pixels square stand for their pixels: the block's centre and mean grey."""
+    many pixels square stand for their pixels: the block's centre and mean grey. Pixels
+    within ``fine_margin_cells`` of a finer marker printed inside (``pattern.fine``) along
+    both axes are left out: blurred, its cells are a grey that says little of this marker's
+    corners, where the model (one Gaussian blur) is least true, and a pixel seeing its lines
+    both ways costs the most to model."""
     n = pattern.n_cells
     out = np.array([min(out_cells, 0.9 * s) for s in pattern.sheet_cells])  # top right ...
     lo_u, hi_u, lo_v, hi_v = -out[3], n + out[1], -out[0], n + out[2]
@@ -259,6 +271,9 @@ def _fitted_pixels(
     q = plane.q_of(px)
     u, v, _ = _apply(g, q)
     inside = np.isfinite(u) & (u > lo_u) & (u < hi_u) & (v > lo_v) & (v < hi_v)
+    m = fine_margin_cells
+    for u0, u1, v0, v1 in pattern.fine:
+        inside &= ~((u > u0 - m) & (u < u1 + m) & (v > v0 - m) & (v < v1 + m))
     if np.count_nonzero(inside) * bin_px * bin_px < 4 * n * n:
         return None
     return px[inside], q[inside], blocks.ravel()[inside]
@@ -303,9 +318,11 @@ def refine_corners_pattern(
     cell_px = quad_side_px(corners) / n
     started = _start(corners, camera, n)
     bin_px = 2 if blur_px >= cfg.bin_above_blur_px else 1
+    # a pixel's blur reaches this far (cells): further from a finer marker, it does not see it
+    reach_cells = REACH_SIGMAS * blur_px / cell_px
     region = None
     if started is not None:
-        region = _fitted_pixels(grey, *started, pattern, cfg.out_cells, bin_px)
+        region = _fitted_pixels(grey, *started, pattern, cfg.out_cells, bin_px, reach_cells)
     if started is None or region is None:
         return None
     plane, g = started
@@ -318,30 +335,20 @@ def refine_corners_pattern(
     dark, light = float(np.percentile(values, 10)), float(np.percentile(values, 90))
     levels = np.array([dark, light - dark, dark][: len(basis)])
     log_sigma = math.log(min(cfg.max_blur_px, max(cfg.min_blur_px, blur_px)))
-    q = np.ascontiguousarray(q)
-    lines_u, lines_v = pattern.lines_u, pattern.lines_v
-    for it in range(cfg.iterations):
-        blur_q = math.exp(log_sigma) * q_per_px
-        JtJ, Jtr, cover_max = normal_equations(
-            q, values, g, blur_q, lines_u, lines_v, basis, levels
-        )
-        if it == 0 and len(basis) == 3 and not cover_max[2] > 1e-3:
-            # the sheet's edge is out of the blur's reach: its level could not be fitted
-            basis, levels = basis[:2], levels[:2]
-            JtJ, Jtr, _ = normal_equations(q, values, g, blur_q, lines_u, lines_v, basis, levels)
-        try:
-            step = np.linalg.solve(JtJ + 1e-9 * np.eye(len(Jtr)), Jtr)
-        except np.linalg.LinAlgError:
-            return None
-        g = g - step[:8]
-        log_sigma = log_sigma - float(np.clip(step[8], -0.5, 0.5))
-        levels = levels - step[9:]
-        # how far the corners moved, in pixels (about: q units are cells)
-        moved_cells = float(np.max(np.abs(step[:8]) * np.array([n, n, 1, n, n, 1, n * n, n * n])))
-        # a step under 0.01 px ends it: the next one would move the corners by about a tenth
-        # of that (on 78 harsh fits, at most 0.001 px against going on to 0.003 px)
-        if moved_cells * cell_px < 1e-2 and abs(step[8]) < 3e-3:
-            break
+    # how far a unit change of each homography entry moves a corner of the cells square
+    reach = np.array([n, n, 1.0, n, n, 1.0, n * n, n * n])
+    # a step under 0.01 px ends it: the next one would move the corners by about a tenth of
+    # that (on 78 harsh fits, at most 0.001 px against going on to 0.003 px)
+    solved, g, log_sigma, levels = fit_pattern(
+        np.ascontiguousarray(q),
+        values,
+        q_per_px,
+        (pattern.lines_u, pattern.lines_v, basis),
+        (g, log_sigma, levels),
+        (cfg.iterations, reach, 1e-2 / cell_px),
+    )
+    if not solved:
+        return None
     sigma = math.exp(log_sigma)
     if not (cfg.min_blur_px < sigma < cfg.max_blur_px) or not levels[1] > cfg.min_contrast:
         return None

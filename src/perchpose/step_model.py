@@ -65,7 +65,7 @@ def pixel_step(t: float, sigma: float) -> tuple[float, float, float]:
 
 
 @compiled
-def _solve(A: Array, rhs: Array) -> bool:
+def solve_in_place(A: Array, rhs: Array) -> bool:
     """Solves ``A x = rhs`` in place (``rhs`` becomes x; ``A`` is overwritten) by Gaussian
     elimination with partial pivoting; False where A is singular (a zero or NaN pivot)."""
     n = rhs.shape[0]
@@ -260,7 +260,7 @@ def _schur_step(E: Array, g: Array, C: Array, D: Array, g_d: Array) -> tuple[boo
             for j in range(P):
                 S[i, j] -= c_i * C[k, j]
     step_d = np.empty(K)
-    if not _solve(S, rhs):
+    if not solve_in_place(S, rhs):
         return False, rhs, step_d
     for k in range(K):
         s = g_d[k]
