@@ -4,6 +4,7 @@ blur widths from its whole printed pattern (``perchpose.pattern_fit``)."""
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -21,6 +22,14 @@ from perchpose.values import MarkerDetection
 # predicted is fitted again from them, and that second fit must move them less than this
 # again (``CornerFitter.fit_corners``).
 SETTLE_PX = 0.3
+# How far a start m px off pulls the edge fit's corners, per px^2 of m: the profiles then
+# straddle the edges unevenly (on clean fpv renders 1.5 px off: 0.08 px at 37 px, 0.06 at 46,
+# 0.04 at 65, 0.01 at 72, under 0.01 at 81; 2 px off: 0.13, 0.11, 0.08, 0.04, 0.01). A second
+# fit from the first's corners is worth its time only where that pull, with m the corners'
+# mean move from the start, is a fair part of their own noise: SETTLE_NOISE_FRACTION of their
+# standard deviation (it then adds at most 12 % to it). On harsh frames it is not.
+STRADDLE_PULL_PX = 0.03
+SETTLE_NOISE_FRACTION = 0.5
 # A predicted marker's corners may move this far (in its cells) from the prediction: about
 # half the profiles' reach across the edge. Further, the edge lies near the profiles' ends
 # and a fit that ends there may not be the edge (a start 0.5-1 cell off, fitted 5-10 px from
@@ -40,6 +49,9 @@ class CornerFitter:
         self.patterns = [printed_pattern(target, i) for i in range(len(target.markers))]
         self.pattern_settings = PatternFitSettings()
         self.pattern_s = 0.0
+        # the blur sigma (px) the latest successful edge fit found; None until one does or
+        # after ``forget_blur``
+        self.blur_px: float | None = None
 
     def fit_corners(
         self,
@@ -61,10 +73,11 @@ class CornerFitter:
         predicted : ``det``'s corners are where the marker was predicted, not a quad found in
         this image: without fitted edges there is no answer, nor where they end further than
         ``PREDICTED_MAX_MOVE_CELLS`` from the start; where they end over ``SETTLE_PX`` from
-        it the edge fit runs again from them (its profiles then straddle the edges evenly:
-        from a start a pixel or two off, the corners are off by a few hundredths of a pixel,
-        several times their noise on a large marker), and that fit must stay within
-        ``SETTLE_PX`` of the first (a fit that has found the edge does).
+        it and so far that the uneven straddle pulls them by a fair part of their own noise
+        (``STRADDLE_PULL_PX``), the edge fit runs again from them (its profiles then straddle
+        the edges evenly), and that fit must stay within ``SETTLE_PX`` of the first (a fit
+        that has found the edge does). A pattern fit, where the marker gets one, starts from
+        the first edge fit's corners: it ends in the same place from either.
 
         require_edges : without fitted edges there is no answer (no pattern fit from ``det``'s
         own corners either): for a start that may be too far off for both."""
@@ -74,20 +87,15 @@ class CornerFitter:
         edges = self.fit_edges(grey, det)
         if edges is None and (predicted or require_edges):
             return None
+        unsettled = False
         if predicted and edges is not None:
-            moved = float(np.max(np.linalg.norm(edges.corners_px - det.corners_px, axis=1)))
+            moves = np.linalg.norm(edges.corners_px - det.corners_px, axis=1)
+            moved = float(np.max(moves))
             if moved > PREDICTED_MAX_MOVE_CELLS * det.side_px / cells.shape[0]:
                 return None
-            if moved > SETTLE_PX:
-                again = self.fit_edges(grey, replace(det, corners_px=edges.corners_px))
-                if again is None:
-                    return None
-                settled = np.linalg.norm(again.corners_px - edges.corners_px, axis=1)
-                if float(np.max(settled)) > SETTLE_PX:
-                    return None
-                edges = again
-        corners = None if edges is None else edges.corners_px
-        covariance = None if edges is None else edges.covariance_px2
+            noise_px = math.sqrt(float(np.mean(np.diag(edges.covariance_px2))))
+            pull_px = STRADDLE_PULL_PX * float(np.mean(moves)) ** 2
+            unsettled = moved > SETTLE_PX and pull_px > SETTLE_NOISE_FRACTION * noise_px
         printed = self.patterns[i]
         if (
             printed is not None
@@ -96,27 +104,51 @@ class CornerFitter:
             )
             and (pattern is None or pattern(det))
         ):
+            # the whole pattern fitted from the edges' corners (where they are a little off,
+            # it takes them to the same end as from settled ones: no second edge fit first)
             t0 = time.perf_counter()
             start = det.corners_px if edges is None else edges.corners_px
             blur = 1.0 if edges is None else edges.blur_px
             fitted = refine_corners_pattern(
                 grey, start, self.camera, printed, self.pattern_settings, blur
             )
-            if fitted is not None:
-                corners, covariance = fitted, None
             self.pattern_s = time.perf_counter() - t0
-        if corners is None:
+            if fitted is not None:
+                return MarkerDetection(det.marker_index, fitted, det.image_pass, None)
+        if edges is not None and unsettled:
+            edges = self._settled(grey, det, edges)
+        if edges is None:
             return None
-        return MarkerDetection(det.marker_index, corners, det.image_pass, covariance)
+        return MarkerDetection(
+            det.marker_index, edges.corners_px, det.image_pass, edges.covariance_px2
+        )
+
+    def _settled(
+        self, grey: NDArray[np.uint8], det: MarkerDetection, edges: EdgeFit
+    ) -> EdgeFit | None:
+        """The edge fit of ``det`` again from the corners of its first fit ``edges``; None
+        where it fails or moves them over ``SETTLE_PX`` (the first did not find the edge)."""
+        again = self.fit_edges(grey, replace(det, corners_px=edges.corners_px))
+        if again is None:
+            return None
+        settled = np.linalg.norm(again.corners_px - edges.corners_px, axis=1)
+        return None if float(np.max(settled)) > SETTLE_PX else again
 
     def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> EdgeFit | None:
         """The edge fit alone of ``det`` (with the marker's cells and white margin), or None
-        if it fails."""
+        if it fails. A fit that succeeds sets ``blur_px``."""
         i = det.marker_index
-        return fit_marker_edges(
+        fit = fit_marker_edges(
             grey,
             det.corners_px,
             self.camera,
             self.target.markers[i].cells,
             margin_cells=self.margins[i],
         )
+        if fit is not None:
+            self.blur_px = fit.blur_px
+        return fit
+
+    def forget_blur(self) -> None:
+        """Forgets the blur of earlier fits (``blur_px``: None): e.g. at a new frame."""
+        self.blur_px = None
