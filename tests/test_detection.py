@@ -509,3 +509,49 @@ def test_a_tracked_marker_whose_quad_cannot_be_fitted_is_fitted_from_its_predict
     monkeypatch.setattr(MarkerDetector, "fit_corners", lambda self, grey, det, **kwargs: None)
     (kept,) = [d for d in detector.detect(image, hint) if d.marker_index == 0]
     assert kept.image_pass == "raw"
+
+
+def test_a_noisy_outer_marker_is_fitted_from_its_prediction_and_an_unreadable_one_not_sought(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On a harsh frame (blur, noise, JPEG) the outer marker at about 75 px (its margin too
+    near for a direct fit on a clean frame) is fitted straight from its prediction when its
+    corners were noisy a frame before (``DIRECT_NOISY_PX``); and the inner marker, 12 px with
+    cells of under 1.8 blur sigmas, is not searched for: no quad search runs at all. On a
+    clean frame both are searched in the window as before."""
+    from perchpose.quads import QuadFinder
+    from perchpose.sim.render import ImageQuality
+
+    r = renderers["fpv"]
+    searched: list[tuple[int, ...]] = []
+    find = QuadFinder.find
+
+    def counted(self, grey, image_pass, offset=(0, 0), detector=None, scale=1.0):  # type: ignore[no-untyped-def]
+        searched.append(grey.shape)
+        return find(self, grey, image_pass, offset, detector, scale)
+
+    T0 = facing_pose(0.01, 0.0, 0.6, 0.2)
+    T1 = facing_pose(0.0102, 0.0001, 0.599, 0.202)
+    for quality, noisy in ((ImageQuality.preset("harsh"), True), (ImageQuality(), False)):
+        rng = np.random.default_rng(8)
+        detector = MarkerDetector(r.camera, r.target)
+        hint = tuple(d for d in detector.detect(r.render(T0, quality, rng)) if d.marker_index == 0)
+        assert len(hint) == 1
+        assert 60 < hint[0].side_px < 80
+        assert not detector._clear_of_margin(hint[0])
+        assert detector._noisy(hint[0]) == noisy
+        searched.clear()
+        monkeypatch.setattr(QuadFinder, "find", counted)
+        image = r.render(T1, quality, rng)
+        tracked = {d.marker_index: d for d in detector.detect(image, hint)}
+        monkeypatch.setattr(QuadFinder, "find", find)
+        assert 0 in tracked
+        if noisy:
+            assert searched == []
+            assert tracked[0].image_pass == "tracked"
+            # within the harsh frames' corner noise (0.2-0.6 px RMS on the fpv approach)
+            truth = r.corners_px(T1)[0]
+            assert truth is not None
+            assert np.sqrt(np.mean((tracked[0].corners_px - truth) ** 2)) < 0.5
+        else:
+            assert len(searched) == 1

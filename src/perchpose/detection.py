@@ -91,12 +91,21 @@ DIRECT_SIDE_PX = 20.0
 # edge itself and 0.0082 from 0.3 px inside, where a quad's cornerSubPix corners start; from
 # 100 px up, and on the inner marker, 0.008-0.009 from all three.
 DIRECT_CLEAR_PX = 4.0
+# ... or, whatever the margin, where its corners in the frame before were this noisy (their
+# standard deviation from the edge fit, px): the start's pull, 0.011 px RMS above, then adds
+# under 3 % to the noise (harsh frames: 0.08-0.1 px; clean renders: under 0.01).
+DIRECT_NOISY_PX = 0.045
 # While tracking, a marker the target's plane puts in view without a hint is searched for
 # once it is predicted this large (a little under the smallest marker OpenCV's quad pass
 # finds, about 9 px on rendered frames).
 MIN_SEARCH_SIDE_PX = 7.0
 # A marker fitted so lies this far (px) inside the image: the edge fit's profiles reach past it.
 DIRECT_MARGIN_PX = 2.0
+# While tracking, a marker the target's plane puts in view without a hint is not searched for
+# while its cells are narrower than this many blur sigmas (the blur of the markers fitted in
+# the same frame): OpenCV cannot read it yet (the paper target's inner marker on the fpv
+# approach is first read at 2.05 sigmas; under the harsh preset, at 2.5 and from 4.6 on).
+MIN_READ_CELL_BLURS = 1.8
 # A marker this many times smaller than another whose corners were fitted in the same frame
 # may go without the pattern fit (``MarkerDetector(pattern_beside_ratio=...)``).
 PATTERN_BESIDE_RATIO = 4.0
@@ -381,11 +390,15 @@ class MarkerDetector:
         A small marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads
         are searched in ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
         quads = predicted_quads(self.target, hint)
-        first = [d for d in hint if self._clear_of_margin(d)]
+        first = [d for d in hint if self._clear_of_margin(d) or self._noisy(d)]
+        self.fitter.forget_blur()
         result = self._fit_direct(grey, first)
+        blur_px = self.fitter.blur_px if result else None
         hinted = {d.marker_index for d in hint}
         left = {
-            i: q for i, q in quads.items() if i not in result and self._may_be_found(q, i in hinted)
+            i: q
+            for i, q in quads.items()
+            if i not in result and self._may_be_found(q, i, i in hinted, blur_px)
         }
         found = self._window_pass(seen, left) if left else {}
         required: list[int] = []
@@ -431,14 +444,30 @@ class MarkerDetector:
         margin_px = min(self.fitter.margins[det.marker_index]) * cell_px
         return margin_px - outside_reach_px(cell_px) >= DIRECT_CLEAR_PX
 
-    def _may_be_found(self, quad: Array, hinted: bool) -> bool:
-        """Whether the window pass should look for a marker predicted at ``quad``: a hinted
-        one always; one the plane predicts (not hinted) where it lies wholly in the image
-        (OpenCV keeps no quad that crosses the border) and is large enough for OpenCV's
-        smallest quad (``MIN_SEARCH_SIDE_PX``)."""
+    @staticmethod
+    def _noisy(det: MarkerDetection) -> bool:
+        """Whether ``det``'s corners carry a covariance (the edge fit's, in the frame it was
+        last fitted in) of ``DIRECT_NOISY_PX`` or more."""
+        covariance = det.corner_covariance_px2
+        if covariance is None:
+            return False
+        return math.sqrt(float(np.mean(np.diag(covariance)))) >= DIRECT_NOISY_PX
+
+    def _may_be_found(
+        self, quad: Array, index: int, hinted: bool, blur_px: float | None = None
+    ) -> bool:
+        """Whether the window pass should look for marker ``index`` predicted at ``quad``: a
+        hinted one always; one the plane predicts (not hinted) where it lies wholly in the
+        image (OpenCV keeps no quad that crosses the border), is large enough for OpenCV's
+        smallest quad (``MIN_SEARCH_SIDE_PX``) and, given the frame's blur sigma
+        ``blur_px``, has cells of ``MIN_READ_CELL_BLURS`` of it or more."""
         if hinted:
             return True
-        return quad_side_px(quad) >= MIN_SEARCH_SIDE_PX and self.camera.in_image(quad)
+        side_px = quad_side_px(quad)
+        cells = int(self.target.markers[index].cells.shape[0])
+        if blur_px is not None and side_px / cells < MIN_READ_CELL_BLURS * blur_px:
+            return False
+        return side_px >= MIN_SEARCH_SIDE_PX and self.camera.in_image(quad)
 
     def _window_pass(
         self, seen: NDArray[np.uint8], quads: dict[int, Array]
