@@ -125,8 +125,7 @@ class PatternFitSettings:
     or whose edge fit failed. Below all_below_px the choice does not hang on the blur measured
     in each frame: switching methods from frame to frame would add their difference to the
     noise. The fit's cost grows with the marker's area and its blur: on harsh frames (blur
-    about 1.8 px) about 7 ms at 30 px and 10-20 ms at 45-50 px on pixels, a third of that on
-    2x2 blocks.
+    about 1.8 px, 2x2 blocks) about 1-3 ms at 30-57 px on a 2-core x86 machine.
 
     out_cells : how far beyond the marker's border the fitted pixels reach, in its cells
     (never past 90 % of the way to the sheet's edge). iterations : Gauss-Newton rounds at most.
