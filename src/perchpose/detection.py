@@ -31,7 +31,7 @@ from perchpose.quads import (
 from perchpose.rectification import COARSE_STEP, Rectification
 from perchpose.refinement import CornerFitter
 from perchpose.target import TargetSpec
-from perchpose.values import MarkerDetection, quad_side_px
+from perchpose.values import MarkerDetection, corners_sd_px, quad_side_px
 from perchpose.verification import CellPattern, read_cells
 from perchpose.windows import (
     Box,
@@ -62,9 +62,10 @@ CORNER_METHODS: tuple[CornerMethod, ...] = ("edges", "subpix")
 # A hinted marker under this side may drop out of tracking without sending the frame to the
 # full search; the tracking pass adds OpenCV's 3 px threshold window for such markers.
 SMALL_MARKER_SIDE_PX = 20.0
-# A pattern fit's first predicted cost, seconds per square pixel of the marker's side (about
-# 10 ms at 45 px under the harsh preset's blur on a 2-core x86 machine); each fit run updates
-# the prediction.
+# A pattern fit's first predicted cost, seconds per square pixel of the marker's side (10 ms
+# at 45 px: what a fit on 2x2 blocks under the harsh preset's blur cost on a 2-core x86
+# machine before the model merged its bands; about 1.5 ms now); each fit run updates the
+# prediction.
 PATTERN_S_PER_PX2 = 5e-6
 # Glare: a frame with at least GLARE_FRACTION of its pixels at GLARE_LEVEL or above has its
 # quads searched in copies clipped at these levels (None: the frame as it is), tried in this
@@ -375,12 +376,15 @@ class MarkerDetector:
         self, grey: NDArray[np.uint8], seen: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
     ) -> tuple[MarkerDetection, ...] | None:
         """Tracking with edge-fitted corners. Each hinted marker of ``direct_side_px`` or more
-        is fitted straight from where it is predicted and kept where its cells read back as
-        printed (``_fit_direct``): no quad search for it. The markers left (smaller ones,
+        whose profiles end clear of its white margin's end (``DIRECT_CLEAR_PX``), or whose
+        corners were noisy a frame before (``DIRECT_NOISY_PX``), is fitted straight from where
+        it is predicted and kept where its cells read back as printed (``_fit_direct``): no
+        quad search for it. The markers left (smaller ones, those near their margin's end,
         those whose fit failed or read wrong, and those the target's plane puts in view that
-        were not hinted) are searched in one single-threshold pass over a window around
-        them (the whole image when the window would cover most of it), then fitted through
-        the lens model, which also straightens what a fisheye bends.
+        were not hinted and may be read, ``_may_be_found``) are searched in one
+        single-threshold pass over a window around them (the whole image when the window would
+        cover most of it), then fitted through the lens model, which also straightens what a
+        fisheye bends; hinted ones the pass misses are then fitted from their prediction.
 
         Through a strongly distorted lens, hinted markers still missing, and a large marker
         whose curved quad is too far off for the edge fit, are searched again in windows of
@@ -449,9 +453,7 @@ class MarkerDetector:
         """Whether ``det``'s corners carry a covariance (the edge fit's, in the frame it was
         last fitted in) of ``DIRECT_NOISY_PX`` or more."""
         covariance = det.corner_covariance_px2
-        if covariance is None:
-            return False
-        return math.sqrt(float(np.mean(np.diag(covariance)))) >= DIRECT_NOISY_PX
+        return covariance is not None and corners_sd_px(covariance) >= DIRECT_NOISY_PX
 
     def _may_be_found(
         self, quad: Array, index: int, hinted: bool, blur_px: float | None = None

@@ -4,7 +4,6 @@ blur widths from its whole printed pattern (``perchpose.pattern_fit``)."""
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -16,7 +15,7 @@ from perchpose.camera import CameraModel
 from perchpose.corners import EdgeFit, fit_marker_edges
 from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
 from perchpose.target import TargetSpec
-from perchpose.values import MarkerDetection
+from perchpose.values import MarkerDetection, corners_sd_px
 
 # A predicted marker whose fitted corners end further than this (px) from where they were
 # predicted is fitted again from them, and that second fit must move them less than this
@@ -93,7 +92,7 @@ class CornerFitter:
             moved = float(np.max(moves))
             if moved > PREDICTED_MAX_MOVE_CELLS * det.side_px / cells.shape[0]:
                 return None
-            noise_px = math.sqrt(float(np.mean(np.diag(edges.covariance_px2))))
+            noise_px = corners_sd_px(edges.covariance_px2)
             pull_px = STRADDLE_PULL_PX * float(np.mean(moves)) ** 2
             unsettled = moved > SETTLE_PX and pull_px > SETTLE_NOISE_FRACTION * noise_px
         printed = self.patterns[i]

@@ -27,6 +27,12 @@ def quad_side_px(quad: Array) -> float:
     return 0.25 * (sides + math.hypot(x3 - x2, y3 - y2) + math.hypot(x0 - x3, y0 - y3))
 
 
+def corners_sd_px(covariance_px2: Array) -> float:
+    """The corners' standard deviation, px: the root mean of the variances on the diagonal of
+    their (8, 8) covariance (x0, y0, x1, ...)."""
+    return math.sqrt(float(np.mean(np.diag(covariance_px2))))
+
+
 @dataclass(frozen=True)
 class MarkerDetection:
     """One target marker found in an image.
