@@ -398,7 +398,7 @@ def test_hinted_markers_are_fitted_from_their_prediction_without_a_quad_search(
     """While tracking, markers of 20 px or more that were found a frame before are fitted
     straight from where they were (no quad search runs) and match the corners that a search
     of the frame from scratch gives; a marker too small for that still gets its window, and
-    the outer marker (its margin 0.8 cells) only from about 90 px up (``DIRECT_CLEAR_PX``)."""
+    the outer marker whatever its white margin (0.8 cells)."""
     from perchpose.quads import QuadFinder
 
     r = renderers["fpv"]
@@ -477,48 +477,53 @@ def test_a_lost_target_is_looked_for_every_way_in_turn_two_searches_a_frame(
             assert shape == expected_shape
 
 
-def test_a_tracked_marker_whose_quad_cannot_be_fitted_is_fitted_from_its_prediction(
+def test_a_tracked_marker_whose_prediction_cannot_be_fitted_is_fitted_from_its_quad(
     renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """While tracking, a marker the window's quad pass finds but whose quad the corner fit
-    refuses (on a blurred frame such a quad can be pixels off) is fitted from where it was
-    predicted instead, and keeps the quad's corners only where that fails too."""
+    """While tracking, a marker whose fit from its prediction fails is searched in its
+    window and fitted from the quad found there; where that fit fails too, it keeps the
+    quad's own corners."""
     r = renderers["fpv"]
     rng = np.random.default_rng(6)
     detector = MarkerDetector(r.camera, r.target)
-    T = facing_pose(0.01, 0.0, 1.3, 0.2)  # the outer marker about 35 px: not fitted first
+    T = facing_pose(0.01, 0.0, 1.3, 0.2)  # the outer marker about 35 px
     hint = tuple(d for d in detector.detect(r.render(T, rng=rng)) if d.marker_index == 0)
     assert len(hint) == 1
-    assert not detector._clear_of_margin(hint[0])
     assert hint[0].side_px < 40  # under CURVED_SIDE_PX: no pinhole view
-    image = r.render(facing_pose(0.0102, 0.0001, 1.299, 0.201), rng=rng)
+    T1 = facing_pose(0.0102, 0.0001, 1.299, 0.201)
+    image = r.render(T1, rng=rng)
+    truth = r.corners_px(T1)[0]
+    assert truth is not None
     fit_corners = MarkerDetector.fit_corners
+    predictions: list[bool] = []
 
-    def quads_refused(self, grey, det, **kwargs):  # type: ignore[no-untyped-def]
-        if not kwargs.get("predicted"):
+    def predictions_refused(self, grey, det, **kwargs):  # type: ignore[no-untyped-def]
+        predictions.append(bool(kwargs.get("predicted")))
+        if kwargs.get("predicted"):
             return None
         return fit_corners(self, grey, det, **kwargs)
 
-    monkeypatch.setattr(MarkerDetector, "fit_corners", quads_refused)
+    monkeypatch.setattr(MarkerDetector, "fit_corners", predictions_refused)
     (tracked,) = [d for d in detector.detect(image, hint) if d.marker_index == 0]
-    assert tracked.image_pass == "tracked"
-    truth = r.corners_px(facing_pose(0.0102, 0.0001, 1.299, 0.201))[0]
-    assert truth is not None
+    assert predictions == [True, False]
+    assert tracked.image_pass == "raw"
+    assert tracked.corner_covariance_px2 is not None  # edge-fitted
     assert np.max(np.abs(tracked.corners_px - truth)) < 0.1
-    # nor the prediction: the quad as found
+    # nor the quad: its cornerSubPix corners
     monkeypatch.setattr(MarkerDetector, "fit_corners", lambda self, grey, det, **kwargs: None)
     (kept,) = [d for d in detector.detect(image, hint) if d.marker_index == 0]
     assert kept.image_pass == "raw"
+    assert kept.corner_covariance_px2 is None
+    assert np.max(np.abs(kept.corners_px - truth)) < 1.0
 
 
-def test_a_noisy_outer_marker_is_fitted_from_its_prediction_and_an_unreadable_one_not_sought(
+def test_a_marker_near_its_margin_is_fitted_from_its_prediction(
     renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """On a harsh frame (blur, noise, JPEG) the outer marker at about 75 px (its margin too
-    near for a direct fit on a clean frame) is fitted straight from its prediction when its
-    corners were noisy a frame before (``DIRECT_NOISY_PX``); and the inner marker, 12 px with
-    cells of under 1.8 blur sigmas, is not searched for: no quad search runs at all. On a
-    clean frame both are searched in the window as before."""
+    """The outer marker at about 75 px (the profiles reach near the end of its white margin)
+    is fitted straight from its prediction on clean and harsh frames (blur, noise, JPEG). On
+    the harsh frame the inner marker, 12 px with cells of under 1.8 blur sigmas, is not
+    searched for: no quad search runs at all; on the clean frame it is, in a small window."""
     from perchpose.quads import QuadFinder
     from perchpose.sim.render import ImageQuality
 
@@ -532,26 +537,27 @@ def test_a_noisy_outer_marker_is_fitted_from_its_prediction_and_an_unreadable_on
 
     T0 = facing_pose(0.01, 0.0, 0.6, 0.2)
     T1 = facing_pose(0.0102, 0.0001, 0.599, 0.202)
-    for quality, noisy in ((ImageQuality.preset("harsh"), True), (ImageQuality(), False)):
+    truth = r.corners_px(T1)[0]
+    assert truth is not None
+    # within each quality's corner noise (harsh: 0.2-0.6 px RMS on the fpv approach)
+    for quality, harsh, tolerance_px in (
+        (ImageQuality.preset("harsh"), True, 0.5),
+        (ImageQuality(), False, 0.05),
+    ):
         rng = np.random.default_rng(8)
         detector = MarkerDetector(r.camera, r.target)
         hint = tuple(d for d in detector.detect(r.render(T0, quality, rng)) if d.marker_index == 0)
         assert len(hint) == 1
         assert 60 < hint[0].side_px < 80
-        assert not detector._clear_of_margin(hint[0])
-        assert detector._noisy(hint[0]) == noisy
         searched.clear()
         monkeypatch.setattr(QuadFinder, "find", counted)
         image = r.render(T1, quality, rng)
         tracked = {d.marker_index: d for d in detector.detect(image, hint)}
         monkeypatch.setattr(QuadFinder, "find", find)
-        assert 0 in tracked
-        if noisy:
+        assert tracked[0].image_pass == "tracked"
+        assert np.sqrt(np.mean((tracked[0].corners_px - truth) ** 2)) < tolerance_px
+        if harsh:
             assert searched == []
-            assert tracked[0].image_pass == "tracked"
-            # within the harsh frames' corner noise (0.2-0.6 px RMS on the fpv approach)
-            truth = r.corners_px(T1)[0]
-            assert truth is not None
-            assert np.sqrt(np.mean((tracked[0].corners_px - truth) ** 2)) < 0.5
         else:
             assert len(searched) == 1
+            assert searched[0][0] * searched[0][1] < 0.05 * image.shape[0] * image.shape[1]

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.corners import EdgeFit, outside_reach_px
+from perchpose.corners import EdgeFit
 from perchpose.quads import (
     ImagePass,
     QuadFinder,
@@ -31,7 +31,7 @@ from perchpose.quads import (
 from perchpose.rectification import COARSE_STEP, Rectification
 from perchpose.refinement import CornerFitter
 from perchpose.target import TargetSpec
-from perchpose.values import MarkerDetection, corners_sd_px, quad_side_px
+from perchpose.values import MarkerDetection, quad_side_px
 from perchpose.verification import CellPattern, read_cells
 from perchpose.windows import (
     Box,
@@ -82,20 +82,13 @@ FULL_SEARCH_EVERY = 30
 # large marker costs the detector a fraction of its pixels.
 TRACKING_SIDE_PX = 48.0
 # While tracking, a hinted marker this large is fitted straight from where it is predicted,
-# and kept if its cells read back as printed; only the others go through a quad search (and
-# when it misses them, are fitted from their prediction then).
+# and kept if its cells read back as printed; only the others, and those whose fit fails or
+# reads wrong, go through a quad search. Whatever its white margin: where the profiles reach
+# near the margin's end the fit depends a little on its start (the paper target's outer
+# marker at 25-50 px on the fpv approach: 0.0134 px RMS from its prediction, 0.0124 from a
+# quad's cornerSubPix corners, which lie a little inside the edge; no change from 100 px up),
+# which no pose figure shows, and the window search it spares cost about 0.3 ms a frame.
 DIRECT_SIDE_PX = 20.0
-# ... where the edge fit's profiles end this far (px) short of the end of the white margin
-# around the marker. Nearer, the margin's blurred end at the profiles' far end makes the fit
-# depend on where it starts: on the fpv approach the outer marker's corners at 50-100 px (a
-# margin of 0.8 cells) erred by 0.0135 px RMS from 0.3 px outside the edge, 0.0094 from the
-# edge itself and 0.0082 from 0.3 px inside, where a quad's cornerSubPix corners start; from
-# 100 px up, and on the inner marker, 0.008-0.009 from all three.
-DIRECT_CLEAR_PX = 4.0
-# ... or, whatever the margin, where its corners in the frame before were this noisy (their
-# standard deviation from the edge fit, px): the start's pull, 0.011 px RMS above, then adds
-# under 3 % to the noise (harsh frames: 0.08-0.1 px; clean renders: under 0.01).
-DIRECT_NOISY_PX = 0.045
 # While tracking, a marker the target's plane puts in view without a hint is searched for
 # once it is predicted this large (a little under the smallest marker OpenCV's quad pass
 # finds, about 9 px on rendered frames).
@@ -376,15 +369,13 @@ class MarkerDetector:
         self, grey: NDArray[np.uint8], seen: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
     ) -> tuple[MarkerDetection, ...] | None:
         """Tracking with edge-fitted corners. Each hinted marker of ``direct_side_px`` or more
-        whose profiles end clear of its white margin's end (``DIRECT_CLEAR_PX``), or whose
-        corners were noisy a frame before (``DIRECT_NOISY_PX``), is fitted straight from where
-        it is predicted and kept where its cells read back as printed (``_fit_direct``): no
-        quad search for it. The markers left (smaller ones, those near their margin's end,
+        is fitted straight from where it is predicted and kept where its cells read back as
+        printed (``_fit_direct``): no quad search for it. The markers left (smaller ones,
         those whose fit failed or read wrong, and those the target's plane puts in view that
         were not hinted and may be read, ``_may_be_found``) are searched in one
         single-threshold pass over a window around them (the whole image when the window would
         cover most of it), then fitted through the lens model, which also straightens what a
-        fisheye bends; hinted ones the pass misses are then fitted from their prediction.
+        fisheye bends; a hinted quad whose fit fails keeps its ``cornerSubPix`` corners.
 
         Through a strongly distorted lens, hinted markers still missing, and a large marker
         whose curved quad is too far off for the edge fit, are searched again in windows of
@@ -394,9 +385,8 @@ class MarkerDetector:
         A small marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads
         are searched in ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
         quads = predicted_quads(self.target, hint)
-        first = [d for d in hint if self._clear_of_margin(d) or self._noisy(d)]
         self.fitter.forget_blur()
-        result = self._fit_direct(grey, first)
+        result = self._fit_direct(grey, list(hint))
         blur_px = self.fitter.blur_px if result else None
         hinted = {d.marker_index for d in hint}
         left = {
@@ -408,23 +398,14 @@ class MarkerDetector:
         required: list[int] = []
         fitted_px = max((d.side_px for d in result.values()), default=0.0)
         searched = {i: d for i, d in found.items() if i not in result}
-        unfitted: dict[int, MarkerDetection] = {}
         for index, fitted in self._fit_all(grey, searched.values(), fitted_px=fitted_px).items():
             det = searched[index]
             if fitted is None and self.rectify and det.side_px >= CURVED_SIDE_PX:
                 required.append(index)  # a curved quad too far off for the fit
-            elif fitted is None and index in hinted:
-                unfitted[index] = det  # the prediction's fit first (below), this quad after
             else:
+                # where the fit fails, the quad's cornerSubPix corners (on blurred frames they
+                # can be pixels off; the prediction's own fit failed or read wrong before)
                 result[index] = fitted or det
-        # the others the quad pass missed (blur, noise, interference: the quad does not close)
-        tried = {d.marker_index for d in first}
-        fitted_px = max((d.side_px for d in result.values()), default=0.0)
-        late = [d for d in hint if d.marker_index not in result and d.marker_index not in tried]
-        result.update(self._fit_direct(grey, late, fitted_px))
-        # a quad whose corners could not be fitted, where its prediction could not either:
-        # its cornerSubPix corners (on blurred frames they can be pixels off)
-        result.update({i: d for i, d in unfitted.items() if i not in result})
         missing = [d for d in hint if d.marker_index not in result]
         required += [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
         again = [d.marker_index for d in missing]
@@ -437,23 +418,6 @@ class MarkerDetector:
         if any(index not in result for index in required):
             return None
         return tuple(result[i] for i in sorted(result))
-
-    def _clear_of_margin(self, det: MarkerDetection) -> bool:
-        """Whether the edge fit's profiles around ``det`` end ``DIRECT_CLEAR_PX`` short of the
-        end of the white margin around it, so that where they start (a prediction a little
-        outside the edge, or a quad a little inside) does not change how much of that end
-        they see."""
-        cells = int(self.target.markers[det.marker_index].cells.shape[0])
-        cell_px = det.side_px / cells
-        margin_px = min(self.fitter.margins[det.marker_index]) * cell_px
-        return margin_px - outside_reach_px(cell_px) >= DIRECT_CLEAR_PX
-
-    @staticmethod
-    def _noisy(det: MarkerDetection) -> bool:
-        """Whether ``det``'s corners carry a covariance (the edge fit's, in the frame it was
-        last fitted in) of ``DIRECT_NOISY_PX`` or more."""
-        covariance = det.corner_covariance_px2
-        return covariance is not None and corners_sd_px(covariance) >= DIRECT_NOISY_PX
 
     def _may_be_found(
         self, quad: Array, index: int, hinted: bool, blur_px: float | None = None
@@ -488,13 +452,12 @@ class MarkerDetector:
         return self.quads.find(seen[y0:y1, x0:x1], "raw", (x0, y0), detector, scale)
 
     def _fit_direct(
-        self, grey: NDArray[np.uint8], hint: list[MarkerDetection], fitted_px: float = 0.0
+        self, grey: NDArray[np.uint8], hint: list[MarkerDetection]
     ) -> dict[int, MarkerDetection]:
         """Hinted markers of ``direct_side_px`` or more fitted (``fit_corners``) from their
         hinted corners, without a quad, kept where the marker's cells read through the fitted
         corners as printed (``perchpose.verification``): a fit that slid to another edge or
-        onto something else reads wrong and is dropped. ``fitted_px``: the largest marker
-        fitted already in this frame (for ``pattern_beside_ratio``)."""
+        onto something else reads wrong and is dropped."""
         least = self.direct_side_px
         if least is None:
             return {}
@@ -504,7 +467,7 @@ class MarkerDetector:
             if d.side_px >= least and self.camera.in_image(d.corners_px, DIRECT_MARGIN_PX)
         ]
         out: dict[int, MarkerDetection] = {}
-        fits = self._fit_all(grey, starts, predicted=True, fitted_px=fitted_px)
+        fits = self._fit_all(grey, starts, predicted=True)
         for index, fitted in fits.items():
             if fitted is None:
                 continue
