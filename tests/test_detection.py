@@ -482,7 +482,9 @@ def test_a_tracked_marker_whose_prediction_cannot_be_fitted_is_fitted_from_its_q
 ) -> None:
     """While tracking, a marker whose fit from its prediction fails is searched in its
     window and fitted from the quad found there; where that fit fails too, it keeps the
-    quad's own corners."""
+    quad's own corners, with a covariance of a fair part of a cell."""
+    from perchpose import detection
+
     r = renderers["fpv"]
     rng = np.random.default_rng(6)
     detector = MarkerDetector(r.camera, r.target)
@@ -513,8 +515,13 @@ def test_a_tracked_marker_whose_prediction_cannot_be_fitted_is_fitted_from_its_q
     monkeypatch.setattr(MarkerDetector, "fit_corners", lambda self, grey, det, **kwargs: None)
     (kept,) = [d for d in detector.detect(image, hint) if d.marker_index == 0]
     assert kept.image_pass == "raw"
-    assert kept.corner_covariance_px2 is None
     assert np.max(np.abs(kept.corners_px - truth)) < 1.0
+    # with the covariance that says so: independent, UNFITTED_SD_CELLS of a cell
+    cell_px = kept.side_px / r.target.markers[0].cells.shape[0]
+    assert kept.corner_covariance_px2 is not None
+    np.testing.assert_allclose(
+        kept.corner_covariance_px2, (detection.UNFITTED_SD_CELLS * cell_px) ** 2 * np.eye(8)
+    )
 
 
 def test_a_marker_near_its_margin_is_fitted_from_its_prediction(

@@ -38,7 +38,7 @@ from perchpose.joint_pose import (
 )
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
 from perchpose.target import TargetSpec
-from perchpose.values import MarkerDetection, MarkerPose
+from perchpose.values import MarkerDetection, MarkerPose, corners_sd_px
 
 Array = NDArray[np.float64]
 
@@ -464,8 +464,8 @@ class CovarianceFusion:
         self, detections: tuple[MarkerDetection, ...], measurements: dict[int, MarkerPose]
     ) -> tuple[Array, Array, Array | None] | None:
         """This frame's joint pose T_camera_target (4, 4), its covariance over (w, dt) for
-        the filter's assumed corner noise, and from the corners' own covariances (None when
-        degenerate); or None."""
+        the filter's assumed corner noise (``_assumed_sigma_px``), and from the corners' own
+        covariances (None when degenerate); or None."""
         if not measurements:
             return None
         used = tuple(d for d in detections if d.marker_index in measurements)
@@ -475,7 +475,7 @@ class CovarianceFusion:
             self.target,
             used,
             measurements[start].T_camera_target,
-            self.settings.corner_sigma_px,
+            self._assumed_sigma_px(used),
             corner_covariance_px2=self._corners_covariance_px2(used),
         )
         if joint is None:
@@ -491,9 +491,18 @@ class CovarianceFusion:
             None if own is None else own * self.misfit.factor,
         )
 
+    def _assumed_sigma_px(self, used: tuple[MarkerDetection, ...]) -> Array:
+        """The corner noise the filter assumes for each of ``used``: ``corner_sigma_px``, or
+        the corners' own standard deviation where that is larger (a quad whose corners could
+        not be fitted, blurred edges): so the filter leans on its prediction, not on them."""
+        sigma = self.settings.corner_sigma_px
+        own = [d.corner_covariance_px2 for d in used]
+        return np.array([sigma if c is None else max(sigma, corners_sd_px(c)) for c in own])
+
     def _corners_covariance_px2(self, used: tuple[MarkerDetection, ...]) -> Array:
-        """The corners' own covariance (8N, 8N; px^2): the edge fit's, and for a marker
-        without one independent corners at the noise pooled from the joint poses' residuals."""
+        """The corners' own covariance (8N, 8N; px^2): the detection's (the edge fit's, or
+        an unfitted quad's), and for a marker without one independent corners at the noise
+        pooled from the joint poses' residuals."""
         S = np.zeros((8 * len(used), 8 * len(used)))
         for k, d in enumerate(used):
             own = d.corner_covariance_px2
@@ -537,8 +546,9 @@ class CovarianceFusion:
         ``_corners_covariance_px2``, scaled by ``VarianceFactor``): the tilt's from the last
         joint pose; yaw and position from the filter (without it, the joint pose's, whole).
         The filter runs with the independent corner noise it is set to assume
-        (``corner_sigma_px``, 0.1 px: a tuning that keeps it steady on analog video); its
-        gains come from that, and the covariance reported is the one its errors have when the
+        (``corner_sigma_px``, 0.1 px: a tuning that keeps it steady on analog video; a
+        marker's own corner noise where larger, ``_assumed_sigma_px``); its gains come from
+        that, and the covariance reported is the one its errors have when the
         measurements' noise is what the corners say while the gains stay those
         (``CovarianceTrack.actual_pose_covariance``), with the filter's own motion model."""
         angles = self._angles_covariance
