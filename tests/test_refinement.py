@@ -74,3 +74,33 @@ def test_a_predicted_start_is_settled_only_where_its_pull_matters(
         from_truth = fitter.fit_corners(image, replace(start, corners_px=truth), predicted=True)
         assert from_truth is not None
         assert np.max(np.abs(fitted.corners_px - from_truth.corners_px)) < 0.01
+
+
+@pytest.mark.parametrize(
+    ("sd_px", "apart_px", "kept"),
+    [(0.01, 0.25, True), (0.01, 0.35, False), (0.1, 0.45, True), (0.1, 0.55, False)],
+)
+def test_a_second_fit_may_land_apart_by_the_first_fits_own_noise(
+    renderers: dict[str, Renderer],
+    monkeypatch: pytest.MonkeyPatch,
+    sd_px: float,
+    apart_px: float,
+    kept: bool,
+) -> None:
+    """The second edge fit of a predicted marker must land within ``SETTLE_PX`` (0.3 px) of
+    the first, or within ``SETTLE_SDS`` (5) of the first's standard deviations where that
+    is more (harsh frames: about 0.1 px)."""
+    from perchpose.corners import EdgeFit
+
+    r = renderers["fpv"]
+    T = facing_pose(0.01, 0.0, 0.6, 0.3)
+    truth = r.corners_px(T)[0]
+    assert truth is not None
+    first = EdgeFit(truth, 1.0, sd_px**2 * np.eye(8))
+    second = EdgeFit(truth + np.array([apart_px, 0.0]), 1.0, first.covariance_px2)
+    fitter = CornerFitter(r.camera, r.target)
+    monkeypatch.setattr(fitter, "fit_edges", lambda grey, d: second)
+    image = np.zeros((r.camera.height_px, r.camera.width_px), np.uint8)
+    settled = fitter._settled(image, MarkerDetection(0, truth, "tracked"), first)
+    assert (settled is second) == kept
+    assert (settled is None) == (not kept)

@@ -19,8 +19,13 @@ from perchpose.values import MarkerDetection, corners_sd_px
 
 # A predicted marker whose fitted corners end further than this (px) from where they were
 # predicted is fitted again from them, and that second fit must move them less than this
-# again (``CornerFitter.fit_corners``).
+# again (``CornerFitter.fit_corners``) ...
 SETTLE_PX = 0.3
+# ... or than this many of the first fit's standard deviations, where that is more: on harsh
+# frames (corners 0.08-0.1 px sd by the fit, 0.3 px RMS from the truth) a fit from another
+# start lands that much apart; on the harsh fpv approach, 4 of 19 frames whose tracking fell
+# back on a whole-frame search did so only for this, with the same errors against the truth.
+SETTLE_SDS = 5.0
 # How far a start m px off pulls the edge fit's corners, per px^2 of m: the profiles then
 # straddle the edges unevenly (on clean fpv renders 1.5 px off: 0.08 px at 37 px, 0.06 at 46,
 # 0.04 at 65, 0.01 at 72, under 0.01 at 81; 2 px off: 0.13, 0.11, 0.08, 0.04, 0.01). A second
@@ -74,9 +79,10 @@ class CornerFitter:
         ``PREDICTED_MAX_MOVE_CELLS`` from the start; where they end over ``SETTLE_PX`` from
         it and so far that the uneven straddle pulls them by a fair part of their own noise
         (``STRADDLE_PULL_PX``), the edge fit runs again from them (its profiles then straddle
-        the edges evenly), and that fit must stay within ``SETTLE_PX`` of the first (a fit
-        that has found the edge does). A pattern fit, where the marker gets one, starts from
-        the first edge fit's corners: it ends in the same place from either.
+        the edges evenly), and that fit must stay within ``SETTLE_PX`` of the first, or
+        within ``SETTLE_SDS`` of its standard deviations (a fit that has found the edge
+        does). A pattern fit, where the marker gets one, starts from the first edge fit's
+        corners: it ends in the same place from either.
 
         require_edges : without fitted edges there is no answer (no pattern fit from ``det``'s
         own corners either): for a start that may be too far off for both."""
@@ -126,12 +132,14 @@ class CornerFitter:
         self, grey: NDArray[np.uint8], det: MarkerDetection, edges: EdgeFit
     ) -> EdgeFit | None:
         """The edge fit of ``det`` again from the corners of its first fit ``edges``; None
-        where it fails or moves them over ``SETTLE_PX`` (the first did not find the edge)."""
+        where it fails or moves them over ``SETTLE_PX`` or ``SETTLE_SDS`` of the first's
+        standard deviations, whichever is more (the first did not find the edge)."""
         again = self.fit_edges(grey, replace(det, corners_px=edges.corners_px))
         if again is None:
             return None
         settled = np.linalg.norm(again.corners_px - edges.corners_px, axis=1)
-        return None if float(np.max(settled)) > SETTLE_PX else again
+        limit = max(SETTLE_PX, SETTLE_SDS * corners_sd_px(edges.covariance_px2))
+        return None if float(np.max(settled)) > limit else again
 
     def fit_edges(self, grey: NDArray[np.uint8], det: MarkerDetection) -> EdgeFit | None:
         """The edge fit alone of ``det`` (with the marker's cells and white margin), or None
