@@ -219,7 +219,7 @@ def test_the_observer_is_faster_only_in_the_final_climb() -> None:
     for k in range(5):
         t = k / 30
         c.update(_seen(s, [0.0, 0.0, 0.05 if k >= 2 else 0.3], t), t, np.eye(3), _odometry(t))
-        rates.append((c.phase, c._observer.rate))
+        rates.append((c.phase, c.observer_rate))
     assert rates[0] == ("climb", s.observer_rate)
     assert rates[-1] == ("commit", s.commit_observer_rate)
     assert s.commit_observer_rate > s.observer_rate

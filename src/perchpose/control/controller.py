@@ -277,6 +277,12 @@ class PerchingController:
         """The disturbance observer's setpoint offset, m/s (world frame)."""
         return self._observer.offset_mps
 
+    @property
+    def observer_rate(self) -> float:
+        """The disturbance observer's poles in the last update, rad/s
+        (``commit_observer_rate`` in the final climb, else ``observer_rate``)."""
+        return float(self._observer.rate)
+
     def magnet_to_target(self, estimate: Estimate, R_world_body: Array) -> tuple[Array, float]:
         """(world-frame vector from the magnet to the target centre, heading error in rad)."""
         s = self.settings
