@@ -22,7 +22,7 @@ from perchpose.geometry import facing_pose
 from perchpose.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
 from perchpose.pose import solve_marker_pose
 from perchpose.sim.render import Renderer
-from perchpose.values import MarkerPose
+from perchpose.values import MarkerDetection, MarkerPose
 
 
 def test_stages() -> None:
@@ -165,6 +165,25 @@ def test_corners_noisier_than_assumed_move_the_filter_less(
     # nearly all of it on 0.1 px corners, and under a third (0.29 of it) on 1.5 px ones
     assert moved[False] > 3e-3
     assert moved[True] < 0.4 * moved[False]
+
+
+def test_the_filter_assumes_each_markers_own_noise_where_larger(
+    renderers: dict[str, Renderer],
+) -> None:
+    """Per marker, the corner noise the filter assumes: ``corner_sigma_px`` at least; a
+    marker with a covariance its corners' standard deviation; one without, the noise pooled
+    from the joint poses' residuals."""
+    r = renderers["fpv"]
+    fusion = CovarianceFusion(r.camera, r.target, CovarianceFilterSettings(corner_sigma_px=0.1))
+    corners = np.zeros((4, 2))
+    bare = MarkerDetection(0, corners, "raw")
+    quiet = MarkerDetection(1, corners, "raw", 0.02**2 * np.eye(8))
+    noisy = MarkerDetection(1, corners, "raw", 0.7**2 * np.eye(8))
+    np.testing.assert_allclose(fusion._assumed_sigma_px((bare, quiet, noisy)), [0.1, 0.1, 0.7])
+    for _ in range(200):  # residuals of 0.5 px per axis
+        fusion.noise.add(0.5**2 * 10, 10)
+    assert fusion._assumed_sigma_px((bare, quiet))[0] == pytest.approx(0.5, rel=0.05)
+    assert fusion._assumed_sigma_px((bare, quiet))[1] == 0.1
 
 
 def test_weights_load_from_the_file_fit_fusion_writes(tmp_path: Path) -> None:

@@ -493,11 +493,14 @@ class CovarianceFusion:
 
     def _assumed_sigma_px(self, used: tuple[MarkerDetection, ...]) -> Array:
         """The corner noise the filter assumes for each of ``used``: ``corner_sigma_px``, or
-        the corners' own standard deviation where that is larger (a quad whose corners could
-        not be fitted, blurred edges): so the filter leans on its prediction, not on them."""
+        the marker's own where that is larger: its corners' standard deviation from their
+        covariance (the edge fit's, or an unfitted quad's), else the noise pooled from the
+        joint poses' residuals (``CornerNoise``). So the filter leans on its prediction over
+        noisy corners (a quad that could not be fitted, blurred frames)."""
         sigma = self.settings.corner_sigma_px
+        pooled = max(sigma, math.sqrt(self.noise.variance_px2))
         own = [d.corner_covariance_px2 for d in used]
-        return np.array([sigma if c is None else max(sigma, corners_sd_px(c)) for c in own])
+        return np.array([pooled if c is None else max(sigma, corners_sd_px(c)) for c in own])
 
     def _corners_covariance_px2(self, used: tuple[MarkerDetection, ...]) -> Array:
         """The corners' own covariance (8N, 8N; px^2): the detection's (the edge fit's, or
