@@ -568,3 +568,34 @@ def test_a_marker_near_its_margin_is_fitted_from_its_prediction(
         else:
             assert len(searched) == 1
             assert searched[0][0] * searched[0][1] < 0.05 * image.shape[0] * image.shape[1]
+
+
+def test_a_marker_predicted_across_the_border_is_let_go_without_a_search(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """While tracking, a hinted marker predicted across the image's border (leaving the view:
+    OpenCV keeps no quad there) is neither searched for nor required: the frame is tracked
+    with the marker still in view, and no quad search runs at all."""
+    from dataclasses import replace
+
+    from perchpose.quads import QuadFinder
+
+    r = renderers["fpv"]
+    image = r.render(facing_pose(-0.18, 0.0, 0.2, 0.0), rng=np.random.default_rng(9))
+    detector = MarkerDetector(r.camera, r.target)
+    hint = {d.marker_index: d for d in detector.detect(image)}
+    assert set(hint) == {0, 1}
+    assert hint[1].side_px >= 20  # fitted from its prediction
+    leaving = replace(hint[0], corners_px=hint[0].corners_px - np.array([60.0, 0.0]))
+    assert not r.camera.in_image(leaving.corners_px)
+    searched: list[tuple[int, ...]] = []
+    find = QuadFinder.find
+
+    def counted(self, grey, image_pass, offset=(0, 0), detector=None, scale=1.0):  # type: ignore[no-untyped-def]
+        searched.append(grey.shape)
+        return find(self, grey, image_pass, offset, detector, scale)
+
+    monkeypatch.setattr(QuadFinder, "find", counted)
+    tracked = detector.detect(image, (leaving, hint[1]))
+    assert [(d.marker_index, d.image_pass) for d in tracked] == [(1, "tracked")]
+    assert searched == []

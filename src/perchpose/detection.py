@@ -391,7 +391,8 @@ class MarkerDetector:
         Through a strongly distorted lens, hinted markers still missing, and a large marker
         whose curved quad is too far off for the edge fit, are searched again in windows of
         the rectified view around where they are predicted. None when a marker of 20 px or
-        more is still not found: the caller then runs the full search. A hinted marker under
+        more predicted in view is still not found: the caller then runs the full search (one
+        predicted across the image's border is leaving the view, and let go). A hinted marker under
         20 px (at the edge of detection, where markers come and go) may drop out without one.
         A small marker whose edges cannot be fitted keeps its ``cornerSubPix`` corners. Quads
         are searched in ``seen`` (``grey`` or its clipped copy), corners fitted to ``grey``."""
@@ -417,7 +418,8 @@ class MarkerDetector:
                 # where the fit fails, the quad's cornerSubPix corners (on blurred frames they
                 # can be pixels off; the prediction's own fit failed or read wrong before)
                 result[index] = fitted or self._unfitted(det)
-        missing = [d for d in hint if d.marker_index not in result]
+        # a marker predicted across the image's border is leaving the view: no quad closes there
+        missing = [d for d in hint if d.marker_index not in result and self._in_view(d.corners_px)]
         required += [d.marker_index for d in missing if d.side_px >= SMALL_MARKER_SIDE_PX]
         again = [d.marker_index for d in missing]
         again += [i for i in required if i not in result and i not in again]
@@ -440,18 +442,25 @@ class MarkerDetector:
     def _may_be_found(
         self, quad: Array, index: int, hinted: bool, blur_px: float | None = None
     ) -> bool:
-        """Whether the window pass should look for marker ``index`` predicted at ``quad``: a
-        hinted one always; one the plane predicts (not hinted) where it lies wholly in the
-        image (OpenCV keeps no quad that crosses the border), is large enough for OpenCV's
-        smallest quad (``MIN_SEARCH_SIDE_PX``) and, given the frame's blur sigma
-        ``blur_px``, has cells of ``MIN_READ_CELL_BLURS`` of it or more."""
+        """Whether the window pass should look for marker ``index`` predicted at ``quad``:
+        where it lies wholly in the image (``_in_view``: OpenCV keeps no quad that crosses
+        the border), a hinted one always; one the plane predicts (not hinted) where it is
+        large enough for OpenCV's smallest quad (``MIN_SEARCH_SIDE_PX``) and, given the
+        frame's blur sigma ``blur_px``, has cells of ``MIN_READ_CELL_BLURS`` of it or more."""
+        if not self._in_view(quad):
+            return False
         if hinted:
             return True
         side_px = quad_side_px(quad)
         cells = int(self.target.markers[index].cells.shape[0])
         if blur_px is not None and side_px / cells < MIN_READ_CELL_BLURS * blur_px:
             return False
-        return side_px >= MIN_SEARCH_SIDE_PX and self.camera.in_image(quad)
+        return side_px >= MIN_SEARCH_SIDE_PX
+
+    def _in_view(self, quad: Array) -> bool:
+        """Whether ``quad`` lies in the image as far from its border as OpenCV keeps its
+        quads (``QuadFinder.border_margin_px``)."""
+        return self.camera.in_image(quad, self.quads.border_margin_px)
 
     def _window_pass(
         self, seen: NDArray[np.uint8], quads: dict[int, Array]
