@@ -572,7 +572,8 @@ class MarkerDetector:
             return tuple(found[i] for i in sorted(found))
         rectified: dict[int, MarkerDetection] = {}
         curved_px = CURVED_SIDE_PX if refind_curved else math.inf
-        for box in rectified_windows(self._rectification, self.target, found, curved_px):
+        margin_px = self.quads.border_margin_px
+        for box in rectified_windows(self._rectification, self.target, found, curved_px, margin_px):
             for index, det in self._rectified_pass(grey, maps, box).items():
                 rectified.setdefault(index, det)
         for det in rectified.values():

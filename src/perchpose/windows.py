@@ -114,10 +114,14 @@ def rectified_windows(
     target: TargetSpec,
     found: dict[int, MarkerDetection],
     curved_side_px: float,
+    border_margin_px: float = 0.0,
 ) -> list[Box]:
     """Windows of the rectified view to search: around each found marker of
     ``curved_side_px`` or more (its edges curved in the original), and around where the plane
-    through the largest found marker puts each missing one."""
+    through the largest found marker puts each missing one, where that lies wholly in the
+    original image, ``border_margin_px`` from its border (a marker across the border, leaving
+    the view near contact, is no quad that maps back into the image: its window would be most
+    of the view, searched for nothing)."""
     reference = max(found.values(), key=lambda d: d.side_px)
     ref_rect = rectification.to_rectified(reference.corners_px)
     ref_plane = target.markers[reference.marker_index].corners_target_m[:, :2]
@@ -131,6 +135,9 @@ def rectified_windows(
             quad = rectification.to_rectified(det.corners_px)
         elif H is not None:
             quad = _plane_quad(target, index, H)
+            uv, ok = rectification.to_original(quad)
+            if not ok or not rectification.camera.in_image(uv, border_margin_px):
+                continue
         else:
             continue
         window = rectified_box(quad, rectification.size)
