@@ -49,8 +49,7 @@ def extrapolated(
     """``hint`` (a frame's detections at ``hint_t_s``) carried on to ``t_s``: each corner at
     the velocity it had from ``earlier`` (the detections at ``earlier_t_s``). A marker not in
     both stays where it was, and so does every marker when the step ahead is over
-    ``max_ratio`` times the step between the two frames (a gap: the motion then is unknown).
-    Each keeps its corners' covariance: how noisy they were where they were last found."""
+    ``max_ratio`` times the step between the two frames (a gap: the motion then is unknown)."""
     step_s = hint_t_s - earlier_t_s
     if not hint or not earlier or not step_s > 0 or not 0 <= t_s - hint_t_s <= max_ratio * step_s:
         return hint
@@ -63,7 +62,7 @@ def extrapolated(
             out.append(d)
             continue
         corners = d.corners_px + ratio * (d.corners_px - last)
-        out.append(MarkerDetection(d.marker_index, corners, d.image_pass, d.corner_covariance_px2))
+        out.append(MarkerDetection(d.marker_index, corners, d.image_pass))
     return tuple(out)
 
 
