@@ -1,4 +1,5 @@
-"""Per-marker pose: IPPE square PnP with both solutions considered and LM refinement."""
+"""Per-marker pose: IPPE square PnP with both solutions considered, each refined to the least
+squares of its reprojection errors (``pnp.refine_pose``)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.geometry import invert_transform, transform_from_rvec_tvec
+from perchpose.geometry import invert_transform, make_transform, transform_from_rvec_tvec
+from perchpose.pnp import refine_pose
 from perchpose.target import MarkerSpec
 from perchpose.values import MarkerPose, PoseFailure
 
@@ -40,11 +42,12 @@ def reprojection_rms_px(
     camera: CameraModel, T_camera_target: Array, points_target_m: Array, uv_px: Array
 ) -> float:
     """RMS pixel distance between ``uv_px`` (N, 2) and the projection of points (N, 3)."""
-    p = (T_camera_target[:3, :3] @ points_target_m.T).T + T_camera_target[:3, 3]
+    p = points_target_m @ T_camera_target[:3, :3].T + T_camera_target[:3, 3]
     uv, ok = camera.project(p)
-    if not np.all(ok):
+    if not ok.all():
         return math.inf
-    return float(np.sqrt(np.mean(np.sum((uv - uv_px) ** 2, axis=1))))
+    d = (uv - uv_px).ravel()
+    return math.sqrt(float(d @ d) / len(uv))
 
 
 def solve_marker_pose(
@@ -77,11 +80,11 @@ def solve_marker_pose(
     T_target_marker = marker.T_target_marker
     T_marker_target = invert_transform(T_target_marker)
     candidates: list[tuple[float, Array]] = []
+    points_marker_m = np.ascontiguousarray(marker.corners_marker_m)
     for rvec, tvec in zip(rvecs, tvecs, strict=True):
-        rvec_r, tvec_r = cv2.solvePnPRefineLM(obj, img, eye, None, rvec.copy(), tvec.copy())
-        T_camera_marker = transform_from_rvec_tvec(
-            np.asarray(rvec_r, np.float64), np.asarray(tvec_r, np.float64)
-        )
+        start = transform_from_rvec_tvec(np.asarray(rvec, np.float64), np.asarray(tvec, np.float64))
+        R, t, _ = refine_pose(points_marker_m, xy, start[:3, :3].copy(), start[:3, 3].copy())
+        T_camera_marker = make_transform(R, t)
         if T_camera_marker[2, 3] <= 0:
             continue
         T_camera_target = T_camera_marker @ T_marker_target
