@@ -45,6 +45,27 @@ def test_project_and_unproject_are_inverse(name: str) -> None:
     np.testing.assert_allclose(back, uv, atol=1e-6)
 
 
+@pytest.mark.parametrize("name", ["webcam", "fpv", "fpv_wide"])
+def test_the_projection_jacobian_is_what_small_moves_of_the_point_do(name: str) -> None:
+    camera = CameraModel.preset(name)
+    rng = np.random.default_rng(4)
+    points = np.column_stack(
+        [rng.uniform(-0.3, 0.3, 30), rng.uniform(-0.3, 0.3, 30), rng.uniform(0.1, 1.0, 30)]
+    )
+    points[0] = (0.0, 0.0, 0.4)  # on the axis
+    uv, duv_dq, in_front = camera.project_with_jacobian(points)
+    assert in_front.all()
+    np.testing.assert_array_equal(uv, camera.project(points)[0])
+    step = 1e-7
+    for k in range(3):
+        delta = np.zeros(3)
+        delta[k] = step
+        expected = (camera.project(points + delta)[0] - camera.project(points - delta)[0]) / (
+            2 * step
+        )
+        np.testing.assert_allclose(duv_dq[:, :, k], expected, rtol=1e-5, atol=1e-3)
+
+
 def test_equidistant_covers_rays_beyond_ninety_degrees() -> None:
     cam = CameraModel.preset("fpv_wide")
     corner_ray = cam.pixel_rays(np.array([[0.0, 0.0]]))[0]

@@ -162,26 +162,51 @@ def test_corner_misfit_is_the_variance_factor() -> None:
     assert corner_misfit(J, np.ones(8), np.zeros(8), np.eye(8)) == (0.0, pytest.approx(2.0))
 
 
-@pytest.mark.parametrize(
-    "rvec", [(0.0, 0.0, 0.0), (2e-5, -1e-5, 3e-5), (0.3, -1.2, 0.7), (3.0, 0.2, -0.1)]
-)
-def test_the_rotation_jacobian_is_what_a_small_turn_of_the_rotation_vector_does(
-    rvec: tuple[float, float, float],
-) -> None:
-    """Columns of ``_rotation_jacobian``: the small rotation about the camera axes that a step
-    of the rotation vector along each axis makes, by central differences."""
-    from perchpose.joint_pose import _rotation_jacobian
+@pytest.mark.parametrize("camera_name", ["webcam", "fpv"])
+def test_the_pose_jacobian_is_what_small_moves_of_the_pose_do(camera_name: str) -> None:
+    """Columns of the pixels' Jacobian over (w, dt), by central differences of
+    ``R' = exp([w]x) R``, ``t' = t + dt`` through the camera's own projection."""
+    from perchpose.joint_pose import _project_with_jacobian
 
-    r = np.array(rvec)
-    step = 1e-6
-    expected = np.zeros((3, 3))
+    camera = CameraModel.preset(camera_name)
+    target = TargetSpec.paper()
+    T = facing_pose(0.05, -0.04, 0.35, 0.7, 0.3, -0.2)
+    points = target_points(
+        target, noisy_detections(camera, target, T, 0.0, np.random.default_rng(0))
+    )
+    projected = _project_with_jacobian(camera, T[:3, :3], T[:3, 3], points)
+    assert projected is not None
+    step = 1e-7
+    expected = np.zeros((2 * len(points), 6))
+    for k in range(6):
+        columns = []
+        for sign in (1.0, -1.0):
+            delta = np.zeros(6)
+            delta[k] = sign * step
+            R, _ = cv2.Rodrigues(delta[:3].reshape(3, 1))
+            moved = (np.asarray(R) @ T[:3, :3] @ points.T).T + T[:3, 3] + delta[3:]
+            columns.append(camera.project(moved)[0].reshape(-1))
+        expected[:, k] = (columns[0] - columns[1]) / (2 * step)
+    np.testing.assert_allclose(projected[1], expected, rtol=1e-5, atol=1e-3)
+
+
+def test_the_measurement_jacobian_is_what_small_turns_do_to_the_yaw() -> None:
+    from perchpose.geometry import yaw_rad
+    from perchpose.joint_pose import measurement_jacobian
+
+    T = facing_pose(0.05, -0.04, 0.35, 2.9, 0.4, -0.3)
+    step = 1e-7
+    expected = np.zeros(3)
     for k in range(3):
-        plus, minus = r.copy(), r.copy()
-        plus[k] += step
-        minus[k] -= step
-        R_plus, _ = cv2.Rodrigues(plus.reshape(3, 1))
-        R_minus, _ = cv2.Rodrigues(minus.reshape(3, 1))
-        M = np.asarray(R_plus) @ np.asarray(R_minus).T
-        w = 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
-        expected[:, k] = w / (2 * step)
-    assert np.allclose(_rotation_jacobian(r), expected, atol=1e-8)
+        delta = np.zeros(3)
+        delta[k] = step
+        R_plus, _ = cv2.Rodrigues(delta.reshape(3, 1))
+        R_minus, _ = cv2.Rodrigues(-delta.reshape(3, 1))
+        plus = yaw_rad(np.asarray(R_plus) @ T[:3, :3])
+        minus = yaw_rad(np.asarray(R_minus) @ T[:3, :3])
+        expected[k] = math.remainder(plus - minus, 2 * math.pi) / (2 * step)
+    J = measurement_jacobian(T)
+    np.testing.assert_allclose(J[0, :3], expected, atol=1e-7)
+    np.testing.assert_array_equal(J[1:, 3:], np.eye(3))
+    assert not J[0, 3:].any()
+    assert not J[1:, :3].any()

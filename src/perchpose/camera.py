@@ -122,6 +122,27 @@ class CameraModel:
             uv[in_front] = projected.reshape(-1, 2)
         return uv, in_front
 
+    def project_with_jacobian(
+        self, points_camera_m: Array
+    ) -> tuple[Array, Array, NDArray[np.bool_]]:
+        """``project``, and how each pixel moves with its point: ``duv_dq`` (N, 2, 3),
+        d(u, v) / d(x, y, z) of the camera-frame point (rows of points not ``in_front`` are
+        meaningless)."""
+        p = np.ascontiguousarray(np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3))
+        if self.model == "equidistant":
+            return _equidistant_project_with_jacobian(p, self.K, self.dist)
+        in_front = p[:, 2] > 1e-9
+        uv = np.full((p.shape[0], 2), np.nan)
+        duv_dq = np.full((p.shape[0], 2, 3), np.nan)
+        if np.any(in_front):
+            # the Jacobian over the translation of a zero pose is the one over the point
+            projected, jac = cv2.projectPoints(
+                p[in_front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist
+            )
+            uv[in_front] = projected.reshape(-1, 2)
+            duv_dq[in_front] = np.asarray(jac, np.float64)[:, 3:6].reshape(-1, 2, 3)
+        return uv, duv_dq, in_front
+
     def normalize(self, uv_px: Array) -> Array:
         """Undistort pixels to normalised image coordinates (x/z, y/z).
 
@@ -428,6 +449,48 @@ def _equidistant_project(p: Array, K: Array, dist: Array) -> tuple[Array, NDArra
         rising = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
         in_front[i] = theta < _EQUIDISTANT_MAX_THETA_RAD and rising > 0.0
     return uv, in_front
+
+
+@compiled
+def _equidistant_project_with_jacobian(
+    p: Array, K: Array, dist: Array
+) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """``_equidistant_project`` and d(u, v) / d(x, y, z) (N, 2, 3) of each point."""
+    uv, in_front = _equidistant_project(p, K, dist)
+    k1, k2, k3, k4 = dist[0], dist[1], dist[2], dist[3]
+    duv_dq = np.zeros((p.shape[0], 2, 3))
+    for i in range(p.shape[0]):
+        X, Y, Z = p[i, 0], p[i, 1], p[i, 2]
+        r2 = X * X + Y * Y
+        r = math.sqrt(r2)
+        # d(x, y)/d(X, Y, Z) of the distorted normalised coordinates (x, y) = s (X, Y)
+        if r < 1e-12 * max(abs(Z), 1e-300):  # on the axis: the pinhole's, 1 / Z
+            dxy = np.array([[1.0 / Z, 0.0, 0.0], [0.0, 1.0 / Z, 0.0]])
+        else:
+            theta = math.atan2(r, Z)
+            t2 = theta * theta
+            theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+            rising = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+            rho2 = r2 + Z * Z
+            # d theta / d(X, Y, Z), then d s / d(X, Y, Z) with s = theta_d / r
+            dtheta = (Z * X / (r * rho2), Z * Y / (r * rho2), -r / rho2)
+            s = theta_d / r
+            ds_dr = -theta_d / r2  # through r, at a fixed theta
+            ds = (
+                rising * dtheta[0] / r + ds_dr * X / r,
+                rising * dtheta[1] / r + ds_dr * Y / r,
+                rising * dtheta[2] / r,
+            )
+            dxy = np.empty((2, 3))
+            for j in range(3):
+                dxy[0, j] = X * ds[j]
+                dxy[1, j] = Y * ds[j]
+            dxy[0, 0] += s
+            dxy[1, 1] += s
+        for j in range(3):
+            duv_dq[i, 0, j] = K[0, 0] * dxy[0, j] + K[0, 1] * dxy[1, j]
+            duv_dq[i, 1, j] = K[1, 1] * dxy[1, j]
+    return uv, duv_dq, in_front
 
 
 @compiled

@@ -15,19 +15,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.geometry import rvec_tvec_from_transform, transform_from_rvec_tvec, yaw_rad
+from perchpose.geometry import make_transform
+from perchpose.jit import compiled
+from perchpose.pnp import turned
+from perchpose.step_model import solve_in_place
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
 
 Array = NDArray[np.float64]
-_STEP_RAD = 1e-6
-_STEP_M = 1e-6
-# The joint pose's Gauss-Newton ends once a step changes no entry of (rvec, tvec) by this much
+# The joint pose's Gauss-Newton ends once a step changes no entry of (w, dt) by this much
 # (rad, m). With the corners' noise in the residuals it converges linearly, each step 0.02-0.3
 # of the one before (fpv approach, default and harsh images), so what is left is under this
 # again: a tenth of a micrometre, a thousandth of the pose's own standard deviation at best.
@@ -66,56 +66,55 @@ class JointPose:
         return uncertainty(self.T_camera_target, self.covariance)
 
 
-def _perturbed(T: Array, delta: Array) -> Array:
-    rot, _ = cv2.Rodrigues(np.asarray(delta[:3], np.float64).reshape(3, 1))
-    out = T.copy()
-    out[:3, :3] = np.asarray(rot, np.float64) @ T[:3, :3]
-    out[:3, 3] = T[:3, 3] + delta[3:]
-    return out
+@compiled
+def _pose_rows(s: Array, duv_dq: Array) -> Array:
+    """The Jacobian (2N, 6) of the pixels over (w, dt) from the rotated points ``s = R p``
+    (N, 3) and the lens's d(u, v) / d(x, y, z) (N, 2, 3): a point moves by
+    ``dq = -[s]x w + dt``."""
+    J = np.empty((2 * s.shape[0], 6))
+    for i in range(s.shape[0]):
+        s0, s1, s2 = s[i, 0], s[i, 1], s[i, 2]
+        for axis in range(2):
+            a0, a1, a2 = duv_dq[i, axis, 0], duv_dq[i, axis, 1], duv_dq[i, axis, 2]
+            row = 2 * i + axis
+            J[row, 0] = -a1 * s2 + a2 * s1
+            J[row, 1] = a0 * s2 - a2 * s0
+            J[row, 2] = -a0 * s1 + a1 * s0
+            J[row, 3], J[row, 4], J[row, 5] = a0, a1, a2
+    return J
+
+
+@compiled
+def _gauss_newton_step(J: Array, w: Array, r: Array) -> tuple[Array, bool]:
+    """The step (6,) over (w, dt) minimising ``sum w (r + J step)^2``; False where the
+    normal equations are singular."""
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    for i in range(J.shape[0]):
+        for j in range(6):
+            wj = w[i] * J[i, j]
+            g[j] -= wj * r[i]
+            for k in range(j, 6):
+                H[j, k] += wj * J[i, k]
+    for j in range(6):
+        H[j, j] += 1e-12
+        for k in range(j):
+            H[j, k] = H[k, j]
+    ok = solve_in_place(H, g)
+    return g, ok
 
 
 def _project_with_jacobian(
-    camera: CameraModel, rvec: Array, tvec: Array, points_target_m: Array
+    camera: CameraModel, R: Array, t: Array, points_target_m: Array
 ) -> tuple[Array, Array] | None:
-    """Pixels (2N,) of the points under the pose (rvec, tvec), and their Jacobian (2N, 6)
-    with respect to (rvec, tvec), from OpenCV's own projection (the same models as
-    ``CameraModel.project``). None if a point is not in front of the camera."""
-    R, _ = cv2.Rodrigues(rvec.reshape(3, 1))
-    depth = (np.asarray(R, np.float64) @ points_target_m.T)[2] + tvec[2]
-    if not np.all(depth > 1e-6):
+    """Pixels (2N,) of the points under the pose (R, t), and their Jacobian (2N, 6) over
+    (w, dt). None if a point does not project (behind the camera, or beyond the lens
+    model's reach)."""
+    s = points_target_m @ R.T
+    uv, duv_dq, in_front = camera.project_with_jacobian(s + t)
+    if not in_front.all():
         return None
-    obj = points_target_m.reshape(-1, 1, 3)
-    if camera.model == "equidistant":
-        uv, jac = cv2.fisheye.projectPoints(
-            obj,
-            rvec.reshape(3, 1),
-            tvec.reshape(3, 1),
-            camera.K,
-            camera.dist.reshape(4, 1),
-            alpha=float(camera.K[0, 1] / camera.K[0, 0]),
-        )
-        J = np.asarray(jac, np.float64)[:, 8:14]  # fx fy cx cy k1-k4 | om (3) T (3) | alpha
-    else:
-        uv, jac = cv2.projectPoints(
-            obj, rvec.reshape(3, 1), tvec.reshape(3, 1), camera.K, camera.dist
-        )
-        J = np.asarray(jac, np.float64)[:, :6]  # rvec (3) tvec (3) | f, c, distortion
-    return np.asarray(uv, np.float64).reshape(-1), J
-
-
-def _rotation_jacobian(rvec: Array) -> Array:
-    """d(w)/d(rvec) (3, 3): how a change of the rotation vector turns the rotation, as a small
-    rotation ``w`` about the camera axes (``exp([w]x) R``): the left Jacobian of SO(3),
-    ``I + (1 - cos t) / t^2 [r]x + (t - sin t) / t^3 [r]x^2`` with ``t = |r|`` (its series
-    near 0)."""
-    r = np.asarray(rvec, np.float64).reshape(3)
-    K = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-    t = float(np.linalg.norm(r))
-    if t < 1e-4:
-        a, b = 0.5 - t * t / 24.0, 1.0 / 6.0 - t * t / 120.0
-    else:
-        a, b = (1.0 - math.cos(t)) / (t * t), (t - math.sin(t)) / (t * t * t)
-    return np.asarray(np.eye(3) + a * K + b * (K @ K), np.float64)
+    return uv.reshape(-1), _pose_rows(s, duv_dq)
 
 
 def _weights(sigma_px: float | Array, n_points: int) -> Array:
@@ -158,19 +157,17 @@ def _covariances_at(
     corner_covariance_px2: Array | None = None,
 ) -> tuple[Array | None, Array | None]:
     """``_covariances`` at the pose ``T``; both None where a corner does not project."""
-    rvec3, tvec3 = rvec_tvec_from_transform(T)
-    rvec, tvec = rvec3.reshape(3), tvec3.reshape(3)
-    projected = _project_with_jacobian(camera, rvec, tvec, points_target_m)
+    projected = _project_with_jacobian(camera, T[:3, :3], T[:3, 3], points_target_m)
     if projected is None:
         return None, None
     w = _weights(sigma_px, points_target_m.shape[0])
-    return _covariances(projected[1], w, rvec, corner_covariance_px2)
+    return _covariances(projected[1], w, corner_covariance_px2)
 
 
 def _covariances(
-    J: Array, w: Array, rvec: Array, corner_covariance_px2: Array | None = None
+    J: Array, w: Array, corner_covariance_px2: Array | None = None
 ) -> tuple[Array | None, Array | None]:
-    """Over (w, dt), from the (rvec, tvec) Jacobian of the corners and their weights: the
+    """Over (w, dt), from the corners' Jacobian (2N, 6) over (w, dt) and their weights: the
     weights' own covariance, and with ``corner_covariance_px2`` the sandwich
     (``sandwich_covariance``; else None). Both None if degenerate."""
     Jw = J * w[:, None]
@@ -180,13 +177,11 @@ def _covariances(
     if not eigenvalues[0] * 1e14 > eigenvalues[-1]:
         return None, None
     H_inv = np.linalg.inv(info)
-    A = np.eye(6)
-    A[:3, :3] = _rotation_jacobian(rvec)
-    plain = np.asarray(A @ H_inv @ A.T, np.float64)
+    plain = 0.5 * (H_inv + H_inv.T)
     if corner_covariance_px2 is None:
         return plain, None
-    cov_rt = H_inv @ (Jw.T @ corner_covariance_px2 @ Jw) @ H_inv
-    return plain, np.asarray(A @ cov_rt @ A.T, np.float64)
+    B = Jw @ H_inv
+    return plain, np.asarray(B.T @ corner_covariance_px2 @ B, np.float64)
 
 
 def uncertainty(T: Array, covariance: Array) -> PoseUncertainty:
@@ -200,15 +195,16 @@ def uncertainty(T: Array, covariance: Array) -> PoseUncertainty:
 
 def measurement_jacobian(T: Array) -> Array:
     """d(yaw, x, y, z) / d(w, dt): (4, 6), to carry a pose covariance to the estimate's
-    components."""
+    components. With ``R' = (I + [w]x) R`` and ``yaw = atan2(R10, R00)``: d yaw / dw =
+    ``(-R00 R20, -R10 R20, R00^2 + R10^2) / (R00^2 + R10^2)``."""
+    R = T[:3, :3]
     J = np.zeros((4, 6))
-    base = yaw_rad(T[:3, :3])
-    for k in range(3):
-        delta = np.zeros(6)
-        delta[k] = _STEP_RAD
-        J[0, k] = math.remainder(yaw_rad(_perturbed(T, delta)[:3, :3]) - base, 2 * math.pi)
-        J[0, k] /= _STEP_RAD
-    J[1:, 3:] = np.eye(3)
+    norm2 = float(R[0, 0] ** 2 + R[1, 0] ** 2)
+    if norm2 > 0.0:  # else the yaw is not defined (the target seen edge on)
+        J[0, 0] = -R[0, 0] * R[2, 0] / norm2
+        J[0, 1] = -R[1, 0] * R[2, 0] / norm2
+        J[0, 2] = 1.0
+    J[1, 3] = J[2, 4] = J[3, 5] = 1.0
     return J
 
 
@@ -236,35 +232,32 @@ def solve_joint_pose(
     uv = np.concatenate([d.corners_px for d in detections]).reshape(-1)
     sigma = np.repeat(np.broadcast_to(np.asarray(sigma_px, np.float64), (len(detections),)), 4)
     w = _weights(sigma, points.shape[0])
-    rvec3, tvec3 = rvec_tvec_from_transform(np.asarray(T_initial, np.float64))
-    rvec, tvec = rvec3.reshape(3), tvec3.reshape(3)
+    T_start = np.asarray(T_initial, np.float64)
+    R, t = np.ascontiguousarray(T_start[:3, :3]), T_start[:3, 3].copy()
     converged: tuple[Array, Array] | None = None
     for _ in range(iterations):
-        projected = _project_with_jacobian(camera, rvec, tvec, points)
+        projected = _project_with_jacobian(camera, R, t, points)
         if projected is None:
             return None
-        r = projected[0] - uv
         J = projected[1]
-        Jw = J * w[:, None]
-        try:
-            delta = -np.linalg.solve(J.T @ Jw + 1e-12 * np.eye(6), Jw.T @ r)
-        except np.linalg.LinAlgError:
+        delta, solved = _gauss_newton_step(J, w, projected[0] - uv)
+        if not solved:
             return None
-        rvec = rvec + delta[:3]
-        tvec = tvec + delta[3:]
+        R = turned(delta[:3], R)
+        t = t + delta[3:]
         if np.max(np.abs(delta)) < CONVERGED:
             # the last step is too small to change the Jacobian: the pixels after it from it
             converged = (projected[0] + J @ delta, J)
             break
-    projected = converged or _project_with_jacobian(camera, rvec, tvec, points)
+    projected = converged or _project_with_jacobian(camera, R, t, points)
     if projected is None:
         return None
-    cov, own = _covariances(projected[1], w, rvec, corner_covariance_px2)
+    cov, own = _covariances(projected[1], w, corner_covariance_px2)
     if cov is None:
         return None
     residual = uv - projected[0]
     rms = float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 2) ** 2, axis=1))))
-    T = transform_from_rvec_tvec(rvec, tvec)
+    T = make_transform(R, t)
     misfit = (
         (math.nan, math.nan)
         if corner_covariance_px2 is None

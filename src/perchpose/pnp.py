@@ -59,6 +59,13 @@ def _turned(A: Array, R: Array) -> Array:
 
 
 @compiled
+def turned(w: Array, R: Array) -> Array:
+    """``exp([w]x) R``: the rotation ``R`` (3, 3) turned by the small rotation ``w`` (3,)
+    about the axes of its left frame."""
+    return _turned(_rotation_of(w[0], w[1], w[2]), R)
+
+
+@compiled
 def _cost_and_normal_equations(
     points_m: Array, xy: Array, R: Array, t: Array, H: Array, g: Array
 ) -> float:
@@ -119,7 +126,7 @@ def refine_pose(points_m: Array, xy: Array, R0: Array, t0: Array) -> tuple[Array
         step = -g
         if not solve_in_place(A, step):
             return R0.copy(), t0.copy(), False
-        R_try = _turned(_rotation_of(step[0], step[1], step[2]), R)
+        R_try = turned(step[:3], R)
         t_try = t + step[3:]
         cost_try = _cost_and_normal_equations(points_m, xy, R_try, t_try, H_try, g_try)
         largest = np.max(np.abs(step))
