@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from perchpose import CameraModel, MarkerSpec, TargetSpec
-from perchpose.detection import MarkerDetector, target_dictionaries
+from perchpose.detection import CHECK_SCALE, MarkerDetector, target_dictionaries
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import Renderer
 from perchpose.target import aruco_dictionary
@@ -312,35 +312,54 @@ def test_a_shrunk_search_finds_the_quads_near_their_full_size_corners(
     assert np.max(np.abs(shrunk[0].corners_px - full[0].corners_px)) < 1.5
 
 
-def test_tracking_searches_the_whole_frame_at_an_interval(
+def test_tracking_searches_the_whole_frame_at_an_interval_for_what_it_lacks(
     renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Tracking looks in windows, but every ``full_search_every`` frames it searches the whole
-    frame with OpenCV's three thresholds, as on the first frame; under a spent budget it puts
-    that off and says so."""
+    frame, shrunk, for the markers it has not got and adds those it finds (here the windows
+    are kept from looking for the inner marker); with every marker tracked there is nothing
+    to look for; under a spent budget it puts the search off and says so."""
     from perchpose.quads import QuadFinder
 
     r = renderers["webcam"]
-    image = r.render(facing_pose(0.0, 0.01, 0.7, 0.2), rng=np.random.default_rng(0))
-    whole: list[int] = []
+    image = r.render(facing_pose(0.0, 0.01, 0.4, 0.2), rng=np.random.default_rng(0))
+    whole: list[float] = []
     find = QuadFinder.find
 
     def counted(self, grey, image_pass, offset=(0, 0), detector=None, scale=1.0):  # type: ignore[no-untyped-def]
         if detector is None and grey.shape == image.shape:
-            whole.append(1)
+            whole.append(scale)
         return find(self, grey, image_pass, offset, detector, scale)
 
     monkeypatch.setattr(QuadFinder, "find", counted)
     detector = MarkerDetector(r.camera, r.target)
     detector.full_search_every = 5
-    hint: tuple = ()
-    for _ in range(11):
+    first = detector.detect(image)
+    assert {d.marker_index for d in first} == {0, 1}
+    assert whole == [1.0]
+    # both tracked: the interval finds nothing to look for
+    hint = first
+    for _ in range(10):
         hint = detector.detect(image, hint)
         assert {d.marker_index for d in hint} == {0, 1}
-    assert len(whole) == 3  # frames 0, 5 and 10
+    assert whole == [1.0]
+    # the inner marker dropped, and the windows kept from it: the interval's search finds it
+    monkeypatch.setattr(MarkerDetector, "_may_be_found", lambda *args: False)
+    hint = tuple(d for d in hint if d.marker_index == 0)
+    seen: list[set[int]] = []
+    for _ in range(5):
+        hint = detector.detect(image, hint)
+        seen.append({d.marker_index for d in hint})
+    assert seen == [{0}, {0}, {0}, {0}, {0, 1}]
+    assert whole == [1.0, CHECK_SCALE]
+    inner = next(d for d in hint if d.marker_index == 1)
+    assert inner.corner_covariance_px2 is not None  # fitted, not a shrunk image's quad
+    truth = r.corners_px(facing_pose(0.0, 0.01, 0.4, 0.2))[1]
+    assert truth is not None
+    assert np.max(np.abs(inner.corners_px - truth)) < 0.2
     late = MarkerDetector(r.camera, r.target)
     late.full_search_every = 2
-    hint = late.detect(image)
+    hint = tuple(d for d in late.detect(image) if d.marker_index == 0)
     hint = late.detect(image, hint)
     whole.clear()
     hint = late.detect(image, hint, deadline_s=0.0)

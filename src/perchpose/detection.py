@@ -84,8 +84,10 @@ PATTERN_S_PER_PX2 = 5e-6
 GLARE_LEVEL = 250
 GLARE_FRACTION = 0.05
 GLARE_CLIP_LEVELS: tuple[int | None, ...] = (None, 108, 72, 162, 48, 224)
-# While tracking, every this many frames the whole frame is searched as if nothing were known.
+# While tracking, every this many frames the whole frame is searched for the markers tracking
+# has not got (none when it has them all), shrunk by CHECK_SCALE.
 FULL_SEARCH_EVERY = 30
+CHECK_SCALE = 0.5
 # While tracking, the window is searched shrunk so that the smallest predicted marker spans
 # this much (never enlarged): the quads are a start for the fit at full resolution, and a
 # large marker costs the detector a fraction of its pixels.
@@ -145,6 +147,8 @@ class MarkerDetector:
         self.tracking_side_px = TRACKING_SIDE_PX
         self.full_search_every: int | None = FULL_SEARCH_EVERY
         self._tracked_frames = 0
+        # whether this frame's tracking also searches the whole frame (``_unless_interval``)
+        self._check = False
         self.quads = QuadFinder(target, max(camera.size))
         self.fitter = CornerFitter(camera, target)
         self.cell_patterns = [CellPattern.of(target, i) for i in range(len(target.markers))]
@@ -198,14 +202,14 @@ class MarkerDetector:
         deadline_s : a ``time.perf_counter()`` reading by which the detection should be done.
         What would not end by then is left out where it can be (each step's cost predicted
         from its runs so far): a pattern fit, the whole-frame search after tracking lost a
-        marker, the second way of searching, and the whole-frame search that tracking runs
-        every ``full_search_every`` frames (``FULL_SEARCH_EVERY``). ``skipped`` names what
-        this call left out.
+        marker, the second way of searching, and the whole-frame search for markers it
+        lacks that tracking runs every ``full_search_every`` frames (``FULL_SEARCH_EVERY``,
+        ``_with_unseen``). ``skipped`` names what this call left out.
         """
         self.corners_s = 0.0
         self.skipped = []
         self._deadline_s = deadline_s
-        hint = self._unless_interval(hint)
+        self._check = self._interval_due(hint)
         ladder = self.search_ladder(has_glare(grey))
         if self._rung not in ladder:
             self._rung = ladder[0]
@@ -244,22 +248,44 @@ class MarkerDetector:
         views: tuple[ImagePass, ...] = ("raw", "rectified") if self.rectify else ("raw",)
         return [(level, view) for view in views for level in levels]
 
-    def _unless_interval(self, hint: tuple[MarkerDetection, ...]) -> tuple[MarkerDetection, ...]:
-        """``hint``, or none when ``full_search_every`` tracked frames have passed since the
-        last whole-frame search (so a marker the windows cannot see is found again within
-        that many frames), unless the budget has no room for it."""
+    def _interval_due(self, hint: tuple[MarkerDetection, ...]) -> bool:
+        """Whether ``full_search_every`` tracked frames have passed since the last
+        whole-frame look (``_with_unseen``), unless the budget has no room for one."""
         every = self.full_search_every
         if not hint or every is None:
             self._tracked_frames = 0
-            return hint
+            return False
         self._tracked_frames += 1
         if self._tracked_frames < every:
-            return hint
-        if self._late(self._search_s):
+            return False
+        if self._late(self._search_s * CHECK_SCALE**2):
             self.skipped.append("interval search")
-            return hint
+            return False
         self._tracked_frames = 0
-        return ()
+        return True
+
+    def _with_unseen(
+        self,
+        grey: NDArray[np.uint8],
+        seen: NDArray[np.uint8],
+        tracked: tuple[MarkerDetection, ...],
+    ) -> tuple[MarkerDetection, ...]:
+        """``tracked``, and the target's markers it lacks where a search of the whole of
+        ``seen`` shrunk by ``CHECK_SCALE`` finds them and their corners can be fitted to
+        ``grey``: so a marker the windows cannot see (the plane put it elsewhere) is found
+        within ``full_search_every`` frames. Tracked markers are kept as tracked (fitted
+        from their prediction, their cells read back); with all of them tracked there is
+        nothing to look for."""
+        have = {d.marker_index: d for d in tracked}
+        if len(have) == len(self.target.markers):
+            return tracked
+        found = self.quads.find(seen, "raw", scale=CHECK_SCALE)
+        new = [d for i, d in found.items() if i not in have]
+        fitted_px = max((d.side_px for d in tracked), default=0.0)
+        for index, fitted in self._fit_all(grey, new, fitted_px=fitted_px).items():
+            if fitted is not None:  # a shrunk image's quad is no corners to keep unfitted
+                have[index] = fitted
+        return tuple(have[i] for i in sorted(have))
 
     def _detect_by(
         self,
@@ -272,12 +298,12 @@ class MarkerDetector:
         pinhole view of it; corners fitted to ``grey``."""
         clip_level, view = rung
         seen = grey if clip_level is None else np.minimum(grey, np.uint8(clip_level))
-        if self.corners == "subpix":
-            return self._find(seen, hint, view)
+        if self.corners == "subpix":  # the whole frame searched as if nothing were known
+            return self._find(seen, () if self._check else hint, view)
         if hint:
             tracked = self._track_edges(grey, seen, hint)
             if tracked is not None:
-                return tracked
+                return self._with_unseen(grey, seen, tracked) if self._check else tracked
             if self._late(self._search_s):
                 self.skipped.append("search")
                 return ()
