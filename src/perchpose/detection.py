@@ -147,7 +147,7 @@ class MarkerDetector:
         self.tracking_side_px = TRACKING_SIDE_PX
         self.full_search_every: int | None = FULL_SEARCH_EVERY
         self._tracked_frames = 0
-        # whether this frame's tracking also searches the whole frame (``_unless_interval``)
+        # whether this frame's tracking also searches the whole frame (``_interval_due``)
         self._check = False
         self.quads = QuadFinder(target, max(camera.size))
         self.fitter = CornerFitter(camera, target)
