@@ -45,6 +45,10 @@ def test_ratios_divide_by_the_baseline_on_the_same_frames(report: BenchReport) -
     assert ratios["p50"] == pytest.approx(np.median(mine) / np.median(base))
     assert ratios["worst_frame"] == pytest.approx(np.max(mine / base))
     assert report.ratios(BASELINE)["p50"] == pytest.approx(1.0)
+    worst = report.worst_frames("perchpose", 3)
+    assert [w["frame"] for w in worst] == list(np.argsort(-(mine / base))[:3])
+    assert worst[0]["ratio"] == pytest.approx(ratios["worst_frame"])
+    assert worst[0]["ms"] == pytest.approx(mine[worst[0]["frame"]])
 
 
 def test_accuracy_against_the_rendered_truth(report: BenchReport) -> None:
@@ -63,9 +67,15 @@ def test_json_and_text(report: BenchReport) -> None:
     assert (data["frames"], data["threads"], data["baseline"]) == (10, 1, BASELINE)
     assert data["methods"]["perchpose"]["frames_with_pose"] == 10
     assert set(data["stages_ms"]) == set(Timings.STAGES)
+    for name, entry in data["methods"].items():
+        assert entry["ms_per_frame"] == pytest.approx(list(report.methods[name].ms))
+    worst = data["methods"]["perchpose"]["worst_frames"]
+    assert len(worst) == 5
+    assert [w["ratio"] for w in worst] == sorted((w["ratio"] for w in worst), reverse=True)
     text = format_report(report)
     for name in report.methods:
         assert name in text
+    assert f"perchpose worst frames: {worst[0]['frame']} ({worst[0]['ratio']:.1f}x)" in text
 
 
 def test_source_frames_skip_nothing_readable(

@@ -40,6 +40,8 @@ Array = NDArray[np.float64]
 
 BASELINE = "opencv"
 PERCENTILES = (50, 95, 99, 100)
+# how many of its slowest frames (against the baseline) the report names per method
+WORST_FRAMES = 5
 
 
 @dataclass(frozen=True)
@@ -211,6 +213,14 @@ class BenchReport:
         out["worst_frame"] = float(np.max(mine / base))
         return out
 
+    def worst_frames(self, name: str, count: int = WORST_FRAMES) -> list[dict[str, float]]:
+        """The ``count`` frames on which the method took longest over the baseline, worst
+        first: each frame's index, its time (ms) and that ratio."""
+        mine, base = self.methods[name].ms, self.methods[BASELINE].ms
+        ratio = mine / base
+        order = np.argsort(-ratio, kind="stable")[:count]
+        return [{"frame": int(k), "ms": float(mine[k]), "ratio": float(ratio[k])} for k in order]
+
     def accuracy(self, name: str) -> dict[str, float] | None:
         """Against the rendered truth, on the frames with a marker in view: those without a
         pose, the largest position error as a percentage of the distance, and the largest yaw
@@ -249,9 +259,11 @@ class BenchReport:
                 "description": result.description,
                 "ms": self.percentiles(name),
                 "mean_ms": float(np.mean(result.ms)),
+                "ms_per_frame": [float(v) for v in result.ms],
             }
             if name != BASELINE:
                 entry["ratio_to_opencv"] = self.ratios(name)
+                entry["worst_frames"] = self.worst_frames(name)
                 entry["frames_with_pose"] = sum(
                     1 for e in result.estimates if e is not None and e.valid
                 )
@@ -366,6 +378,10 @@ def format_report(report: BenchReport) -> str:
             )
         )
     lines += ["", "x: the method's time over OpenCV's (same percentile; worst: per frame)"]
+    for name, entry in data["methods"].items():
+        if name.startswith("perchpose") and "worst_frames" in entry:
+            worst = ", ".join(f"{w['frame']} ({w['ratio']:.1f}x)" for w in entry["worst_frames"])
+            lines.append(f"  {name} worst frames: {worst}")
     if "perchpose" in report.methods:
         lines += ["", f"perchpose by stage {'p50 ms':>10s} {'p95 ms':>8s} {'max ms':>8s}"]
         for stage, ms in data["stages_ms"].items():
