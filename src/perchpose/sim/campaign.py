@@ -7,7 +7,11 @@ them. Results come back as each run finishes, for the caller to write down at on
 
 from __future__ import annotations
 
+import multiprocessing
+import multiprocessing.connection
+import os
 import sys
+import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
@@ -60,12 +64,33 @@ def run_job(job: Job) -> tuple[PerchSetup, PerchResult]:
     return setup, run_perch(flown, seed, renderer)
 
 
+def _exit_with_parent() -> None:
+    """A worker's initializer: a thread that ends the worker as soon as the process that
+    started it is gone. A parent killed outright (SIGKILL, the out-of-memory killer) cannot
+    cancel its jobs, and its workers would otherwise wait for work forever."""
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+    sentinel = parent.sentinel
+
+    def watch() -> None:
+        multiprocessing.connection.wait([sentinel])
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def worker_pool(workers: int) -> ProcessPoolExecutor:
+    """Local processes for runs, each ending with the process that started it."""
+    return ProcessPoolExecutor(max_workers=workers, initializer=_exit_with_parent)
+
+
 def _local(jobs: list[Job], workers: int) -> Iterator[tuple[PerchSetup, PerchResult]]:
     if workers <= 1:
         for job in jobs:
             yield run_job(job)
         return
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with worker_pool(workers) as pool:
         futures = [pool.submit(run_job, job) for job in jobs]
         try:
             for future in as_completed(futures):
