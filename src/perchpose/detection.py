@@ -250,15 +250,18 @@ class MarkerDetector:
 
     def _interval_due(self, hint: tuple[MarkerDetection, ...]) -> bool:
         """Whether ``full_search_every`` tracked frames have passed since the last
-        whole-frame look (``_with_unseen``), unless the budget has no room for one."""
+        whole-frame look (``_with_unseen``); it stays due until one is made."""
         every = self.full_search_every
         if not hint or every is None:
             self._tracked_frames = 0
             return False
         self._tracked_frames += 1
-        if self._tracked_frames < every:
-            return False
-        if self._late(self._search_s * CHECK_SCALE**2):
+        return self._tracked_frames >= every
+
+    def _interval_search(self, cost_s: float) -> bool:
+        """Whether the interval's whole-frame look, of ``cost_s`` predicted, runs now: not
+        where the budget has no room for it (it is then put off to the next frame)."""
+        if self._late(cost_s):
             self.skipped.append("interval search")
             return False
         self._tracked_frames = 0
@@ -278,6 +281,9 @@ class MarkerDetector:
         nothing to look for."""
         have = {d.marker_index: d for d in tracked}
         if len(have) == len(self.target.markers):
+            self._tracked_frames = 0
+            return tracked
+        if not self._interval_search(self._search_s * CHECK_SCALE**2):
             return tracked
         found = self.quads.find(seen, "raw", scale=CHECK_SCALE)
         new = [d for i, d in found.items() if i not in have]
@@ -298,8 +304,9 @@ class MarkerDetector:
         pinhole view of it; corners fitted to ``grey``."""
         clip_level, view = rung
         seen = grey if clip_level is None else np.minimum(grey, np.uint8(clip_level))
-        if self.corners == "subpix":  # the whole frame searched as if nothing were known
-            return self._find(seen, () if self._check else hint, view)
+        if self.corners == "subpix":  # at the interval, the whole frame searched afresh
+            afresh = self._check and self._interval_search(self._search_s)
+            return self._find(seen, () if afresh else hint, view)
         if hint:
             tracked = self._track_edges(grey, seen, hint)
             if tracked is not None:
