@@ -110,16 +110,11 @@ class CameraModel:
         Returns uv_px : (N, 2) float64 and in_front : (N,) bool. Points behind an ordinary
         camera (z <= 0) or beyond 180 deg field of view of a fisheye get ``in_front`` False.
         """
-        p = np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3)
         if self.model == "equidistant":
+            p = np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3)
             return _equidistant_project(np.ascontiguousarray(p), self.K, self.dist)
-        in_front = p[:, 2] > 1e-9
-        uv = np.full((p.shape[0], 2), np.nan)
-        if np.any(in_front):
-            projected, _ = cv2.projectPoints(
-                p[in_front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist
-            )
-            uv[in_front] = projected.reshape(-1, 2)
+        # OpenCV's projectPoints works out the Jacobian whether it is used or not
+        uv, _, in_front = self.project_with_jacobian(points_camera_m)
         return uv, in_front
 
     def project_with_jacobian(
