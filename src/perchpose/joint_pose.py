@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from perchpose.camera import CameraModel
 from perchpose.geometry import make_transform
 from perchpose.jit import compiled
-from perchpose.pnp import turned
+from perchpose.pnp import normal_equations, pose_rows, turned
 from perchpose.step_model import solve_in_place
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
@@ -67,41 +67,14 @@ class JointPose:
 
 
 @compiled
-def _pose_rows(s: Array, duv_dq: Array) -> Array:
-    """The Jacobian (2N, 6) of the pixels over (w, dt) from the rotated points ``s = R p``
-    (N, 3) and the lens's d(u, v) / d(x, y, z) (N, 2, 3): a point moves by
-    ``dq = -[s]x w + dt``."""
-    J = np.empty((2 * s.shape[0], 6))
-    for i in range(s.shape[0]):
-        s0, s1, s2 = s[i, 0], s[i, 1], s[i, 2]
-        for axis in range(2):
-            a0, a1, a2 = duv_dq[i, axis, 0], duv_dq[i, axis, 1], duv_dq[i, axis, 2]
-            row = 2 * i + axis
-            J[row, 0] = -a1 * s2 + a2 * s1
-            J[row, 1] = a0 * s2 - a2 * s0
-            J[row, 2] = -a0 * s1 + a1 * s0
-            J[row, 3], J[row, 4], J[row, 5] = a0, a1, a2
-    return J
-
-
-@compiled
 def _gauss_newton_step(J: Array, w: Array, r: Array) -> tuple[Array, bool]:
     """The step (6,) over (w, dt) minimising ``sum w (r + J step)^2``; False where the
     normal equations are singular."""
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
-    for i in range(J.shape[0]):
-        for j in range(6):
-            wj = w[i] * J[i, j]
-            g[j] -= wj * r[i]
-            for k in range(j, 6):
-                H[j, k] += wj * J[i, k]
+    H, g = normal_equations(J, w, r)
     for j in range(6):
         H[j, j] += 1e-12
-        for k in range(j):
-            H[j, k] = H[k, j]
-    ok = solve_in_place(H, g)
-    return g, ok
+    step = -g
+    return step, solve_in_place(H, step)
 
 
 def _project_with_jacobian(
@@ -114,7 +87,7 @@ def _project_with_jacobian(
     uv, duv_dq, in_front = camera.project_with_jacobian(s + t)
     if not in_front.all():
         return None
-    return uv.reshape(-1), _pose_rows(s, duv_dq)
+    return uv.reshape(-1), pose_rows(s, duv_dq)
 
 
 def _weights(sigma_px: float | Array, n_points: int) -> Array:

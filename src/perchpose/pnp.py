@@ -66,44 +66,65 @@ def turned(w: Array, R: Array) -> Array:
 
 
 @compiled
-def _cost_and_normal_equations(
-    points_m: Array, xy: Array, R: Array, t: Array, H: Array, g: Array
-) -> float:
-    """The sum of squared normalised reprojection errors at (R, t), and the normal matrix
-    ``H = J^T J`` and gradient ``g = J^T r`` over (w, dt) written in place; inf where a
-    point is not in front of the camera."""
-    H[:, :] = 0.0
-    g[:] = 0.0
-    cost = 0.0
-    row = np.empty(6)
-    for i in range(points_m.shape[0]):
-        s0 = R[0, 0] * points_m[i, 0] + R[0, 1] * points_m[i, 1] + R[0, 2] * points_m[i, 2]
-        s1 = R[1, 0] * points_m[i, 0] + R[1, 1] * points_m[i, 1] + R[1, 2] * points_m[i, 2]
-        s2 = R[2, 0] * points_m[i, 0] + R[2, 1] * points_m[i, 1] + R[2, 2] * points_m[i, 2]
-        q0, q1, q2 = s0 + t[0], s1 + t[1], s2 + t[2]
-        if not q2 > 1e-12:
-            return math.inf
-        inv_z = 1.0 / q2
-        x, y = q0 * inv_z, q1 * inv_z
+def pose_rows(s: Array, duv_dq: Array) -> Array:
+    """The Jacobian (2N, 6) of N projected points over (w, dt), from the rotated points
+    ``s = R p`` (N, 3) and the projection's d(u, v) / d(x, y, z) (N, 2, 3): a point moves by
+    ``dq = -[s]x w + dt``."""
+    J = np.empty((2 * s.shape[0], 6))
+    for i in range(s.shape[0]):
+        s0, s1, s2 = s[i, 0], s[i, 1], s[i, 2]
         for axis in range(2):
-            r = (x - xy[i, 0]) if axis == 0 else (y - xy[i, 1])
-            # d(x or y)/dq, then dq/dw = -[s]x and dq/dt = I
-            a0 = inv_z if axis == 0 else 0.0
-            a1 = 0.0 if axis == 0 else inv_z
-            a2 = -(x if axis == 0 else y) * inv_z
-            row[0] = -a1 * s2 + a2 * s1
-            row[1] = a0 * s2 - a2 * s0
-            row[2] = -a0 * s1 + a1 * s0
-            row[3], row[4], row[5] = a0, a1, a2
-            cost += r * r
-            for j in range(6):
-                g[j] += row[j] * r
-                for k in range(j, 6):
-                    H[j, k] += row[j] * row[k]
+            a0, a1, a2 = duv_dq[i, axis, 0], duv_dq[i, axis, 1], duv_dq[i, axis, 2]
+            row = 2 * i + axis
+            J[row, 0] = -a1 * s2 + a2 * s1
+            J[row, 1] = a0 * s2 - a2 * s0
+            J[row, 2] = -a0 * s1 + a1 * s0
+            J[row, 3], J[row, 4], J[row, 5] = a0, a1, a2
+    return J
+
+
+@compiled
+def normal_equations(J: Array, w: Array, r: Array) -> tuple[Array, Array]:
+    """``J^T W J`` (6, 6) and ``J^T W r`` (6,) for residuals ``r`` (M,) with Jacobian ``J``
+    (M, 6) and weights ``w`` (M,)."""
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    for i in range(J.shape[0]):
+        for j in range(6):
+            wj = w[i] * J[i, j]
+            g[j] += wj * r[i]
+            for k in range(j, 6):
+                H[j, k] += wj * J[i, k]
     for j in range(6):
         for k in range(j):
             H[j, k] = H[k, j]
-    return cost
+    return H, g
+
+
+@compiled
+def _cost_and_normal_equations(
+    points_m: Array, xy: Array, R: Array, t: Array
+) -> tuple[float, Array, Array]:
+    """The sum of squared normalised reprojection errors at (R, t), and their normal
+    equations over (w, dt) (``normal_equations``); an infinite cost where a point is not in
+    front of the camera."""
+    n = points_m.shape[0]
+    s = np.empty((n, 3))
+    duv_dq = np.zeros((n, 2, 3))
+    r = np.empty(2 * n)
+    for i in range(n):
+        for k in range(3):
+            s[i, k] = R[k, 0] * points_m[i, 0] + R[k, 1] * points_m[i, 1] + R[k, 2] * points_m[i, 2]
+        z = s[i, 2] + t[2]
+        if not z > 1e-12:
+            return math.inf, np.zeros((6, 6)), np.zeros(6)
+        x, y = (s[i, 0] + t[0]) / z, (s[i, 1] + t[1]) / z
+        r[2 * i], r[2 * i + 1] = x - xy[i, 0], y - xy[i, 1]
+        # the pinhole's d(x, y)/d(q) at q = s + t
+        duv_dq[i, 0, 0], duv_dq[i, 0, 2] = 1.0 / z, -x / z
+        duv_dq[i, 1, 1], duv_dq[i, 1, 2] = 1.0 / z, -y / z
+    H, g = normal_equations(pose_rows(s, duv_dq), np.ones(2 * n), r)
+    return float(np.sum(r * r)), H, g
 
 
 @compiled
@@ -113,9 +134,7 @@ def refine_pose(points_m: Array, xy: Array, R0: Array, t0: Array) -> tuple[Array
     (N, 2); and whether it is one (False where the start puts a point behind the camera or
     the normal equations are singular: then the start is returned)."""
     R, t = R0.copy(), t0.copy()
-    H, g = np.empty((6, 6)), np.empty(6)
-    H_try, g_try = np.empty((6, 6)), np.empty(6)
-    cost = _cost_and_normal_equations(points_m, xy, R, t, H, g)
+    cost, H, g = _cost_and_normal_equations(points_m, xy, R, t)
     if not math.isfinite(cost):
         return R, t, False
     damping = 1e-6
@@ -128,12 +147,10 @@ def refine_pose(points_m: Array, xy: Array, R0: Array, t0: Array) -> tuple[Array
             return R0.copy(), t0.copy(), False
         R_try = turned(step[:3], R)
         t_try = t + step[3:]
-        cost_try = _cost_and_normal_equations(points_m, xy, R_try, t_try, H_try, g_try)
+        cost_try, H_try, g_try = _cost_and_normal_equations(points_m, xy, R_try, t_try)
         largest = np.max(np.abs(step))
         if cost_try <= cost:
-            R, t, cost = R_try, t_try, cost_try
-            H[:, :] = H_try
-            g[:] = g_try
+            R, t, cost, H, g = R_try, t_try, cost_try, H_try, g_try
             damping = max(damping * 0.1, 1e-12)
             if largest < STEP_TOLERANCE:
                 break
