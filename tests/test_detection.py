@@ -466,26 +466,31 @@ def test_hinted_markers_are_fitted_from_their_prediction_without_a_quad_search(
     assert searched[0][0] * searched[0][1] < 0.05 * image.shape[0] * image.shape[1]
 
 
-def test_a_lost_target_is_looked_for_every_way_in_turn_two_searches_a_frame(
-    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("thorough_every", [None, 3])
+def test_a_lost_target_is_looked_for_every_way_in_turn(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch, thorough_every: int | None
 ) -> None:
-    """A frame under glare with no target in it: each frame searches it whole twice, first the
-    way that found the target last (none yet: the frame as it is) and then one way more, every
-    clip level of the frame itself, then each through the lens's pinhole view (searched at
-    half its size)."""
+    """A frame under glare with no target in it: each frame takes a quick look at it (one
+    threshold window) the way that found the target last (none yet: the frame as it is) and
+    one way more, every clip level of the frame itself, then each through the lens's pinhole
+    view (searched at half its size); then searches it thoroughly the first way, with OpenCV's
+    other two windows: on every frame, or with ``thorough_every`` on the first and then every
+    that many, and again on the first after ``restart``."""
     from perchpose import detection
 
     r = renderers["fpv"]
-    detector = MarkerDetector(r.camera, r.target)
+    detector = MarkerDetector(r.camera, r.target, thorough_every=thorough_every)
     assert detector.rectify
     frame = np.full((r.camera.height_px, r.camera.width_px), 40, np.uint8)
     frame[:, : r.camera.width_px // 2] = 255
     assert detection.has_glare(frame)
-    searched: list[tuple[str, int, tuple[int, ...]]] = []
+    searched: list[tuple[str, int, tuple[int, ...], str]] = []
     real = detector.quads.find
+    passes = {id(detector.quads.quick): "quick", id(detector.quads.rest): "rest"}
 
     def find(grey: np.ndarray, image_pass: str, *args: object, **kwargs: object) -> object:
-        searched.append((image_pass, int(grey.max()), grey.shape))
+        which = passes.get(id(kwargs.get("detector")), "other")
+        searched.append((image_pass, int(grey.max()), grey.shape, which))
         return real(grey, image_pass, *args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(detector.quads, "find", find)
@@ -496,15 +501,58 @@ def test_a_lost_target_is_looked_for_every_way_in_turn_two_searches_a_frame(
         searched.clear()
         assert detector.detect(frame) == ()
         per_frame.append(list(searched))
-    assert all(len(frame_searches) == 2 for frame_searches in per_frame)
-    tried = [[(view, level) for view, level, _ in searches] for searches in per_frame]
     ways = [(view, 255 if level is None else level) for level, view in ladder]
-    assert tried == [[ways[0], way] for way in ways[1:]]
+    for k, frame_searches in enumerate(per_frame):
+        tried = [(view, level, which) for view, level, _, which in frame_searches]
+        expected = [(*ways[0], "quick"), (*ways[k + 1], "quick")]
+        if thorough_every is None or k % thorough_every == 0:
+            expected.append((*ways[0], "rest"))
+        assert tried == expected
     rectified_shape = detector._rectification.coarse_maps[0].shape
     for frame_searches in per_frame:
-        for view, _, shape in frame_searches:
+        for view, _, shape, _ in frame_searches:
             expected_shape = rectified_shape if view == "rectified" else frame.shape
             assert shape == expected_shape
+    detector.restart()
+    searched.clear()
+    assert detector.detect(frame) == ()
+    assert [which for *_, which in searched] == ["quick", "quick", "rest"]
+
+
+def test_a_quick_look_finds_what_the_thorough_search_finds(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """At 85 cm the inner marker is 10 px across: the quick look at the whole frame (one
+    23 px threshold window) finds the outer marker only, and the thorough search of the window
+    around the target's plane through it adds the inner one. The same markers as the thorough
+    search of the whole frame, at the same corners, which never ran."""
+    from perchpose.quads import QuadFinder
+
+    r = renderers["fpv"]
+    T = facing_pose(0.02, -0.01, 0.85, 0.4, 0.1, -0.1)
+    image = r.render(T, rng=np.random.default_rng(3))
+    quads = QuadFinder(r.target, max(r.camera.size))
+    assert set(quads.find(image, "raw", detector=quads.quick)) == {0}
+    assert set(quads.find(image, "raw")) == {0, 1}
+    detector = MarkerDetector(r.camera, r.target)
+    shapes: list[tuple[int, ...]] = []
+    real = detector.quads.find
+
+    def find(grey: np.ndarray, image_pass: str, *args: object, **kwargs: object) -> object:
+        if kwargs.get("detector") is not detector.quads.quick:
+            shapes.append(grey.shape)
+        return real(grey, image_pass, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(detector.quads, "find", find)
+    looked = detector.detect(image)
+    assert shapes
+    assert all(s[0] * s[1] < 0.2 * image.size for s in shapes)
+    monkeypatch.undo()
+    thorough = MarkerDetector(r.camera, r.target)
+    whole = thorough._fit_found(image, image, thorough._find(image, refind_curved=False))
+    assert [d.marker_index for d in looked] == [d.marker_index for d in whole] == [0, 1]
+    for a, b in zip(looked, whole, strict=True):
+        assert np.max(np.abs(a.corners_px - b.corners_px)) < 0.02
 
 
 def test_a_tracked_marker_whose_prediction_cannot_be_fitted_is_fitted_from_its_quad(

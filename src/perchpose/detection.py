@@ -84,6 +84,12 @@ PATTERN_S_PER_PX2 = 5e-6
 GLARE_LEVEL = 250
 GLARE_FRACTION = 0.05
 GLARE_CLIP_LEVELS: tuple[int | None, ...] = (None, 108, 72, 162, 48, 224)
+# While the target is not tracked, a whole frame is looked at quickly first (one threshold
+# window, ``QuadFinder.quick``), and thoroughly (OpenCV's three) only in the window around the
+# target's plane through what that finds; where the quick looks find nothing, the estimator's
+# detector searches the whole frame thoroughly on every THOROUGH_EVERY-th such frame
+# (``MarkerDetector(thorough_every=...)``; None: on every one).
+THOROUGH_EVERY = 3
 # While tracking, every this many frames the whole frame is searched for the markers tracking
 # has not got (none when it has them all), shrunk by CHECK_SCALE.
 FULL_SEARCH_EVERY = 30
@@ -129,6 +135,9 @@ class MarkerDetector:
     are not the target's (dictionary, id) pairs are ignored. ``pattern_beside_ratio``: a marker
     that many times smaller than another whose corners were fitted in the same frame keeps its
     edge-fitted corners without the pattern fit (None: every small marker gets it).
+    ``thorough_every``: while the target is not tracked and the quick looks at a frame find
+    nothing, the whole frame is searched thoroughly only on every that many-th such frame
+    (``THOROUGH_EVERY``; None, the default: on every one, as unrelated images need; ``_look``).
     """
 
     def __init__(
@@ -137,13 +146,20 @@ class MarkerDetector:
         target: TargetSpec,
         corners: CornerMethod = "edges",
         pattern_beside_ratio: float | None = None,
+        thorough_every: int | None = None,
     ) -> None:
         if corners not in CORNER_METHODS:
             raise ValueError(f"corners must be one of {', '.join(CORNER_METHODS)}, got {corners!r}")
+        if thorough_every is not None and thorough_every < 1:
+            raise ValueError(f"thorough_every must be at least 1, got {thorough_every}")
         self.camera = camera
         self.target = target
         self.corners = corners
         self.pattern_beside_ratio = pattern_beside_ratio
+        self.thorough_every = thorough_every
+        # frames in a row without the target that had only quick looks (None: none has been
+        # searched thoroughly since ``restart``)
+        self._quick_only: int | None = None
         self.tracking_side_px = TRACKING_SIDE_PX
         self.full_search_every: int | None = FULL_SEARCH_EVERY
         self._tracked_frames = 0
@@ -170,6 +186,11 @@ class MarkerDetector:
         self.skipped: list[str] = []
         self._pattern_s_per_px2 = PATTERN_S_PER_PX2
         self._search_s = 0.0  # a whole-frame search's cost, learnt likewise
+        self._quick_s = 0.0  # a quick look's, likewise
+
+    def restart(self) -> None:
+        """A new run of frames: the next frame without the target is searched thoroughly."""
+        self._quick_only = None
 
     def detect(
         self,
@@ -190,8 +211,9 @@ class MarkerDetector:
         ``GLARE_CLIP_LEVELS`` (every level of the frame first: the pinhole view is for large
         markers near contact). A frame starts with the way that found the target last
         (``_found_by``) and, when that finds nothing, tries the next way not yet tried
-        since the target was lost: a frame costs at most two whole-frame searches, and a lost
-        target is looked for every way in turn, one more a frame.
+        since the target was lost: a lost target is looked for every way in turn, one more a
+        frame. With edge-fitted corners each of the two ways is a quick look first
+        (``_look``); the ``cornerSubPix`` pipeline searches both thoroughly.
 
         Glare: where a large part of the frame is saturated (a bright sky or lamps around a
         target in shadow), the adaptive threshold sees the sheet's white margin as dark next to
@@ -214,21 +236,150 @@ class MarkerDetector:
         if self._rung not in ladder:
             self._rung = ladder[0]
         first = self._rung
-        found = self._detect_by(grey, hint, first)
+        if self.corners == "subpix":
+            return self._search_afresh(grey, hint, ladder, first)
+        if hint:
+            seen = self._seen(grey, first[0])
+            tracked = self._track_edges(grey, seen, hint)
+            if tracked is not None:
+                if self._check:
+                    tracked = self._with_unseen(grey, seen, tracked)
+                return self._found_by(tracked, first)
+            if self._late(self._search_s):
+                # tracking lost a marker it needs and there is no room to look for it: the
+                # filter coasts
+                self.skipped.append("search")
+                return ()
+            # thoroughly where the target's plane puts the markers (a fit refused, a marker
+            # the window pass missed), then the whole frame quickly
+            whole = self._hint_window(seen, hint) is None or first[1] == "rectified"
+            found = self._thorough(seen, hint, first[1], whole=False)
+            if found:
+                return self._found_by(self._fit_found(grey, seen, found), first)
+            return self._look(grey, ladder, first, looked=whole)
+        return self._look(grey, ladder, first)
+
+    def _search_afresh(
+        self,
+        grey: NDArray[np.uint8],
+        hint: tuple[MarkerDetection, ...],
+        ladder: list[tuple[int | None, ImagePass]],
+        first: tuple[int | None, ImagePass],
+    ) -> tuple[MarkerDetection, ...]:
+        """The ``cornerSubPix`` pipeline's search: thorough, ``first`` way and, where that
+        finds nothing, one way more (``_find``: around ``hint`` first)."""
+        clip_level, view = first
+        # at the interval, the whole frame searched afresh
+        afresh = self._check and self._interval_search(self._search_s)
+        found = self._find(self._seen(grey, clip_level), () if afresh else hint, view)
         if found or len(ladder) == 1:
             return self._found_by(found, first)
-        # nothing this way: the next way not yet tried in this run of frames without the
-        # target
+        rung = self._next_way(ladder, first)
+        if self._late(self._search_s):
+            # no room for it: it is the next frame's first
+            self.skipped.append(self._second_label(rung))
+            self._rung = rung
+            return found
+        return self._found_by(self._find(self._seen(grey, rung[0]), (), rung[1]), rung)
+
+    def _next_way(
+        self, ladder: list[tuple[int | None, ImagePass]], first: tuple[int | None, ImagePass]
+    ) -> tuple[int | None, ImagePass]:
+        """The next way of the ladder not yet tried in this run of frames without the target
+        (never ``first``)."""
         self._explored = (self._explored + 1) % len(ladder)
         if ladder[self._explored] == first:
             self._explored = (self._explored + 1) % len(ladder)
-        rung = ladder[self._explored]
+        return ladder[self._explored]
+
+    @staticmethod
+    def _second_label(rung: tuple[int | None, ImagePass]) -> str:
+        """What ``skipped`` calls the second way of searching a frame, left out."""
+        return "glare search" if rung[0] is not None else "second search"
+
+    @staticmethod
+    def _seen(grey: NDArray[np.uint8], clip_level: int | None) -> NDArray[np.uint8]:
+        """The image the quads are searched in: ``grey`` clipped at ``clip_level`` (None: as
+        it is)."""
+        return grey if clip_level is None else np.minimum(grey, np.uint8(clip_level))
+
+    def _look(
+        self,
+        grey: NDArray[np.uint8],
+        ladder: list[tuple[int | None, ImagePass]],
+        first: tuple[int | None, ImagePass],
+        looked: bool = False,
+    ) -> tuple[MarkerDetection, ...]:
+        """The target, not tracked, searched for in the whole frame: a quick look
+        (``QuadFinder.quick``, one threshold window) the ``first`` way (not where ``looked``:
+        this frame was just searched whole that way, thoroughly) and, through a
+        distorted lens or under glare, one way more (``_next_way``); where one finds
+        markers, they and those a thorough search finds in the window around where the
+        target's plane puts them (``_quick_look``). Where neither finds any: the thorough
+        search of the whole frame the ``first`` way (the quick look misses markers under about
+        15 px); with ``thorough_every``, only on every that many-th frame since the target
+        was last found or the frame last searched so, and on the first after ``restart``."""
+        ways = [first] if len(ladder) == 1 else [first, self._next_way(ladder, first)]
+        for k, way in enumerate(ways):
+            if k == 0 and looked:
+                continue
+            if k > 0 and self._late(self._quick_s):
+                # no room for it: it is the next frame's first
+                self.skipped.append(self._second_label(way))
+                self._rung = way
+                return ()
+            found = self._quick_look(grey, way)
+            if found:
+                return self._found_by(found, way)
+        every = self.thorough_every
+        if every is not None and self._quick_only is not None and self._quick_only < every - 1:
+            self._quick_only += 1
+            return ()
         if self._late(self._search_s):
-            # no room for it: it is the next frame's first
-            self.skipped.append("glare search" if rung[0] is not None else "second search")
-            self._rung = rung
-            return found
-        return self._found_by(self._detect_by(grey, (), rung), rung)
+            self.skipped.append("search")
+            return ()
+        # the quick look had OpenCV's widest threshold window: the other two make up the rest
+        seen = self._seen(grey, first[0])
+        found = self._thorough(seen, (), first[1], detector=self.quads.rest)
+        return self._found_by(self._fit_found(grey, seen, found), first)
+
+    def _quick_look(
+        self, grey: NDArray[np.uint8], way: tuple[int | None, ImagePass]
+    ) -> tuple[MarkerDetection, ...]:
+        """The markers a quick look at the whole frame finds ``way``, with those a thorough
+        search finds in the window around where the target's plane puts them (the quick
+        look's single threshold misses small ones), fitted; () where it finds none. Through
+        the pinhole view, what the quick look finds (corners mapped back to the frame)."""
+        clip_level, view = way
+        seen = self._seen(grey, clip_level)
+        t0 = time.perf_counter()
+        if view == "rectified":
+            found = self._find(seen, (), "rectified", detector=self.quads.quick)
+        else:
+            quick = self.quads.find(seen, "raw", detector=self.quads.quick)
+            found = tuple(quick[i] for i in sorted(quick))
+        self._quick_s += 0.3 * (time.perf_counter() - t0 - self._quick_s)
+        if not found:
+            return ()
+        if view == "raw":
+            found = self._thorough(seen, found, "raw", whole=False) or found
+        return self._fit_found(grey, seen, found)
+
+    def _thorough(
+        self,
+        seen: NDArray[np.uint8],
+        hint: tuple[MarkerDetection, ...],
+        view: ImagePass,
+        whole: bool = True,
+        detector: QuadPass | None = None,
+    ) -> tuple[MarkerDetection, ...]:
+        """``_find`` (OpenCV's three threshold windows, or ``detector``'s), its cost learnt;
+        the frame counts as searched thoroughly."""
+        t0 = time.perf_counter()
+        found = self._find(seen, hint, view, refind_curved=False, whole=whole, detector=detector)
+        self._search_s += 0.3 * (time.perf_counter() - t0 - self._search_s)
+        self._quick_only = 0
+        return found
 
     def _found_by(
         self, found: tuple[MarkerDetection, ...], rung: tuple[int | None, ImagePass]
@@ -239,6 +390,7 @@ class MarkerDetector:
         quad closes there."""
         if found:
             self._rung = rung if self.corners == "edges" else (rung[0], "raw")
+            self._quick_only = 0
         return found
 
     def search_ladder(self, glare: bool) -> list[tuple[int | None, ImagePass]]:
@@ -293,30 +445,14 @@ class MarkerDetector:
                 have[index] = fitted
         return tuple(have[i] for i in sorted(have))
 
-    def _detect_by(
+    def _fit_found(
         self,
         grey: NDArray[np.uint8],
-        hint: tuple[MarkerDetection, ...],
-        rung: tuple[int | None, ImagePass],
+        seen: NDArray[np.uint8],
+        found: tuple[MarkerDetection, ...],
     ) -> tuple[MarkerDetection, ...]:
-        """Markers tracked from ``hint``, or else searched for the ``rung`` way: quads found in
-        ``grey`` clipped at its level (None: as it is) and, for ``rectified``, in the lens's
-        pinhole view of it; corners fitted to ``grey``."""
-        clip_level, view = rung
-        seen = grey if clip_level is None else np.minimum(grey, np.uint8(clip_level))
-        if self.corners == "subpix":  # at the interval, the whole frame searched afresh
-            afresh = self._check and self._interval_search(self._search_s)
-            return self._find(seen, () if afresh else hint, view)
-        if hint:
-            tracked = self._track_edges(grey, seen, hint)
-            if tracked is not None:
-                return self._with_unseen(grey, seen, tracked) if self._check else tracked
-            if self._late(self._search_s):
-                self.skipped.append("search")
-                return ()
-        t0 = time.perf_counter()
-        found = self._find(seen, hint, view, refind_curved=False)
-        self._search_s += 0.3 * (time.perf_counter() - t0 - self._search_s)
+        """The quads of a search (in ``seen``), with corners fitted to ``grey``; a quad whose
+        fit fails keeps its ``cornerSubPix`` corners."""
         # a large marker whose curved quad is too far off for the edge fit: its quad from the
         # pinhole view (not a pattern fit from the curved quad's corners)
         curved_px = CURVED_SIDE_PX if self.rectify else math.inf
@@ -565,13 +701,17 @@ class MarkerDetector:
         hint: tuple[MarkerDetection, ...] = (),
         view: ImagePass = "raw",
         refind_curved: bool = True,
+        whole: bool = True,
+        detector: QuadPass | None = None,
     ) -> tuple[MarkerDetection, ...]:
         """The target's markers with ``cornerSubPix`` corners, searched in ``grey`` (``raw``)
-        or in the whole of the lens's pinhole view of it (``rectified``; corners mapped back).
+        or in the whole of the lens's pinhole view of it (``rectified``; corners mapped back),
+        by ``detector`` (the full search's, OpenCV's three threshold windows, by default).
 
         hint : the previous frame's detections. The raw search then starts in a window around
             them and around where the target's plane puts its other markers, and falls back to
-            the whole image only when the window holds no marker.
+            the whole image only when the window holds no marker (with ``whole``; else only
+            when the window would cover most of the image).
 
         With a strongly distorted lens, markers missing but predicted by the plane through a
         found one are searched again in windows of the rectified view, and with
@@ -588,19 +728,19 @@ class MarkerDetector:
             step = COARSE_STEP if coarse else 1
             seen_maps = self._rectification.coarse_maps if coarse else maps
             rect = np.asarray(cv2.remap(grey, *seen_maps, interpolation=cv2.INTER_LINEAR), np.uint8)
-            whole: dict[int, MarkerDetection] = {}
-            for index, det in self.quads.find(rect, "rectified").items():
+            view_found: dict[int, MarkerDetection] = {}
+            for index, det in self.quads.find(rect, "rectified", detector=detector).items():
                 mapped = self._unrectify(det.corners_px * step)
                 if mapped is not None:
-                    whole[index] = MarkerDetection(index, mapped, "rectified")
-            return tuple(whole[i] for i in sorted(whole))
+                    view_found[index] = MarkerDetection(index, mapped, "rectified")
+            return tuple(view_found[i] for i in sorted(view_found))
         found: dict[int, MarkerDetection] = {}
-        box = tracking_window(grey.shape, predicted_quads(self.target, hint)) if hint else None
+        box = self._hint_window(grey, hint)
         if box is not None:
             x0, y0, x1, y1 = box
-            found = self.quads.find(grey[y0:y1, x0:x1], "raw", (x0, y0))
-        if not found:
-            found = self.quads.find(grey, "raw")
+            found = self.quads.find(grey[y0:y1, x0:x1], "raw", (x0, y0), detector)
+        if not found and (whole or box is None):
+            found = self.quads.find(grey, "raw", detector=detector)
         if maps is None or not found:
             return tuple(found[i] for i in sorted(found))
         rectified: dict[int, MarkerDetection] = {}
@@ -617,6 +757,14 @@ class MarkerDetector:
             if mapped is not None:
                 found[det.marker_index] = MarkerDetection(det.marker_index, mapped, "rectified")
         return tuple(found[i] for i in sorted(found))
+
+    def _hint_window(
+        self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
+    ) -> Box | None:
+        """The window around ``hint`` and where the target's plane through it puts the other
+        markers (``tracking_window``); None without a hint or where the window would cover
+        most of the image."""
+        return tracking_window(grey.shape, predicted_quads(self.target, hint)) if hint else None
 
     def _rectified_pass(
         self,

@@ -12,7 +12,12 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.consistency import DISAGREE_CHI2, disagreements
-from perchpose.detection import PATTERN_BESIDE_RATIO, CornerMethod, MarkerDetector
+from perchpose.detection import (
+    PATTERN_BESIDE_RATIO,
+    THOROUGH_EVERY,
+    CornerMethod,
+    MarkerDetector,
+)
 from perchpose.errors import TimestampError
 from perchpose.fusion import (
     STAGE_NONE,
@@ -117,7 +122,9 @@ class PerchingEstimator:
         # barely moves it: its pattern fit (3 ms at 12-22 px) is skipped (on a rendered fpv
         # approach the fused position moved by at most 0.11 mm, under 0.02 % of the distance)
         beside = PATTERN_BESIDE_RATIO if fusion == "covariance" else None
-        self.detector = MarkerDetector(camera, target, corners, pattern_beside_ratio=beside)
+        self.detector = MarkerDetector(
+            camera, target, corners, pattern_beside_ratio=beside, thorough_every=THOROUGH_EVERY
+        )
         self.reset()
 
     def _new_fusion(self) -> Fusion:
@@ -140,6 +147,7 @@ class PerchingEstimator:
 
     def reset(self) -> None:
         """Forget all tracks (a new sequence)."""
+        self.detector.restart()
         self._markers = MarkerFilters(len(self.target.markers), self.kalman)
         self._fusion = self._new_fusion()
         self._last_R: list[Array | None] = [None] * len(self.target.markers)

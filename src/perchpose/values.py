@@ -169,10 +169,11 @@ class Estimate:
         their limit.
     skipped : what the detection left out of this frame to stay within its time budget
         (``PerchingEstimator(budget_ms=...)``): ``pattern fit m{i}``, ``search`` (the
-        whole-frame search after tracking lost a marker), ``glare search`` or ``second
-        search`` (a frame's second whole-frame search, at a clip level or through the lens's
-        pinhole view), ``interval search`` (tracking's periodic whole-frame search for the
-        markers it lacks, put off to a later frame).
+        search after tracking lost a marker, or the thorough whole-frame search of a frame
+        without the target), ``glare search`` or ``second search`` (a frame's look the second
+        way, at a clip level or through the lens's pinhole view), ``interval search``
+        (tracking's periodic whole-frame search for the markers it lacks, put off to a later
+        frame).
     latency_s : seconds from the frame's capture (or, for files, its reading) to this estimate,
         where the caller knows it (``perchpose track`` does); NaN otherwise.
     roll_rad, pitch_rad : the tilt of the target's plane (``geometry.tilt_rad``: 0 when it
