@@ -328,7 +328,8 @@ def test_tracking_searches_the_whole_frame_at_an_interval_for_what_it_lacks(
     find = QuadFinder.find
 
     def counted(self, grey, image_pass, offset=(0, 0), detector=None, scale=1.0):  # type: ignore[no-untyped-def]
-        if detector is None and grey.shape == image.shape:
+        # the whole frame searched (tracking's own passes aside: they search windows)
+        if detector not in (self.tracking, self.tracking_small) and grey.shape == image.shape:
             whole.append(scale)
         return find(self, grey, image_pass, offset, detector, scale)
 
@@ -523,9 +524,10 @@ def test_a_quick_look_finds_what_the_thorough_search_finds(
     renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """At 85 cm the inner marker is 10 px across: the quick look at the whole frame (one
-    23 px threshold window) finds the outer marker only, and the thorough search of the window
-    around the target's plane through it adds the inner one. The same markers as the thorough
-    search of the whole frame, at the same corners, which never ran."""
+    23 px threshold window) finds the outer marker only, and a search of the window where the
+    target's plane through it puts the inner one (as tracking's, with a 3 px window for a
+    small marker) adds it. The same markers as the thorough search of the whole frame (which
+    never ran), at the same corners."""
     from perchpose.quads import QuadFinder
 
     r = renderers["fpv"]

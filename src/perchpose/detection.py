@@ -346,10 +346,10 @@ class MarkerDetector:
     def _quick_look(
         self, grey: NDArray[np.uint8], way: tuple[int | None, ImagePass]
     ) -> tuple[MarkerDetection, ...]:
-        """The markers a quick look at the whole frame finds ``way``, with those a thorough
-        search finds in the window around where the target's plane puts them (the quick
-        look's single threshold misses small ones), fitted; () where it finds none. Through
-        the pinhole view, what the quick look finds (corners mapped back to the frame)."""
+        """The markers a quick look at the whole frame finds ``way``, with those it lacks that
+        the target's plane through them puts in view (``_with_predicted``), fitted; () where
+        it finds none. Through the pinhole view, what the quick look finds (corners mapped
+        back to the frame)."""
         clip_level, view = way
         seen = self._seen(grey, clip_level)
         t0 = time.perf_counter()
@@ -362,8 +362,31 @@ class MarkerDetector:
         if not found:
             return ()
         if view == "raw":
-            found = self._thorough(seen, found, "raw", whole=False) or found
+            found = self._with_predicted(seen, found)
         return self._fit_found(grey, seen, found)
+
+    def _with_predicted(
+        self, seen: NDArray[np.uint8], found: tuple[MarkerDetection, ...]
+    ) -> tuple[MarkerDetection, ...]:
+        """``found``, and the target's markers it lacks where the plane through it puts them
+        in view and large enough to read (``_may_be_found``), searched in a window around
+        them as tracking's pass does (``_window_pass``: the quick look's one wide threshold
+        window misses small markers, which that pass searches with a 3 px one) and, through a
+        strongly distorted lens, those still missing in the pinhole view's windows around where
+        the plane puts them there (``_rectified_refind``, as ``_find`` does)."""
+        have = {d.marker_index: d for d in found}
+        missing = {
+            i: q
+            for i, q in predicted_quads(self.target, found).items()
+            if i not in have and self._may_be_found(q, i, hinted=False)
+        }
+        if missing:
+            for index, det in self._window_pass(seen, missing).items():
+                if index in missing:
+                    have.setdefault(index, det)
+        if self.rectify and len(have) < len(self.target.markers):
+            have = self._rectified_refind(seen, have, None)
+        return tuple(have[i] for i in sorted(have))
 
     def _thorough(
         self,
@@ -741,22 +764,33 @@ class MarkerDetector:
             found = self.quads.find(grey[y0:y1, x0:x1], "raw", (x0, y0), detector)
         if not found and (whole or box is None):
             found = self.quads.find(grey, "raw", detector=detector)
-        if maps is None or not found:
-            return tuple(found[i] for i in sorted(found))
+        if maps is not None and found:
+            found = self._rectified_refind(grey, found, CURVED_SIDE_PX if refind_curved else None)
+        return tuple(found[i] for i in sorted(found))
+
+    def _rectified_refind(
+        self, grey: NDArray[np.uint8], found: dict[int, MarkerDetection], curved_px: float | None
+    ) -> dict[int, MarkerDetection]:
+        """``found`` (in ``grey``, a strongly distorted lens's image), with the markers the
+        target's plane through them puts in view but that are missing searched in windows of
+        the pinhole view (OpenCV's three threshold windows), and with ``curved_px`` those found
+        that large searched there again (corners mapped back)."""
+        maps = self._rectification.maps
+        limit_px = math.inf if curved_px is None else curved_px
         rectified: dict[int, MarkerDetection] = {}
-        curved_px = CURVED_SIDE_PX if refind_curved else math.inf
         margin_px = self.quads.border_margin_px
-        for box in rectified_windows(self._rectification, self.target, found, curved_px, margin_px):
+        for box in rectified_windows(self._rectification, self.target, found, limit_px, margin_px):
             for index, det in self._rectified_pass(grey, maps, box).items():
                 rectified.setdefault(index, det)
+        out = dict(found)
         for det in rectified.values():
             raw = found.get(det.marker_index)
-            if raw is not None and raw.side_px < curved_px:
+            if raw is not None and raw.side_px < limit_px:
                 continue
             mapped = self._unrectify(det.corners_px)
             if mapped is not None:
-                found[det.marker_index] = MarkerDetection(det.marker_index, mapped, "rectified")
-        return tuple(found[i] for i in sorted(found))
+                out[det.marker_index] = MarkerDetection(det.marker_index, mapped, "rectified")
+        return out
 
     def _hint_window(
         self, grey: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
