@@ -520,6 +520,44 @@ def test_a_lost_target_is_looked_for_every_way_in_turn(
     assert [which for *_, which in searched] == ["quick", "quick", "rest"]
 
 
+def test_a_target_gone_from_its_window_is_looked_for_quickly(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The target tracked, then a frame without it: the tracking pass sees no quad in the
+    window where it should be, so the whole frame gets the quick look (its window is not
+    searched thoroughly first), and the thorough search of the whole frame waits for the
+    estimator's third frame without it."""
+    r = renderers["webcam"]
+    image = r.render(facing_pose(0.0, 0.01, 0.5, 0.2), rng=np.random.default_rng(0))
+    blank = np.full_like(image, 128)
+    detector = MarkerDetector(r.camera, r.target, thorough_every=3)
+    hint = detector.detect(image)
+    hint = detector.detect(image, hint)
+    assert {d.marker_index for d in hint} == {0, 1}
+    passes = {
+        id(detector.quads.quick): "quick",
+        id(detector.quads.rest): "rest",
+        id(detector.quads.tracking): "tracking",
+        id(detector.quads.tracking_small): "tracking",
+    }
+    used: list[str] = []
+    real = detector.quads.find
+
+    def find(grey: np.ndarray, image_pass: str, *args: object, **kwargs: object) -> object:
+        chosen = kwargs.get("detector", args[1] if len(args) > 1 else None)
+        used.append(passes.get(id(chosen), "thorough"))
+        return real(grey, image_pass, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(detector.quads, "find", find)
+    per_frame = []
+    for _ in range(3):
+        used.clear()
+        assert detector.detect(blank, hint) == ()
+        hint = ()
+        per_frame.append(list(used))
+    assert per_frame == [["tracking", "quick"], ["quick"], ["quick", "rest"]]
+
+
 def test_a_quick_look_finds_what_the_thorough_search_finds(
     renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
 ) -> None:

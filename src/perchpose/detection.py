@@ -187,6 +187,8 @@ class MarkerDetector:
         self._pattern_s_per_px2 = PATTERN_S_PER_PX2
         self._search_s = 0.0  # a whole-frame search's cost, learnt likewise
         self._quick_s = 0.0  # a quick look's, likewise
+        # whether this frame's tracking window pass found any quad (``_track_edges``)
+        self._window_quads = False
 
     def restart(self) -> None:
         """A new run of frames: the next frame without the target is searched thoroughly."""
@@ -245,19 +247,32 @@ class MarkerDetector:
                 if self._check:
                     tracked = self._with_unseen(grey, seen, tracked)
                 return self._found_by(tracked, first)
-            if self._late(self._search_s):
-                # tracking lost a marker it needs and there is no room to look for it: the
-                # filter coasts
-                self.skipped.append("search")
-                return ()
-            # thoroughly where the target's plane puts the markers (a fit refused, a marker
-            # the window pass missed), then the whole frame quickly
-            whole = self._hint_window(seen, hint) is None or first[1] == "rectified"
-            found = self._thorough(seen, hint, first[1], whole=False)
-            if found:
-                return self._found_by(self._fit_found(grey, seen, found), first)
-            return self._look(grey, ladder, first, looked=whole)
+            return self._after_loss(grey, seen, hint, ladder, first)
         return self._look(grey, ladder, first)
+
+    def _after_loss(
+        self,
+        grey: NDArray[np.uint8],
+        seen: NDArray[np.uint8],
+        hint: tuple[MarkerDetection, ...],
+        ladder: list[tuple[int | None, ImagePass]],
+        first: tuple[int | None, ImagePass],
+    ) -> tuple[MarkerDetection, ...]:
+        """The search after tracking lost a marker it needs. Where its window pass saw quads
+        it could not use (a fit refused, a curved quad), the window where the target's plane
+        puts the markers is searched thoroughly first; where it saw none (the target hidden or
+        gone), or that finds none, the whole frame is looked at (``_look``). None of it where
+        the budget has no room for it: the filter coasts."""
+        if self._late(self._search_s):
+            self.skipped.append("search")
+            return ()
+        if not self._window_quads:
+            return self._look(grey, ladder, first)
+        whole = self._hint_window(seen, hint) is None or first[1] == "rectified"
+        found = self._thorough(seen, hint, first[1], whole=False)
+        if found:
+            return self._found_by(self._fit_found(grey, seen, found), first)
+        return self._look(grey, ladder, first, looked=whole)
 
     def _search_afresh(
         self,
@@ -599,6 +614,7 @@ class MarkerDetector:
             if i not in result and self._may_be_found(q, i, i in hinted, blur_px)
         }
         found = self._window_pass(seen, left) if left else {}
+        self._window_quads = bool(found)
         required: list[int] = []
         fitted_px = max((d.side_px for d in result.values()), default=0.0)
         searched = {i: d for i, d in found.items() if i not in result}
