@@ -85,10 +85,10 @@ GLARE_LEVEL = 250
 GLARE_FRACTION = 0.05
 GLARE_CLIP_LEVELS: tuple[int | None, ...] = (None, 108, 72, 162, 48, 224)
 # While the target is not tracked, a whole frame is looked at quickly first (one threshold
-# window, ``QuadFinder.quick``), and thoroughly (OpenCV's three) only in the window around the
-# target's plane through what that finds; where the quick looks find nothing, the estimator's
-# detector searches the whole frame thoroughly on every THOROUGH_EVERY-th such frame
-# (``MarkerDetector(thorough_every=...)``; None: on every one).
+# window, ``QuadFinder.quick``), and the markers that finds are completed where the target's
+# plane through them puts the others; where the quick looks find nothing, the estimator's
+# detector searches the whole frame thoroughly (OpenCV's other two windows) on every
+# THOROUGH_EVERY-th such frame (``MarkerDetector(thorough_every=...)``; None: on every one).
 THOROUGH_EVERY = 3
 # While tracking, every this many frames the whole frame is searched for the markers tracking
 # has not got (none when it has them all), shrunk by CHECK_SCALE.
@@ -329,11 +329,12 @@ class MarkerDetector:
         (``QuadFinder.quick``, one threshold window) the ``first`` way (not where ``looked``:
         this frame was just searched whole that way, thoroughly) and, through a
         distorted lens or under glare, one way more (``_next_way``); where one finds
-        markers, they and those a thorough search finds in the window around where the
-        target's plane puts them (``_quick_look``). Where neither finds any: the thorough
-        search of the whole frame the ``first`` way (the quick look misses markers under about
-        15 px); with ``thorough_every``, only on every that many-th frame since the target
-        was last found or the frame last searched so, and on the first after ``restart``."""
+        markers, they and those it lacks where the target's plane through them puts them
+        (``_quick_look``). Where neither finds any: the thorough search of the whole frame the
+        ``first`` way, with OpenCV's other two threshold windows (the quick look misses markers
+        under about 15 px); with ``thorough_every``, only on every that many-th frame since the
+        target was last found or the frame last searched so, and on the first after
+        ``restart``."""
         ways = [first] if len(ladder) == 1 else [first, self._next_way(ladder, first)]
         for k, way in enumerate(ways):
             if k == 0 and looked:
