@@ -416,7 +416,7 @@ def test_a_marker_the_tracking_pass_misses_is_fitted_from_its_prediction(
         assert error < 0.05
         assert error < 2.0 * np.max(np.linalg.norm(found[i].corners_px - t, axis=1)) + 0.01
     blank = np.full_like(second, 128)
-    assert detector._track_edges(blank, blank, hint) is None
+    assert detector._track_edges(blank, blank, hint)[0] is None
     turned = tuple(
         type(d)(d.marker_index, np.roll(d.corners_px, 1, axis=0), d.image_pass) for d in hint
     )

@@ -187,8 +187,6 @@ class MarkerDetector:
         self._pattern_s_per_px2 = PATTERN_S_PER_PX2
         self._search_s = 0.0  # a whole-frame search's cost, learnt likewise
         self._quick_s = 0.0  # a quick look's, likewise
-        # whether this frame's tracking window pass found any quad (``_track_edges``)
-        self._window_quads = False
 
     def restart(self) -> None:
         """A new run of frames: the next frame without the target is searched thoroughly."""
@@ -242,12 +240,12 @@ class MarkerDetector:
             return self._search_afresh(grey, hint, ladder, first)
         if hint:
             seen = self._seen(grey, first[0])
-            tracked = self._track_edges(grey, seen, hint)
+            tracked, window_quads = self._track_edges(grey, seen, hint)
             if tracked is not None:
                 if self._check:
                     tracked = self._with_unseen(grey, seen, tracked)
                 return self._found_by(tracked, first)
-            return self._after_loss(grey, seen, hint, ladder, first)
+            return self._after_loss(grey, seen, hint, ladder, first, window_quads)
         return self._look(grey, ladder, first)
 
     def _after_loss(
@@ -257,16 +255,17 @@ class MarkerDetector:
         hint: tuple[MarkerDetection, ...],
         ladder: list[tuple[int | None, ImagePass]],
         first: tuple[int | None, ImagePass],
+        window_quads: bool,
     ) -> tuple[MarkerDetection, ...]:
         """The search after tracking lost a marker it needs. Where its window pass saw quads
-        it could not use (a fit refused, a curved quad), the window where the target's plane
-        puts the markers is searched thoroughly first; where it saw none (the target hidden or
-        gone), or that finds none, the whole frame is looked at (``_look``). None of it where
-        the budget has no room for it: the filter coasts."""
+        (``window_quads``) it could not use (a fit refused, a curved quad), the window where
+        the target's plane puts the markers is searched thoroughly first; where it saw none
+        (the target hidden or gone), or that finds none, the whole frame is looked at
+        (``_look``). None of it where the budget has no room for it: the filter coasts."""
         if self._late(self._search_s):
             self.skipped.append("search")
             return ()
-        if not self._window_quads:
+        if not window_quads:
             return self._look(grey, ladder, first)
         whole = self._hint_window(seen, hint) is None or first[1] == "rectified"
         found = self._thorough(seen, hint, first[1], whole=False)
@@ -586,8 +585,9 @@ class MarkerDetector:
 
     def _track_edges(
         self, grey: NDArray[np.uint8], seen: NDArray[np.uint8], hint: tuple[MarkerDetection, ...]
-    ) -> tuple[MarkerDetection, ...] | None:
-        """Tracking with edge-fitted corners. Each hinted marker of ``direct_side_px`` or more
+    ) -> tuple[tuple[MarkerDetection, ...] | None, bool]:
+        """Tracking with edge-fitted corners, and whether its window pass found any quad.
+        Each hinted marker of ``direct_side_px`` or more
         is fitted straight from where it is predicted and kept where its cells read back as
         printed (``_fit_direct``): no quad search for it. The markers left (smaller ones,
         those whose fit failed or read wrong, and those the target's plane puts in view that
@@ -615,7 +615,6 @@ class MarkerDetector:
             if i not in result and self._may_be_found(q, i, i in hinted, blur_px)
         }
         found = self._window_pass(seen, left) if left else {}
-        self._window_quads = bool(found)
         required: list[int] = []
         fitted_px = max((d.side_px for d in result.values()), default=0.0)
         searched = {i: d for i, d in found.items() if i not in result}
@@ -638,8 +637,8 @@ class MarkerDetector:
                 if det.marker_index in again and det.marker_index not in result:
                     result[det.marker_index] = self.fit_corners(grey, det) or self._unfitted(det)
         if any(index not in result for index in required):
-            return None
-        return tuple(result[i] for i in sorted(result))
+            return None, bool(found)
+        return tuple(result[i] for i in sorted(result)), bool(found)
 
     def _unfitted(self, det: MarkerDetection) -> MarkerDetection:
         """``det``, a quad whose corners could not be fitted, with the covariance of its
