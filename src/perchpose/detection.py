@@ -76,6 +76,9 @@ SMALL_MARKER_SIDE_PX = 20.0
 # machine before the model merged its bands; about 1.5 ms now); each fit run updates the
 # prediction.
 PATTERN_S_PER_PX2 = 5e-6
+# Each learnt cost (a pattern fit's per square pixel, a whole-frame search's, a quick look's)
+# moves this fraction of the way to each new run's.
+COST_UPDATE = 0.3
 # Glare: a frame with at least GLARE_FRACTION of its pixels at GLARE_LEVEL or above has its
 # quads searched in copies clipped at these levels (None: the frame as it is), tried in this
 # order, the next one whenever the current one finds nothing: a level between the black
@@ -120,6 +123,11 @@ MIN_READ_CELL_BLURS = 1.8
 # A marker this many times smaller than another whose corners were fitted in the same frame
 # may go without the pattern fit (``MarkerDetector(pattern_beside_ratio=...)``).
 PATTERN_BESIDE_RATIO = 4.0
+
+
+def _learnt(cost: float, measured: float) -> float:
+    """A learnt cost moved ``COST_UPDATE`` of the way to the one just ``measured``."""
+    return cost + COST_UPDATE * (measured - cost)
 
 
 def has_glare(grey: NDArray[np.uint8]) -> bool:
@@ -373,7 +381,7 @@ class MarkerDetector:
         else:
             quick = self.quads.find(seen, "raw", detector=self.quads.quick)
             found = tuple(quick[i] for i in sorted(quick))
-        self._quick_s += 0.3 * (time.perf_counter() - t0 - self._quick_s)
+        self._quick_s = _learnt(self._quick_s, time.perf_counter() - t0)
         if not found:
             return ()
         if view == "raw":
@@ -415,7 +423,7 @@ class MarkerDetector:
         the frame counts as searched thoroughly."""
         t0 = time.perf_counter()
         found = self._find(seen, hint, view, refind_curved=False, whole=whole, detector=detector)
-        self._search_s += 0.3 * (time.perf_counter() - t0 - self._search_s)
+        self._search_s = _learnt(self._search_s, time.perf_counter() - t0)
         self._quick_only = 0
         return found
 
@@ -533,7 +541,7 @@ class MarkerDetector:
             spent = self.fitter.pattern_s
             if spent > 0:
                 rate = spent / max(1.0, det.side_px**2)
-                self._pattern_s_per_px2 += 0.3 * (rate - self._pattern_s_per_px2)
+                self._pattern_s_per_px2 = _learnt(self._pattern_s_per_px2, rate)
 
     def _fit_all(
         self,
