@@ -118,7 +118,7 @@ def test_sample_profiles_bilinear_and_nearest_pixels() -> None:
     p_px = np.array([[10.3, 7.6], [28.5, 10.0]])
     normal = np.array([[0.6, 0.8], [1.0, 0.0]])
     offsets = np.array([-1.5, -0.5, 0.5, 1.5])
-    values, at, data, whole = sample_profiles(grey, p_px, normal, offsets)
+    values, (at, data, counts), whole = sample_profiles(grey, p_px, normal, offsets)
     points = p_px[:, None, :] + offsets[None, :, None] * normal[:, None, :]
     np.testing.assert_allclose(values[0], 3 * points[0, :, 0] + 2 * points[0, :, 1])
     nearest = np.round(points[0])
@@ -132,5 +132,26 @@ def test_sample_profiles_bilinear_and_nearest_pixels() -> None:
     np.testing.assert_allclose(bilinear_points(grey, points[0]), values[0])
     # halves round to the even pixel, as numpy's
     start, across = np.array([[2.0, 3.0]]), np.array([[1.0, 0.0]])
-    _, at_half, _, _ = sample_profiles(grey, start, across, offsets)  # x 0.5, 1.5, 2.5, 3.5
-    np.testing.assert_allclose(at_half[0], np.array([0.0, 2.0, 2.0, 4.0]) - 2.0)
+    _, half, _ = sample_profiles(grey, start, across, offsets)  # x 0.5, 1.5, 2.5, 3.5
+    np.testing.assert_allclose(half[0, 0], np.array([0.0, 2.0, 2.0, 4.0]) - 2.0)
+    # a pixel two samples share counts twice at the first of them, 0 at the other
+    np.testing.assert_array_equal(half[2, 0], [1.0, 2.0, 0.0, 1.0])
+    np.testing.assert_array_equal(counts[0], np.ones(4))  # 1 px apart: each its own pixel
+
+
+def test_sample_profiles_count_every_sample_once() -> None:
+    grey = np.zeros((40, 40), np.uint8)
+    rng = np.random.default_rng(2)
+    angles = rng.uniform(0.0, 2.0 * np.pi, 50)
+    p_px = rng.uniform(12.0, 28.0, (50, 2))
+    normal = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    offsets = np.arange(-4.0, 5.0, 0.35)
+    _, pixels, _ = sample_profiles(grey, p_px, normal, offsets)
+    np.testing.assert_array_equal(pixels[2].sum(axis=1), len(offsets))
+    # each counted pixel is a different one from the last counted before it
+    points = p_px[:, None, :] + offsets[None, :, None] * normal[:, None, :]
+    nearest = np.round(points)
+    for k in range(50):
+        counted = nearest[k][pixels[2, k] > 0]
+        assert np.all(np.any(np.diff(counted, axis=0) != 0, axis=1))
+        assert len(np.unique(counted, axis=0)) == len(counted)

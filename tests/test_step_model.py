@@ -31,7 +31,8 @@ def test_pixel_step_derivatives_match_finite_differences() -> None:
 def profiles(
     rng: np.random.Generator, d_true: np.ndarray, sigma: float, white: np.ndarray, border_px: float
 ) -> np.ndarray:
-    """(2, K, M): pixel offsets across the edge and their grey values (dark 40, light 190)."""
+    """(3, K, M): pixel offsets across the edge, their grey values (dark 40, light 190) and
+    weights (1)."""
     K = len(d_true)
     at = np.arange(-3.0, 4.0, 0.35)[None, :] + rng.uniform(-0.1, 0.1, (K, 1))
     values = np.empty_like(at)
@@ -40,7 +41,7 @@ def profiles(
             t = at[k, m] - d_true[k]
             step = pixel_step(t, sigma)[0] + white[k] * (1.0 - pixel_step(t + border_px, sigma)[0])
             values[k, m] = 40.0 + 150.0 * step
-    return np.stack([at, values])
+    return np.stack([at, values, np.ones_like(at)])
 
 
 @pytest.mark.parametrize("with_white", [False, True])
@@ -70,3 +71,39 @@ def test_an_edge_from_light_to_dark_is_refused() -> None:
     levels = np.array([[60.0], [110.0]])
     ok, _ = fit_steps(pixels, np.zeros(K), np.ones((1, K)), levels, 0.0, surround, False, 8)
     assert not ok
+
+
+def test_a_pixel_weighted_by_its_count_fits_as_its_repeats_do() -> None:
+    # profiles whose pixels repeat (as where samples are closer than a pixel), against the
+    # same pixels once each with their counts for weights, and noise so the fit is not exact
+    rng = np.random.default_rng(5)
+    K, sigma = 12, 1.1
+    once = profiles(rng, rng.uniform(-0.4, 0.4, K), sigma, np.zeros(K), 2.5)
+    once[1] += rng.normal(0.0, 3.0, once[1].shape)
+    counts = rng.integers(1, 4, once.shape[1:])
+    M = int(counts.sum(axis=1).max())
+    repeated = np.zeros((3, K, M))
+    weighted = np.zeros((3, K, M))
+    for k in range(K):
+        at = np.repeat(once[0, k], counts[k])
+        repeated[:2, k, : len(at)] = at, np.repeat(once[1, k], counts[k])
+        repeated[2, k, : len(at)] = 1.0
+        first = np.concatenate([[0], np.cumsum(counts[k])[:-1]])
+        weighted[:2, k, : len(at)] = repeated[:2, k, : len(at)]
+        weighted[2, k, first] = counts[k]
+    surround = np.stack([np.zeros(K), np.full(K, 2.5), np.full(K, 1e6)])
+    results = []
+    for pixels in (repeated, weighted):
+        d, levels = np.zeros(K), np.array([[60.0], [110.0]])
+        ok, log_sigma = fit_steps(pixels, d, np.ones((1, K)), levels, 0.0, surround, False, 8)
+        assert ok
+        results.append((d, log_sigma, levels))
+    np.testing.assert_allclose(results[1][0], results[0][0], atol=1e-9)
+    assert results[1][1] == pytest.approx(results[0][1], abs=1e-9)
+    np.testing.assert_allclose(results[1][2], results[0][2], atol=1e-7)
+    # and a pixel of weight 0 is left out whatever its value
+    spoilt = weighted.copy()
+    spoilt[1][spoilt[2] == 0] = 255.0
+    d, levels = np.zeros(K), np.array([[60.0], [110.0]])
+    fit_steps(spoilt, d, np.ones((1, K)), levels, 0.0, surround, False, 8)
+    np.testing.assert_allclose(d, results[1][0], atol=1e-9)

@@ -8,7 +8,8 @@ is the edge. So each side of the marker's outer border is fitted, then the corne
 intersections of neighbouring sides.
 
 Per side, profiles run across the edge at points spaced along it. Each takes the pixels nearest
-points spaced along the profile, at their centres' own offsets from the edge, and they are fitted
+points spaced along the profile (each pixel once, weighted by how many points it is nearest),
+at their centres' own offsets from the edge, and they are fitted
 together with ``a + b * F(s - d_k)``, F a step blurred by a Gaussian of ``sigma`` and integrated
 over the pixel's square: one edge offset ``d_k`` per profile, and dark level ``a``, contrast
 ``b`` and blur ``sigma`` shared by the marker (per side for large markers), by Gauss-Newton on
@@ -156,7 +157,7 @@ def _fit_side(
     values: Array,
     offsets: Array,
     iterations: int,
-    pixels: tuple[Array, Array],
+    pixels: Array,
     surround: _Surround | None = None,
     groups: NDArray[np.intp] | None = None,
     along: Array | None = None,
@@ -166,8 +167,9 @@ def _fit_side(
     ``groups`` (K,): which dark and light levels each profile shares (default: one pair for
     all). ``along`` (K,): each profile's place along its side, -1 to 1; given, each group's
     levels also change linearly along it (vignetting and uneven light across a large marker).
-    ``pixels``: the data to fit, (K, M) offsets across the edge of whole pixels' centres
-    and (K, M) their values (the samples give the starting values only).
+    ``pixels``: the data to fit, (3, K, M): the offsets across the edge of the pixels nearest
+    the samples, their values and how many samples each stands for (0 for a repeat;
+    ``sample_profiles``). The samples themselves give the starting values only.
 
     Model: ``a + b * F(s - d_k)``, F a step blurred by ``sigma`` and integrated over the pixel
     (``step_model.pixel_step``), fitted to the pixels themselves at their exact offsets. A
@@ -190,9 +192,7 @@ def _fit_side(
     levels[:, :n_groups] = [[lo], [hi - lo]]
     log_sigma = math.log(_first_blur_px(rise, float(offsets[1] - offsets[0]), hi - lo))
     around, with_margin = _surround_rows(surround, offsets, math.exp(log_sigma), len(d))
-    ok, log_sigma = fit_steps(
-        np.stack(pixels), d, W, levels, log_sigma, around, with_margin, iterations
-    )
+    ok, log_sigma = fit_steps(pixels, d, W, levels, log_sigma, around, with_margin, iterations)
     if not ok:
         return None
     return d, math.exp(log_sigma)
@@ -331,9 +331,7 @@ def fit_marker_edges(
     normal = outward_normals(projected, float(centre[0]), float(centre[1]))
     # bilinear samples to start from; the fit's data: the pixel nearest each sample, at its
     # own offset across the edge
-    values, pixel_offsets, pixel_values, rows = sample_profiles(
-        grey, projected[: 4 * K], normal, offsets
-    )
+    values, pixels, rows = sample_profiles(grey, projected[: 4 * K], normal, offsets)
     if np.count_nonzero(rows) < 12:
         return None
     # a cell's width across side i: the perpendicular sides' lengths over n
@@ -351,7 +349,7 @@ def fit_marker_edges(
             values[rows],
             offsets,
             cfg.iterations,
-            (pixel_offsets[rows], pixel_values[rows]),
+            pixels[:, rows],
             surround,
             sides,
             along,

@@ -106,19 +106,25 @@ def _bilinear_at(grey: NDArray[np.uint8], x: float, y: float) -> float:
 @compiled
 def sample_profiles(
     grey: NDArray[np.uint8], p_px: Array, normal: Array, offsets: Array
-) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+) -> tuple[Array, Array, NDArray[np.bool_]]:
     """Profiles across the edge at ``p_px`` (N, 2) along ``normal`` (N, 2), sampled at
     ``offsets`` (M,) px: bilinear values (N, M; NaN where a sample's four neighbours are not
-    all in the image), the offset across the edge of the pixel nearest each sample and that
-    pixel's value (N, M each), and whether every sample of a profile is in the image (N,)."""
+    all in the image); the pixels nearest the samples (3, N, M: each one's offset across the
+    edge, its value, and how many of the profile's samples it is nearest, given at the first
+    of them and 0 at the others, whose offset and value repeat it); and whether every sample
+    of a profile is in the image (N,). Samples closer than a pixel share pixels, always
+    consecutive ones (a pixel's nearest points are its square, which a straight profile
+    crosses once): a fit weighting each pixel by its count is the fit to every sample, with
+    fewer terms."""
     h, w = grey.shape
     N, M = p_px.shape[0], offsets.shape[0]
     values = np.empty((N, M))
-    at = np.empty((N, M))
-    data = np.empty((N, M))
+    pixels = np.zeros((3, N, M))
     whole = np.ones(N, np.bool_)
     for k in range(N):
         px, py, nx, ny = p_px[k, 0], p_px[k, 1], normal[k, 0], normal[k, 1]
+        first = 0
+        last_x = last_y = -1.0
         for m in range(M):
             x = px + offsets[m] * nx
             y = py + offsets[m] * ny
@@ -126,11 +132,17 @@ def sample_profiles(
             if not math.isfinite(values[k, m]):
                 whole[k] = False
             rx, ry = _round_half_even(x), _round_half_even(y)
-            at[k, m] = (rx - px) * nx + (ry - py) * ny
+            pixels[0, k, m] = (rx - px) * nx + (ry - py) * ny
             cx = int(min(max(rx, 0.0), w - 1.0))
             cy = int(min(max(ry, 0.0), h - 1.0))
-            data[k, m] = float(grey[cy, cx])
-    return values, at, data, whole
+            pixels[1, k, m] = float(grey[cy, cx])
+            if m > 0 and rx == last_x and ry == last_y:
+                pixels[2, k, first] += 1.0
+            else:
+                first = m
+                pixels[2, k, m] = 1.0
+            last_x, last_y = rx, ry
+    return values, pixels, whole
 
 
 @compiled

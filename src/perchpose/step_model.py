@@ -140,10 +140,10 @@ def _model_rows(
     drop: float,
     with_margin: bool,
 ) -> tuple[Array, Array, Array, Array]:
-    """The step model at every sample: the blurred step G, the derivative by the profile's
+    """The step model at every pixel: the blurred step G, the derivative by the profile's
     edge J_d, the shared extras' derivatives (X, K, M: the margin's drop when fitted, then
-    log sigma) and the residuals, each (K, M)."""
-    at, data = pixels[0], pixels[1]
+    log sigma) and the residuals, each (K, M); all 0 at pixels of weight 0."""
+    at, data, weight = pixels[0], pixels[1], pixels[2]
     K, M = at.shape
     R = W.shape[0]
     X = 2 if with_margin else 1
@@ -159,6 +159,11 @@ def _model_rows(
             b += levels[1, q] * W[q, k]
         white, inner, margin = surround[0, k], surround[1, k], surround[2, k]
         for m in range(M):
+            if weight[k, m] == 0.0:
+                G[k, m] = J_d[k, m] = r[k, m] = 0.0
+                for i in range(X):
+                    xs[i, k, m] = 0.0
+                continue
             t = at[k, m] - d[k]
             step, slope, dG_ds = pixel_step(t, sigma)
             dG_dd = -slope
@@ -184,39 +189,54 @@ def _model_rows(
 
 
 @compiled
-def _normal_equations(
-    G: Array, J_d: Array, xs: Array, r: Array, W: Array
-) -> tuple[Array, Array, Array, Array, Array]:
-    """The Gauss-Newton normal equations of the step model in two parts: the shared
-    parameters' own block E (P, P) and gradient g (P,) (levels, contrasts, then the extras),
-    each profile's coupling to them C (K, P), and its own edge's curvature D and gradient g_d
-    (K,)."""
+def _profile_sums(G: Array, J_d: Array, xs: Array, r: Array, weight: Array) -> tuple[Array, Array]:
+    """Per profile, the weighted sums the normal equations are made of: (K, 9) of G, G^2, r,
+    G r, J_d times 1, G, J_d, r, and the weights; (K, X, 4 + X) of each extra x times 1, G,
+    r, J_d, then each extra."""
     K, M = G.shape
-    R = W.shape[0]
     X = xs.shape[0]
-    P = 2 * R + X
-    # per profile: sums of G, G^2, r, G r, and J_d times 1, G, J_d, r
-    sums = np.zeros((K, 8))
+    sums = np.zeros((K, 9))
     x_sums = np.zeros((K, X, 4 + X))  # x, x G, x r, x J_d, then x times each extra
     for k in range(K):
         for m in range(M):
+            w_km = weight[k, m]
+            if w_km == 0.0:
+                continue
+            sums[k, 8] += w_km
             g_km, j_km, r_km = G[k, m], J_d[k, m], r[k, m]
-            sums[k, 0] += g_km
-            sums[k, 1] += g_km * g_km
-            sums[k, 2] += r_km
-            sums[k, 3] += g_km * r_km
-            sums[k, 4] += j_km
-            sums[k, 5] += j_km * g_km
-            sums[k, 6] += j_km * j_km
-            sums[k, 7] += j_km * r_km
+            wg, wj = w_km * g_km, w_km * j_km
+            sums[k, 0] += wg
+            sums[k, 1] += wg * g_km
+            sums[k, 2] += w_km * r_km
+            sums[k, 3] += wg * r_km
+            sums[k, 4] += wj
+            sums[k, 5] += wj * g_km
+            sums[k, 6] += wj * j_km
+            sums[k, 7] += wj * r_km
             for i in range(X):
-                x = xs[i, k, m]
-                x_sums[k, i, 0] += x
-                x_sums[k, i, 1] += x * g_km
-                x_sums[k, i, 2] += x * r_km
-                x_sums[k, i, 3] += x * j_km
+                wx = w_km * xs[i, k, m]
+                x_sums[k, i, 0] += wx
+                x_sums[k, i, 1] += wx * g_km
+                x_sums[k, i, 2] += wx * r_km
+                x_sums[k, i, 3] += wx * j_km
                 for j in range(X):
-                    x_sums[k, i, 4 + j] += x * xs[j, k, m]
+                    x_sums[k, i, 4 + j] += wx * xs[j, k, m]
+    return sums, x_sums
+
+
+@compiled
+def _normal_equations(
+    G: Array, J_d: Array, xs: Array, r: Array, W: Array, weight: Array
+) -> tuple[Array, Array, Array, Array, Array]:
+    """The Gauss-Newton normal equations of the step model, each pixel weighted by
+    ``weight`` (K, M), in two parts: the shared parameters' own block E (P, P) and gradient
+    g (P,) (levels, contrasts, then the extras), each profile's coupling to them C (K, P),
+    and its own edge's curvature D and gradient g_d (K,)."""
+    K = G.shape[0]
+    R = W.shape[0]
+    X = xs.shape[0]
+    P = 2 * R + X
+    sums, x_sums = _profile_sums(G, J_d, xs, r, weight)
     E = np.zeros((P, P))
     g = np.zeros(P)
     C = np.zeros((K, P))
@@ -229,7 +249,7 @@ def _normal_equations(
             g[R + q] += sums[k, 3] * w_q
             for p in range(R):
                 ww = w_q * W[p, k]
-                E[q, p] += M * ww
+                E[q, p] += sums[k, 8] * ww
                 E[q, R + p] += sums[k, 0] * ww
                 E[R + q, R + p] += sums[k, 1] * ww
             for i in range(X):
@@ -281,13 +301,15 @@ def fit_steps(
     with_margin: bool,
     iterations: int,
 ) -> tuple[bool, float]:
-    """Gauss-Newton on the step model of K profiles: ``pixels`` (2, K, M) their offsets across
-    the edge (px) and grey values. Updated in place from their first values: the edges ``d``
-    (K,) and ``levels`` (2, R: dark levels, contrasts) of the design ``W`` (R, K: a profile's
-    dark level is ``W[:, k] . levels[0]``). ``surround`` (3, K): 1 where the cell inside the
-    border is white (else 0), how far inside the border's inner edge lies, and where the white
-    margin outside ends (px), a third step fitted with its own drop ``with_margin``. Returns
-    (whether the fit holds: finite edges and every contrast positive, the blur sigma's log).
+    """Gauss-Newton on the step model of K profiles: ``pixels`` (3, K, M) their pixels'
+    offsets across the edge (px), grey values and weights (least squares weighted by them;
+    ``edge_geometry.sample_profiles``' counts, 0 for a pixel left out). Updated in place
+    from their first values: the edges ``d`` (K,) and ``levels`` (2, R: dark levels,
+    contrasts) of the design ``W`` (R, K: a profile's dark level is ``W[:, k] . levels[0]``).
+    ``surround`` (3, K): 1 where the cell inside the border is white (else 0), how far inside
+    the border's inner edge lies, and where the white margin outside ends (px), a third step
+    fitted with its own drop ``with_margin``. Returns (whether the fit holds: finite edges and
+    every contrast positive, the blur sigma's log).
 
     Each d_k touches only its own profile and each level only its group's, so the normal
     equations are assembled from per-profile sums and solved through the Schur complement of
@@ -298,7 +320,7 @@ def fit_steps(
         G, J_d, xs, r = _model_rows(
             pixels, d, W, levels, math.exp(log_sigma), surround, drop, with_margin
         )
-        solved, step, step_d = _schur_step(*_normal_equations(G, J_d, xs, r, W))
+        solved, step, step_d = _schur_step(*_normal_equations(G, J_d, xs, r, W, pixels[2]))
         if not solved:
             return False, log_sigma
         for k in range(d.shape[0]):
