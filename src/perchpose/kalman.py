@@ -17,6 +17,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.geometry import angle_diff_rad, wrap_angle_rad
+from perchpose.kalman_steps import (
+    corrected_state,
+    gain,
+    innovation_covariance,
+    joseph_covariance,
+    mahalanobis2,
+    propagated_covariance,
+    propagated_state,
+)
 
 Array = NDArray[np.float64]
 
@@ -115,37 +124,39 @@ class ConstantVelocityFilter:
         self.S = np.full((4, 4), np.nan)
 
     def predict_with(self, dt_s: float, Q: Array) -> None:
-        """x = F x, P = F P F^T + Q for a step of ``dt_s`` seconds."""
-        F = transition(dt_s)
-        self.x = F @ self.x
+        """x = F x, P = F P F^T + Q for a step of ``dt_s`` seconds (``kalman_steps``)."""
+        self.x = propagated_state(self.x, dt_s)
         self.x[0] = wrap_angle_rad(float(self.x[0]))
-        self.P = F @ self.P @ F.T + Q
+        self.P = propagated_covariance(self.P, dt_s, Q)
         if self.P_actual is not None:
-            self.P_actual = F @ self.P_actual @ F.T + Q
+            self.P_actual = propagated_covariance(self.P_actual, dt_s, Q)
         self.x_prior = self.x.copy()
         self.P_prior = self.P.copy()
 
     def innovation(self, z: Array, R: Array) -> tuple[Array, Array]:
         """(y, S): the innovation of z = [psi, tx, ty, tz] (yaw wrapped) and its covariance
         for a measurement of covariance R (4, 4)."""
-        y = np.asarray(z, dtype=np.float64) - H @ self.x
+        y = np.asarray(z, dtype=np.float64) - self.x[0::2]
         y[0] = angle_diff_rad(float(z[0]), float(self.x[0]))
-        return y, H @ self.P @ H.T + R
+        return y, innovation_covariance(self.P, np.asarray(R, np.float64))
 
     def update_with(self, z: Array, R: Array, R_actual: Array | None = None) -> None:
         """Correct with z = [psi, tx, ty, tz] of covariance R (4, 4); the yaw innovation is
         wrapped. The Joseph form keeps P symmetric and positive definite. ``R_actual``: the
         measurement's actual covariance, carried into ``P_actual`` with the same gain (R
-        where it is not given)."""
+        where it is not given). Raises ``numpy.linalg.LinAlgError`` where the innovation's
+        covariance is singular."""
+        R = np.asarray(R, np.float64)
         y, S = self.innovation(z, R)
-        K = np.linalg.solve(S, H @ self.P).T
-        self.x = self.x + K @ y
+        solved, K = gain(self.P, S)
+        if not solved:
+            raise np.linalg.LinAlgError("singular innovation covariance")
+        self.x = corrected_state(self.x, K, y)
         self.x[0] = wrap_angle_rad(float(self.x[0]))
-        I_KH = np.eye(8) - K @ H
-        self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
+        self.P = joseph_covariance(self.P, K, R)
         if self.P_actual is not None:
-            R_a = R if R_actual is None else R_actual
-            self.P_actual = I_KH @ self.P_actual @ I_KH.T + K @ R_a @ K.T
+            R_a = R if R_actual is None else np.asarray(R_actual, np.float64)
+            self.P_actual = joseph_covariance(self.P_actual, K, R_a)
         self.y = y
         self.S = S
 
@@ -156,11 +167,11 @@ class ConstantVelocityFilter:
     @property
     def pose(self) -> Array:
         """(4,) filtered [psi_rad, tx_m, ty_m, tz_m]."""
-        return np.asarray(H @ self.x)
+        return self.x[0::2].copy()
 
     def predicted_pose(self, dt_s: float) -> Array:
         """(4,) [psi, tx, ty, tz] ``dt_s`` seconds ahead, without changing the filter."""
-        return np.asarray(H @ (transition(dt_s) @ self.x))
+        return np.asarray(self.x[0::2] + dt_s * self.x[1::2])
 
 
 class PaperKalmanFilter(ConstantVelocityFilter):
@@ -217,7 +228,7 @@ class Track(ABC):
     @property
     def pose_covariance(self) -> Array | None:
         """(4, 4) covariance of ``pose`` [psi, tx, ty, tz] (the filter's), or None."""
-        return None if self.filter is None else np.asarray(H @ self.filter.P @ H.T)
+        return None if self.filter is None else self.filter.P[0::2, 0::2].copy()
 
     @property
     def pose(self) -> Array | None:
@@ -254,7 +265,7 @@ class Track(ABC):
             self._coast(t_s - self.t_s)
             R_used = self._noise(R)
             y, S = self.filter.innovation(z, R_used)
-            if float(y @ np.linalg.solve(S, y)) > self.reinit_chi2:
+            if mahalanobis2(y, S) > self.reinit_chi2:
                 self.filter = self._start(z, R, R_actual)
                 self.reinitialised += 1
             else:
@@ -382,7 +393,7 @@ class CovarianceTrack(Track):
         none (no track, or one started without ``R_actual``)."""
         if self.filter is None or self.filter.P_actual is None:
             return None
-        return np.asarray(H @ self.filter.P_actual @ H.T)
+        return self.filter.P_actual[0::2, 0::2].copy()
 
 
 def _first_covariance(R: Array) -> Array:
