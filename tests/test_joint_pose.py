@@ -210,3 +210,33 @@ def test_the_measurement_jacobian_is_what_small_turns_do_to_the_yaw() -> None:
     np.testing.assert_array_equal(J[1:, 3:], np.eye(3))
     assert not J[0, 3:].any()
     assert not J[1:, :3].any()
+
+
+def test_compiled_covariances_and_misfit_are_the_matrix_formulas() -> None:
+    from perchpose.joint_pose import _covariances, corner_misfit
+
+    rng = np.random.default_rng(11)
+    J = rng.normal(size=(16, 6)) * np.array([200.0, 200.0, 50.0, 900.0, 900.0, 300.0])
+    w = rng.uniform(20.0, 100.0, 16)
+    A = rng.normal(size=(16, 16))
+    S = 0.01 * (A @ A.T + 16 * np.eye(16))
+    r = rng.normal(0.0, 0.1, 16)
+    Jw = J * w[:, None]
+    H_inv = np.linalg.inv(J.T @ Jw)
+    plain, own = _covariances(J, w, S)
+    assert plain is not None
+    assert own is not None
+    np.testing.assert_allclose(plain, H_inv, rtol=1e-9)
+    B = Jw @ H_inv
+    np.testing.assert_allclose(own, B.T @ S @ B, rtol=1e-9)
+    assert _covariances(J, w)[1] is None
+    M = np.eye(16) - J @ H_inv @ Jw.T
+    S_inv = np.linalg.inv(S)
+    observed, expected = corner_misfit(J, w, r, S)
+    assert observed == pytest.approx(float(r @ S_inv @ r), rel=1e-9)
+    assert expected == pytest.approx(float(np.trace(S_inv @ M @ S @ M.T)), rel=1e-9)
+    # a Jacobian that leaves a direction unseen has no covariance
+    flat = J.copy()
+    flat[:, 5] = 0.0
+    assert _covariances(flat, w, S) == (None, None)
+    assert all(np.isnan(corner_misfit(J, w, r, np.zeros((16, 16)))))

@@ -22,6 +22,13 @@ from perchpose.camera import CameraModel
 from perchpose.geometry import make_transform
 from perchpose.jit import compiled
 from perchpose.pnp import normal_equations, pose_rows, turned
+from perchpose.small_linalg import (
+    inverted,
+    symmetric_eigenvalues,
+    times,
+    times_transposed,
+    transposed_times,
+)
 from perchpose.step_model import solve_in_place
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
@@ -143,18 +150,44 @@ def _covariances(
     """Over (w, dt), from the corners' Jacobian (2N, 6) over (w, dt) and their weights: the
     weights' own covariance, and with ``corner_covariance_px2`` the sandwich
     (``sandwich_covariance``; else None). Both None if degenerate."""
-    Jw = J * w[:, None]
-    info = J.T @ Jw
-    # its condition number (symmetric, positive semi-definite: the eigenvalues' ratio)
-    eigenvalues = np.linalg.eigvalsh(info)
-    if not eigenvalues[0] * 1e14 > eigenvalues[-1]:
+    S = _NONE if corner_covariance_px2 is None else np.asarray(corner_covariance_px2, np.float64)
+    solved, plain, own = _weighted_covariances(J, w, S)
+    if not solved:
         return None, None
-    H_inv = np.linalg.inv(info)
+    return plain, None if corner_covariance_px2 is None else own
+
+
+_NONE = np.zeros((0, 0))
+
+
+@compiled
+def _weighted(J: Array, w: Array) -> Array:
+    """``W J``: each row of J times its weight."""
+    Jw = np.empty_like(J)
+    for i in range(J.shape[0]):
+        for j in range(J.shape[1]):
+            Jw[i, j] = w[i] * J[i, j]
+    return Jw
+
+
+@compiled
+def _weighted_covariances(J: Array, w: Array, S: Array) -> tuple[bool, Array, Array]:
+    """``_covariances``' arithmetic: (solved, ``(J^T W J)^-1``, the sandwich with ``S``, or
+    an empty array where S is empty); not solved where ``J^T W J`` is too ill-conditioned
+    to invert (its eigenvalues over 1e14 apart)."""
+    Jw = _weighted(J, w)
+    info = transposed_times(J, Jw)
+    eigenvalues = symmetric_eigenvalues(info)
+    if not eigenvalues[0] * 1e14 > eigenvalues[-1]:
+        return False, info, _NONE
+    solved, H_inv = inverted(info)
+    if not solved:
+        return False, info, _NONE
     plain = 0.5 * (H_inv + H_inv.T)
-    if corner_covariance_px2 is None:
-        return plain, None
-    B = Jw @ H_inv
-    return plain, np.asarray(B.T @ corner_covariance_px2 @ B, np.float64)
+    if S.shape[0] == 0:
+        return True, plain, _NONE
+    B = times(Jw, H_inv)
+    return True, plain, transposed_times(B, times(S, B))
 
 
 def uncertainty(T: Array, covariance: Array) -> PoseUncertainty:
@@ -246,10 +279,29 @@ def corner_misfit(J: Array, w: Array, residual: Array, S: Array) -> tuple[float,
     is the a-posteriori variance factor: about 1 where S is right, over 1 where the corners
     err more than S says (blur, rolling shutter: errors the edge points' scatter misses).
     (nan, nan) where S is singular."""
-    Jw = J * w[:, None]
-    M = np.eye(len(residual)) - J @ np.linalg.solve(J.T @ Jw, Jw.T)
-    try:
-        S_inv = np.linalg.inv(S)
-    except np.linalg.LinAlgError:
+    return _misfit(J, w, residual, np.asarray(S, np.float64))
+
+
+@compiled
+def _misfit(J: Array, w: Array, residual: Array, S: Array) -> tuple[float, float]:
+    """``corner_misfit``'s arithmetic."""
+    Jw = _weighted(J, w)
+    solved, H_inv = inverted(transposed_times(J, Jw))
+    invertible, S_inv = inverted(S)
+    if not (solved and invertible):
         return math.nan, math.nan
-    return float(residual @ S_inv @ residual), float(np.trace(S_inv @ M @ S @ M.T))
+    M = -times_transposed(times(J, H_inv), Jw)
+    for i in range(M.shape[0]):
+        M[i, i] += 1.0
+    S_inv_r = times(S_inv, residual.reshape(-1, 1))
+    observed = 0.0
+    for i in range(residual.shape[0]):
+        observed += residual[i] * S_inv_r[i, 0]
+    # trace(S^-1 M S M^T) = sum over i, k of (S^-1 M)[i, k] (S M^T)[k, i]
+    A = times(S_inv, M)
+    C = times_transposed(S, M)
+    expected = 0.0
+    for i in range(A.shape[0]):
+        for k in range(A.shape[1]):
+            expected += A[i, k] * C[k, i]
+    return observed, expected

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.jit import compiled
+from perchpose.small_linalg import times, times_transposed
 from perchpose.step_model import solve_in_place
 
 Array = NDArray[np.float64]
@@ -98,32 +99,6 @@ def corrected_state(x: Array, K: Array, y: Array) -> Array:
 
 
 @compiled
-def _times(A: Array, B: Array) -> Array:
-    """``A B`` (numba's own matrix product needs a BLAS that a plain install lacks)."""
-    out = np.zeros((A.shape[0], B.shape[1]))
-    for i in range(A.shape[0]):
-        for k in range(A.shape[1]):
-            a = A[i, k]
-            if a != 0.0:
-                for j in range(B.shape[1]):
-                    out[i, j] += a * B[k, j]
-    return out
-
-
-@compiled
-def _times_transposed(A: Array, B: Array) -> Array:
-    """``A B^T``."""
-    out = np.zeros((A.shape[0], B.shape[0]))
-    for i in range(A.shape[0]):
-        for j in range(B.shape[0]):
-            s = 0.0
-            for k in range(A.shape[1]):
-                s += A[i, k] * B[j, k]
-            out[i, j] = s
-    return out
-
-
-@compiled
 def joseph_covariance(P: Array, K: Array, R: Array) -> Array:
     """``(I - K H) P (I - K H)^T + K R K^T``: the corrected covariance in the Joseph form,
     which stays symmetric and positive definite."""
@@ -131,4 +106,4 @@ def joseph_covariance(P: Array, K: Array, R: Array) -> Array:
     for i in range(N_STATE):
         for j in range(N_MEASURED):
             A[i, 2 * j] -= K[i, j]
-    return _times_transposed(_times(A, P), A) + _times_transposed(_times(K, R), K)
+    return times_transposed(times(A, P), A) + times_transposed(times(K, R), K)

@@ -1,0 +1,117 @@
+"""Linear algebra on small matrices (a pose's 6 x 6, a filter's 8 x 8, a frame's 16 corners),
+compiled. numba's own ``np.linalg`` and matrix product call into scipy's LAPACK and BLAS, which
+a plain install does not bring; and from Python each numpy call on such a matrix costs more to
+set up than to compute. These are plain loops, called from other compiled code or once per
+result from Python.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.jit import compiled
+from perchpose.step_model import solve_in_place
+
+Array = NDArray[np.float64]
+
+# Jacobi sweeps after which the eigenvalues are taken as found (a 6 x 6 matrix needs 5-8)
+_JACOBI_SWEEPS = 50
+
+
+@compiled
+def times(A: Array, B: Array) -> Array:
+    """``A B``."""
+    out = np.zeros((A.shape[0], B.shape[1]))
+    for i in range(A.shape[0]):
+        for k in range(A.shape[1]):
+            a = A[i, k]
+            if a != 0.0:
+                for j in range(B.shape[1]):
+                    out[i, j] += a * B[k, j]
+    return out
+
+
+@compiled
+def times_transposed(A: Array, B: Array) -> Array:
+    """``A B^T``."""
+    out = np.zeros((A.shape[0], B.shape[0]))
+    for i in range(A.shape[0]):
+        for j in range(B.shape[0]):
+            s = 0.0
+            for k in range(A.shape[1]):
+                s += A[i, k] * B[j, k]
+            out[i, j] = s
+    return out
+
+
+@compiled
+def transposed_times(A: Array, B: Array) -> Array:
+    """``A^T B``."""
+    out = np.zeros((A.shape[1], B.shape[1]))
+    for k in range(A.shape[0]):
+        for i in range(A.shape[1]):
+            a = A[k, i]
+            if a != 0.0:
+                for j in range(B.shape[1]):
+                    out[i, j] += a * B[k, j]
+    return out
+
+
+@compiled
+def inverted(A: Array) -> tuple[bool, Array]:
+    """(whether A is invertible, ``A^-1``) by Gaussian elimination with partial pivoting, one
+    column of the identity at a time."""
+    n = A.shape[0]
+    out = np.empty((n, n))
+    for j in range(n):
+        column = np.zeros(n)
+        column[j] = 1.0
+        if not solve_in_place(A.copy(), column):
+            return False, out
+        out[:, j] = column
+    return True, out
+
+
+@compiled
+def symmetric_eigenvalues(A: Array) -> Array:
+    """The eigenvalues of the symmetric matrix ``A``, ascending, by cyclic Jacobi rotations
+    (accurate to the matrix's rounding relative to its largest entries)."""
+    n = A.shape[0]
+    M = A.copy()
+    for _ in range(_JACOBI_SWEEPS):
+        off = 0.0
+        scale = 0.0
+        for i in range(n):
+            scale += M[i, i] * M[i, i]
+            for j in range(i + 1, n):
+                off += M[i, j] * M[i, j]
+        if off <= 1e-30 * scale:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                if M[p, q] != 0.0:
+                    _rotate(M, p, q)
+    values = np.empty(n)
+    for i in range(n):
+        values[i] = M[i, i]
+    return np.sort(values)
+
+
+@compiled
+def _rotate(M: Array, p: int, q: int) -> None:
+    """One Jacobi rotation of the symmetric ``M`` in place, zeroing ``M[p, q]``."""
+    theta = (M[q, q] - M[p, p]) / (2.0 * M[p, q])
+    t = math.copysign(1.0, theta) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    s = t * c
+    for k in range(M.shape[0]):  # columns p and q
+        m_kp, m_kq = M[k, p], M[k, q]
+        M[k, p] = c * m_kp - s * m_kq
+        M[k, q] = s * m_kp + c * m_kq
+    for k in range(M.shape[0]):  # rows p and q
+        m_pk, m_qk = M[p, k], M[q, k]
+        M[p, k] = c * m_pk - s * m_qk
+        M[q, k] = s * m_pk + c * m_qk

@@ -1,0 +1,37 @@
+"""Small compiled linear algebra against numpy's."""
+
+import numpy as np
+import pytest
+
+from perchpose.small_linalg import (
+    inverted,
+    symmetric_eigenvalues,
+    times,
+    times_transposed,
+    transposed_times,
+)
+
+
+@pytest.mark.parametrize("n", [3, 6, 16])
+def test_products_inverse_and_eigenvalues(n: int) -> None:
+    rng = np.random.default_rng(n)
+    A, B = rng.normal(size=(n, n)), rng.normal(size=(n, 4))
+    np.testing.assert_allclose(times(A, B), A @ B, atol=1e-12)
+    np.testing.assert_allclose(transposed_times(A, B), A.T @ B, atol=1e-12)
+    np.testing.assert_allclose(times_transposed(B.T, A), B.T @ A.T, atol=1e-12)
+    solved, A_inv = inverted(A)
+    assert solved
+    np.testing.assert_allclose(A_inv, np.linalg.inv(A), rtol=1e-9, atol=1e-10)
+    # symmetric, with eigenvalues spread over many orders of magnitude
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    values = np.logspace(-6, 8, n)
+    sym = Q @ np.diag(values) @ Q.T
+    sym = 0.5 * (sym + sym.T)
+    found = symmetric_eigenvalues(sym)
+    np.testing.assert_allclose(found, np.linalg.eigvalsh(sym), rtol=1e-6, atol=1e-7)
+    assert np.all(np.diff(found) >= 0)
+
+
+def test_a_singular_matrix_is_said() -> None:
+    solved, _ = inverted(np.ones((4, 4)))
+    assert not solved
