@@ -74,14 +74,15 @@ class JointPose:
 
 
 @compiled
-def _gauss_newton_step(J: Array, w: Array, r: Array) -> tuple[Array, bool]:
-    """The step (6,) over (w, dt) minimising ``sum w (r + J step)^2``; False where the
-    normal equations are singular."""
+def _gauss_newton_step(J: Array, w: Array, r: Array) -> tuple[Array, bool, float]:
+    """The step (6,) over (w, dt) minimising ``sum w (r + J step)^2``, False where the
+    normal equations are singular, and the step's largest entry (absolute)."""
     H, g = normal_equations(J, w, r)
     for j in range(6):
         H[j, j] += 1e-12
     step = -g
-    return step, solve_in_place(H, step)
+    solved = solve_in_place(H, step)
+    return step, solved, np.max(np.abs(step))
 
 
 def _project_with_jacobian(
@@ -236,8 +237,8 @@ def solve_joint_pose(
         return None
     points = target_points(target, detections)
     uv = np.concatenate([d.corners_px for d in detections]).reshape(-1)
-    sigma = np.repeat(np.broadcast_to(np.asarray(sigma_px, np.float64), (len(detections),)), 4)
-    w = _weights(sigma, points.shape[0])
+    sigma = np.broadcast_to(np.asarray(sigma_px, np.float64), (len(detections),))
+    w = np.repeat(1.0 / sigma**2, 8)  # each detection's 4 corners, x and y
     T_start = np.asarray(T_initial, np.float64)
     R, t = np.ascontiguousarray(T_start[:3, :3]), T_start[:3, 3].copy()
     converged: tuple[Array, Array] | None = None
@@ -246,12 +247,12 @@ def solve_joint_pose(
         if projected is None:
             return None
         J = projected[1]
-        delta, solved = _gauss_newton_step(J, w, projected[0] - uv)
+        delta, solved, largest = _gauss_newton_step(J, w, projected[0] - uv)
         if not solved:
             return None
         R = turned(delta[:3], R)
         t = t + delta[3:]
-        if np.max(np.abs(delta)) < CONVERGED:
+        if largest < CONVERGED:
             # the last step is too small to change the Jacobian: the pixels after it from it
             converged = (projected[0] + J @ delta, J)
             break
@@ -262,7 +263,7 @@ def solve_joint_pose(
     if cov is None:
         return None
     residual = uv - projected[0]
-    rms = float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 2) ** 2, axis=1))))
+    rms = math.sqrt(float(residual @ residual) / points.shape[0])
     T = make_transform(R, t)
     misfit = (
         (math.nan, math.nan)

@@ -35,7 +35,7 @@ MAX_ITERATIONS = 40
 
 
 @compiled
-def _rotation_of(w0: float, w1: float, w2: float) -> Array:
+def rotation_of(w0: float, w1: float, w2: float) -> Array:
     """``exp([w]x)`` (3, 3) of the rotation vector ``w`` (Rodrigues' formula)."""
     theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
     R = np.eye(3)
@@ -68,7 +68,7 @@ def _turned(A: Array, R: Array) -> Array:
 def turned(w: Array, R: Array) -> Array:
     """``exp([w]x) R``: the rotation ``R`` (3, 3) turned by the small rotation ``w`` (3,)
     about the axes of its left frame."""
-    return _turned(_rotation_of(w[0], w[1], w[2]), R)
+    return _turned(rotation_of(w[0], w[1], w[2]), R)
 
 
 @compiled

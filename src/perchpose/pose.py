@@ -10,8 +10,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.geometry import invert_transform, make_transform, transform_from_rvec_tvec
-from perchpose.pnp import refine_pose
+from perchpose.geometry import make_transform
+from perchpose.pnp import refine_pose, rotation_of
 from perchpose.target import MarkerSpec
 from perchpose.values import MarkerPose, PoseFailure
 
@@ -30,11 +30,13 @@ AMBIGUITY_RATIO = 2.0
 FLIP_DEG = 5.0
 FLIP_RATIO = 4.0
 FLIP_FLOOR_PX = 0.25
+# IPPE runs on normalised coordinates: the identity for a camera matrix
+_NORMALISED = np.eye(3)
 
 
 def rotation_angle_rad(R_a: Array, R_b: Array) -> float:
     """Angle of the rotation taking ``R_b`` to ``R_a``, radians in [0, pi]."""
-    c = (float(np.trace(R_a.T @ R_b)) - 1.0) / 2.0
+    c = (float(np.vdot(R_a, R_b)) - 1.0) / 2.0  # trace(R_a^T R_b)
     return math.acos(max(-1.0, min(1.0, c)))
 
 
@@ -68,22 +70,21 @@ def solve_marker_pose(
         return PoseFailure(marker_index, "corner outside the lens model")
     obj = marker.corners_marker_m.reshape(4, 1, 3)
     img = xy.reshape(4, 1, 2)
-    eye = np.eye(3)
     try:
         n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-            obj, img, eye, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+            obj, img, _NORMALISED, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
         )
     except cv2.error:
         return PoseFailure(marker_index, "degenerate corners")
     if n == 0:
         return PoseFailure(marker_index, "no PnP solution")
-    T_target_marker = marker.T_target_marker
-    T_marker_target = invert_transform(T_target_marker)
+    T_marker_target = marker.T_marker_target
     candidates: list[tuple[float, Array]] = []
     points_marker_m = np.ascontiguousarray(marker.corners_marker_m)
     for rvec, tvec in zip(rvecs, tvecs, strict=True):
-        start = transform_from_rvec_tvec(np.asarray(rvec, np.float64), np.asarray(tvec, np.float64))
-        R, t, _ = refine_pose(points_marker_m, xy, start[:3, :3].copy(), start[:3, 3].copy())
+        w = np.asarray(rvec, np.float64).reshape(3)
+        R0 = rotation_of(float(w[0]), float(w[1]), float(w[2]))
+        R, t, _ = refine_pose(points_marker_m, xy, R0, np.asarray(tvec, np.float64).reshape(3))
         T_camera_marker = make_transform(R, t)
         if T_camera_marker[2, 3] <= 0:
             continue

@@ -88,6 +88,11 @@ class MarkerSpec:
         return make_transform(rot_z(math.radians(self.rotation_deg)), t)
 
     @cached_property
+    def T_marker_target(self) -> Array:
+        """(4, 4) the inverse of ``T_target_marker``."""
+        return invert_transform(self.T_target_marker)
+
+    @cached_property
     def corners_marker_m(self) -> Array:
         """(4, 3) corners in the marker frame, metres, ArUco order (IPPE_SQUARE's order)."""
         h = self.side_m / 2.0
