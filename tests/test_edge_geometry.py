@@ -1,6 +1,7 @@
 import math
 
 import numpy as np
+import pytest
 
 from perchpose.edge_geometry import (
     bilinear_points,
@@ -8,8 +9,10 @@ from perchpose.edge_geometry import (
     edge_points_n,
     fit_lines,
     intersect_sides,
+    largest_move,
     outward_normals,
     sample_profiles,
+    side_lengths,
     side_probes,
 )
 
@@ -155,3 +158,11 @@ def test_sample_profiles_count_every_sample_once() -> None:
         counted = nearest[k][pixels[2, k] > 0]
         assert np.all(np.any(np.diff(counted, axis=0) != 0, axis=1))
         assert len(np.unique(counted, axis=0)) == len(counted)
+
+
+def test_side_lengths_and_largest_move() -> None:
+    quad = np.array([[0.0, 0.0], [3.0, 4.0], [3.0, 10.0], [-1.0, 10.0]])
+    np.testing.assert_allclose(side_lengths(quad), [5.0, 6.0, 4.0, np.hypot(1.0, 10.0)])
+    moved = quad + np.array([[0.0, 0.0], [0.3, 0.4], [0.0, -1.0], [0.0, 0.0]])
+    assert largest_move(moved, quad) == pytest.approx(1.0)
+    assert largest_move(quad, quad) == 0.0

@@ -38,10 +38,13 @@ from perchpose.edge_geometry import (
     edge_points_n,
     fit_lines,
     intersect_sides,
+    largest_move,
     outward_normals,
     sample_profiles,
+    side_lengths,
     side_probes,
 )
+from perchpose.jit import compiled
 from perchpose.step_model import (
     MAX_BLUR_PX,
     MIN_BLUR_PX,
@@ -127,17 +130,35 @@ def _surround_rows(
     and its inner edge within reach of the blur of ``sigma_px`` from the profiles' ends at
     ``offsets`` (else 0), how far inside that edge lies, and where the white margin outside
     ends (1e6 px where out of reach); and whether any margin's end is within reach."""
-    rows = np.zeros((3, n_profiles))
-    rows[2] = 1e6
     if surround is None:
+        rows = np.zeros((3, n_profiles))
+        rows[2] = 1e6
         return rows, False
     beyond = _BEYOND_REACH_SIGMAS * sigma_px + 0.5
-    reach_in = surround.border_px < -float(offsets[0]) + beyond
-    rows[0] = np.where(reach_in, surround.white_inside, 0.0)
-    rows[1] = surround.border_px
-    near = surround.margin_px < float(offsets[-1]) + beyond
-    rows[2] = np.where(near, surround.margin_px, 1e6)
-    return rows, bool(np.any(near))
+    return _surround_within(
+        surround.white_inside,
+        surround.border_px,
+        surround.margin_px,
+        -float(offsets[0]) + beyond,
+        float(offsets[-1]) + beyond,
+    )
+
+
+@compiled
+def _surround_within(
+    white: Array, border_px: Array, margin_px: Array, inner_reach: float, outer_reach: float
+) -> tuple[Array, bool]:
+    """``_surround_rows`` from the profiles' reach inwards and outwards (px)."""
+    K = white.shape[0]
+    rows = np.empty((3, K))
+    near_any = False
+    for k in range(K):
+        rows[0, k] = white[k] if border_px[k] < inner_reach else 0.0
+        rows[1, k] = border_px[k]
+        near = margin_px[k] < outer_reach
+        rows[2, k] = margin_px[k] if near else 1e6
+        near_any = near_any or near
+    return rows, near_any
 
 
 def _level_design(
@@ -146,6 +167,8 @@ def _level_design(
     """The levels' design W (R, K): a profile's dark level is W[:, k] . a_q, its contrast
     W[:, k] . b_q (one pair per group, and with ``along`` a slope along the side each); and
     the number of groups."""
+    if groups is None and along is None:
+        return np.ones((1, n_profiles)), 1
     g_of = np.zeros(n_profiles, np.intp) if groups is None else groups
     n_groups = int(g_of.max()) + 1
     member = (g_of[None, :] == np.arange(n_groups)[:, None]).astype(np.float64)  # (Q, K)
@@ -307,10 +330,10 @@ def fit_marker_edges(
     white around the marker reaches, in its cells (``TargetSpec.white_margin_cells``); where
     that is within reach of the profiles its end enters the model too."""
     cfg = settings or EdgeFitSettings()
-    corners = np.asarray(corners_px, np.float64).reshape(4, 2)
-    sides_px = np.linalg.norm(corners[[1, 2, 3, 0]] - corners, axis=1)
+    corners = np.ascontiguousarray(corners_px, np.float64).reshape(4, 2)
+    sides_px = side_lengths(corners)
     n_cells = cells if isinstance(cells, int) else int(cells.shape[0])
-    cell_px = float(sides_px.mean()) / n_cells
+    cell_px = 0.25 * float(sides_px.sum()) / n_cells
     reach_in = min(cfg.max_window_px, max(cfg.min_window_px, cfg.inside_cells * cell_px))
     reach_out = outside_reach_px(cell_px, cfg)
     step = max(cfg.step_px, (reach_in + reach_out) / (cfg.max_samples - 1))
@@ -327,8 +350,8 @@ def fit_marker_edges(
     if not np.all(ok):
         return None
     projected = np.ascontiguousarray(projected, np.float64)
-    centre = corners.mean(axis=0)
-    normal = outward_normals(projected, float(centre[0]), float(centre[1]))
+    centre_x, centre_y = 0.25 * corners.sum(axis=0)
+    normal = outward_normals(projected, float(centre_x), float(centre_y))
     # bilinear samples to start from; the fit's data: the pixel nearest each sample, at its
     # own offset across the edge
     values, pixels, rows = sample_profiles(grey, projected[: 4 * K], normal, offsets)
@@ -363,8 +386,6 @@ def fit_marker_edges(
     edge_n = edge_points_n(p_n, step_n, perp_n, projected, normal, d)
     fitted, *lines = fit_lines(edge_n.reshape(4, K, 2), good.reshape(4, K))
     refined = _corners_of_lines(camera, *lines) if fitted else None
-    if refined is None or (
-        np.max(np.linalg.norm(refined[0] - corners, axis=1)) > cfg.max_shift_cells * cell_px
-    ):
+    if refined is None or largest_move(refined[0], corners) > cfg.max_shift_cells * cell_px:
         return None
     return EdgeFit(refined[0], blur_px, refined[1])

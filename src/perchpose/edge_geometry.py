@@ -28,6 +28,26 @@ SIDE_STEP = 1e-3
 
 
 @compiled
+def side_lengths(corners_px: Array) -> Array:
+    """The lengths (4,) of a quad's sides, side i from corner i to corner i + 1."""
+    out = np.empty(4)
+    for i in range(4):
+        j = (i + 1) % 4
+        dx, dy = corners_px[j, 0] - corners_px[i, 0], corners_px[j, 1] - corners_px[i, 1]
+        out[i] = math.hypot(dx, dy)
+    return out
+
+
+@compiled
+def largest_move(a_px: Array, b_px: Array) -> float:
+    """The largest distance between corresponding points of ``a_px`` and ``b_px`` (N, 2)."""
+    out = 0.0
+    for i in range(a_px.shape[0]):
+        out = max(out, math.hypot(a_px[i, 0] - b_px[i, 0], a_px[i, 1] - b_px[i, 1]))
+    return out
+
+
+@compiled
 def side_probes(xy: Array, t: Array) -> tuple[Array, Array, Array, Array]:
     """Points at fractions ``t`` (K,) of each side of the quad with normalised corners ``xy``
     (4, 2), sides one after the other (4K, 2); a step along each side and one across it
