@@ -104,3 +104,13 @@ def test_rotation_vector_jacobian_matches_small_turns() -> None:
             [small[2, 1] - small[1, 2], small[0, 2] - small[2, 0], small[1, 0] - small[0, 1]]
         )
         assert np.allclose(w / (2 * step), J[:, k], atol=1e-5)
+
+
+def test_the_rotation_vector_jacobian_inverse_is_its_inverse() -> None:
+    from perchpose.geometry import rotation_vector_jacobian, rotation_vector_jacobian_inverse
+
+    for yaw, pitch in ((0.3, -0.2), (-2.9, 1.2), (1.0, 0.0)):
+        J = rotation_vector_jacobian(yaw, pitch)
+        np.testing.assert_allclose(
+            rotation_vector_jacobian_inverse(yaw, pitch) @ J, np.eye(3), atol=1e-12
+        )

@@ -35,3 +35,11 @@ def test_products_inverse_and_eigenvalues(n: int) -> None:
 def test_a_singular_matrix_is_said() -> None:
     solved, _ = inverted(np.ones((4, 4)))
     assert not solved
+
+
+def test_sandwiched_is_a_b_a_transposed() -> None:
+    from perchpose.small_linalg import sandwiched
+
+    rng = np.random.default_rng(4)
+    A, B = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
+    np.testing.assert_allclose(sandwiched(A, B), A @ B @ A.T, atol=1e-12)

@@ -48,9 +48,10 @@ Array = NDArray[np.float64]
 
 def _flat(covariance: Array | None) -> tuple[float, ...]:
     """The 36 entries of a (6, 6) covariance, or none when it is unknown or not finite."""
-    if covariance is None or not np.all(np.isfinite(covariance)):
+    if covariance is None:
         return ()
-    return tuple(float(v) for v in covariance.reshape(-1))
+    entries: list[float] = covariance.reshape(-1).tolist()
+    return tuple(entries) if all(map(math.isfinite, entries)) else ()
 
 
 class PerchingEstimator:

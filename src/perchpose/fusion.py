@@ -27,6 +27,7 @@ from perchpose.camera import CameraModel
 from perchpose.errors import FusionFileError
 from perchpose.geometry import (
     rotation_vector_jacobian,
+    rotation_vector_jacobian_inverse,
     tilt_rad,
     weighted_circular_mean_rad,
     yaw_rad,
@@ -37,6 +38,7 @@ from perchpose.joint_pose import (
     solve_joint_pose,
 )
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
+from perchpose.small_linalg import sandwiched
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection, MarkerPose, corners_sd_px
 
@@ -227,19 +229,18 @@ def angles_covariance(T: Array, covariance_w_dt: Array) -> Array:
     """A pose covariance over (w, dt) (``joint_pose``) carried to (6, 6) over
     [roll, pitch, yaw, x, y, z] (``geometry.tilt_rad``, ``geometry.yaw_rad``)."""
     _, pitch = tilt_rad(T[:3, :3])
-    A = np.zeros((6, 6))
-    A[:3, :3] = np.linalg.inv(rotation_vector_jacobian(yaw_rad(T[:3, :3]), pitch))
-    A[3:, 3:] = np.eye(3)
-    return np.asarray(A @ covariance_w_dt @ A.T, np.float64)
+    A = np.eye(6)
+    A[:3, :3] = rotation_vector_jacobian_inverse(yaw_rad(T[:3, :3]), pitch)
+    return sandwiched(A, np.asarray(covariance_w_dt, np.float64))
 
 
 def camera_covariance(yaw_rad_: float, pitch_rad: float, covariance_angles: Array) -> Array:
     """A covariance over [roll, pitch, yaw, x, y, z] carried to the estimate's (6, 6) over
     [x, y, z] and a small rotation vector about the camera's axes."""
     B = np.zeros((6, 6))
-    B[:3, 3:] = np.eye(3)
+    B[0, 3] = B[1, 4] = B[2, 5] = 1.0
     B[3:, :3] = rotation_vector_jacobian(yaw_rad_, pitch_rad)
-    out = B @ covariance_angles @ B.T
+    out = sandwiched(B, np.asarray(covariance_angles, np.float64))
     return np.asarray(0.5 * (out + out.T), np.float64)
 
 

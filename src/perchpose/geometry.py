@@ -150,12 +150,18 @@ def rotation_vector_jacobian(yaw_rad_: float, pitch_rad: float) -> Array:
     """d w / d(roll, pitch, yaw) (3, 3): how the angles of ``rotation_from_angles`` move the
     rotation, as a small rotation vector ``w`` about the camera's axes (``R' = exp([w]) R``).
     Its columns: the roll axis ``Rz Ry x``, the pitch axis ``Rz y``, the yaw axis ``z``."""
-    Rz = rot_z(yaw_rad_)
-    J = np.empty((3, 3))
-    J[:, 0] = Rz @ rot_y(pitch_rad) @ np.array([1.0, 0.0, 0.0])
-    J[:, 1] = Rz @ np.array([0.0, 1.0, 0.0])
-    J[:, 2] = np.array([0.0, 0.0, 1.0])
-    return J
+    c, s = math.cos(yaw_rad_), math.sin(yaw_rad_)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    return np.array([[c * cp, -s, 0.0], [s * cp, c, 0.0], [-sp, 0.0, 1.0]])
+
+
+def rotation_vector_jacobian_inverse(yaw_rad_: float, pitch_rad: float) -> Array:
+    """d(roll, pitch, yaw) / d w (3, 3): the inverse of ``rotation_vector_jacobian``, written
+    out (its determinant is cos(pitch): none at pitch +/-90 deg, where roll and yaw are one
+    turn)."""
+    c, s = math.cos(yaw_rad_), math.sin(yaw_rad_)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    return np.array([[c / cp, s / cp, 0.0], [-s, c, 0.0], [sp * c / cp, sp * s / cp, 1.0]])
 
 
 def quaternion_xyzw(R: Array) -> tuple[float, float, float, float]:

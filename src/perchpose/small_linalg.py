@@ -115,3 +115,9 @@ def _rotate(M: Array, p: int, q: int) -> None:
         m_pk, m_qk = M[p, k], M[q, k]
         M[p, k] = c * m_pk - s * m_qk
         M[q, k] = s * m_pk + c * m_qk
+
+
+@compiled
+def sandwiched(A: Array, B: Array) -> Array:
+    """``A B A^T``: a covariance ``B`` carried through the linear map ``A``."""
+    return times_transposed(times(A, B), A)

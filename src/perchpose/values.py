@@ -30,7 +30,7 @@ def quad_side_px(quad: Array) -> float:
 def corners_sd_px(covariance_px2: Array) -> float:
     """The corners' standard deviation, px: the root mean of the variances on the diagonal of
     their (8, 8) covariance (x0, y0, x1, ...)."""
-    return math.sqrt(float(np.mean(np.diag(covariance_px2))))
+    return math.sqrt(float(np.trace(covariance_px2)) / covariance_px2.shape[0])
 
 
 @dataclass(frozen=True)
