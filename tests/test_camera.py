@@ -162,3 +162,22 @@ def test_malformed_opencv_xml_is_one_clear_error(tmp_path: Path, body: str, mess
     path.write_text(f'<?xml version="1.0"?>\n<opencv_storage>\n{body}\n</opencv_storage>\n')
     with pytest.raises(CameraFileError, match=message):
         CameraModel.load(path)
+
+
+def test_in_image_keeps_its_margin_and_refuses_nan() -> None:
+    camera = CameraModel.preset("fpv")
+    w, h = camera.size
+    inside = np.array([[2.0, 2.0], [w - 3.0, h - 3.0]])
+    assert camera.in_image(inside, 2.0)
+    assert not camera.in_image(inside, 2.5)
+    assert not camera.in_image(np.array([[10.0, np.nan]]))
+    assert camera.in_image(np.zeros((0, 2)))
+
+
+@pytest.mark.parametrize("name", ["fpv", "webcam"])
+def test_normalize_is_the_rays_on_the_plane(name: str) -> None:
+    camera = CameraModel.preset(name)
+    w, h = camera.size
+    uv = np.array([[0.0, 0.0], [w / 2, h / 2], [w - 1.0, 10.0], [37.5, h - 1.0]])
+    rays = camera.pixel_rays(uv)
+    np.testing.assert_allclose(camera.normalize(uv), rays[:, :2] / rays[:, 2:], rtol=1e-12)

@@ -97,10 +97,9 @@ class CameraModel:
     def in_image(self, uv_px: Array, margin_px: float = 0.0) -> bool:
         """Whether all points ``uv_px`` (N, 2) lie in the image, ``margin_px`` from its
         border (pixel centres at 0 .. width - 1 and 0 .. height - 1)."""
-        x, y = uv_px[:, 0], uv_px[:, 1]
-        inside = (x >= margin_px) & (x <= self.width_px - 1 - margin_px)
-        inside &= (y >= margin_px) & (y <= self.height_px - 1 - margin_px)
-        return bool(np.all(inside))
+        points = np.ascontiguousarray(np.asarray(uv_px, np.float64).reshape(-1, 2))
+        return _all_within(points, margin_px, self.width_px - 1 - margin_px,
+                           self.height_px - 1 - margin_px)  # fmt: skip
 
     # ------------------------------------------------------------------ projection
     def project(self, points_camera_m: Array) -> tuple[Array, NDArray[np.bool_]]:
@@ -143,9 +142,10 @@ class CameraModel:
 
         uv_px : (N, 2) float pixels. Returns (N, 2) float64.
         """
-        rays = self.pixel_rays(uv_px)
-        z = np.where(np.abs(rays[:, 2]) < 1e-12, 1e-12, rays[:, 2])
-        return rays[:, :2] / z[:, None]
+        if self.model == "equidistant":
+            uv = np.ascontiguousarray(np.asarray(uv_px, dtype=np.float64).reshape(-1, 2))
+            return _equidistant_normalized(uv, self.K, self.dist)
+        return _on_plane(self.pixel_rays(uv_px))
 
     def pixel_rays(self, uv_px: Array) -> Array:
         """Unit viewing rays (N, 3) in the camera frame for pixels (N, 2).
@@ -512,3 +512,34 @@ def _equidistant_rays(uv: Array, K: Array, dist: Array) -> Array:
         s = math.sin(theta)
         rays[i, 0], rays[i, 1], rays[i, 2] = s * math.cos(phi), s * math.sin(phi), math.cos(theta)
     return rays
+
+
+@compiled
+def _on_plane(rays: Array) -> Array:
+    """Rays (N, 3) on the normalised plane z = 1: (x/z, y/z); a ray within 1e-12 of z = 0
+    is divided by 1e-12 instead."""
+    out = np.empty((rays.shape[0], 2))
+    for i in range(rays.shape[0]):
+        z = rays[i, 2]
+        if abs(z) < 1e-12:
+            z = 1e-12
+        out[i, 0] = rays[i, 0] / z
+        out[i, 1] = rays[i, 1] / z
+    return out
+
+
+@compiled
+def _equidistant_normalized(uv: Array, K: Array, dist: Array) -> Array:
+    """``CameraModel.normalize`` of pixels ``uv`` (N, 2) under the equidistant model."""
+    return _on_plane(_equidistant_rays(uv, K, dist))
+
+
+@compiled
+def _all_within(points: Array, low: float, high_x: float, high_y: float) -> bool:
+    """Whether every point (N, 2) has ``low <= x <= high_x`` and ``low <= y <= high_y``
+    (False for a NaN)."""
+    for i in range(points.shape[0]):
+        x, y = points[i, 0], points[i, 1]
+        if not (low <= x <= high_x and low <= y <= high_y):
+            return False
+    return True

@@ -299,7 +299,7 @@ def _corners_of_lines(
     probes[4:8, 0] += _STEP_N
     probes[8:, 1] += _STEP_N
     projected, ok = camera.project(probes)
-    if not np.all(ok):
+    if not ok.all():
         return None
     corners_px = np.asarray(projected[:4], np.float64)
     lens = np.stack([projected[4:8] - corners_px, projected[8:] - corners_px], axis=2) / _STEP_N
@@ -339,7 +339,7 @@ def fit_marker_edges(
     step = max(cfg.step_px, (reach_in + reach_out) / (cfg.max_samples - 1))
     offsets = np.arange(-reach_in, reach_out + 1e-9, step)
     xy = camera.normalize(corners)
-    if not np.all(np.isfinite(xy)):
+    if not np.isfinite(xy).all():
         return None
     # K points along each side, all four sides at once: (4, K) -> flattened (4K,)
     K = int(min(cfg.max_profiles, max(4.0, float(sides_px.min()) / 2.0)))
@@ -347,7 +347,7 @@ def fit_marker_edges(
     t, white = _side_fractions(K, cfg.trim, n_cells, printed)
     p_n, step_n, perp_n, probes = side_probes(xy, t)
     projected, ok = camera.project(probes)
-    if not np.all(ok):
+    if not ok.all():
         return None
     projected = np.ascontiguousarray(projected, np.float64)
     centre_x, centre_y = 0.25 * corners.sum(axis=0)

@@ -323,7 +323,7 @@ class PerchingEstimator:
         )
         pose = fused.pose
         position = (float(pose[1]), float(pose[2]), float(pose[3]))
-        valid = fused.stage != STAGE_NONE and bool(np.all(np.isfinite(pose)))
+        valid = fused.stage != STAGE_NONE and bool(np.isfinite(pose).all())
         return Estimate(
             t_s=t,
             valid=valid,

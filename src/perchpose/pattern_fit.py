@@ -248,7 +248,7 @@ def _fitted_pixels(
         + [[(lo_u + hi_u) / 2, hi_v], [lo_u, (lo_v + hi_v) / 2]]
     )
     outline_px, ok = plane.to_pixels(g, outline_uv)
-    if not np.all(ok):
+    if not ok.all():
         return None
     h_img, w_img = grey.shape[:2]
     x0 = max(0, int(math.floor(outline_px[:, 0].min())) - 1)
@@ -282,7 +282,7 @@ def _start(corners: Array, camera: CameraModel, n: int) -> tuple[_MarkerPlane, A
     """The marker's plane and the homography from it to the cells square, from the corners;
     None where they do not give one."""
     xy = camera.normalize(corners)
-    if not np.all(np.isfinite(xy)):
+    if not np.isfinite(xy).all():
         return None
     scale = float(np.mean(np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1))) / n
     if not scale > 0:
@@ -352,7 +352,7 @@ def refine_corners_pattern(
     if not (cfg.min_blur_px < sigma < cfg.max_blur_px) or not levels[1] > cfg.min_contrast:
         return None
     refined, ok = plane.to_pixels(g, _square(n))
-    if not np.all(ok) or not np.all(np.isfinite(refined)):
+    if not ok.all() or not np.isfinite(refined).all():
         return None
     if np.max(np.linalg.norm(refined - corners, axis=1)) > cfg.max_shift_cells * cell_px:
         return None

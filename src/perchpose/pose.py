@@ -66,7 +66,7 @@ def solve_marker_pose(
         between the two IPPE solutions when reprojection cannot tell them apart.
     """
     xy = camera.normalize(corners_px)
-    if not np.all(np.isfinite(xy)):
+    if not np.isfinite(xy).all():
         return PoseFailure(marker_index, "corner outside the lens model")
     obj = marker.corners_marker_m.reshape(4, 1, 3)
     img = xy.reshape(4, 1, 2)

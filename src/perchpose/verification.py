@@ -103,13 +103,13 @@ def read_cells(
     corner 0 at the marker's top left as printed), through the lens model; None where the
     corners make no quad or a cell falls outside the image."""
     corners_n = camera.normalize(np.asarray(corners_px, np.float64).reshape(4, 2))
-    if not (pattern.both_shades and np.all(np.isfinite(corners_n))):
+    if not (pattern.both_shades and np.isfinite(corners_n).all()):
         return None
     n = float(pattern.n_cells)
     square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], np.float32)
     H = cv2.getPerspectiveTransform(square, corners_n.astype(np.float32))
     px, ok = camera.project(_through_homography(np.asarray(H, np.float64), pattern.samples_uv))
-    if not np.all(ok):
+    if not ok.all():
         return None
     values = bilinear_points(grey, np.ascontiguousarray(px, np.float64))
     wrong, black, white = _cell_levels(values, pattern.white)

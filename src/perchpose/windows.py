@@ -35,7 +35,7 @@ def predicted_quads(target: TargetSpec, hint: tuple[MarkerDetection, ...]) -> di
         for index in range(len(target.markers)):
             if index not in quads:
                 quads[index] = _plane_quad(target, index, H)
-    return {i: q for i, q in quads.items() if np.all(np.isfinite(q))}
+    return {i: q for i, q in quads.items() if np.isfinite(q).all()}
 
 
 def extrapolated(
@@ -97,7 +97,7 @@ def tracking_window(shape: tuple[int, ...], quads: dict[int, Array]) -> Box | No
 def rectified_box(quad: Array, shape: tuple[int, ...]) -> Box | None:
     """A window of the rectified view around ``quad`` (rectified pixels), padded by 0.3 of its
     extent plus 8 px, or None if not finite or under 16 px."""
-    if not np.all(np.isfinite(quad)):
+    if not np.isfinite(quad).all():
         return None
     h, w = shape[:2]
     lo, hi = quad.min(axis=0), quad.max(axis=0)
