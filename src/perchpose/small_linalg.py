@@ -37,27 +37,13 @@ def times(A: Array, B: Array) -> Array:
 @compiled
 def times_transposed(A: Array, B: Array) -> Array:
     """``A B^T``."""
-    out = np.zeros((A.shape[0], B.shape[0]))
-    for i in range(A.shape[0]):
-        for j in range(B.shape[0]):
-            s = 0.0
-            for k in range(A.shape[1]):
-                s += A[i, k] * B[j, k]
-            out[i, j] = s
-    return out
+    return times(A, B.T)
 
 
 @compiled
 def transposed_times(A: Array, B: Array) -> Array:
     """``A^T B``."""
-    out = np.zeros((A.shape[1], B.shape[1]))
-    for k in range(A.shape[0]):
-        for i in range(A.shape[1]):
-            a = A[k, i]
-            if a != 0.0:
-                for j in range(B.shape[1]):
-                    out[i, j] += a * B[k, j]
-    return out
+    return times(A.T, B)
 
 
 @compiled
