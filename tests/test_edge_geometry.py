@@ -6,10 +6,12 @@ import pytest
 from perchpose.edge_geometry import (
     bilinear_points,
     corner_covariance,
+    corner_probes,
     edge_points_n,
     fit_lines,
     intersect_sides,
     largest_move,
+    lens_jacobians,
     outward_normals,
     sample_profiles,
     side_lengths,
@@ -166,3 +168,18 @@ def test_side_lengths_and_largest_move() -> None:
     moved = quad + np.array([[0.0, 0.0], [0.3, 0.4], [0.0, -1.0], [0.0, 0.0]])
     assert largest_move(moved, quad) == pytest.approx(1.0)
     assert largest_move(quad, quad) == 0.0
+
+
+def test_corner_probes_give_the_lens_jacobian() -> None:
+    corners_n = np.array([[0.1, -0.2], [0.3, -0.1], [0.25, 0.2], [0.05, 0.1]])
+    probes = corner_probes(corners_n, 1e-6)
+    assert probes.shape == (12, 3)
+    np.testing.assert_array_equal(probes[:, 2], 1.0)
+    np.testing.assert_array_equal(probes[:4, :2], corners_n)
+    # an affine lens: pixels = A xy + c, whose Jacobian is A everywhere
+    A = np.array([[400.0, 3.0], [0.0, 390.0]])
+    projected = probes[:, :2] @ A.T + np.array([320.0, 240.0])
+    corners_px, lens = lens_jacobians(projected, 1e-6)
+    np.testing.assert_allclose(corners_px, corners_n @ A.T + np.array([320.0, 240.0]))
+    for i in range(4):
+        np.testing.assert_allclose(lens[i], A, rtol=1e-6, atol=1e-3)

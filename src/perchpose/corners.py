@@ -35,10 +35,12 @@ from numpy.typing import NDArray
 from perchpose.camera import CameraModel
 from perchpose.edge_geometry import (
     corner_covariance,
+    corner_probes,
     edge_points_n,
     fit_lines,
     intersect_sides,
     largest_move,
+    lens_jacobians,
     outward_normals,
     sample_profiles,
     side_lengths,
@@ -221,6 +223,7 @@ def _fit_side(
     return d, math.exp(log_sigma)
 
 
+@compiled
 def _blur_from_rise(rise: float, h: float) -> float:
     """The sigma at which a unit blurred step rises by ``rise`` across ``h`` centred on it."""
     sigma = h / 2.0
@@ -294,15 +297,10 @@ def _corners_of_lines(
     if not met:
         return None
     # the normalised plane to pixels, at each corner and a step along x and y
-    probes = np.ones((12, 3))
-    probes[:, :2] = corners_n[[0, 1, 2, 3] * 3]
-    probes[4:8, 0] += _STEP_N
-    probes[8:, 1] += _STEP_N
-    projected, ok = camera.project(probes)
+    projected, ok = camera.project(corner_probes(corners_n, _STEP_N))
     if not ok.all():
         return None
-    corners_px = np.asarray(projected[:4], np.float64)
-    lens = np.stack([projected[4:8] - corners_px, projected[8:] - corners_px], axis=2) / _STEP_N
+    corners_px, lens = lens_jacobians(np.ascontiguousarray(projected, np.float64), _STEP_N)
     covariance = corner_covariance(lens, A_inv, corners_n, normals, centres, angle_var, shift_var)
     return corners_px, covariance
 

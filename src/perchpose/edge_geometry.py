@@ -296,6 +296,34 @@ def intersect_sides(normals: Array, offsets: Array) -> tuple[bool, Array, Array]
 
 
 @compiled
+def corner_probes(corners_n: Array, step_n: float) -> Array:
+    """Points (12, 3) on the plane z = 1 whose images give the lens's Jacobian at four
+    corners (4, 2) of the normalised plane: the corners, then each a step ``step_n`` along x,
+    then along y."""
+    probes = np.ones((12, 3))
+    for i in range(4):
+        for k in range(3):
+            probes[4 * k + i, 0] = corners_n[i, 0]
+            probes[4 * k + i, 1] = corners_n[i, 1]
+        probes[4 + i, 0] += step_n
+        probes[8 + i, 1] += step_n
+    return probes
+
+
+@compiled
+def lens_jacobians(projected: Array, step_n: float) -> tuple[Array, Array]:
+    """From the images (12, 2) of ``corner_probes``: the corners in pixels (4, 2) and the
+    lens's Jacobian at each (4, 2, 2; d pixel / d normalised x, y), by forward differences."""
+    corners_px = projected[:4].copy()
+    lens = np.empty((4, 2, 2))
+    for i in range(4):
+        for axis in range(2):
+            lens[i, axis, 0] = (projected[4 + i, axis] - corners_px[i, axis]) / step_n
+            lens[i, axis, 1] = (projected[8 + i, axis] - corners_px[i, axis]) / step_n
+    return corners_px, lens
+
+
+@compiled
 def corner_covariance(
     lens: Array,
     A_inv: Array,
