@@ -534,8 +534,8 @@ class CovarianceFusion:
             if from_corners is None:  # degenerate: independent corners at the pooled noise
                 scale = self.noise.variance_px2 / self.settings.corner_sigma_px**2
                 from_corners = covariance * scale
-            assumed = J @ covariance @ J.T
-            self.track.measured(measured, assumed, t_s, J @ from_corners @ J.T)
+            assumed = sandwiched(J, covariance)
+            self.track.measured(measured, assumed, t_s, sandwiched(J, from_corners))
             self._tilt = tilt_rad(T[:3, :3])
             self._angles_covariance = angles_covariance(T, from_corners)
         filtered = self.track.pose if stage != STAGE_NONE else None

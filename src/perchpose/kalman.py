@@ -147,7 +147,11 @@ class ConstantVelocityFilter:
         where it is not given). Raises ``numpy.linalg.LinAlgError`` where the innovation's
         covariance is singular."""
         R = np.asarray(R, np.float64)
-        y, S = self.innovation(z, R)
+        self.correct(*self.innovation(z, R), R, R_actual)
+
+    def correct(self, y: Array, S: Array, R: Array, R_actual: Array | None = None) -> None:
+        """``update_with`` given the innovation ``y`` and its covariance ``S`` (as
+        ``innovation`` gives them) for a measurement of covariance R (4, 4)."""
         solved, K = gain(self.P, S)
         if not solved:
             raise np.linalg.LinAlgError("singular innovation covariance")
@@ -264,12 +268,13 @@ class Track(ABC):
         else:
             self._coast(t_s - self.t_s)
             R_used = self._noise(R)
+            R_used = np.asarray(R_used, np.float64)
             y, S = self.filter.innovation(z, R_used)
             if mahalanobis2(y, S) > self.reinit_chi2:
                 self.filter = self._start(z, R, R_actual)
                 self.reinitialised += 1
             else:
-                self.filter.update_with(z, R_used, R_actual)
+                self.filter.correct(y, S, R_used, R_actual)
         self.t_s = self.t_measured_s = t_s
         self.missed = 0
 
@@ -364,6 +369,8 @@ class CovarianceTrack(Track):
         self.settings = settings
         self._q = np.array([settings.q_yaw, settings.q_position, settings.q_position,
                             settings.q_position])  # fmt: skip
+        self._Q_dt_s = math.nan
+        self._Q = np.zeros((8, 8))
 
     def _start(
         self, z: Array, R: Array | None, R_actual: Array | None = None
@@ -375,7 +382,9 @@ class CovarianceTrack(Track):
 
     def _coast(self, dt_s: float) -> None:
         assert self.filter is not None
-        self.filter.predict_with(dt_s, white_acceleration_noise(dt_s, self._q))
+        if dt_s != self._Q_dt_s:  # frames usually come at one rate: Q is kept for it
+            self._Q, self._Q_dt_s = white_acceleration_noise(dt_s, self._q), dt_s
+        self.filter.predict_with(dt_s, self._Q)
 
     def _noise(self, R: Array | None) -> Array:
         assert R is not None
