@@ -3,16 +3,8 @@
 import numpy as np
 import pytest
 
+from perchpose import kalman_steps as steps
 from perchpose.kalman import H, transition, white_acceleration_noise
-from perchpose.kalman_steps import (
-    corrected_state,
-    gain,
-    innovation_covariance,
-    joseph_covariance,
-    mahalanobis2,
-    propagated_covariance,
-    propagated_state,
-)
 
 
 def spd(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -27,23 +19,23 @@ def test_each_step_is_the_matrix_equation(seed: int) -> None:
     dt = rng.uniform(0.01, 0.2)
     Q = white_acceleration_noise(dt, rng.uniform(0.1, 1.0, 4))
     F = transition(dt)
-    np.testing.assert_allclose(propagated_state(x, dt), F @ x, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(propagated_covariance(P, dt, Q), F @ P @ F.T + Q, atol=1e-12)
-    S = innovation_covariance(P, R)
+    np.testing.assert_allclose(steps.propagated_state(x, dt), F @ x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(steps.propagated_covariance(P, dt, Q), F @ P @ F.T + Q, atol=1e-12)
+    S = steps.innovation_covariance(P, R)
     np.testing.assert_allclose(S, H @ P @ H.T + R, atol=1e-12)
-    solved, K = gain(P, S)
+    solved, K = steps.gain(P, S)
     assert solved
     np.testing.assert_allclose(K, np.linalg.solve(S, H @ P).T, atol=1e-12)
     y = rng.normal(size=4)
-    np.testing.assert_allclose(corrected_state(x, K, y), x + K @ y, atol=1e-12)
+    np.testing.assert_allclose(steps.corrected_state(x, K, y), x + K @ y, atol=1e-12)
     I_KH = np.eye(8) - K @ H
     expected = I_KH @ P @ I_KH.T + K @ R @ K.T
-    np.testing.assert_allclose(joseph_covariance(P, K, R), expected, atol=1e-10)
-    assert mahalanobis2(y, S) == pytest.approx(float(y @ np.linalg.solve(S, y)), rel=1e-12)
+    np.testing.assert_allclose(steps.joseph_covariance(P, K, R), expected, atol=1e-10)
+    assert steps.mahalanobis2(y, S) == pytest.approx(float(y @ np.linalg.solve(S, y)), rel=1e-12)
 
 
 def test_a_singular_innovation_covariance_is_said() -> None:
     S = np.zeros((4, 4))
-    solved, _ = gain(np.eye(8), S)
+    solved, _ = steps.gain(np.eye(8), S)
     assert not solved
-    assert mahalanobis2(np.ones(4), S) == np.inf
+    assert steps.mahalanobis2(np.ones(4), S) == np.inf

@@ -43,3 +43,21 @@ def test_sandwiched_is_a_b_a_transposed() -> None:
     rng = np.random.default_rng(4)
     A, B = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
     np.testing.assert_allclose(sandwiched(A, B), A @ B @ A.T, atol=1e-12)
+
+
+def test_the_homography_of_four_points_maps_them_exactly() -> None:
+    import cv2
+
+    from perchpose.small_linalg import homography_of_4, through_homography
+
+    src = np.array([[-0.05, 0.05], [0.05, 0.05], [0.05, -0.05], [-0.05, -0.05]])
+    dst = np.array([[310.2, 200.7], [402.9, 208.1], [398.4, 297.3], [305.5, 290.0]])
+    found, H = homography_of_4(src, dst)
+    assert found
+    assert H[2, 2] == 1.0
+    np.testing.assert_allclose(through_homography(H, src), dst, atol=1e-9)
+    inside = np.array([[0.0, 0.0], [0.02, -0.01]])
+    expected = cv2.perspectiveTransform(inside.reshape(-1, 1, 2), H).reshape(-1, 2)
+    np.testing.assert_allclose(through_homography(H, inside), expected, atol=1e-9)
+    collinear = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    assert not homography_of_4(collinear, dst)[0]

@@ -107,3 +107,41 @@ def _rotate(M: Array, p: int, q: int) -> None:
 def sandwiched(A: Array, B: Array) -> Array:
     """``A B A^T``: a covariance ``B`` carried through the linear map ``A``."""
     return times_transposed(times(A, B), A)
+
+
+@compiled
+def homography_of_4(src: Array, dst: Array) -> tuple[bool, Array]:
+    """(whether one exists, the homography H (3, 3), h33 = 1) taking the 4 points ``src``
+    (4, 2) to ``dst`` (4, 2) exactly: the 8 x 8 linear system of the direct linear
+    transform."""
+    A = np.zeros((8, 8))
+    rhs = np.empty(8)
+    for k in range(4):
+        x, y, u, v = src[k, 0], src[k, 1], dst[k, 0], dst[k, 1]
+        A[2 * k, 0], A[2 * k, 1], A[2 * k, 2] = x, y, 1.0
+        A[2 * k, 6], A[2 * k, 7] = -u * x, -u * y
+        A[2 * k + 1, 3], A[2 * k + 1, 4], A[2 * k + 1, 5] = x, y, 1.0
+        A[2 * k + 1, 6], A[2 * k + 1, 7] = -v * x, -v * y
+        rhs[2 * k], rhs[2 * k + 1] = u, v
+    H = np.ones((3, 3))
+    if not solve_in_place(A, rhs):
+        return False, H
+    for i in range(8):
+        H[i // 3, i % 3] = rhs[i]
+    return True, H
+
+
+@compiled
+def through_homography(H: Array, points: Array) -> Array:
+    """``points`` (N, 2) through the homography ``H`` (3, 3) (NaN where one maps to
+    infinity)."""
+    out = np.empty((points.shape[0], 2))
+    for i in range(points.shape[0]):
+        x, y = points[i, 0], points[i, 1]
+        w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+        if w == 0.0:
+            out[i, 0] = out[i, 1] = np.nan
+            continue
+        out[i, 0] = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
+        out[i, 1] = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+    return out

@@ -15,13 +15,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.edge_geometry import bilinear_points
 from perchpose.jit import compiled
+from perchpose.small_linalg import homography_of_4, through_homography
 from perchpose.target import TargetSpec
 
 Array = NDArray[np.float64]
@@ -106,9 +106,11 @@ def read_cells(
     if not (pattern.both_shades and np.isfinite(corners_n).all()):
         return None
     n = float(pattern.n_cells)
-    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], np.float32)
-    H = cv2.getPerspectiveTransform(square, corners_n.astype(np.float32))
-    px, ok = camera.project(_through_homography(np.asarray(H, np.float64), pattern.samples_uv))
+    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
+    found, H = homography_of_4(square, corners_n)
+    if not found:
+        return None
+    px, ok = camera.project(_through_homography(H, pattern.samples_uv))
     if not ok.all():
         return None
     values = bilinear_points(grey, np.ascontiguousarray(px, np.float64))
@@ -123,14 +125,7 @@ def _through_homography(H: Array, uv: Array) -> Array:
     """Points ``uv`` (N, 2) through the homography ``H`` (3, 3), as (N, 3) with z = 1 (NaN
     where one maps to infinity)."""
     out = np.ones((uv.shape[0], 3))
-    for i in range(uv.shape[0]):
-        u, v = uv[i, 0], uv[i, 1]
-        w = H[2, 0] * u + H[2, 1] * v + H[2, 2]
-        if w == 0.0:
-            out[i, 0] = out[i, 1] = np.nan
-            continue
-        out[i, 0] = (H[0, 0] * u + H[0, 1] * v + H[0, 2]) / w
-        out[i, 1] = (H[1, 0] * u + H[1, 1] * v + H[1, 2]) / w
+    out[:, :2] = through_homography(H, uv)
     return out
 
 

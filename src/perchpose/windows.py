@@ -4,13 +4,11 @@ look at a part of the frame, not all of it."""
 
 from __future__ import annotations
 
-from typing import Any
-
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.rectification import Rectification
+from perchpose.small_linalg import homography_of_4, through_homography
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
 
@@ -18,10 +16,17 @@ Array = NDArray[np.float64]
 Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (x1, y1 exclusive)
 
 
-def _plane_quad(target: TargetSpec, index: int, H: NDArray[Any]) -> Array:
+def _plane_homography(target: TargetSpec, index: int, corners_px: Array) -> Array | None:
+    """The homography taking the target's plane (m) to the image (or view) where marker
+    ``index`` has ``corners_px`` (4, 2); None where the corners make none."""
+    plane = np.ascontiguousarray(target.markers[index].corners_target_m[:, :2])
+    found, H = homography_of_4(plane, np.ascontiguousarray(corners_px, np.float64))
+    return H if found else None
+
+
+def _plane_quad(target: TargetSpec, index: int, H: Array) -> Array:
     """Marker ``index``'s corners under the homography ``H`` from the target's plane (m)."""
-    corners_m = target.markers[index].corners_target_m[:, :2].reshape(-1, 1, 2)
-    return np.asarray(cv2.perspectiveTransform(corners_m, H), np.float64).reshape(4, 2)
+    return through_homography(H, target.markers[index].corners_target_m[:, :2])
 
 
 def predicted_quads(target: TargetSpec, hint: tuple[MarkerDetection, ...]) -> dict[int, Array]:
@@ -29,8 +34,7 @@ def predicted_quads(target: TargetSpec, hint: tuple[MarkerDetection, ...]) -> di
     the plane through the largest hinted marker puts them."""
     quads = {d.marker_index: d.corners_px for d in hint}
     reference = max(hint, key=lambda d: d.side_px)
-    plane = target.markers[reference.marker_index].corners_target_m[:, :2]
-    H, _ = cv2.findHomography(plane, reference.corners_px)
+    H = _plane_homography(target, reference.marker_index, reference.corners_px)
     if H is not None:
         for index in range(len(target.markers)):
             if index not in quads:
@@ -123,8 +127,7 @@ def rectified_windows(
     of the view, searched for nothing)."""
     reference = max(found.values(), key=lambda d: d.side_px)
     ref_rect = rectification.to_rectified(reference.corners_px)
-    ref_plane = target.markers[reference.marker_index].corners_target_m[:, :2]
-    H, _ = cv2.findHomography(ref_plane, ref_rect)
+    H = _plane_homography(target, reference.marker_index, ref_rect)
     windows = []
     for index in range(len(target.markers)):
         det = found.get(index)
