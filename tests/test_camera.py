@@ -181,3 +181,19 @@ def test_normalize_is_the_rays_on_the_plane(name: str) -> None:
     uv = np.array([[0.0, 0.0], [w / 2, h / 2], [w - 1.0, 10.0], [37.5, h - 1.0]])
     rays = camera.pixel_rays(uv)
     np.testing.assert_allclose(camera.normalize(uv), rays[:, :2] / rays[:, 2:], rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["fpv", "webcam"])
+def test_a_rigid_projection_is_the_projection_of_the_moved_points(name: str) -> None:
+    from perchpose.geometry import rot_x, rot_z
+
+    camera = CameraModel.preset(name)
+    points = np.array([[-0.05, 0.05, 0.0], [0.05, 0.05, 0.0], [0.05, -0.05, 0.0], [0.0, 0.0, 0.0]])
+    R = rot_z(0.4) @ rot_x(2.9)
+    t = np.array([0.03, -0.02, 0.6])
+    uv, duv_dq, s, in_front = camera.project_rigid_with_jacobian(points, R, t)
+    np.testing.assert_allclose(s, points @ R.T, atol=1e-15)
+    expected = camera.project_with_jacobian(points @ R.T + t)
+    np.testing.assert_allclose(uv, expected[0], atol=1e-10)
+    np.testing.assert_allclose(duv_dq, expected[1], rtol=1e-10, atol=1e-8)
+    np.testing.assert_array_equal(in_front, expected[2])

@@ -137,6 +137,21 @@ class CameraModel:
             duv_dq[in_front] = np.asarray(jac, np.float64)[:, 3:6].reshape(-1, 2, 3)
         return uv, duv_dq, in_front
 
+    def project_rigid_with_jacobian(
+        self, points_m: Array, R: Array, t_m: Array
+    ) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+        """``project_with_jacobian`` of the points ``R p + t`` (``points_m`` (N, 3) in their
+        own frame), and the rotated points ``R p`` (N, 3) that a pose's Jacobian needs:
+        (uv_px, duv_dq, R p, in_front)."""
+        p = np.ascontiguousarray(points_m, np.float64)
+        R = np.ascontiguousarray(R, np.float64)
+        t = np.ascontiguousarray(t_m, np.float64).reshape(3)
+        if self.model == "equidistant":
+            return _equidistant_rigid(p, R, t, self.K, self.dist)
+        s = p @ R.T
+        uv, duv_dq, in_front = self.project_with_jacobian(s + t)
+        return uv, duv_dq, s, in_front
+
     def normalize(self, uv_px: Array) -> Array:
         """Undistort pixels to normalised image coordinates (x/z, y/z).
 
@@ -543,3 +558,18 @@ def _all_within(points: Array, low: float, high_x: float, high_y: float) -> bool
         if not (low <= x <= high_x and low <= y <= high_y):
             return False
     return True
+
+
+@compiled
+def _equidistant_rigid(
+    p: Array, R: Array, t: Array, K: Array, dist: Array
+) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+    """``CameraModel.project_rigid_with_jacobian`` under the equidistant model."""
+    s = np.empty_like(p)
+    q = np.empty_like(p)
+    for i in range(p.shape[0]):
+        for j in range(3):
+            s[i, j] = R[j, 0] * p[i, 0] + R[j, 1] * p[i, 1] + R[j, 2] * p[i, 2]
+            q[i, j] = s[i, j] + t[j]
+    uv, duv_dq, in_front = _equidistant_project_with_jacobian(q, K, dist)
+    return uv, duv_dq, s, in_front

@@ -91,8 +91,7 @@ def _project_with_jacobian(
     """Pixels (2N,) of the points under the pose (R, t), and their Jacobian (2N, 6) over
     (w, dt). None if a point does not project (behind the camera, or beyond the lens
     model's reach)."""
-    s = points_target_m @ R.T
-    uv, duv_dq, in_front = camera.project_with_jacobian(s + t)
+    uv, duv_dq, s, in_front = camera.project_rigid_with_jacobian(points_target_m, R, t)
     if not in_front.all():
         return None
     return uv.reshape(-1), pose_rows(s, duv_dq)
@@ -237,7 +236,9 @@ def solve_joint_pose(
         return None
     points = target_points(target, detections)
     uv = np.concatenate([d.corners_px for d in detections]).reshape(-1)
-    sigma = np.broadcast_to(np.asarray(sigma_px, np.float64), (len(detections),))
+    sigma = np.asarray(sigma_px, np.float64)
+    if sigma.ndim == 0:
+        sigma = np.full(len(detections), float(sigma))
     w = np.repeat(1.0 / sigma**2, 8)  # each detection's 4 corners, x and y
     T_start = np.asarray(T_initial, np.float64)
     R, t = np.ascontiguousarray(T_start[:3, :3]), T_start[:3, 3].copy()
