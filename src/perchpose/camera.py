@@ -20,6 +20,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from perchpose import plumb_bob
 from perchpose.errors import CameraFileError, ImageError
 from perchpose.jit import compiled
 
@@ -125,7 +126,10 @@ class CameraModel:
         p = np.ascontiguousarray(np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3))
         if self.model == "equidistant":
             return _equidistant_project_with_jacobian(p, self.K, self.dist)
-        in_front = p[:, 2] > 1e-9
+        coefficients = self._plumb_bob_compiled
+        if coefficients is not None:
+            return plumb_bob.project_with_jacobian(p, self.K, coefficients)
+        in_front = p[:, 2] > plumb_bob.MIN_Z_M
         uv = np.full((p.shape[0], 2), np.nan)
         duv_dq = np.full((p.shape[0], 2, 3), np.nan)
         if np.any(in_front):
@@ -157,10 +161,30 @@ class CameraModel:
 
         uv_px : (N, 2) float pixels. Returns (N, 2) float64.
         """
+        uv = np.ascontiguousarray(np.asarray(uv_px, dtype=np.float64).reshape(-1, 2))
         if self.model == "equidistant":
-            uv = np.ascontiguousarray(np.asarray(uv_px, dtype=np.float64).reshape(-1, 2))
             return _equidistant_normalized(uv, self.K, self.dist)
-        return _on_plane(self.pixel_rays(uv_px))
+        return self._undistorted(uv)
+
+    def _undistorted(self, uv: Array) -> Array:
+        """Normalised points (N, 2) of pixels (N, 2) under the plumb_bob model."""
+        coefficients = self._plumb_bob_compiled
+        if coefficients is not None:
+            return plumb_bob.undistorted(np.ascontiguousarray(uv), self.K, coefficients)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+        xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, criteria=criteria)
+        return np.asarray(xy, np.float64).reshape(-1, 2)
+
+    @property
+    def _plumb_bob_compiled(self) -> Array | None:
+        """The 12 coefficients ``perchpose.plumb_bob`` takes, or None where OpenCV's own
+        functions serve (the fisheye model; a tilted sensor's 14 coefficients)."""
+        if self.model != "plumb_bob" or self.dist.size not in plumb_bob.COMPILED_LENGTHS:
+            return None
+        cached = self._cache.get("plumb_bob")
+        if cached is None:
+            cached = self._cache["plumb_bob"] = plumb_bob.padded(self.dist)
+        return np.asarray(cached, np.float64)
 
     def pixel_rays(self, uv_px: Array) -> Array:
         """Unit viewing rays (N, 3) in the camera frame for pixels (N, 2).
@@ -170,9 +194,7 @@ class CameraModel:
         uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
         if self.model == "equidistant":
             return _equidistant_rays(np.ascontiguousarray(uv), self.K, self.dist)
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, criteria=criteria)
-        xy = xy.reshape(-1, 2)
+        xy = self._undistorted(uv)
         rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
         return np.asarray(rays / np.linalg.norm(rays, axis=1, keepdims=True))
 
