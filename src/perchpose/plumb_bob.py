@@ -62,9 +62,7 @@ def _distorted(x: float, y: float, d: Array) -> tuple[float, float, float, float
 
 
 @compiled
-def project_with_jacobian(
-    p: Array, K: Array, d: Array
-) -> tuple[Array, Array, NDArray[np.bool_]]:
+def project_with_jacobian(p: Array, K: Array, d: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
     """Pixels (N, 2) of camera-frame points ``p`` (N, 3), d(u, v) / d(x, y, z) (N, 2, 3) and
     whether each is in front (z over ``MIN_Z_M``; NaN rows where not), under intrinsics ``K``
     and the 12 coefficients ``d`` (``padded``)."""
