@@ -267,8 +267,7 @@ class Track(ABC):
             self.filter = self._start(z, R, R_actual)
         else:
             self._coast(t_s - self.t_s)
-            R_used = self._noise(R)
-            R_used = np.asarray(R_used, np.float64)
+            R_used = np.asarray(self._noise(R), np.float64)
             y, S = self.filter.innovation(z, R_used)
             if mahalanobis2(y, S) > self.reinit_chi2:
                 self.filter = self._start(z, R, R_actual)

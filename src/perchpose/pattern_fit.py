@@ -26,7 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
+from perchpose.edge_geometry import largest_move, side_lengths
 from perchpose.pattern_model import REACH_SIGMAS, fit_pattern
+from perchpose.small_linalg import homography_of_4
 from perchpose.step_model import MIN_CONTRAST
 from perchpose.target import TargetSpec
 from perchpose.values import quad_side_px
@@ -158,17 +160,6 @@ class PatternFitSettings:
         return side_px / n_cells < self.below_cell_blurs * blur_px
 
 
-def _homography(src: Array, dst: Array) -> Array:
-    """The 8 entries (h33 = 1) of the homography taking 4 points ``src`` to ``dst``."""
-    A = np.zeros((8, 8))
-    rhs = np.zeros(8)
-    for k, ((x, y), (u, v)) in enumerate(zip(src, dst, strict=True)):
-        A[2 * k] = [x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]
-        A[2 * k + 1] = [0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]
-        rhs[2 * k], rhs[2 * k + 1] = u, v
-    return np.asarray(np.linalg.solve(A, rhs), np.float64)
-
-
 def _inverse(g: Array) -> Array | None:
     """The 8 entries (h33 = 1) of the inverse of homography ``g``, or None if it has none."""
     try:
@@ -284,14 +275,14 @@ def _start(corners: Array, camera: CameraModel, n: int) -> tuple[_MarkerPlane, A
     xy = camera.normalize(corners)
     if not np.isfinite(xy).all():
         return None
-    scale = float(np.mean(np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1))) / n
+    scale = 0.25 * float(side_lengths(np.ascontiguousarray(xy)).sum()) / n
     if not scale > 0:
         return None
     centre = xy.mean(axis=0)
-    try:
-        g = _homography((xy - centre) / scale, _square(n))
-    except np.linalg.LinAlgError:
+    found, H = homography_of_4(np.ascontiguousarray((xy - centre) / scale), _square(n))
+    if not found:
         return None
+    g = H.ravel()[:8].copy()
     return _MarkerPlane(camera, centre, scale), g
 
 
@@ -354,6 +345,6 @@ def refine_corners_pattern(
     refined, ok = plane.to_pixels(g, _square(n))
     if not ok.all() or not np.isfinite(refined).all():
         return None
-    if np.max(np.linalg.norm(refined - corners, axis=1)) > cfg.max_shift_cells * cell_px:
+    if largest_move(refined, corners) > cfg.max_shift_cells * cell_px:
         return None
     return np.asarray(refined, np.float64)
