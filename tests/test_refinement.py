@@ -104,3 +104,47 @@ def test_a_second_fit_may_land_apart_by_the_first_fits_own_noise(
     settled = fitter._settled(image, MarkerDetection(0, truth, "tracked"), first)
     assert (settled is second) == kept
     assert (settled is None) == (not kept)
+
+
+def test_a_quad_start_may_be_most_of_a_cell_off(
+    renderers: dict[str, Renderer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without fitted edges the pattern fit starts from the quad's own corners, which on
+    harsh frames can be 0.7 of a cell off: it may move a corner up to a cell from there."""
+    r = renderers["fpv"]
+    T = facing_pose(0.01, 0.0, r.camera.focal_px * 0.15 / 30.0, 0.4)
+    image = r.render(T, ImageQuality(blur_sigma_px=1.3, noise_sigma=2.0), np.random.default_rng(6))
+    truth = r.corners_px(T)[0]
+    assert truth is not None
+    cell_px = 30.0 / r.target.markers[0].cells.shape[0]
+    off = truth.copy()
+    off[0] += 0.8 * cell_px * np.array([0.6, -0.8])  # 0.8 of a cell off
+    fitter = CornerFitter(r.camera, r.target)
+    monkeypatch.setattr(fitter, "fit_edges", lambda grey, d: None)
+    fitted = fitter.fit_corners(image, MarkerDetection(0, off, "raw"))
+    assert fitted is not None
+    assert np.max(np.abs(fitted.corners_px - truth)) < 0.2
+    fitter.pattern_settings = replace(fitter.pattern_settings, max_shift_quad_cells=0.6)
+    assert fitter.fit_corners(image, MarkerDetection(0, off, "raw")) is None
+
+
+def test_once_a_fit_finds_the_video_banded_the_next_fits_take_the_bands_in(
+    renderers: dict[str, Renderer],
+) -> None:
+    """Interference belongs to the link: after a fit whose residuals show bands over the
+    rows, the next ``banded_fits`` pattern fits model them from the first round."""
+    r = renderers["fpv"]
+    T = facing_pose(0.01, 0.0, r.camera.focal_px * 0.15 / 36.0, 0.4)
+    rng = np.random.default_rng(7)
+    fitter = CornerFitter(r.camera, r.target)
+    clean = r.render(T, ImageQuality(blur_sigma_px=2.0, noise_sigma=4.0), rng)
+    banded = r.render(T, ImageQuality(blur_sigma_px=2.0, noise_sigma=4.0, interference=8.0), rng)
+    start = r.corners_px(T)[0]
+    assert start is not None
+    det = MarkerDetection(0, start, "raw")
+    assert fitter.fit_corners(clean, det) is not None
+    assert fitter.banded_fits_left == 0
+    assert fitter.fit_corners(banded, det) is not None
+    assert fitter.banded_fits_left == fitter.pattern_settings.banded_fits
+    assert fitter.fit_corners(clean, det) is not None
+    assert fitter.banded_fits_left == fitter.pattern_settings.banded_fits - 1

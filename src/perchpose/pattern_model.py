@@ -6,7 +6,9 @@ cover is their product. Only the bands within ``REACH_SIGMAS`` blur widths of th
 it at all (further, the CDFs differ from 0 and 1 by under 3.2e-5), so each pixel visits the
 few bands around it, not the whole grid. ``normal_equations`` sums the Gauss-Newton normal
 equations of the fit (the homography's 8 entries, log sigma, the grey levels) over the pixels
-without forming the Jacobian; ``fit_pattern`` runs the Gauss-Newton rounds on them.
+without forming the Jacobian, tests the residuals for bands over the image rows (analog
+interference) and, where asked, eliminates such bands from the equations; ``fit_pattern``
+runs the Gauss-Newton rounds on them.
 """
 
 from __future__ import annotations
@@ -25,6 +27,10 @@ Array = NDArray[np.float64]
 # from 0 and 1 by under 3.2e-5: a few thousandths of a grey level at a print's contrast, far
 # under any image's noise; 4 against 6 widths takes a fifth off the fit's time)
 REACH_SIGMAS = 4.0
+# bands over the rows show along the rows alone: the score test over the rows must be this
+# many times that over the columns (on harsh frames with interference it is over 4 times in
+# 9 fits of 10; shading, JPEG blocks and a misfit of the model show along both)
+ROWS_OVER_COLUMNS = 2.0
 
 
 @compiled
@@ -164,17 +170,28 @@ def normal_equations(
     values: Array,
     g: Array,
     blur_q: Array,
-    lines_u: Array,
-    lines_v: Array,
-    basis: Array,
+    grid: tuple[Array, Array, Array],
     levels: Array,
-) -> tuple[Array, Array, Array]:
+    row_bands: tuple[NDArray[np.int64], int, bool],
+) -> tuple[Array, Array, Array, tuple[float, float]]:
     """The normal equations (J^T J (N, N), J^T r (N,)) of the pattern model at pixels whose
     marker-plane points are ``q`` (P, 2) and grey ``values`` (P,), N = 9 + B: the homography
-    ``g`` (8,) from q to cells (u, v), log sigma and the B ``levels`` of ``basis`` (B, Nv, Nu:
-    where each level is printed on the grid of bands between ``lines_u`` (Nu + 1,) and
-    ``lines_v`` (Nv + 1,)). ``blur_q`` (2, 2): the blur sigma times d(q)/d(pixel x) and
-    d(q)/d(pixel y). Also each basis's largest cover of a pixel (B,)."""
+    ``g`` (8,) from q to cells (u, v), log sigma and the B ``levels`` of ``grid``'s basis (B,
+    Nv, Nu: where each level is printed on the grid of bands between its lines_u (Nu + 1,)
+    and lines_v (Nv + 1,)). ``blur_q`` (2, 2): the blur sigma times d(q)/d(pixel x) and
+    d(q)/d(pixel y). Also each basis's largest cover of a pixel (B,).
+
+    ``row_bands``: (each pixel's image row and column (P, 2), counted from 0; K;
+    eliminate). The grey may have an offset that changes smoothly from row to row (the bands
+    of analog interference, or of a rolling shutter under flickering light): the first K
+    cosines of the row (cos(pi k (row + 1/2) / rows), k = 1..K) times unknown amplitudes.
+    Returns, besides the equations, how much of the squared residuals those cosines would
+    take away, over what they would by chance (about 1 without bands), and the same for K
+    cosines over the columns (the control: shading, or a misfit of the model, shows along
+    both; bands along the rows alone); NaN where K = 0. With eliminate, the amplitudes over
+    the rows are eliminated from the equations (they are linear: the equations are those of
+    the other parameters at the amplitudes that fit best)."""
+    lines_u, lines_v, basis = grid
     B, Nv, Nu = basis.shape
     N = 9 + B
     JtJ = np.zeros((N, N))
@@ -188,6 +205,12 @@ def normal_equations(
     for b in range(B):
         printed += levels[b] * basis[b]
     J = np.zeros(N)
+    pixel_of, n_row_bands, eliminate = row_bands
+    none = n_row_bands == 0 or pixel_of.shape[0] == 0
+    n_rows = 0 if none else int(pixel_of[:, 0].max()) + 1
+    n_cols = 0 if none else int(pixel_of[:, 1].max()) + 1
+    row_sums = np.zeros((n_rows, N + 3))  # per row: the sums of J, r, 1 and r^2
+    col_sums = np.zeros((n_cols, 2))  # per column: the sums of r and 1
     lo_u = lo_v = 0
     for p in range(q.shape[0]):
         qx, qy = q[p, 0], q[p, 1]
@@ -221,7 +244,114 @@ def normal_equations(
         for b in range(B):
             cover_max[b] = max(cover_max[b], J[9 + b])
         _accumulate(JtJ, Jtr, J, model - values[p])
-    return JtJ + np.triu(JtJ, 1).T, Jtr, cover_max
+        if n_rows > 0:
+            r = model - values[p]
+            _add_to_line(row_sums[pixel_of[p, 0]], col_sums[pixel_of[p, 1]], J, r)
+    JtJ = JtJ + np.triu(JtJ, 1).T
+    banding = _banding(JtJ, Jtr, (row_sums, col_sums), n_row_bands, eliminate)
+    return JtJ, Jtr, cover_max, banding
+
+
+@compiled
+def _banding(
+    JtJ: Array, Jtr: Array, sums: tuple[Array, Array], n_bands: int, eliminate: bool
+) -> tuple[float, float]:
+    """``normal_equations``'s two score tests, from the rows' and the columns' ``sums``
+    (``_add_to_line``), with up to ``n_bands`` cosines; with ``eliminate``, the cosines over
+    the rows eliminated from the equations."""
+    row_sums, col_sums = sums
+    n_rows, n_cols = row_sums.shape[0], col_sums.shape[0]
+    if n_rows < 2 or n_cols < 2:
+        return math.nan, math.nan
+    K = min(n_bands, n_rows - 1, n_cols - 1)
+    N = row_sums.shape[1] - 3
+    along_rows = _row_bands(JtJ, Jtr, row_sums, K, eliminate)
+    columns = np.zeros((n_cols, 3))
+    columns[:, :2] = col_sums
+    along_columns = _row_bands(JtJ, Jtr, columns, K, False) * _chance(row_sums, N, K)
+    return along_rows, along_columns
+
+
+@compiled
+def _add_to_line(sums: Array, column_sums: Array, J: Array, r: float) -> None:
+    """Adds a pixel's Jacobian row ``J`` (N,) and residual ``r`` to its image row's ``sums``
+    (N + 3,: of J, r, 1 and r^2) and its column's (2,: of r and 1)."""
+    N = J.shape[0]
+    for a in range(N):
+        sums[a] += J[a]
+    sums[N] += r
+    sums[N + 1] += 1.0
+    sums[N + 2] += r * r
+    column_sums[0] += r
+    column_sums[1] += 1.0
+
+
+@compiled
+def _row_bands(JtJ: Array, Jtr: Array, row_sums: Array, K: int, eliminate: bool) -> float:
+    """How many times more of the squared residuals K cosines over the rows would take away
+    than they would by chance (a score test), from each row's sums of J, r, 1 and r^2
+    (``row_sums``, (rows, N + 3)); with ``eliminate``, the normal equations with the
+    cosines' amplitudes eliminated (their Schur complement). NaN where the cosines cannot be
+    told apart over these rows."""
+    n_rows, N = row_sums.shape[0], row_sums.shape[1] - 3
+    G = np.zeros((K, K))  # sum of phi phi^T over the pixels
+    A = np.zeros((K, N + 1))  # sum of phi J^T, and of phi r in the last column
+    phi = np.empty(K)
+    for row in range(n_rows):
+        for k in range(K):
+            phi[k] = math.cos(math.pi * (k + 1) * (row + 0.5) / n_rows)
+        for k in range(K):
+            for m in range(K):
+                G[k, m] += row_sums[row, N + 1] * phi[k] * phi[m]
+            for a in range(N + 1):
+                A[k, a] += phi[k] * row_sums[row, a]
+    X = np.empty((K, N + 1))  # G^-1 A
+    for a in range(N + 1):
+        column = A[:, a].copy()
+        if not solve_in_place(G.copy(), column):
+            return math.nan
+        X[:, a] = column
+    if eliminate:
+        _eliminate(JtJ, Jtr, A, X)
+    explained = 0.0
+    for k in range(K):
+        explained += A[k, N] * X[k, N]
+    if N == 0:  # no Jacobian sums: the explained squares alone
+        return explained
+    return explained * _chance(row_sums, N, K)
+
+
+@compiled
+def _chance(row_sums: Array, N: int, K: int) -> float:
+    """1 / (K times the residuals' variance): what K cosines take away by chance, inverted,
+    from the rows' sums of r, 1 and r^2 (the last 3 columns of ``row_sums``)."""
+    dof = np.sum(row_sums[:, N + 1]) - N - K
+    squares = np.sum(row_sums[:, N + 2])
+    if not (dof > 0 and squares > 0):
+        return math.nan
+    return float(dof / squares / K)
+
+
+@compiled
+def banded(banding: tuple[float, float], above: float) -> bool:
+    """Whether the residuals show bands over the rows (``normal_equations``'s two ratios):
+    over ``above`` along the rows, and over ``ROWS_OVER_COLUMNS`` times what they show along
+    the columns."""
+    rows, columns = banding
+    return rows > above and rows > ROWS_OVER_COLUMNS * columns
+
+
+@compiled
+def _eliminate(JtJ: Array, Jtr: Array, A: Array, X: Array) -> None:
+    """Subtracts A^T X from the normal equations (the last column of A and X: the
+    residuals')."""
+    K, N = A.shape[0], A.shape[1] - 1
+    for a in range(N):
+        for c in range(N):
+            for k in range(K):
+                JtJ[a, c] -= A[k, a] * X[k, c]
+        for k in range(K):
+            Jtr[a] -= A[k, a] * X[k, N]
 
 
 @compiled
@@ -243,7 +373,8 @@ def fit_pattern(
     grid: tuple[Array, Array, Array],
     start: tuple[Array, float, Array],
     rounds: tuple[int, Array, float],
-) -> tuple[bool, Array, float, Array]:
+    row_bands: tuple[NDArray[np.int64], int, float],
+) -> tuple[bool, Array, float, Array, tuple[float, float]]:
     """Gauss-Newton on the pattern model (``normal_equations``) of pixels at marker-plane
     points ``q`` (P, 2) of grey ``values`` (P,); ``q_per_px`` (2, 2): d(q)/d(pixel x),
     d(q)/d(pixel y); ``grid``: the print (lines_u, lines_v, basis). From ``start``: the
@@ -252,23 +383,37 @@ def fit_pattern(
     corners by under ``stop`` (about: the largest change of an entry of g times its ``reach``
     (8,), how far a unit change of it moves a corner) and the blur by under 0.3 %.
     Where the last basis is the off-sheet grey and no pixel sees the sheet's edge in the first
-    round, that level is dropped (it could not be fitted). Returns (solved, g, log sigma,
-    levels); solved is False where the normal equations were singular."""
+    round, that level is dropped (it could not be fitted). ``row_bands``: each pixel's image
+    row, how many cosines over the rows the grey may have (``normal_equations``) and
+    banded_above: where the fit without them ends with residuals that they would take over
+    banded_above times as much of as chance would, it goes on with them for as many rounds
+    again (0: with them from the first round). Also returns that ratio, at the fit's last
+    round (the cosines' amplitudes are never part of the model's residuals: with them
+    eliminated the ratio still measures the bands).
+    Returns (solved, g, log sigma, levels, that ratio); solved is False where the normal
+    equations were singular."""
     lines_u, lines_v, basis = grid
     g, log_sigma, levels = start[0].copy(), start[1], start[2].copy()
     iterations, reach, stop = rounds
-    for it in range(iterations):
+    row_of, n_row_bands, banded_above = row_bands
+    eliminate = not banded_above > 0
+    banding = (math.nan, math.nan)
+    it = 0
+    while it < iterations:
         blur_q = math.exp(log_sigma) * q_per_px
-        JtJ, Jtr, cover_max = normal_equations(
-            q, values, g, blur_q, lines_u, lines_v, basis, levels
+        how = (row_of, n_row_bands, eliminate)
+        JtJ, Jtr, cover_max, banding = normal_equations(
+            q, values, g, blur_q, (lines_u, lines_v, basis), levels, how
         )
-        if it == 0 and basis.shape[0] == 3 and not cover_max[2] > 1e-3:
+        if it == 0 and not eliminate and basis.shape[0] == 3 and not cover_max[2] > 1e-3:
             basis, levels = basis[:2], levels[:2]
-            JtJ, Jtr, _ = normal_equations(q, values, g, blur_q, lines_u, lines_v, basis, levels)
+            JtJ, Jtr, _, banding = normal_equations(
+                q, values, g, blur_q, (lines_u, lines_v, basis), levels, how
+            )
         for a in range(Jtr.shape[0]):
             JtJ[a, a] += 1e-9
         if not solve_in_place(JtJ, Jtr):
-            return False, g, log_sigma, levels
+            return False, g, log_sigma, levels, banding
         step = Jtr
         g -= step[:8]
         log_sigma -= min(0.5, max(-0.5, step[8]))
@@ -276,6 +421,9 @@ def fit_pattern(
         moved = 0.0
         for a in range(8):
             moved = max(moved, abs(step[a]) * reach[a])
-        if moved < stop and abs(step[8]) < 3e-3:
-            break
-    return True, g, log_sigma, levels
+        it += 1
+        if (moved < stop and abs(step[8]) < 3e-3) or it == iterations:
+            if eliminate or not banded(banding, banded_above):
+                break
+            eliminate, it = True, 0
+    return True, g, log_sigma, levels, banding

@@ -13,9 +13,17 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.corners import EdgeFit, fit_marker_edges
-from perchpose.pattern_fit import PatternFitSettings, printed_pattern, refine_corners_pattern
+from perchpose.pattern_fit import (
+    PatternFitSettings,
+    PrintedPattern,
+    printed_pattern,
+    refine_corners_pattern,
+)
+from perchpose.pattern_model import banded
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection, corners_sd_px
+
+Array = NDArray[np.float64]
 
 # A predicted marker whose fitted corners end further than this (px) from where they were
 # predicted is fitted again from them, and that second fit must move them less than this
@@ -53,6 +61,9 @@ class CornerFitter:
         self.patterns = [printed_pattern(target, i) for i in range(len(target.markers))]
         self.pattern_settings = PatternFitSettings()
         self.pattern_s = 0.0
+        # how many more pattern fits take bands over the rows in from their first round: the
+        # latest fits found the video banded (``PatternFitSettings``)
+        self.banded_fits_left = 0
         # the blur sigma (px) the latest successful edge fit found; None until one does or
         # after ``forget_blur``
         self.blur_px: float | None = None
@@ -117,9 +128,7 @@ class CornerFitter:
             # (``blur_px``): it also decides whether the fit runs on 2x2 blocks (a harsh
             # frame's 37 px marker: 6 ms on pixels from 1 px, 2 ms on blocks)
             blur = edges.blur_px if edges is not None else (self.blur_px or 1.0)
-            fitted = refine_corners_pattern(
-                grey, start, self.camera, printed, self.pattern_settings, blur
-            )
+            fitted = self._fit_pattern(grey, start, printed, blur, edges is None)
             self.pattern_s = time.perf_counter() - t0
             if fitted is not None:
                 return MarkerDetection(det.marker_index, fitted, det.image_pass, None)
@@ -130,6 +139,28 @@ class CornerFitter:
         return MarkerDetection(
             det.marker_index, edges.corners_px, det.image_pass, edges.covariance_px2
         )
+
+    def _fit_pattern(
+        self,
+        grey: NDArray[np.uint8],
+        start: Array,
+        printed: PrintedPattern,
+        blur_px: float,
+        from_quad: bool,
+    ) -> Array | None:
+        """The pattern fit's corners from ``start`` (``from_quad``: a found quad's corners),
+        with bands over the rows from the first round where recent fits found them."""
+        cfg = self.pattern_settings
+        known = self.banded_fits_left > 0
+        fit = refine_corners_pattern(
+            grey, start, self.camera, printed, cfg, blur_px, from_quad=from_quad, banded=known
+        )
+        self.banded_fits_left = max(0, self.banded_fits_left - 1)
+        if fit is None:
+            return None
+        if banded(fit.banding, cfg.banded_fits_above):
+            self.banded_fits_left = cfg.banded_fits
+        return fit.corners_px
 
     def _settled(
         self, grey: NDArray[np.uint8], det: MarkerDetection, edges: EdgeFit
