@@ -1,5 +1,5 @@
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -289,3 +289,24 @@ def test_interference_bands_and_streaks_are_seeded(renderers: dict[str, Renderer
     plain = r.render(T, ImageQuality(noise_sigma=0.0, blur_sigma_px=0.0)).astype(float)
     rows = np.median((a.astype(float) - plain)[:, :100], axis=1)
     assert 10.0 <= rows.max() - rows.min() <= 13.0
+
+
+def test_the_mean_image_is_the_frame_before_the_sensor(renderers: dict[str, Renderer]) -> None:
+    """``mean_image`` is what ``render`` rounds where there is no noise, and the mean of its
+    noisy frames where there is (the harsh preset's optics: glare, vignetting, motion blur,
+    rolling shutter; the surround saturates)."""
+    r = renderers["fpv"]
+    T = facing_pose(0.02, -0.01, 1.2, 0.3)
+    harsh = ImageQuality.preset("harsh")
+    quiet = replace(harsh, noise_sigma=0.0, interference=0.0, jpeg_quality=None)
+    mean = r.mean_image(T, quiet)
+    assert mean.dtype == np.float32
+    assert float(mean.max()) == 255.0
+    assert np.max(np.abs(r.render(T, quiet).astype(np.float64) - mean)) <= 0.5 + 1e-4
+    noisy = replace(quiet, noise_sigma=8.0)
+    assert np.array_equal(r.mean_image(T, noisy), mean)
+    rng = np.random.default_rng(9)
+    frames = np.mean([r.render(T, noisy, rng).astype(np.float64) for _ in range(64)], axis=0)
+    unclipped = (mean > 30) & (mean < 225)  # rounding at 0 and 255 biases the mean there
+    assert abs(float(np.mean((frames - mean)[unclipped]))) < 0.05
+    assert float(np.std((frames - mean)[unclipped])) < 1.2  # 8 / sqrt(64) = 1

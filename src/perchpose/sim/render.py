@@ -352,6 +352,12 @@ class Renderer(Generic[P]):
         is computed in the box grown by its reach; occluders take the whole frame. Vignetting,
         motion blur, noise and JPEG follow, on the pixels."""
         q = quality or ImageQuality()
+        return self._sense(self._light(T_camera_target, q, occluders), q, rng)
+
+    def _light(
+        self, T_camera_target: Array, q: ImageQuality, occluders: tuple[Occluder, ...]
+    ) -> NDArray[np.float32]:
+        """The light on the pixels (``render`` before the sensor), not yet clipped."""
         w, h = self.camera.size
         n = self.supersample
         gain = np.float32(q.exposure * (q.white_level - q.black_level))
@@ -388,15 +394,24 @@ class Renderer(Generic[P]):
                 img[y0:y1, x0:x1] = _bin(light, n)
             for occ in occluders:
                 cv2.fillPoly(img, [np.round(occ.polygon_px).astype(np.int32)], float(occ.grey))
-        return self._degrade(img, q, rng)
+        return self._after_lens(img, q)
 
-    def _degrade(
-        self, img: NDArray[np.float32], q: ImageQuality, rng: np.random.Generator | None
-    ) -> NDArray[np.uint8]:
-        """What happens to the light after the lens: glare, vignetting, motion blur, rolling
-        shutter, sensor noise and interference, 8-bit quantisation and JPEG."""
-        w, h = self.camera.size
-        generator = rng if rng is not None else np.random.default_rng(0)
+    def mean_image(
+        self,
+        T_camera_target: Array,
+        quality: ImageQuality | None = None,
+        occluders: tuple[Occluder, ...] = (),
+    ) -> NDArray[np.float32]:
+        """The grey (H, W) float32 frame ``render`` draws before the sensor's noise,
+        interference, 8-bit rounding and JPEG, clipped to [0, 255] as the sensor saturates:
+        the mean of the frames it renders with noise alone, whose derivatives by the pose
+        bound any estimate from them (the Cramer-Rao bound)."""
+        light = self._light(T_camera_target, quality or ImageQuality(), occluders)
+        return np.asarray(np.clip(light, 0.0, 255.0), np.float32)
+
+    def _after_lens(self, img: NDArray[np.float32], q: ImageQuality) -> NDArray[np.float32]:
+        """What happens to the light after the lens: glare, vignetting, motion blur and
+        rolling shutter."""
         if q.bloom > 0 and q.bloom_sigma_px > 0:
             excess = np.maximum(img - np.float32(SATURATION), np.float32(0.0))
             if float(excess.max()) > 0:
@@ -409,6 +424,15 @@ class Renderer(Generic[P]):
             img = np.asarray(cv2.filter2D(img, -1, kernel), np.float32)
         if q.rolling_shutter_px != 0:
             img = _rolling_shutter(img, q.rolling_shutter_px)
+        return img
+
+    def _sense(
+        self, img: NDArray[np.float32], q: ImageQuality, rng: np.random.Generator | None
+    ) -> NDArray[np.uint8]:
+        """What the sensor and the link do to the light: noise and interference, 8-bit
+        quantisation and JPEG."""
+        w, h = self.camera.size
+        generator = rng if rng is not None else np.random.default_rng(0)
         if q.noise_sigma > 0:
             if self.noise_bank:
                 bank = self._noise_bank()
