@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -5,6 +7,7 @@ from perchpose import CameraModel, MarkerSpec, PerchingEstimator, TargetSpec
 from perchpose.consistency import disagreements
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import Occluder, Renderer
+from perchpose.values import MarkerDetection
 
 POSE = facing_pose(0.01, 0.0, 0.35, 0.2)
 
@@ -82,3 +85,40 @@ def test_markers_of_one_print_agree(renderers: dict[str, Renderer]) -> None:
         measured = {m.measurement.marker_index: m.measurement for m in e.markers if m.measurement}
         assert len(measured) == 2
         assert disagreements(r.camera, r.target, measured, 0.1) == []
+
+
+def test_a_marker_whose_corners_say_they_are_noisy_is_judged_by_their_noise(
+    renderers: dict[str, Renderer],
+) -> None:
+    """The inner marker's corners moved by about a pixel, as an unfitted quad's are on a
+    blurred frame: judged at 0.1 px it disagrees with the outer marker; carrying the
+    covariance its corner fit would report (1.2 px) it is fused, and the pose holds."""
+    r = renderers["fpv"]
+    pose = facing_pose(0.02, -0.01, 0.3, 0.5)
+    est = PerchingEstimator(r.camera, r.target)
+    detections = est.detector.detect(r.render(pose, rng=np.random.default_rng(5)))
+    assert {d.marker_index for d in detections} == {0, 1}
+    shake = np.random.default_rng(6).normal(0.0, 1.0, (4, 2))
+
+    def moved(variance_px2: float) -> tuple[MarkerDetection, ...]:
+        return tuple(
+            replace(
+                d,
+                corners_px=d.corners_px + shake,
+                corner_covariance_px2=variance_px2 * np.eye(8),
+            )
+            if d.marker_index == 1
+            else d
+            for d in detections
+        )
+
+    quiet = PerchingEstimator(r.camera, r.target).update_detections(moved(0.01), 0.0)
+    assert not quiet.valid
+    assert "disagrees" in quiet.markers[1].rejected
+    noisy = PerchingEstimator(r.camera, r.target).update_detections(moved(1.44), 0.0)
+    assert noisy.valid
+    assert noisy.markers[1].rejected == ""
+    assert noisy.z_cm == pytest.approx(30.0, rel=0.01)
+    measured = {m.measurement.marker_index: m.measurement for m in noisy.markers if m.measurement}
+    assert disagreements(r.camera, r.target, measured, 0.1) != []
+    assert disagreements(r.camera, r.target, measured, {0: 0.1, 1: 1.2}) == []

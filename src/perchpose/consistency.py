@@ -4,6 +4,7 @@ target file whose sizes do not match the print) is dropped rather than fused."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,21 +53,27 @@ def disagreements(
     camera: CameraModel,
     target: TargetSpec,
     measurements: dict[int, MarkerPose],
-    sigma_px: float,
+    sigma_px: float | Mapping[int, float],
     gate_chi2: float = DISAGREE_CHI2,
 ) -> list[Disagreement]:
-    """Every measured marker whose position disagrees with the largest measured marker's."""
+    """Every measured marker whose position disagrees with the largest measured marker's;
+    ``sigma_px``: the corner noise, one value or one per marker index."""
     if len(measurements) < 2:
         return []
+
+    def sigma_of(index: int) -> float:
+        return float(sigma_px) if isinstance(sigma_px, (int, float)) else sigma_px[index]
+
     reference = min(measurements)
-    cov_ref = position_covariance(camera, target, measurements[reference], sigma_px)
+    ref = measurements[reference]
+    cov_ref = position_covariance(camera, target, ref, sigma_of(reference))
     if cov_ref is None:
         return []
     found = []
     for index, pose in measurements.items():
         if index == reference:
             continue
-        cov = position_covariance(camera, target, pose, sigma_px)
+        cov = position_covariance(camera, target, pose, sigma_of(index))
         if cov is None:
             continue
         chi2 = position_chi2(measurements[reference].t_m, cov_ref, pose.t_m, cov)

@@ -37,6 +37,7 @@ from perchpose.values import (
     MarkerState,
     PoseFailure,
     Timings,
+    corners_sd_px,
 )
 from perchpose.windows import extrapolated
 
@@ -204,7 +205,7 @@ class PerchingEstimator:
     ) -> Estimate:
         t1 = time.perf_counter()
         measurements, rejected = self._measure(detections, t)
-        self._drop_disagreeing(measurements, rejected, t)
+        self._drop_disagreeing(detections, measurements, rejected, t)
         t2 = time.perf_counter()
         return self._filter_and_fuse(t, detections, measurements, rejected, (t0, t1, t2), corners_s)
 
@@ -247,12 +248,23 @@ class PerchingEstimator:
         return measurements, rejected
 
     def _drop_disagreeing(
-        self, measurements: dict[int, MarkerPose], rejected: dict[int, str], t: float
+        self,
+        detections: tuple[MarkerDetection, ...],
+        measurements: dict[int, MarkerPose],
+        rejected: dict[int, str],
+        t: float,
     ) -> None:
         """Markers whose positions disagree beyond ``disagree_chi2`` are not fused: the one
         nearer the filter's prediction stays; without a prediction neither does (the frame
-        then has no measurement, and the reason is in each marker's ``rejected``)."""
-        sigma = self.covariance_filter.corner_sigma_px
+        then has no measurement, and the reason is in each marker's ``rejected``). Each
+        marker's corner noise is ``corner_sigma_px`` or, where larger, what its corner fit
+        reports (an unfitted quad's corners on a blurred frame: a pixel or more)."""
+        floor = self.covariance_filter.corner_sigma_px
+        sigma = dict.fromkeys(measurements, floor)
+        for det in detections:
+            own = det.corner_covariance_px2
+            if det.marker_index in sigma and own is not None:
+                sigma[det.marker_index] = max(floor, corners_sd_px(own))
         found = disagreements(self.camera, self.target, measurements, sigma, self.disagree_chi2)
         if not found:
             return
