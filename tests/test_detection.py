@@ -473,10 +473,11 @@ def test_a_lost_target_is_looked_for_every_way_in_turn(
 ) -> None:
     """A frame under glare with no target in it: each frame takes a quick look at it (one
     threshold window) the way that found the target last (none yet: the frame as it is) and
-    one way more, every clip level of the frame itself, then each through the lens's pinhole
-    view (searched at half its size); then searches it thoroughly the first way, with OpenCV's
-    other two windows: on every frame, or with ``thorough_every`` on the first and then every
-    that many, and again on the first after ``restart``."""
+    one way more: on every other frame the ladder's next (the first clip level), and between
+    them each other way in turn, every clip level of the frame itself, then each through the
+    lens's pinhole view (searched at half its size). It searches the frame thoroughly, with
+    OpenCV's other two windows, on every frame, or with ``thorough_every`` on the first and
+    then every that many, each time at the next clip level of the frame itself."""
     from perchpose import detection
 
     r = renderers["fpv"]
@@ -498,16 +499,20 @@ def test_a_lost_target_is_looked_for_every_way_in_turn(
     ladder = detector.search_ladder(glare=True)
     assert len(ladder) == 2 * len(detection.GLARE_CLIP_LEVELS)
     per_frame = []
-    for _ in range(len(ladder) - 1):
+    for _ in range(2 * (len(ladder) - 2)):
         searched.clear()
         assert detector.detect(frame) == ()
         per_frame.append(list(searched))
     ways = [(view, 255 if level is None else level) for level, view in ladder]
+    n_levels = len(detection.GLARE_CLIP_LEVELS)
+    thorough = 0
     for k, frame_searches in enumerate(per_frame):
         tried = [(view, level, which) for view, level, _, which in frame_searches]
-        expected = [(*ways[0], "quick"), (*ways[k + 1], "quick")]
+        second = ways[1] if k % 2 == 0 else ways[k // 2 + 2]
+        expected = [(*ways[0], "quick"), (*second, "quick")]
         if thorough_every is None or k % thorough_every == 0:
-            expected.append((*ways[0], "rest"))
+            expected.append((*ways[thorough % n_levels], "rest"))
+            thorough += 1
         assert tried == expected
     rectified_shape = detector._rectification.coarse_maps[0].shape
     for frame_searches in per_frame:

@@ -188,6 +188,10 @@ class MarkerDetector:
         self._rung: tuple[int | None, ImagePass] = (None, "raw")
         # where in the ladder the search for a lost target has got to
         self._explored = 0
+        # thorough whole-frame searches, and frames looked at a second way, since the target
+        # was last found (``_look``)
+        self._thorough_turn = 0
+        self._second_turn = 0
         # the time budget of the current ``detect``, what it left out, and the pattern fit's
         # cost per square pixel of marker side (learnt from the fits run; first guess
         # ``PATTERN_S_PER_PX2``)
@@ -198,8 +202,10 @@ class MarkerDetector:
         self._quick_s = 0.0  # a quick look's, likewise
 
     def restart(self) -> None:
-        """A new run of frames: the next frame without the target is searched thoroughly."""
+        """A new run of frames: the next frame without the target is searched thoroughly, and
+        the other ways of the ladder are gone through from its start."""
         self._quick_only = None
+        self._thorough_turn = self._second_turn = 0
 
     def detect(
         self,
@@ -315,6 +321,22 @@ class MarkerDetector:
             self._explored = (self._explored + 1) % len(ladder)
         return ladder[self._explored]
 
+    def _second_way(
+        self, ladder: list[tuple[int | None, ImagePass]], first: tuple[int | None, ImagePass]
+    ) -> tuple[int | None, ImagePass]:
+        """The way a frame without the target is looked at after ``first``: on every other
+        such frame the ladder's first way but ``first`` (under glare, the first clip level of
+        the frame), else the next other way not yet tried (``_next_way``). A target that one way
+        finds on some frames only (small and noisy) is then found within a few frames, not
+        once the whole ladder has been gone through (twelve frames through a fisheye under
+        glare)."""
+        priority = next(way for way in ladder if way != first)
+        self._second_turn += 1
+        if self._second_turn % 2 == 1 or len(ladder) <= 2:
+            return priority
+        way = self._next_way(ladder, first)
+        return self._next_way(ladder, first) if way == priority else way
+
     @staticmethod
     def _second_label(rung: tuple[int | None, ImagePass]) -> str:
         """What ``skipped`` calls the second way of searching a frame, left out."""
@@ -343,7 +365,7 @@ class MarkerDetector:
         under about 15 px); with ``thorough_every``, only on every that many-th frame since the
         target was last found or the frame last searched so, and on the first after
         ``restart``."""
-        ways = [first] if len(ladder) == 1 else [first, self._next_way(ladder, first)]
+        ways = [first] if len(ladder) == 1 else [first, self._second_way(ladder, first)]
         for k, way in enumerate(ways):
             if k == 0 and looked:
                 continue
@@ -363,9 +385,25 @@ class MarkerDetector:
             self.skipped.append("search")
             return ()
         # the quick look had OpenCV's widest threshold window: the other two make up the rest
-        seen = self._seen(grey, first[0])
-        found = self._thorough(seen, (), first[1], detector=self.quads.rest)
-        return self._found_by(self._fit_found(grey, seen, found), first)
+        way = self._thorough_way(ladder, first)
+        seen = self._seen(grey, way[0])
+        found = self._thorough(seen, (), way[1], detector=self.quads.rest)
+        return self._found_by(self._fit_found(grey, seen, found), way)
+
+    def _thorough_way(
+        self, ladder: list[tuple[int | None, ImagePass]], first: tuple[int | None, ImagePass]
+    ) -> tuple[int | None, ImagePass]:
+        """The way a lost target's next thorough search goes: the ways of ``first``'s view in
+        the ladder's order, one a search, from ``first`` on. Under glare that takes in every
+        clip level: the quick look's one threshold window misses small markers at any level,
+        and the frame itself, unclipped, seldom shows them at all (the harsh approach through
+        ``fpv_wide``, 20-23 px at 150 cm: found at clip level 108 by the thorough search
+        alone)."""
+        same_view = [way for way in ladder if way[1] == first[1]]
+        start = same_view.index(first) if first in same_view else 0
+        way = same_view[(start + self._thorough_turn) % len(same_view)]
+        self._thorough_turn += 1
+        return way
 
     def _quick_look(
         self, grey: NDArray[np.uint8], way: tuple[int | None, ImagePass]
@@ -438,6 +476,7 @@ class MarkerDetector:
         if found:
             self._rung = rung if self.corners == "edges" else (rung[0], "raw")
             self._quick_only = 0
+            self._thorough_turn = self._second_turn = 0
         return found
 
     def search_ladder(self, glare: bool) -> list[tuple[int | None, ImagePass]]:
