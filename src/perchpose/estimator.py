@@ -153,6 +153,9 @@ class PerchingEstimator:
         self._markers = MarkerFilters(len(self.target.markers), self.kalman)
         self._fusion = self._new_fusion()
         self._last_R: list[Array | None] = [None] * len(self.target.markers)
+        # whether each last rotation was settled: by reprojection, or by a settled reference
+        self._settled: list[bool] = [True] * len(self.target.markers)
+        self._settled_now: dict[int, bool] = {}
         self._last_t_s: float | None = None
         # the last two frames' detections and their times (tracking's hint: where the markers
         # should be now, at the pace they moved between those frames)
@@ -217,17 +220,26 @@ class PerchingEstimator:
         # Each marker's two IPPE solutions are scored by reprojection and by agreement with the
         # rotation expected: the largest marker measured in this frame (all markers measure
         # the same target frame) when there is one; else the marker's last rotation (or any
-        # marker's) turned to the yaw the filter predicts for this frame.
+        # marker's) turned to the yaw the filter predicts for this frame. A rotation that was
+        # itself a toss-up (both solutions reprojecting alike, with nothing settled to go by)
+        # is no reference: the next frame chooses by reprojection again.
+        self._settled_now = {}
         for det in sorted(detections, key=lambda d: -d.side_px):
             if det.marker_index not in self.markers:
                 continue
             reference: Array | None
             if measurements:
-                reference = next(iter(measurements.values())).T_camera_target[:3, :3]
+                first = next(iter(measurements))
+                reference = measurements[first].T_camera_target[:3, :3]
+                referred = self._settled_now[first]
             else:
-                reference = self._last_R[det.marker_index]
+                settled = [
+                    R if ok else None for R, ok in zip(self._last_R, self._settled, strict=True)
+                ]
+                reference = settled[det.marker_index]
                 if reference is None:
-                    reference = next((R for R in self._last_R if R is not None), None)
+                    reference = next((R for R in settled if R is not None), None)
+                referred = reference is not None
                 yaw_predicted = self._predicted_yaw_rad(det.marker_index, t)
                 if reference is not None and yaw_predicted is not None:
                     turn = angle_diff_rad(yaw_predicted, yaw_rad(reference))
@@ -245,6 +257,8 @@ class PerchingEstimator:
                 rejected[det.marker_index] = f"reprojection {result.reproj_rms_px:.1f} px"
             else:
                 measurements[det.marker_index] = result
+                settled_now = not result.ambiguous or (referred and reference is not None)
+                self._settled_now[det.marker_index] = settled_now
         return measurements, rejected
 
     def _drop_disagreeing(
@@ -313,6 +327,7 @@ class PerchingEstimator:
         for i, track in enumerate(self._markers.tracks):
             if i in measurements:
                 self._last_R[i] = measurements[i].T_camera_target[:3, :3].copy()
+                self._settled[i] = self._settled_now.get(i, True)
             elif not track.alive:
                 self._last_R[i] = None
         self._last_t_s = t
