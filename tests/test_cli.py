@@ -1,3 +1,4 @@
+import importlib
 import json
 import signal
 import subprocess
@@ -370,3 +371,41 @@ def test_bench_refuses_a_source_without_its_calibration(
     )
     assert code == 2
     assert "missing" in _single_error_line(err)
+
+
+def test_a_signal_inside_a_compiled_call_ends_the_run_as_the_signal_does(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """SIGHUP handled while numba's compiled code calls back into Python comes out of those
+    calls as a chain of SystemErrors with the interrupt at its root: the run still ends with
+    128 + the signal and one line, not a traceback and exit code 1."""
+    main_module = importlib.import_module("perchpose.cli.main")
+
+    def compiled_call_interrupted(*args: object, **kwargs: object) -> None:
+        try:
+            try:
+                raise main_module.Terminated(signal.SIGHUP)
+            except KeyboardInterrupt as exc:
+                raise SystemError(
+                    "_numba_unpickle returned a result with an exception set"
+                ) from exc
+        except SystemError as exc:
+            raise SystemError("CPUDispatcher returned a result with an exception set") from exc
+
+    monkeypatch.setattr(main_module.group, "main", compiled_call_interrupted)
+    code, _, err = _run(["track"], capsys)
+    assert code == 128 + signal.SIGHUP
+    assert err.strip() == "perchpose: terminated (SIGHUP)"
+
+
+def test_a_system_error_of_its_own_is_not_taken_for_a_signal(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    main_module = importlib.import_module("perchpose.cli.main")
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise SystemError("something else")
+
+    monkeypatch.setattr(main_module.group, "main", broken)
+    with pytest.raises(SystemError, match="something else"):
+        main(["track"])

@@ -70,9 +70,24 @@ def main(argv: list[str] | None = None) -> int:
     except click.ClickException as exc:
         exc.show()
         return exc.exit_code
-    except KeyboardInterrupt as exc:
-        return _interrupted(exc)
+    except (KeyboardInterrupt, SystemError) as exc:
+        # a signal that arrives while a compiled function (numba's) calls back into Python
+        # raises there, and the calls return with it as the cause of a chain of SystemErrors;
+        # they have unwound the command all the same (finally blocks run for any exception)
+        interrupt = exc if isinstance(exc, KeyboardInterrupt) else _interrupt_behind(exc)
+        if interrupt is None:
+            raise
+        return _interrupted(interrupt)
     return 0
+
+
+def _interrupt_behind(exc: SystemError) -> KeyboardInterrupt | None:
+    """The interrupt (Ctrl-C, ``Terminated``) at the root of a chain of SystemErrors, each
+    the cause of the next, or None."""
+    cause = exc.__cause__
+    while isinstance(cause, SystemError):
+        cause = cause.__cause__
+    return cause if isinstance(cause, KeyboardInterrupt) else None
 
 
 def run() -> None:
