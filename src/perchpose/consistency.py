@@ -76,7 +76,7 @@ def disagreements(
         cov = position_covariance(camera, target, pose, sigma_of(index))
         if cov is None:
             continue
-        chi2 = position_chi2(measurements[reference].t_m, cov_ref, pose.t_m, cov)
+        chi2 = position_chi2(ref.t_m, cov_ref, pose.t_m, cov)
         if chi2 > gate_chi2:
             found.append(Disagreement(reference, index, chi2))
     return found

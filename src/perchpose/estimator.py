@@ -37,7 +37,7 @@ from perchpose.values import (
     MarkerState,
     PoseFailure,
     Timings,
-    corners_sd_px,
+    corner_noise_px,
 )
 from perchpose.windows import extrapolated
 
@@ -257,8 +257,7 @@ class PerchingEstimator:
                 rejected[det.marker_index] = f"reprojection {result.reproj_rms_px:.1f} px"
             else:
                 measurements[det.marker_index] = result
-                settled_now = not result.ambiguous or (referred and reference is not None)
-                self._settled_now[det.marker_index] = settled_now
+                self._settled_now[det.marker_index] = not result.ambiguous or referred
         return measurements, rejected
 
     def _drop_disagreeing(
@@ -276,9 +275,8 @@ class PerchingEstimator:
         floor = self.covariance_filter.corner_sigma_px
         sigma = dict.fromkeys(measurements, floor)
         for det in detections:
-            own = det.corner_covariance_px2
-            if det.marker_index in sigma and own is not None:
-                sigma[det.marker_index] = max(floor, corners_sd_px(own))
+            if det.marker_index in sigma:
+                sigma[det.marker_index] = corner_noise_px(det.corner_covariance_px2, floor, floor)
         found = disagreements(self.camera, self.target, measurements, sigma, self.disagree_chi2)
         if not found:
             return

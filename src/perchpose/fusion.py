@@ -40,7 +40,7 @@ from perchpose.joint_pose import (
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
 from perchpose.small_linalg import sandwiched
 from perchpose.target import TargetSpec
-from perchpose.values import MarkerDetection, MarkerPose, corners_sd_px
+from perchpose.values import MarkerDetection, MarkerPose, corner_noise_px
 
 Array = NDArray[np.float64]
 
@@ -500,8 +500,7 @@ class CovarianceFusion:
         noisy corners (a quad that could not be fitted, blurred frames)."""
         sigma = self.settings.corner_sigma_px
         pooled = max(sigma, math.sqrt(self.noise.variance_px2))
-        own = [d.corner_covariance_px2 for d in used]
-        return np.array([pooled if c is None else max(sigma, corners_sd_px(c)) for c in own])
+        return np.array([corner_noise_px(d.corner_covariance_px2, sigma, pooled) for d in used])
 
     def _corners_covariance_px2(self, used: tuple[MarkerDetection, ...]) -> Array:
         """The corners' own covariance (8N, 8N; px^2): the detection's (the edge fit's, or

@@ -374,7 +374,7 @@ def refine_corners_pattern(
     # that (on 78 harsh fits, at most 0.001 px against going on to 0.003 px)
     # the cosines over the rows down to a period of band_period_px
     n_rows = int(pixel_of[:, 0].max()) + 1
-    n_row_bands = min(n_rows - 1, int(2 * n_rows * bin_px / cfg.band_period_px))
+    n_row_bands = int(2 * n_rows * bin_px / cfg.band_period_px)
     solved, g, log_sigma, levels, banding = fit_pattern(
         np.ascontiguousarray(q),
         values,
@@ -382,7 +382,7 @@ def refine_corners_pattern(
         (pattern.lines_u, pattern.lines_v, basis),
         (g, log_sigma, levels),
         (cfg.iterations, reach, 1e-2 / cell_px),
-        (pixel_of, max(0, n_row_bands), 0.0 if banded else cfg.banded_above),
+        (pixel_of, n_row_bands, 0.0 if banded else cfg.banded_above),
     )
     if not solved:
         return None

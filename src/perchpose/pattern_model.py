@@ -243,9 +243,9 @@ def normal_equations(
         J[6], J[7], J[8] = turn * qx, turn * qy, dm_dls
         for b in range(B):
             cover_max[b] = max(cover_max[b], J[9 + b])
-        _accumulate(JtJ, Jtr, J, model - values[p])
+        r = model - values[p]
+        _accumulate(JtJ, Jtr, J, r)
         if n_rows > 0:
-            r = model - values[p]
             _add_to_line(row_sums[pixel_of[p, 0]], col_sums[pixel_of[p, 1]], J, r)
     JtJ = JtJ + np.triu(JtJ, 1).T
     banding = _banding(JtJ, Jtr, (row_sums, col_sums), n_row_bands, eliminate)

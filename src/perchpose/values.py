@@ -33,6 +33,13 @@ def corners_sd_px(covariance_px2: Array) -> float:
     return math.sqrt(float(np.trace(covariance_px2)) / covariance_px2.shape[0])
 
 
+def corner_noise_px(covariance_px2: Array | None, floor_px: float, without_px: float) -> float:
+    """The corner noise (px) to assume for corners with ``covariance_px2``: their standard
+    deviation (``corners_sd_px``) but at least ``floor_px``; ``without_px`` where they carry no
+    covariance."""
+    return without_px if covariance_px2 is None else max(floor_px, corners_sd_px(covariance_px2))
+
+
 @dataclass(frozen=True)
 class MarkerDetection:
     """One target marker found in an image.
