@@ -186,6 +186,16 @@ class CameraModel:
             cached = self._cache["plumb_bob"] = plumb_bob.padded(self.dist)
         return np.asarray(cached, np.float64)
 
+    @property
+    def compiled_lens(self) -> tuple[int, Array, Array] | None:
+        """The lens model as compiled code takes it (``lens_project``, ``lens_normalize``):
+        (``EQUIDISTANT`` or ``PLUMB_BOB``, K, coefficients), or None where OpenCV's own
+        functions serve (a tilted sensor's 14 coefficients)."""
+        if self.model == "equidistant":
+            return EQUIDISTANT, self.K, self.dist
+        coefficients = self._plumb_bob_compiled
+        return None if coefficients is None else (PLUMB_BOB, self.K, coefficients)
+
     def pixel_rays(self, uv_px: Array) -> Array:
         """Unit viewing rays (N, 3) in the camera frame for pixels (N, 2).
 
@@ -569,6 +579,28 @@ def _on_plane(rays: Array) -> Array:
 def _equidistant_normalized(uv: Array, K: Array, dist: Array) -> Array:
     """``CameraModel.normalize`` of pixels ``uv`` (N, 2) under the equidistant model."""
     return _on_plane(_equidistant_rays(uv, K, dist))
+
+
+# the lens models of ``lens_project`` and ``lens_normalize``
+EQUIDISTANT, PLUMB_BOB = 0, 1
+
+
+@compiled
+def lens_project(kind: int, p: Array, K: Array, d: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """``CameraModel.project`` in compiled code, for the lens of ``compiled_lens``: pixels
+    (N, 2) of camera-frame points ``p`` (N, 3) and whether each projects."""
+    if kind == EQUIDISTANT:
+        return _equidistant_project(p, K, d)
+    uv, _, in_front = plumb_bob.project_with_jacobian(p, K, d)
+    return uv, in_front
+
+
+@compiled
+def lens_normalize(kind: int, uv: Array, K: Array, d: Array) -> Array:
+    """``CameraModel.normalize`` in compiled code, for the lens of ``compiled_lens``."""
+    if kind == EQUIDISTANT:
+        return _equidistant_normalized(uv, K, d)
+    return plumb_bob.undistorted(uv, K, d)
 
 
 @compiled

@@ -24,7 +24,6 @@ back to pixels.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.camera import CameraModel
+from perchpose.camera import CameraModel, lens_normalize, lens_project
 from perchpose.edge_geometry import (
     corner_covariance,
     corner_probes,
@@ -91,21 +90,23 @@ class EdgeFitSettings:
     iterations: int = 4
     own_levels_from_px: float = 80.0
 
-
-@dataclass(frozen=True)
-class _Surround:
-    """What lies around the edge of each of K profiles, in pixels across the edge.
-
-    white_inside : 1 where the cell just inside the border is white (the border's inner edge,
-        ``border_px`` inside the outer one, is then a second, reversed step), else 0.
-    margin_px : width of the white outside the border, up to where the print or the sheet
-        ends (a third step, to a level fitted with the rest), or inf where it reaches beyond
-        the profiles.
-    """
-
-    white_inside: Array
-    border_px: Array
-    margin_px: Array
+    def row(self) -> Array:
+        """The settings as compiled code takes them (``_plan``, ``_edges``)."""
+        return np.array(
+            [
+                self.inside_cells,
+                self.outside_cells,
+                self.min_window_px,
+                self.max_window_px,
+                self.step_px,
+                self.max_samples,
+                self.max_profiles,
+                self.trim,
+                self.iterations,
+                self.own_levels_from_px,
+            ],
+            np.float64,
+        )
 
 
 # a step further beyond the end of the profiles than this many blur sigmas (first guess) is
@@ -113,6 +114,7 @@ class _Surround:
 _BEYOND_REACH_SIGMAS = 3.0
 
 
+@compiled
 def _first_blur_px(rise: float, h: float, contrast: float) -> float:
     """A first guess of the optical blur sigma (px) from the profiles' mean steepest ``rise``
     between samples ``h`` px apart, for an edge of ``contrast``."""
@@ -125,32 +127,17 @@ def _first_blur_px(rise: float, h: float, contrast: float) -> float:
     return min(MAX_BLUR_PX, max(MIN_BLUR_PX, sigma0))
 
 
-def _surround_rows(
-    surround: _Surround | None, offsets: Array, sigma_px: float, n_profiles: int
-) -> tuple[Array, bool]:
-    """``step_model.fit_steps``'s surround (3, K): 1 where the cell inside the border is white
-    and its inner edge within reach of the blur of ``sigma_px`` from the profiles' ends at
-    ``offsets`` (else 0), how far inside that edge lies, and where the white margin outside
-    ends (1e6 px where out of reach); and whether any margin's end is within reach."""
-    if surround is None:
-        rows = np.zeros((3, n_profiles))
-        rows[2] = 1e6
-        return rows, False
-    beyond = _BEYOND_REACH_SIGMAS * sigma_px + 0.5
-    return _surround_within(
-        surround.white_inside,
-        surround.border_px,
-        surround.margin_px,
-        -float(offsets[0]) + beyond,
-        float(offsets[-1]) + beyond,
-    )
-
-
 @compiled
 def _surround_within(
     white: Array, border_px: Array, margin_px: Array, inner_reach: float, outer_reach: float
 ) -> tuple[Array, bool]:
-    """``_surround_rows`` from the profiles' reach inwards and outwards (px)."""
+    """``step_model.fit_steps``'s surround (3, K) of K profiles reaching ``inner_reach`` px
+    inwards and ``outer_reach`` outwards (with the blur's own reach): ``white`` (1 where the
+    cell just inside the border is white, the border's inner edge ``border_px`` inside the
+    outer one then a second, reversed step) where that edge is within reach, else 0; the
+    border's width; and where the white margin outside ends (``margin_px``: up to the sheet's
+    edge or another marker, a third step to a level fitted with the rest) where within
+    reach, else 1e6 px; and whether any margin's end is within reach."""
     K = white.shape[0]
     rows = np.empty((3, K))
     near_any = False
@@ -163,64 +150,65 @@ def _surround_within(
     return rows, near_any
 
 
-def _level_design(
-    n_profiles: int, groups: NDArray[np.intp] | None, along: Array | None
-) -> tuple[Array, int]:
-    """The levels' design W (R, K): a profile's dark level is W[:, k] . a_q, its contrast
-    W[:, k] . b_q (one pair per group, and with ``along`` a slope along the side each); and
-    the number of groups."""
-    if groups is None and along is None:
-        return np.ones((1, n_profiles)), 1
-    g_of = np.zeros(n_profiles, np.intp) if groups is None else groups
-    n_groups = int(g_of.max()) + 1
-    member = (g_of[None, :] == np.arange(n_groups)[:, None]).astype(np.float64)  # (Q, K)
-    W = member if along is None else np.vstack([member, member * along[None, :]])
-    return W, n_groups
+@compiled
+def _level_design(sides: NDArray[np.intp], along: Array, own_levels: bool) -> Array:
+    """The levels' design W (R, K) of K profiles: a profile's dark level is W[:, k] . a_q,
+    its contrast W[:, k] . b_q. Without ``own_levels`` one pair for the marker (R = 1); with
+    it one pair per side (``sides`` (K,): each profile's), each changing linearly with
+    ``along`` (K,: the profile's place along its side, -1 to 1; vignetting and uneven light
+    across a large marker)."""
+    K = sides.shape[0]
+    if not own_levels:
+        return np.ones((1, K))
+    n_groups = 0
+    for k in range(K):
+        n_groups = max(n_groups, int(sides[k]) + 1)
+    W = np.zeros((2 * n_groups, K))
+    for k in range(K):
+        W[sides[k], k] = 1.0
+        W[n_groups + sides[k], k] = along[k]
+    return W
 
 
-def _fit_side(
-    values: Array,
-    offsets: Array,
-    iterations: int,
-    pixels: Array,
-    surround: _Surround | None = None,
-    groups: NDArray[np.intp] | None = None,
-    along: Array | None = None,
-) -> tuple[Array, float] | None:
-    """Edge offsets (K,) of K profiles (K, M) sampled at ``offsets`` (M,), dark to light, and
-    the optical blur sigma (px, without the pixel's own square), or None without an edge.
-    ``groups`` (K,): which dark and light levels each profile shares (default: one pair for
-    all). ``along`` (K,): each profile's place along its side, -1 to 1; given, each group's
-    levels also change linearly along it (vignetting and uneven light across a large marker).
-    ``pixels``: the data to fit, (3, K, M): the offsets across the edge of the pixels nearest
-    the samples, their values and how many samples each stands for (0 for a repeat;
-    ``sample_profiles``). The samples themselves give the starting values only.
+@compiled
+def _fit_profiles(
+    values: Array, offsets: Array, pixels: Array, W: Array, surround: Array, iterations: int
+) -> tuple[bool, Array, float]:
+    """The step model fitted to K profiles (K, M) sampled at ``offsets`` (M,), dark to light:
+    (whether there is an edge, the edge offsets (K,), the optical blur sigma, px, without
+    the pixel's own square). ``pixels`` (3, K, M): the data to fit, the offsets across the
+    edge of the pixels nearest the samples, their values and how many samples each stands
+    for (0 for a repeat; ``sample_profiles``); the samples themselves give the starting
+    values only. ``W``: the levels' design (``_level_design``). ``surround`` (3, K): the
+    white inside the border, its width and the white margin's end (px), for
+    ``_surround_within``.
 
     Model: ``a + b * F(s - d_k)``, F a step blurred by ``sigma`` and integrated over the pixel
     (``step_model.pixel_step``), fitted to the pixels themselves at their exact offsets. A
     Gaussian step fitted to bilinearly interpolated samples instead locks the edge to the pixel
     grid by an amount that depends on where the edge falls in a pixel: on a 25 px marker turned
     0.5-2 deg from the pixel rows (noise-free), up to 0.19 deg of yaw at an optical blur of
-    0.3 px and 0.016 deg at 0.6 px. With ``surround``, the model also holds the border's inner edge
-    where the cell inside is white and the end of the white margin outside: blur mixes both
-    into the profiles once they are within a few sigma, and left out they pull the edge (by
-    0.1 px for a 30 px marker whose margin is under a cell, at a blur of 1.1 px). Gauss-Newton
-    from the midpoint crossings on all parameters at once: each ``d_k`` touches only its own
-    profile, so the normal equations are solved through the Schur complement of the shared
-    parameters (dark level, contrast, margin drop and log sigma)."""
+    0.3 px and 0.016 deg at 0.6 px. The surround enters the model where it is within reach of
+    the profiles: blur mixes both into the profiles once they are within a few sigma, and left
+    out they pull the edge (by 0.1 px for a 30 px marker whose margin is under a cell, at a
+    blur of 1.1 px). Gauss-Newton from the midpoint crossings on all parameters at once
+    (``step_model.fit_steps``)."""
     lo, hi, d, rise = profile_start(values, offsets)
     if not hi - lo > MIN_CONTRAST:
-        return None
-    W, n_groups = _level_design(values.shape[0], groups, along)
+        return False, d, 0.0
     # each group's dark level and contrast to start from; their slopes along the side at 0
     levels = np.zeros((2, W.shape[0]))
-    levels[:, :n_groups] = [[lo], [hi - lo]]
-    log_sigma = math.log(_first_blur_px(rise, float(offsets[1] - offsets[0]), hi - lo))
-    around, with_margin = _surround_rows(surround, offsets, math.exp(log_sigma), len(d))
+    n_groups = W.shape[0] if W.shape[0] == 1 else W.shape[0] // 2
+    for q in range(n_groups):
+        levels[0, q] = lo
+        levels[1, q] = hi - lo
+    log_sigma = math.log(_first_blur_px(rise, offsets[1] - offsets[0], hi - lo))
+    beyond = _BEYOND_REACH_SIGMAS * math.exp(log_sigma) + 0.5
+    around, with_margin = _surround_within(
+        surround[0], surround[1], surround[2], -offsets[0] + beyond, offsets[-1] + beyond
+    )
     ok, log_sigma = fit_steps(pixels, d, W, levels, log_sigma, around, with_margin, iterations)
-    if not ok:
-        return None
-    return d, math.exp(log_sigma)
+    return ok, d, math.exp(log_sigma)
 
 
 @compiled
@@ -237,35 +225,22 @@ def _blur_from_rise(rise: float, h: float) -> float:
     return sigma
 
 
+@compiled
 def _inner_cells_white(cells: NDArray[np.uint8], t: Array) -> Array:
-    """(4, K): whether the cell just inside the border is white at fractions ``t`` along each
-    side, sides in ArUco corner order (top left to right, right downwards, bottom right to
-    left, left upwards; ``cells`` row 0 is the top)."""
+    """(4K,): whether the cell just inside the border is white at fractions ``t`` (K,) along
+    each side, sides one after the other in ArUco corner order (top left to right, right
+    downwards, bottom right to left, left upwards; ``cells`` row 0 is the top)."""
     n = cells.shape[0]
-    j = np.clip(np.floor(t * n).astype(np.intp), 0, n - 1)
-    back = n - 1 - j
-    return np.stack([cells[1, j], cells[j, n - 2], cells[n - 2, back], cells[back, 1]]).astype(
-        np.float64
-    )
-
-
-@functools.lru_cache(maxsize=256)
-def _side_fractions(
-    K: int, trim: float, n_cells: int, cells_bytes: bytes | None
-) -> tuple[Array, Array]:
-    """Where K profiles cross each side, as fractions of it (K,), and whether the cell just
-    inside the border is white there (4K, sides one after the other; 0 everywhere without the
-    cells: ``cells_bytes`` None, else the (n_cells, n_cells) uint8 cells' bytes). The same
-    for every frame of a marker, so kept (read-only)."""
-    t = np.linspace(trim, 1.0 - trim, K)
-    if cells_bytes is None:
-        white = np.zeros(4 * K)
-    else:
-        cells = np.frombuffer(cells_bytes, np.uint8).reshape(n_cells, n_cells)
-        white = _inner_cells_white(cells, t).ravel()
-    t.setflags(write=False)
-    white.setflags(write=False)
-    return t, white
+    K = t.shape[0]
+    white = np.empty(4 * K)
+    for k in range(K):
+        j = min(max(int(math.floor(t[k] * n)), 0), n - 1)
+        back = n - 1 - j
+        white[k] = cells[1, j]
+        white[K + k] = cells[j, n - 2]
+        white[2 * K + k] = cells[n - 2, back]
+        white[3 * K + k] = cells[back, 1]
+    return white
 
 
 @dataclass(frozen=True)
@@ -282,34 +257,200 @@ class EdgeFit:
 _STEP_N = 1e-6  # normalised-plane step of the lens model's numerical Jacobian
 
 
-def _corners_of_lines(
-    camera: CameraModel,
-    normals: Array,
-    offsets: Array,
-    centres: Array,
-    angle_var: Array,
-    shift_var: Array,
-) -> tuple[Array, Array] | None:
-    """The four corners where the side lines fitted by ``fit_lines`` meet, in pixels (4, 2),
-    and their covariance (8, 8; px^2, x0, y0, x1, ...) from the lines' own; None where two
-    lines are parallel or a corner does not project."""
-    met, corners_n, A_inv = intersect_sides(normals, offsets)
-    if not met:
-        return None
-    # the normalised plane to pixels, at each corner and a step along x and y
-    projected, ok = camera.project(corner_probes(corners_n, _STEP_N))
-    if not ok.all():
-        return None
-    corners_px, lens = lens_jacobians(np.ascontiguousarray(projected, np.float64), _STEP_N)
-    covariance = corner_covariance(lens, A_inv, corners_n, normals, centres, angle_var, shift_var)
-    return corners_px, covariance
-
-
 def outside_reach_px(cell_px: float, settings: EdgeFitSettings | None = None) -> float:
     """How far (px) the profiles reach outwards from the start of a marker with cells of
     ``cell_px``."""
     cfg = settings or EdgeFitSettings()
     return min(cfg.max_window_px, max(cfg.min_window_px, cfg.outside_cells * cell_px))
+
+
+@compiled
+def _plan(corners: Array, n_cells: int, cfg: Array) -> tuple[Array, Array, Array, float, float]:
+    """Where a marker's profiles go, from its start ``corners`` (4, 2) and the settings
+    ``cfg`` (``EdgeFitSettings.row``): the sides' lengths (4,), the offsets (M,) along each
+    profile (px, from ``-reach_in`` towards ``reach_out``), the fractions (K,) of each side
+    the profiles cross, the width of a cell and ``reach_out`` (px)."""
+    inside, outside, min_window, max_window = cfg[0], cfg[1], cfg[2], cfg[3]
+    step_px, max_samples, max_profiles, trim = cfg[4], cfg[5], cfg[6], cfg[7]
+    sides_px = side_lengths(corners)
+    cell_px = 0.25 * (sides_px[0] + sides_px[1] + sides_px[2] + sides_px[3]) / n_cells
+    reach_in = min(max_window, max(min_window, inside * cell_px))
+    reach_out = min(max_window, max(min_window, outside * cell_px))
+    step = max(step_px, (reach_in + reach_out) / (max_samples - 1.0))
+    offsets = np.arange(-reach_in, reach_out + 1e-9, step)
+    K = int(min(max_profiles, max(4.0, sides_px.min() / 2.0)))
+    t = np.empty(K)  # evenly from trim to 1 - trim, as numpy's linspace places them
+    spacing = (1.0 - 2.0 * trim) / (K - 1)
+    for k in range(K):
+        t[k] = k * spacing + trim
+    t[K - 1] = 1.0 - trim
+    return sides_px, offsets, t, cell_px, reach_out
+
+
+@compiled
+def _edges(
+    grey: NDArray[np.uint8],
+    corners: Array,
+    plan: tuple[Array, Array, Array, float, float],
+    probed: tuple[Array, Array, Array, Array],
+    printed: tuple[Array, Array, int],
+    cfg: Array,
+) -> tuple[bool, Array, Array, Array, Array, Array, Array, float]:
+    """The four sides of the marker whose start is ``corners`` fitted through the profiles
+    across them: ``plan`` from ``_plan``; ``probed``, the side points in the normalised
+    plane, their steps along and across, and the pixels (12K, 2) the lens puts them at
+    (``side_probes``, projected); ``printed``: where the cell inside the border is white
+    (4K,: 1 there), how far the white around the marker reaches (4,: in cells, per side)
+    and the cells across. Returns (whether the sides were fitted, the corners in the
+    normalised plane (4, 2), ``intersect_sides``' inverses (4, 2, 2), the lines' normals
+    (4, 2), centres (4, 2), angle and shift variances (4,) each, the blur sigma (px, with the
+    pixel's own square in it))."""
+    sides_px, offsets, t, _, reach_out = plan
+    white, margins, n_cells = printed
+    p_n, step_n, perp_n, projected = probed
+    K = t.shape[0]
+    n = 4 * K
+    empty2, empty3 = np.zeros((4, 2)), np.zeros((4, 2, 2))
+    nothing = (False, empty2, empty3, empty2, empty2, np.zeros(4), np.zeros(4), 0.0)
+    centre_x = 0.25 * (corners[0, 0] + corners[1, 0] + corners[2, 0] + corners[3, 0])
+    centre_y = 0.25 * (corners[0, 1] + corners[1, 1] + corners[2, 1] + corners[3, 1])
+    normal = outward_normals(projected, centre_x, centre_y)
+    # bilinear samples to start from; the fit's data: the pixel nearest each sample, at its
+    # own offset across the edge
+    values, pixels, rows = sample_profiles(grey, projected[:n], normal, offsets)
+    kept = np.nonzero(rows)[0]
+    if kept.shape[0] < 12:
+        return nothing
+    own_levels = sides_px.min() >= cfg[9]
+    surround = np.empty((3, kept.shape[0]))
+    sides = np.empty(kept.shape[0], np.intp)
+    along = np.empty(kept.shape[0])
+    for j in range(kept.shape[0]):
+        i = kept[j]
+        s = i // K
+        # a cell's width across side s: the perpendicular sides' lengths over n
+        across = (sides_px[(s + 3) % 4] + sides_px[(s + 1) % 4]) / (2.0 * n_cells)
+        surround[0, j] = white[i]
+        surround[1, j] = across
+        surround[2, j] = margins[s] * across
+        sides[j] = s
+        along[j] = 2.0 * t[i % K] - 1.0
+    W = _level_design(sides, along, own_levels)
+    fitted, d_kept, optical_blur_px = _fit_profiles(
+        values[kept], offsets, pixels[:, kept], W, surround, int(cfg[8])
+    )
+    if not fitted:
+        return nothing
+    d = np.full(n, np.nan)
+    good = np.zeros(n, np.bool_)
+    for j in range(kept.shape[0]):
+        d[kept[j]] = d_kept[j]
+    reach_in = -offsets[0]
+    for i in range(n):
+        good[i] = math.isfinite(d[i]) and d[i] > -reach_in and d[i] < reach_out
+    edge_n = edge_points_n(p_n, step_n, perp_n, projected, normal, d)
+    lined, normals, line_offsets, centres, angle_var, shift_var = fit_lines(
+        edge_n.reshape(4, K, 2), good.reshape(4, K)
+    )
+    if not lined:
+        return nothing
+    met, corners_n, A_inv = intersect_sides(normals, line_offsets)
+    if not met:
+        return nothing
+    blur_px = math.sqrt(optical_blur_px**2 + 1.0 / 12.0)
+    return True, corners_n, A_inv, normals, centres, angle_var, shift_var, blur_px
+
+
+@compiled
+def _covariance_and_move(
+    projected: Array,
+    fitted: tuple[bool, Array, Array, Array, Array, Array, Array, float],
+    corners: Array,
+) -> tuple[Array, Array, float]:
+    """From the pixels (12, 2) of the fitted corners' ``corner_probes`` and the sides'
+    fit (``_edges``): the corners (4, 2) and their covariance (8, 8; px^2), from the lines'
+    own (the lens's Jacobian at each corner by forward differences), and how far the
+    farthest corner moved from ``corners`` (px)."""
+    _, corners_n, A_inv, normals, centres, angle_var, shift_var, _ = fitted
+    corners_px, lens = lens_jacobians(projected, _STEP_N)
+    covariance = corner_covariance(lens, A_inv, corners_n, normals, centres, angle_var, shift_var)
+    return corners_px, covariance, largest_move(corners_px, corners)
+
+
+@compiled
+def _edge_fit_compiled(
+    grey: NDArray[np.uint8],
+    corners: Array,
+    lens: tuple[int, Array, Array],
+    cells: NDArray[np.uint8],
+    n_cells: int,
+    margins: Array,
+    cfg: Array,
+) -> tuple[bool, Array, Array, float, float]:
+    """``fit_marker_edges`` for a lens model compiled code takes (``compiled_lens``):
+    (whether the sides were fitted, the corners (4, 2) and their covariance (8, 8), the
+    blur sigma, how far the farthest corner moved, px). ``cells``: the marker's cells, or
+    an empty (0, 0) array for the outer edge alone; ``n_cells`` across."""
+    kind, K_px, coefficients = lens
+    failed = (False, corners, np.zeros((8, 8)), 0.0, 0.0)
+    plan = _plan(corners, n_cells, cfg)
+    t = plan[2]
+    xy = lens_normalize(kind, corners, K_px, coefficients)
+    for i in range(4):
+        if not (math.isfinite(xy[i, 0]) and math.isfinite(xy[i, 1])):
+            return failed
+    p_n, step_n, perp_n, probes = side_probes(xy, t)
+    projected, ok = lens_project(kind, probes, K_px, coefficients)
+    if not ok.all():
+        return failed
+    white = _inner_cells_white(cells, t) if cells.shape[0] > 0 else np.zeros(4 * t.shape[0])
+    probed = (p_n, step_n, perp_n, projected)
+    fitted = _edges(grey, corners, plan, probed, (white, margins, n_cells), cfg)
+    if not fitted[0]:
+        return failed
+    at_corners, ok = lens_project(kind, corner_probes(fitted[1], _STEP_N), K_px, coefficients)
+    if not ok.all():
+        return failed
+    corners_px, covariance, moved = _covariance_and_move(at_corners, fitted, corners)
+    return True, corners_px, covariance, fitted[7], moved
+
+
+def _edge_fit_opencv(
+    grey: NDArray[np.uint8],
+    corners: Array,
+    camera: CameraModel,
+    cells: NDArray[np.uint8],
+    n_cells: int,
+    margins: Array,
+    cfg: Array,
+) -> tuple[bool, Array, Array, float, float]:
+    """``_edge_fit_compiled`` through the camera's own (OpenCV's) lens model, for one that
+    compiled code does not take."""
+    failed = (False, corners, np.zeros((8, 8)), 0.0, 0.0)
+    plan = _plan(corners, n_cells, cfg)
+    t = plan[2]
+    xy = camera.normalize(corners)
+    if not np.isfinite(xy).all():
+        return failed
+    p_n, step_n, perp_n, probes = side_probes(xy, t)
+    projected, ok = camera.project(probes)
+    if not ok.all():
+        return failed
+    projected = np.ascontiguousarray(projected, np.float64)
+    white = _inner_cells_white(cells, t) if cells.shape[0] > 0 else np.zeros(4 * t.shape[0])
+    probed = (p_n, step_n, perp_n, projected)
+    fitted = _edges(grey, corners, plan, probed, (white, margins, n_cells), cfg)
+    if not fitted[0]:
+        return failed
+    at_corners, ok = camera.project(corner_probes(fitted[1], _STEP_N))
+    if not ok.all():
+        return failed
+    at_corners = np.ascontiguousarray(at_corners, np.float64)
+    corners_px, covariance, moved = _covariance_and_move(at_corners, fitted, corners)
+    return True, corners_px, covariance, fitted[7], moved
+
+
+_NO_CELLS = np.zeros((0, 0), np.uint8)
 
 
 def fit_marker_edges(
@@ -326,64 +467,24 @@ def fit_marker_edges(
     whose white cells next to the border enter the edge model; or just how many there are
     across, to fit the outer edge alone. ``margin_cells``: per side (ArUco order), how far the
     white around the marker reaches, in its cells (``TargetSpec.white_margin_cells``); where
-    that is within reach of the profiles its end enters the model too."""
+    that is within reach of the profiles its end enters the model too.
+
+    Compiled whole (``_edge_fit_compiled``) for the lens models compiled code takes; through
+    OpenCV's lens functions otherwise."""
     cfg = settings or EdgeFitSettings()
     corners = np.ascontiguousarray(corners_px, np.float64).reshape(4, 2)
-    sides_px = side_lengths(corners)
-    n_cells = cells if isinstance(cells, int) else int(cells.shape[0])
-    cell_px = 0.25 * float(sides_px.sum()) / n_cells
-    reach_in = min(cfg.max_window_px, max(cfg.min_window_px, cfg.inside_cells * cell_px))
-    reach_out = outside_reach_px(cell_px, cfg)
-    step = max(cfg.step_px, (reach_in + reach_out) / (cfg.max_samples - 1))
-    offsets = np.arange(-reach_in, reach_out + 1e-9, step)
-    xy = camera.normalize(corners)
-    if not np.isfinite(xy).all():
-        return None
-    # K points along each side, all four sides at once: (4, K) -> flattened (4K,)
-    K = int(min(cfg.max_profiles, max(4.0, float(sides_px.min()) / 2.0)))
-    printed = None if isinstance(cells, int) else np.ascontiguousarray(cells, np.uint8).tobytes()
-    t, white = _side_fractions(K, cfg.trim, n_cells, printed)
-    p_n, step_n, perp_n, probes = side_probes(xy, t)
-    projected, ok = camera.project(probes)
-    if not ok.all():
-        return None
-    projected = np.ascontiguousarray(projected, np.float64)
-    centre_x, centre_y = 0.25 * corners.sum(axis=0)
-    normal = outward_normals(projected, float(centre_x), float(centre_y))
-    # bilinear samples to start from; the fit's data: the pixel nearest each sample, at its
-    # own offset across the edge
-    values, pixels, rows = sample_profiles(grey, projected[: 4 * K], normal, offsets)
-    if np.count_nonzero(rows) < 12:
-        return None
-    # a cell's width across side i: the perpendicular sides' lengths over n
-    across = np.repeat((sides_px[[3, 0, 1, 2]] + sides_px[[1, 2, 3, 0]]) / (2.0 * n_cells), K)
+    if isinstance(cells, int):
+        printed, n_cells = _NO_CELLS, cells
+    else:
+        printed, n_cells = np.ascontiguousarray(cells, np.uint8), int(cells.shape[0])
     margins = np.full(4, np.inf) if margin_cells is None else np.asarray(margin_cells, float)
-    surround = _Surround(white[rows], across[rows], (np.repeat(margins, K) * across)[rows])
-    sides = along = None
-    if float(sides_px.min()) >= cfg.own_levels_from_px:
-        sides = np.repeat(np.arange(4), K)[rows]
-        along = np.tile(2.0 * t - 1.0, 4)[rows]
-    # a fit that diverges on a poor profile overflows on its way; its result is checked
-    # (finite edges, positive contrast) and refused, so numpy's warnings would only be noise
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        fit = _fit_side(
-            values[rows],
-            offsets,
-            cfg.iterations,
-            pixels[:, rows],
-            surround,
-            sides,
-            along,
-        )
-    if fit is None:
+    lens = camera.compiled_lens
+    if lens is None:
+        fitted = _edge_fit_opencv(grey, corners, camera, printed, n_cells, margins, cfg.row())
+    else:
+        fitted = _edge_fit_compiled(grey, corners, lens, printed, n_cells, margins, cfg.row())
+    ok, refined, covariance, blur_px, moved = fitted
+    cell_px = 0.25 * float(side_lengths(corners).sum()) / n_cells
+    if not ok or moved > cfg.max_shift_cells * cell_px:
         return None
-    d = np.full(4 * K, np.nan)
-    d[rows], optical_blur_px = fit
-    blur_px = math.sqrt(optical_blur_px**2 + 1.0 / 12.0)
-    good = np.isfinite(d) & (d > -reach_in) & (d < reach_out)
-    edge_n = edge_points_n(p_n, step_n, perp_n, projected, normal, d)
-    fitted, *lines = fit_lines(edge_n.reshape(4, K, 2), good.reshape(4, K))
-    refined = _corners_of_lines(camera, *lines) if fitted else None
-    if refined is None or largest_move(refined[0], corners) > cfg.max_shift_cells * cell_px:
-        return None
-    return EdgeFit(refined[0], blur_px, refined[1])
+    return EdgeFit(refined, blur_px, covariance)
