@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.camera import CameraModel
-from perchpose.geometry import make_transform
+from perchpose.camera import CameraModel, lens_project
+from perchpose.jit import compiled
 from perchpose.pnp import refine_pose, rotation_of
 from perchpose.target import MarkerSpec
 from perchpose.values import MarkerPose, PoseFailure
@@ -44,12 +44,59 @@ def reprojection_rms_px(
     camera: CameraModel, T_camera_target: Array, points_target_m: Array, uv_px: Array
 ) -> float:
     """RMS pixel distance between ``uv_px`` (N, 2) and the projection of points (N, 3)."""
+    lens = camera.compiled_lens
+    if lens is not None:
+        return _reprojection_rms_compiled(
+            lens,
+            np.ascontiguousarray(T_camera_target, np.float64),
+            np.ascontiguousarray(points_target_m, np.float64),
+            np.ascontiguousarray(uv_px, np.float64),
+        )
     p = points_target_m @ T_camera_target[:3, :3].T + T_camera_target[:3, 3]
     uv, ok = camera.project(p)
     if not ok.all():
         return math.inf
     d = (uv - uv_px).ravel()
     return math.sqrt(float(d @ d) / len(uv))
+
+
+@compiled
+def _reprojection_rms_compiled(
+    lens: tuple[int, Array, Array], T: Array, points_m: Array, uv_px: Array
+) -> float:
+    """``reprojection_rms_px`` through a lens model compiled code takes (``compiled_lens``)."""
+    n = points_m.shape[0]
+    p = np.empty((n, 3))
+    for i in range(n):
+        for j in range(3):
+            s = T[j, 0] * points_m[i, 0] + T[j, 1] * points_m[i, 1] + T[j, 2] * points_m[i, 2]
+            p[i, j] = s + T[j, 3]
+    uv, in_front = lens_project(lens[0], p, lens[1], lens[2])
+    total = 0.0
+    for i in range(n):
+        if not in_front[i]:
+            return math.inf
+        dx, dy = uv[i, 0] - uv_px[i, 0], uv[i, 1] - uv_px[i, 1]
+        total += dx * dx + dy * dy
+    return math.sqrt(total / n)
+
+
+@compiled
+def _refined_solution(
+    points_marker_m: Array, xy: Array, rvec: Array, tvec: Array, T_marker_target: Array
+) -> tuple[Array, bool]:
+    """One IPPE solution (``rvec``, ``tvec``: the marker's pose) refined (``refine_pose``)
+    and carried to the target's centre: ``T_camera_target`` (4, 4), and whether the marker
+    lies in front of the camera."""
+    R, t, _ = refine_pose(points_marker_m, xy, rotation_of(rvec[0], rvec[1], rvec[2]), tvec)
+    T = np.zeros((4, 4))
+    for i in range(3):
+        for j in range(4):
+            s = R[i, 0] * T_marker_target[0, j] + R[i, 1] * T_marker_target[1, j]
+            s += R[i, 2] * T_marker_target[2, j]
+            T[i, j] = s + t[i] * T_marker_target[3, j]
+    T[3, 3] = 1.0
+    return T, t[2] > 0.0
 
 
 def solve_marker_pose(
@@ -82,13 +129,15 @@ def solve_marker_pose(
     candidates: list[tuple[float, Array]] = []
     points_marker_m = np.ascontiguousarray(marker.corners_marker_m)
     for rvec, tvec in zip(rvecs, tvecs, strict=True):
-        w = np.asarray(rvec, np.float64).reshape(3)
-        R0 = rotation_of(float(w[0]), float(w[1]), float(w[2]))
-        R, t, _ = refine_pose(points_marker_m, xy, R0, np.asarray(tvec, np.float64).reshape(3))
-        T_camera_marker = make_transform(R, t)
-        if T_camera_marker[2, 3] <= 0:
+        T_camera_target, in_front = _refined_solution(
+            points_marker_m,
+            xy,
+            np.asarray(rvec, np.float64).reshape(3),
+            np.asarray(tvec, np.float64).reshape(3),
+            T_marker_target,
+        )
+        if not in_front:
             continue
-        T_camera_target = T_camera_marker @ T_marker_target
         err = reprojection_rms_px(camera, T_camera_target, marker.corners_target_m, corners_px)
         candidates.append((err, T_camera_target))
     if not candidates:
