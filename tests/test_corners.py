@@ -258,7 +258,8 @@ def test_a_lens_compiled_code_does_not_take_fits_through_opencv(
     assert tilted.compiled_lens is None
     a = fit_marker_edges(image, true + 0.3, compiled_camera, cells)
     b = fit_marker_edges(image, true + 0.3, tilted, cells)
-    assert a is not None and b is not None
+    assert a is not None
+    assert b is not None
     assert np.max(np.abs(a.corners_px - true)) < 0.1
     assert np.max(np.abs(a.corners_px - b.corners_px)) < 1e-6
     assert abs(a.blur_px - b.blur_px) < 1e-6

@@ -150,8 +150,9 @@ class CameraModel:
         p = np.ascontiguousarray(points_m, np.float64)
         R = np.ascontiguousarray(R, np.float64)
         t = np.ascontiguousarray(t_m, np.float64).reshape(3)
-        if self.model == "equidistant":
-            return _equidistant_rigid(p, R, t, self.K, self.dist)
+        lens = self.compiled_lens
+        if lens is not None:
+            return lens_project_rigid_with_jacobian(lens, p, R, t)
         s = p @ R.T
         uv, duv_dq, in_front = self.project_with_jacobian(s + t)
         return uv, duv_dq, s, in_front
@@ -596,6 +597,26 @@ def lens_project(kind: int, p: Array, K: Array, d: Array) -> tuple[Array, NDArra
 
 
 @compiled
+def lens_project_rigid_with_jacobian(
+    lens: tuple[int, Array, Array], p: Array, R: Array, t: Array
+) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+    """``CameraModel.project_rigid_with_jacobian`` in compiled code, for the lens of
+    ``compiled_lens``."""
+    kind, K, d = lens
+    s = np.empty_like(p)
+    q = np.empty_like(p)
+    for i in range(p.shape[0]):
+        for j in range(3):
+            s[i, j] = R[j, 0] * p[i, 0] + R[j, 1] * p[i, 1] + R[j, 2] * p[i, 2]
+            q[i, j] = s[i, j] + t[j]
+    if kind == EQUIDISTANT:
+        uv, duv_dq, in_front = _equidistant_project_with_jacobian(q, K, d)
+    else:
+        uv, duv_dq, in_front = plumb_bob.project_with_jacobian(q, K, d)
+    return uv, duv_dq, s, in_front
+
+
+@compiled
 def lens_normalize(kind: int, uv: Array, K: Array, d: Array) -> Array:
     """``CameraModel.normalize`` in compiled code, for the lens of ``compiled_lens``."""
     if kind == EQUIDISTANT:
@@ -612,18 +633,3 @@ def _all_within(points: Array, low: float, high_x: float, high_y: float) -> bool
         if not (low <= x <= high_x and low <= y <= high_y):
             return False
     return True
-
-
-@compiled
-def _equidistant_rigid(
-    p: Array, R: Array, t: Array, K: Array, dist: Array
-) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
-    """``CameraModel.project_rigid_with_jacobian`` under the equidistant model."""
-    s = np.empty_like(p)
-    q = np.empty_like(p)
-    for i in range(p.shape[0]):
-        for j in range(3):
-            s[i, j] = R[j, 0] * p[i, 0] + R[j, 1] * p[i, 1] + R[j, 2] * p[i, 2]
-            q[i, j] = s[i, j] + t[j]
-    uv, duv_dq, in_front = _equidistant_project_with_jacobian(q, K, dist)
-    return uv, duv_dq, s, in_front
