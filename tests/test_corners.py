@@ -237,30 +237,3 @@ def test_the_corner_covariance_follows_the_corners_spread(renderers: dict[str, R
     for i, j in ((0, 6), (1, 3)):
         assert correlation(predicted, i, j) < -0.4
         assert correlation(spread, i, j) == pytest.approx(correlation(predicted, i, j), abs=0.2)
-
-
-def test_a_lens_compiled_code_does_not_take_fits_through_opencv(
-    renderers: dict[str, Renderer],
-) -> None:
-    """A tilted sensor's 14 coefficients go through OpenCV's lens functions; with no tilt the
-    model is the 12-coefficient one that runs compiled, so both fits agree."""
-    r = renderers["webcam"]
-    T = facing_pose(0.03, -0.02, 0.6, 0.2)
-    image = r.render(T)
-    true = r.corners_px(T)[0]
-    assert true is not None
-    cells = r.target.markers[0].cells
-    compiled_camera = r.camera
-    assert compiled_camera.compiled_lens is not None
-    dist = np.zeros(14)
-    dist[: compiled_camera.dist.size] = compiled_camera.dist
-    tilted = CameraModel(compiled_camera.K, dist, *compiled_camera.size, "plumb_bob")
-    assert tilted.compiled_lens is None
-    a = fit_marker_edges(image, true + 0.3, compiled_camera, cells)
-    b = fit_marker_edges(image, true + 0.3, tilted, cells)
-    assert a is not None
-    assert b is not None
-    assert np.max(np.abs(a.corners_px - true)) < 0.1
-    assert np.max(np.abs(a.corners_px - b.corners_px)) < 1e-6
-    assert abs(a.blur_px - b.blur_px) < 1e-6
-    np.testing.assert_allclose(a.covariance_px2, b.covariance_px2, rtol=1e-4, atol=1e-12)

@@ -13,6 +13,8 @@ COEFFICIENTS = {
     5: np.array([-0.28, 0.11, 0.0008, -0.0012, -0.02]),
     8: np.array([0.35, -0.12, 0.0005, 0.0009, 0.02, 0.62, -0.05, 0.03]),
     12: np.array([-0.2, 0.05, 0.001, -0.001, 0.0, 0.01, 0.0, 0.0, 0.002, -0.001, 0.0015, 0.0005]),
+    # a tilted sensor: tau_x, tau_y (rad) last
+    14: np.array([-0.28, 0.11, 0.0008, -0.0012, -0.02, 0, 0, 0, 0, 0, 0, 0, 0.01, -0.02]),
 }
 
 
@@ -51,15 +53,23 @@ def test_the_inverse_is_opencvs(length: int) -> None:
     np.testing.assert_allclose(back, uv, atol=1e-8)
 
 
-def test_behind_the_camera_is_flagged_and_a_tilted_sensor_stays_with_opencv() -> None:
+def test_behind_the_camera_is_flagged() -> None:
     dist = COEFFICIENTS[5]
     uv, _, in_front = plumb_bob.project_with_jacobian(
         np.array([[0.1, 0.0, -1.0], [0.0, 0.0, 1.0]]), K, plumb_bob.padded(dist)
     )
     assert in_front.tolist() == [False, True]
     assert np.isnan(uv[0]).all()
-    tilted = np.concatenate([dist, np.zeros(7), [0.01, -0.02]])
+
+
+def test_a_camera_with_a_tilted_sensor_projects_and_normalises_as_opencv() -> None:
+    tilted = COEFFICIENTS[14]
     camera = CameraModel(K, tilted, 640, 480)
     p = points(np.random.default_rng(3), 20)
     expected, _ = cv2.projectPoints(p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, tilted)
-    np.testing.assert_allclose(camera.project(p)[0], expected.reshape(-1, 2), atol=1e-9)
+    uv = camera.project(p)[0]
+    np.testing.assert_allclose(uv, expected.reshape(-1, 2), atol=1e-9)
+    # the tilt moves the pixels: a test that could not pass without it
+    untilted = CameraModel(K, tilted[:5], 640, 480)
+    assert np.max(np.abs(untilted.project(p)[0] - uv)) > 1.0
+    np.testing.assert_allclose(camera.normalize(uv), p[:, :2] / p[:, 2:], atol=1e-12)

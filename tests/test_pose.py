@@ -125,38 +125,3 @@ def test_solutions_both_within_the_noise_floor_follow_the_expected_rotation() ->
         chosen, other = _chosen_and_other_rad(camera, marker, noisy, T)
         wrong += chosen > other
     assert wrong == 0
-
-
-def test_a_lens_compiled_code_does_not_take_gives_the_same_pose() -> None:
-    """A tilted sensor's 14 coefficients go through OpenCV's lens functions; with no tilt
-    the model is the one compiled code takes, so the poses and their reprojection agree."""
-    from perchpose.joint_pose import solve_joint_pose
-    from perchpose.pose import reprojection_rms_px
-
-    camera = CameraModel.preset("webcam")
-    dist = np.zeros(14)
-    dist[: camera.dist.size] = camera.dist
-    tilted = CameraModel(camera.K, dist, *camera.size)
-    assert camera.compiled_lens is not None
-    assert tilted.compiled_lens is None
-    target = TargetSpec.paper()
-    T = facing_pose(0.04, -0.03, 0.5, math.radians(30), 0.2, -0.1)
-    marker = target.markers[0]
-    corners = _project(camera, T, marker.corners_target_m)
-    corners += np.random.default_rng(3).normal(0.0, 0.3, corners.shape)
-    poses = [solve_marker_pose(c, marker, 0, corners) for c in (camera, tilted)]
-    assert not isinstance(poses[0], PoseFailure)
-    assert not isinstance(poses[1], PoseFailure)
-    np.testing.assert_allclose(poses[0].T_camera_target, poses[1].T_camera_target, atol=1e-9)
-    assert poses[0].reproj_rms_px > 0.05
-    assert abs(poses[0].reproj_rms_px - poses[1].reproj_rms_px) < 1e-9
-    errors = [reprojection_rms_px(c, T, marker.corners_target_m, corners) for c in (camera, tilted)]
-    assert abs(errors[0] - errors[1]) < 1e-9
-    from perchpose.values import MarkerDetection
-
-    detection = (MarkerDetection(0, corners, "raw"),)
-    joints = [solve_joint_pose(c, target, detection, T, 0.3) for c in (camera, tilted)]
-    assert joints[0] is not None
-    assert joints[1] is not None
-    np.testing.assert_allclose(joints[0].T_camera_target, joints[1].T_camera_target, atol=1e-9)
-    np.testing.assert_allclose(joints[0].covariance, joints[1].covariance, rtol=1e-6)

@@ -27,7 +27,6 @@ from perchpose.jit import compiled
 Array = NDArray[np.float64]
 DistortionModel = Literal["plumb_bob", "equidistant"]
 
-_PLUMB_BOB_LENGTHS = (4, 5, 8, 12, 14)
 _MODEL_ALIASES: dict[str, DistortionModel] = {
     "plumb_bob": "plumb_bob",
     "rational_polynomial": "plumb_bob",
@@ -72,7 +71,7 @@ class CameraModel:
         if self.model == "plumb_bob":
             if dist.size == 0:
                 dist = np.zeros(5)
-            if dist.size not in _PLUMB_BOB_LENGTHS:
+            if dist.size not in plumb_bob.LENGTHS:
                 raise CameraFileError(
                     f"camera {self.name!r}: plumb_bob needs 4, 5, 8, 12 or 14 coefficients, "
                     f"got {dist.size}"
@@ -110,12 +109,9 @@ class CameraModel:
         Returns uv_px : (N, 2) float64 and in_front : (N,) bool. Points behind an ordinary
         camera (z <= 0) or beyond 180 deg field of view of a fisheye get ``in_front`` False.
         """
-        if self.model == "equidistant":
-            p = np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3)
-            return _equidistant_project(np.ascontiguousarray(p), self.K, self.dist)
-        # OpenCV's projectPoints works out the Jacobian whether it is used or not
-        uv, _, in_front = self.project_with_jacobian(points_camera_m)
-        return uv, in_front
+        p = np.ascontiguousarray(np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3))
+        kind, K, coefficients = self.compiled_lens
+        return lens_project(kind, p, K, coefficients)
 
     def project_with_jacobian(
         self, points_camera_m: Array
@@ -124,22 +120,10 @@ class CameraModel:
         d(u, v) / d(x, y, z) of the camera-frame point (rows of points not ``in_front`` are
         meaningless)."""
         p = np.ascontiguousarray(np.asarray(points_camera_m, dtype=np.float64).reshape(-1, 3))
-        if self.model == "equidistant":
-            return _equidistant_project_with_jacobian(p, self.K, self.dist)
-        coefficients = self._plumb_bob_compiled
-        if coefficients is not None:
-            return plumb_bob.project_with_jacobian(p, self.K, coefficients)
-        in_front = p[:, 2] > plumb_bob.MIN_Z_M
-        uv = np.full((p.shape[0], 2), np.nan)
-        duv_dq = np.full((p.shape[0], 2, 3), np.nan)
-        if np.any(in_front):
-            # the Jacobian over the translation of a zero pose is the one over the point
-            projected, jac = cv2.projectPoints(
-                p[in_front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist
-            )
-            uv[in_front] = projected.reshape(-1, 2)
-            duv_dq[in_front] = np.asarray(jac, np.float64)[:, 3:6].reshape(-1, 2, 3)
-        return uv, duv_dq, in_front
+        kind, K, coefficients = self.compiled_lens
+        if kind == EQUIDISTANT:
+            return _equidistant_project_with_jacobian(p, K, coefficients)
+        return plumb_bob.project_with_jacobian(p, K, coefficients)
 
     def project_rigid_with_jacobian(
         self, points_m: Array, R: Array, t_m: Array
@@ -150,12 +134,7 @@ class CameraModel:
         p = np.ascontiguousarray(points_m, np.float64)
         R = np.ascontiguousarray(R, np.float64)
         t = np.ascontiguousarray(t_m, np.float64).reshape(3)
-        lens = self.compiled_lens
-        if lens is not None:
-            return lens_project_rigid_with_jacobian(lens, p, R, t)
-        s = p @ R.T
-        uv, duv_dq, in_front = self.project_with_jacobian(s + t)
-        return uv, duv_dq, s, in_front
+        return lens_project_rigid_with_jacobian(self.compiled_lens, p, R, t)
 
     def normalize(self, uv_px: Array) -> Array:
         """Undistort pixels to normalised image coordinates (x/z, y/z).
@@ -163,39 +142,21 @@ class CameraModel:
         uv_px : (N, 2) float pixels. Returns (N, 2) float64.
         """
         uv = np.ascontiguousarray(np.asarray(uv_px, dtype=np.float64).reshape(-1, 2))
-        if self.model == "equidistant":
-            return _equidistant_normalized(uv, self.K, self.dist)
-        return self._undistorted(uv)
-
-    def _undistorted(self, uv: Array) -> Array:
-        """Normalised points (N, 2) of pixels (N, 2) under the plumb_bob model."""
-        coefficients = self._plumb_bob_compiled
-        if coefficients is not None:
-            return plumb_bob.undistorted(np.ascontiguousarray(uv), self.K, coefficients)
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist, criteria=criteria)
-        return np.asarray(xy, np.float64).reshape(-1, 2)
+        kind, K, coefficients = self.compiled_lens
+        return lens_normalize(kind, uv, K, coefficients)
 
     @property
-    def _plumb_bob_compiled(self) -> Array | None:
-        """The 12 coefficients ``perchpose.plumb_bob`` takes, or None where OpenCV's own
-        functions serve (the fisheye model; a tilted sensor's 14 coefficients)."""
-        if self.model != "plumb_bob" or self.dist.size not in plumb_bob.COMPILED_LENGTHS:
-            return None
+    def compiled_lens(self) -> tuple[int, Array, Array]:
+        """The lens model as compiled code takes it (``lens_project``, ``lens_normalize``,
+        ``lens_project_rigid_with_jacobian``): (``EQUIDISTANT`` or ``PLUMB_BOB``, K, and the
+        coefficients: the equidistant model's 4, or plumb_bob's padded to 14,
+        ``plumb_bob.padded``)."""
+        if self.model == "equidistant":
+            return EQUIDISTANT, self.K, self.dist
         cached = self._cache.get("plumb_bob")
         if cached is None:
             cached = self._cache["plumb_bob"] = plumb_bob.padded(self.dist)
-        return np.asarray(cached, np.float64)
-
-    @property
-    def compiled_lens(self) -> tuple[int, Array, Array] | None:
-        """The lens model as compiled code takes it (``lens_project``, ``lens_normalize``):
-        (``EQUIDISTANT`` or ``PLUMB_BOB``, K, coefficients), or None where OpenCV's own
-        functions serve (a tilted sensor's 14 coefficients)."""
-        if self.model == "equidistant":
-            return EQUIDISTANT, self.K, self.dist
-        coefficients = self._plumb_bob_compiled
-        return None if coefficients is None else (PLUMB_BOB, self.K, coefficients)
+        return PLUMB_BOB, self.K, np.asarray(cached, np.float64)
 
     def pixel_rays(self, uv_px: Array) -> Array:
         """Unit viewing rays (N, 3) in the camera frame for pixels (N, 2).
@@ -205,7 +166,7 @@ class CameraModel:
         uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
         if self.model == "equidistant":
             return _equidistant_rays(np.ascontiguousarray(uv), self.K, self.dist)
-        xy = self._undistorted(uv)
+        xy = self.normalize(uv)
         rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
         return np.asarray(rays / np.linalg.norm(rays, axis=1, keepdims=True))
 

@@ -387,10 +387,10 @@ def _edge_fit_compiled(
     margins: Array,
     cfg: Array,
 ) -> tuple[bool, Array, Array, float, float]:
-    """``fit_marker_edges`` for a lens model compiled code takes (``compiled_lens``):
-    (whether the sides were fitted, the corners (4, 2) and their covariance (8, 8), the
-    blur sigma, how far the farthest corner moved, px). ``cells``: the marker's cells, or
-    an empty (0, 0) array for the outer edge alone; ``n_cells`` across."""
+    """``fit_marker_edges`` through the lens of ``CameraModel.compiled_lens``: (whether the
+    sides were fitted, the corners (4, 2) and their covariance (8, 8), the blur sigma, how
+    far the farthest corner moved, px). ``cells``: the marker's cells, or an empty (0, 0)
+    array for the outer edge alone; ``n_cells`` across."""
     kind, K_px, coefficients = lens
     failed = (False, corners, np.zeros((8, 8)), 0.0, 0.0)
     plan = _plan(corners, n_cells, cfg)
@@ -415,41 +415,6 @@ def _edge_fit_compiled(
     return True, corners_px, covariance, fitted[7], moved
 
 
-def _edge_fit_opencv(
-    grey: NDArray[np.uint8],
-    corners: Array,
-    camera: CameraModel,
-    cells: NDArray[np.uint8],
-    n_cells: int,
-    margins: Array,
-    cfg: Array,
-) -> tuple[bool, Array, Array, float, float]:
-    """``_edge_fit_compiled`` through the camera's own (OpenCV's) lens model, for one that
-    compiled code does not take."""
-    failed = (False, corners, np.zeros((8, 8)), 0.0, 0.0)
-    plan = _plan(corners, n_cells, cfg)
-    t = plan[2]
-    xy = camera.normalize(corners)
-    if not np.isfinite(xy).all():
-        return failed
-    p_n, step_n, perp_n, probes = side_probes(xy, t)
-    projected, ok = camera.project(probes)
-    if not ok.all():
-        return failed
-    projected = np.ascontiguousarray(projected, np.float64)
-    white = _inner_cells_white(cells, t) if cells.shape[0] > 0 else np.zeros(4 * t.shape[0])
-    probed = (p_n, step_n, perp_n, projected)
-    fitted = _edges(grey, corners, plan, probed, (white, margins, n_cells), cfg)
-    if not fitted[0]:
-        return failed
-    at_corners, ok = camera.project(corner_probes(fitted[1], _STEP_N))
-    if not ok.all():
-        return failed
-    at_corners = np.ascontiguousarray(at_corners, np.float64)
-    corners_px, covariance, moved = _covariance_and_move(at_corners, fitted, corners)
-    return True, corners_px, covariance, fitted[7], moved
-
-
 _NO_CELLS = np.zeros((0, 0), np.uint8)
 
 
@@ -467,10 +432,8 @@ def fit_marker_edges(
     whose white cells next to the border enter the edge model; or just how many there are
     across, to fit the outer edge alone. ``margin_cells``: per side (ArUco order), how far the
     white around the marker reaches, in its cells (``TargetSpec.white_margin_cells``); where
-    that is within reach of the profiles its end enters the model too.
-
-    Compiled whole (``_edge_fit_compiled``) for the lens models compiled code takes; through
-    OpenCV's lens functions otherwise."""
+    that is within reach of the profiles its end enters the model too. Runs compiled whole
+    (``_edge_fit_compiled``)."""
     cfg = settings or EdgeFitSettings()
     corners = np.ascontiguousarray(corners_px, np.float64).reshape(4, 2)
     if isinstance(cells, int):
@@ -479,10 +442,7 @@ def fit_marker_edges(
         printed, n_cells = np.ascontiguousarray(cells, np.uint8), int(cells.shape[0])
     margins = np.full(4, np.inf) if margin_cells is None else np.asarray(margin_cells, float)
     lens = camera.compiled_lens
-    if lens is None:
-        fitted = _edge_fit_opencv(grey, corners, camera, printed, n_cells, margins, cfg.row())
-    else:
-        fitted = _edge_fit_compiled(grey, corners, lens, printed, n_cells, margins, cfg.row())
+    fitted = _edge_fit_compiled(grey, corners, lens, printed, n_cells, margins, cfg.row())
     ok, refined, covariance, blur_px, moved = fitted
     cell_px = 0.25 * float(side_lengths(corners).sum()) / n_cells
     if not ok or moved > cfg.max_shift_cells * cell_px:

@@ -91,23 +91,16 @@ def _project_with_jacobian(
     """Pixels (2N,) of the points under the pose (R, t), and their Jacobian (2N, 6) over
     (w, dt). None if a point does not project (behind the camera, or beyond the lens
     model's reach)."""
-    lens = camera.compiled_lens
-    if lens is not None:
-        in_front, uv_flat, J = _rows_compiled(lens, points_target_m, R, t)
-        return (uv_flat, J) if in_front else None
-    uv, duv_dq, s, in_front_each = camera.project_rigid_with_jacobian(points_target_m, R, t)
-    if not in_front_each.all():
-        return None
-    return uv.reshape(-1), pose_rows(s, duv_dq)
+    in_front, uv_flat, J = _rows_compiled(camera.compiled_lens, points_target_m, R, t)
+    return (uv_flat, J) if in_front else None
 
 
 @compiled
 def _rows_compiled(
     lens: tuple[int, Array, Array], points_m: Array, R: Array, t: Array
 ) -> tuple[bool, Array, Array]:
-    """``_project_with_jacobian`` through a lens model compiled code takes
-    (``CameraModel.compiled_lens``): (whether every point projects, pixels (2N,), Jacobian
-    (2N, 6))."""
+    """``_project_with_jacobian`` through the lens of ``CameraModel.compiled_lens``: (whether
+    every point projects, pixels (2N,), Jacobian (2N, 6))."""
     uv, duv_dq, s, in_front = lens_project_rigid_with_jacobian(lens, points_m, R, t)
     return bool(in_front.all()), uv.reshape(-1), pose_rows(s, duv_dq)
 

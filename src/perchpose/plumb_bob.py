@@ -4,8 +4,9 @@ thin prism s1-s4), compiled: the projection with its Jacobian, and its inverse.
 ``CameraModel`` used ``cv2.projectPoints`` and ``cv2.undistortPoints`` for it: a few corners at
 a time, most of their cost was the call itself (tens of microseconds), several times a frame.
 These give OpenCV's answers (projection to 1e-10 px, the inverse to the same convergence) for
-4, 5, 8 and 12 coefficients; the tilted sensor's 14 stay with OpenCV. Like OpenCV, the
-projection uses fx, fy, cx and cy of K and not its skew.
+4, 5, 8, 12 and 14 coefficients (the last two a tilted sensor's angles tau_x, tau_y: the
+distorted point goes through the homography of OpenCV's ``computeTiltProjectionMatrix``).
+Like OpenCV, the projection uses fx, fy, cx and cy of K and not its skew.
 """
 
 from __future__ import annotations
@@ -19,8 +20,8 @@ from perchpose.jit import compiled
 
 Array = NDArray[np.float64]
 
-# the coefficient counts these functions take (padded with zeros to 12); 14 has a tilt
-COMPILED_LENGTHS = (4, 5, 8, 12)
+# the coefficient counts OpenCV's model takes (padded with zeros to 14); 14 has a tilt
+LENGTHS = (4, 5, 8, 12, 14)
 # a point this close to the camera's plane (z, m) or behind it does not project
 MIN_Z_M = 1e-9
 # the inverse's Newton steps end below this (normalised units) or after this many
@@ -29,11 +30,65 @@ _MAX_NEWTON = 50
 
 
 def padded(dist: Array) -> Array:
-    """``dist`` (4, 5, 8 or 12 coefficients, OpenCV's order) as 12: k1, k2, p1, p2, k3, k4,
-    k5, k6, s1, s2, s3, s4."""
-    out = np.zeros(12)
+    """``dist`` (4, 5, 8, 12 or 14 coefficients, OpenCV's order) as 14: k1, k2, p1, p2, k3,
+    k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y."""
+    out = np.zeros(14)
     out[: dist.size] = dist
     return out
+
+
+@compiled
+def tilt_homography(tau_x: float, tau_y: float) -> Array:
+    """The homography (3, 3) a sensor tilted by ``tau_x`` about x, then ``tau_y`` about y
+    (rad), puts between the distorted normalised point and the image: the rotation
+    R = R_y R_x, then the projection back onto the plane z = 1 along the optical axis,
+    ``[[R22, 0, -R02], [0, R22, -R12], [0, 0, 1]] R``."""
+    cx, sx, cy, sy = math.cos(tau_x), math.sin(tau_x), math.cos(tau_y), math.sin(tau_y)
+    R = np.array(
+        [
+            [cy, sy * sx, -sy * cx],
+            [0.0, cx, sx],
+            [sy, -cy * sx, cy * cx],
+        ]
+    )
+    P = np.array([[R[2, 2], 0.0, -R[0, 2]], [0.0, R[2, 2], -R[1, 2]], [0.0, 0.0, 1.0]])
+    H = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            H[i, j] = P[i, 0] * R[0, j] + P[i, 1] * R[1, j] + P[i, 2] * R[2, j]
+    return H
+
+
+@compiled
+def _inverse_3x3(H: Array) -> Array:
+    """The inverse of a 3 x 3 matrix (by its adjugate)."""
+    adj = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            r0, r1 = (j + 1) % 3, (j + 2) % 3
+            c0, c1 = (i + 1) % 3, (i + 2) % 3
+            adj[i, j] = H[r0, c0] * H[r1, c1] - H[r0, c1] * H[r1, c0]
+    det = H[0, 0] * adj[0, 0] + H[0, 1] * adj[1, 0] + H[0, 2] * adj[2, 0]
+    out: Array = adj / det
+    return out
+
+
+@compiled
+def _tilted(H: Array, xd: float, yd: float) -> tuple[float, float, float, float, float, float]:
+    """(``xd``, ``yd``) through the tilt's homography ``H``, and that map's Jacobian
+    (d x/d xd, d x/d yd, d y/d xd, d y/d yd)."""
+    w = H[2, 0] * xd + H[2, 1] * yd + H[2, 2]
+    inv = 1.0 / w if w != 0.0 else 1.0
+    x = (H[0, 0] * xd + H[0, 1] * yd + H[0, 2]) * inv
+    y = (H[1, 0] * xd + H[1, 1] * yd + H[1, 2]) * inv
+    return (
+        x,
+        y,
+        (H[0, 0] - x * H[2, 0]) * inv,
+        (H[0, 1] - x * H[2, 1]) * inv,
+        (H[1, 0] - y * H[2, 0]) * inv,
+        (H[1, 1] - y * H[2, 1]) * inv,
+    )
 
 
 @compiled
@@ -65,12 +120,14 @@ def _distorted(x: float, y: float, d: Array) -> tuple[float, float, float, float
 def project_with_jacobian(p: Array, K: Array, d: Array) -> tuple[Array, Array, NDArray[np.bool_]]:
     """Pixels (N, 2) of camera-frame points ``p`` (N, 3), d(u, v) / d(x, y, z) (N, 2, 3) and
     whether each is in front (z over ``MIN_Z_M``; NaN rows where not), under intrinsics ``K``
-    and the 12 coefficients ``d`` (``padded``)."""
+    and the 14 coefficients ``d`` (``padded``)."""
     n = p.shape[0]
     uv = np.full((n, 2), np.nan)
     duv_dq = np.full((n, 2, 3), np.nan)
     in_front = np.empty(n, np.bool_)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tilted = d[12] != 0.0 or d[13] != 0.0
+    H = tilt_homography(d[12], d[13])
     for i in range(n):
         X, Y, Z = p[i, 0], p[i, 1], p[i, 2]
         in_front[i] = Z > MIN_Z_M
@@ -79,6 +136,9 @@ def project_with_jacobian(p: Array, K: Array, d: Array) -> tuple[Array, Array, N
         iz = 1.0 / Z
         x, y = X * iz, Y * iz
         xd, yd, a, b, c, e = _distorted(x, y, d)
+        if tilted:
+            xd, yd, ta, tb, tc, te = _tilted(H, xd, yd)
+            a, b, c, e = ta * a + tb * c, ta * b + tb * e, tc * a + te * c, tc * b + te * e
         uv[i, 0] = fx * xd + cx
         uv[i, 1] = fy * yd + cy
         # (x, y) = (X, Y) / Z: d/dX = (iz, 0), d/dY = (0, iz), d/dZ = (-x iz, -y iz)
@@ -97,9 +157,13 @@ def undistorted(uv: Array, K: Array, d: Array) -> Array:
     point on the distortion's own Jacobian (NaN where it finds none)."""
     out = np.empty((uv.shape[0], 2))
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tilted = d[12] != 0.0 or d[13] != 0.0
+    untilt = _inverse_3x3(tilt_homography(d[12], d[13]))
     for i in range(uv.shape[0]):
         x0 = (uv[i, 0] - cx) / fx
         y0 = (uv[i, 1] - cy) / fy
+        if tilted:  # the distorted point before the tilt's homography
+            x0, y0, _, _, _, _ = _tilted(untilt, x0, y0)
         x, y = x0, y0
         done = False
         for _ in range(_MAX_NEWTON):

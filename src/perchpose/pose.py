@@ -44,27 +44,19 @@ def reprojection_rms_px(
     camera: CameraModel, T_camera_target: Array, points_target_m: Array, uv_px: Array
 ) -> float:
     """RMS pixel distance between ``uv_px`` (N, 2) and the projection of points (N, 3)."""
-    lens = camera.compiled_lens
-    if lens is not None:
-        return _reprojection_rms_compiled(
-            lens,
-            np.ascontiguousarray(T_camera_target, np.float64),
-            np.ascontiguousarray(points_target_m, np.float64),
-            np.ascontiguousarray(uv_px, np.float64),
-        )
-    p = points_target_m @ T_camera_target[:3, :3].T + T_camera_target[:3, 3]
-    uv, ok = camera.project(p)
-    if not ok.all():
-        return math.inf
-    d = (uv - uv_px).ravel()
-    return math.sqrt(float(d @ d) / len(uv))
+    return _reprojection_rms_compiled(
+        camera.compiled_lens,
+        np.ascontiguousarray(T_camera_target, np.float64),
+        np.ascontiguousarray(points_target_m, np.float64),
+        np.ascontiguousarray(uv_px, np.float64),
+    )
 
 
 @compiled
 def _reprojection_rms_compiled(
     lens: tuple[int, Array, Array], T: Array, points_m: Array, uv_px: Array
 ) -> float:
-    """``reprojection_rms_px`` through a lens model compiled code takes (``compiled_lens``)."""
+    """``reprojection_rms_px`` through the lens of ``CameraModel.compiled_lens``."""
     n = points_m.shape[0]
     p = np.empty((n, 3))
     for i in range(n):
