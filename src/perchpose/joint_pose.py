@@ -250,25 +250,11 @@ def solve_joint_pose(
     w = np.repeat(1.0 / sigma**2, 8)  # each detection's 4 corners, x and y
     T_start = np.asarray(T_initial, np.float64)
     R, t = np.ascontiguousarray(T_start[:3, :3]), T_start[:3, 3].copy()
-    converged: tuple[Array, Array] | None = None
-    for _ in range(iterations):
-        projected = _project_with_jacobian(camera, R, t, points)
-        if projected is None:
-            return None
-        J = projected[1]
-        delta, solved, largest = _gauss_newton_step(J, w, projected[0] - uv)
-        if not solved:
-            return None
-        R = turned(delta[:3], R)
-        t = t + delta[3:]
-        if largest < CONVERGED:
-            # the last step is too small to change the Jacobian: the pixels after it from it
-            converged = (projected[0] + J @ delta, J)
-            break
-    projected = converged or _project_with_jacobian(camera, R, t, points)
-    if projected is None:
+    solved, R, t, pixels, J = _gauss_newton(camera.compiled_lens, R, t, points, uv, w, iterations)
+    if not solved:
         return None
-    cov, own = _covariances(projected[1], w, corner_covariance_px2)
+    projected = (pixels, J)
+    cov, own = _covariances(J, w, corner_covariance_px2)
     if cov is None:
         return None
     residual = uv - projected[0]
@@ -280,6 +266,42 @@ def solve_joint_pose(
         else corner_misfit(projected[1], w, residual, corner_covariance_px2)
     )
     return JointPose(T, cov, rms, tuple(d.marker_index for d in detections), own, misfit)
+
+
+@compiled
+def _gauss_newton(
+    lens: tuple[int, Array, Array],
+    R: Array,
+    t: Array,
+    points_m: Array,
+    uv: Array,
+    w: Array,
+    iterations: int,
+) -> tuple[bool, Array, Array, Array, Array]:
+    """``solve_joint_pose``'s Gauss-Newton from (R, t) through the lens of
+    ``CameraModel.compiled_lens``: (whether it held: every point projects and the normal
+    equations are solvable, R, t, the points' pixels (2N,) and their Jacobian (2N, 6) at the
+    end)."""
+    for _ in range(iterations):
+        in_front, pixels, J = _rows_compiled(lens, points_m, R, t)
+        if not in_front:
+            return False, R, t, pixels, J
+        r = pixels - uv
+        delta, solved, largest = _gauss_newton_step(J, w, r)
+        if not solved:
+            return False, R, t, pixels, J
+        R = turned(delta[:3], R)
+        t = t + delta[3:]
+        if largest < CONVERGED:
+            # the last step is too small to change the Jacobian: the pixels after it from it
+            for i in range(pixels.shape[0]):
+                moved = 0.0
+                for j in range(6):
+                    moved += J[i, j] * delta[j]
+                pixels[i] += moved
+            return True, R, t, pixels, J
+    in_front, pixels, J = _rows_compiled(lens, points_m, R, t)
+    return in_front, R, t, pixels, J
 
 
 def corner_misfit(J: Array, w: Array, residual: Array, S: Array) -> tuple[float, float]:
