@@ -130,7 +130,42 @@ def profile_start(values: Array, offsets: Array) -> tuple[float, float, Array, f
 
 
 @compiled
-def _model_rows(
+def _pixel_model(
+    t: float,
+    sigma: float,
+    levels: tuple[float, float, float],
+    surround: tuple[float, float, float],
+    with_margin: bool,
+) -> tuple[float, float, float, float, float]:
+    """The step model at a pixel ``t`` px from the edge: (the blurred step G, its derivative
+    by the edge, the model's derivative by log sigma and by the margin's drop, the model).
+    ``levels``: the dark level, the contrast and the margin's drop; ``surround``: 1 where
+    the cell inside the border is white (else 0), how far inside its edge lies and where the
+    margin ends (px, ``fit_steps``)."""
+    a, b, drop = levels
+    white, inner, margin = surround
+    step, slope, dG_ds = pixel_step(t, sigma)
+    dG_dd = -slope
+    if white != 0.0:
+        F2, slope2, ds2 = pixel_step(t + inner, sigma)
+        step = step + white * (1.0 - F2)
+        dG_dd = dG_dd + white * slope2
+        dG_ds = dG_ds - white * ds2
+    j = b * dG_dd
+    J_s = b * dG_ds
+    model = a + b * step
+    x_drop = 0.0
+    if with_margin:
+        F3, slope3, ds3 = pixel_step(t - margin, sigma)
+        model = model - drop * F3
+        j = j + drop * slope3
+        J_s = J_s - drop * ds3
+        x_drop = -F3
+    return step, j, J_s, x_drop, model
+
+
+@compiled
+def _model_sums(
     pixels: Array,
     d: Array,
     W: Array,
@@ -139,18 +174,20 @@ def _model_rows(
     surround: Array,
     drop: float,
     with_margin: bool,
-) -> tuple[Array, Array, Array, Array]:
-    """The step model at every pixel: the blurred step G, the derivative by the profile's
-    edge J_d, the shared extras' derivatives (X, K, M: the margin's drop when fitted, then
-    log sigma) and the residuals, each (K, M); all 0 at pixels of weight 0."""
+) -> tuple[Array, Array]:
+    """The step model at every pixel of weight over 0, summed per profile into what the
+    normal equations are made of (one pass over the pixels): (K, 9) the weighted sums of G,
+    G^2, r, G r, J_d times 1, G, J_d, r, and the weights; (K, X, 4 + X) of each extra x
+    times 1, G, r, J_d, then each extra. G is the blurred step, J_d its derivative by the
+    profile's edge, the extras the derivatives by the shared parameters beyond the levels
+    (the margin's drop when fitted, then log sigma), r the residual."""
     at, data, weight = pixels[0], pixels[1], pixels[2]
     K, M = at.shape
     R = W.shape[0]
     X = 2 if with_margin else 1
-    G = np.empty((K, M))
-    J_d = np.empty((K, M))
-    xs = np.empty((X, K, M))
-    r = np.empty((K, M))
+    sums = np.zeros((K, 9))
+    x_sums = np.zeros((K, X, 4 + X))  # x, x G, x r, x J_d, then x times each extra
+    xs = np.empty(X)
     for k in range(K):
         a = 0.0
         b = 0.0
@@ -159,51 +196,17 @@ def _model_rows(
             b += levels[1, q] * W[q, k]
         white, inner, margin = surround[0, k], surround[1, k], surround[2, k]
         for m in range(M):
-            if weight[k, m] == 0.0:
-                G[k, m] = J_d[k, m] = r[k, m] = 0.0
-                for i in range(X):
-                    xs[i, k, m] = 0.0
-                continue
-            t = at[k, m] - d[k]
-            step, slope, dG_ds = pixel_step(t, sigma)
-            dG_dd = -slope
-            if white != 0.0:
-                F2, slope2, ds2 = pixel_step(t + inner, sigma)
-                step = step + white * (1.0 - F2)
-                dG_dd = dG_dd + white * slope2
-                dG_ds = dG_ds - white * ds2
-            J_dm = b * dG_dd
-            J_s = b * dG_ds
-            model = a + b * step
-            if with_margin:
-                F3, slope3, ds3 = pixel_step(t - margin, sigma)
-                model = model - drop * F3
-                J_dm = J_dm + drop * slope3
-                J_s = J_s - drop * ds3
-                xs[0, k, m] = -F3
-            xs[X - 1, k, m] = J_s
-            G[k, m] = step
-            J_d[k, m] = J_dm
-            r[k, m] = model - data[k, m]
-    return G, J_d, xs, r
-
-
-@compiled
-def _profile_sums(G: Array, J_d: Array, xs: Array, r: Array, weight: Array) -> tuple[Array, Array]:
-    """Per profile, the weighted sums the normal equations are made of: (K, 9) of G, G^2, r,
-    G r, J_d times 1, G, J_d, r, and the weights; (K, X, 4 + X) of each extra x times 1, G,
-    r, J_d, then each extra."""
-    K, M = G.shape
-    X = xs.shape[0]
-    sums = np.zeros((K, 9))
-    x_sums = np.zeros((K, X, 4 + X))  # x, x G, x r, x J_d, then x times each extra
-    for k in range(K):
-        for m in range(M):
             w_km = weight[k, m]
             if w_km == 0.0:
                 continue
+            g_km, j_km, J_s, x_drop, model = _pixel_model(
+                at[k, m] - d[k], sigma, (a, b, drop), (white, inner, margin), with_margin
+            )
+            if with_margin:
+                xs[0] = x_drop
+            xs[X - 1] = J_s
+            r_km = model - data[k, m]
             sums[k, 8] += w_km
-            g_km, j_km, r_km = G[k, m], J_d[k, m], r[k, m]
             wg, wj = w_km * g_km, w_km * j_km
             sums[k, 0] += wg
             sums[k, 1] += wg * g_km
@@ -214,29 +217,28 @@ def _profile_sums(G: Array, J_d: Array, xs: Array, r: Array, weight: Array) -> t
             sums[k, 6] += wj * j_km
             sums[k, 7] += wj * r_km
             for i in range(X):
-                wx = w_km * xs[i, k, m]
+                wx = w_km * xs[i]
                 x_sums[k, i, 0] += wx
                 x_sums[k, i, 1] += wx * g_km
                 x_sums[k, i, 2] += wx * r_km
                 x_sums[k, i, 3] += wx * j_km
                 for j in range(X):
-                    x_sums[k, i, 4 + j] += wx * xs[j, k, m]
+                    x_sums[k, i, 4 + j] += wx * xs[j]
     return sums, x_sums
 
 
 @compiled
 def _normal_equations(
-    G: Array, J_d: Array, xs: Array, r: Array, W: Array, weight: Array
+    sums: Array, x_sums: Array, W: Array
 ) -> tuple[Array, Array, Array, Array, Array]:
-    """The Gauss-Newton normal equations of the step model, each pixel weighted by
-    ``weight`` (K, M), in two parts: the shared parameters' own block E (P, P) and gradient
+    """The Gauss-Newton normal equations of the step model from the per-profile sums of
+    ``_model_sums``, in two parts: the shared parameters' own block E (P, P) and gradient
     g (P,) (levels, contrasts, then the extras), each profile's coupling to them C (K, P),
     and its own edge's curvature D and gradient g_d (K,)."""
-    K = G.shape[0]
+    K = sums.shape[0]
     R = W.shape[0]
-    X = xs.shape[0]
+    X = x_sums.shape[1]
     P = 2 * R + X
-    sums, x_sums = _profile_sums(G, J_d, xs, r, weight)
     E = np.zeros((P, P))
     g = np.zeros(P)
     C = np.zeros((K, P))
@@ -317,10 +319,10 @@ def fit_steps(
     R = W.shape[0]
     drop = 0.0
     for _ in range(iterations):
-        G, J_d, xs, r = _model_rows(
+        sums, x_sums = _model_sums(
             pixels, d, W, levels, math.exp(log_sigma), surround, drop, with_margin
         )
-        solved, step, step_d = _schur_step(*_normal_equations(G, J_d, xs, r, W, pixels[2]))
+        solved, step, step_d = _schur_step(*_normal_equations(sums, x_sums, W))
         if not solved:
             return False, log_sigma
         for k in range(d.shape[0]):
