@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.jit import compiled
+from perchpose.small_linalg import times
 
 Array = NDArray[np.float64]
 
@@ -52,11 +53,7 @@ def tilt_homography(tau_x: float, tau_y: float) -> Array:
         ]
     )
     P = np.array([[R[2, 2], 0.0, -R[0, 2]], [0.0, R[2, 2], -R[1, 2]], [0.0, 0.0, 1.0]])
-    H = np.zeros((3, 3))
-    for i in range(3):
-        for j in range(3):
-            H[i, j] = P[i, 0] * R[0, j] + P[i, 1] * R[1, j] + P[i, 2] * R[2, j]
-    return H
+    return times(P, R)
 
 
 @compiled

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.jit import compiled
+from perchpose.small_linalg import times
 from perchpose.step_model import solve_in_place
 
 Array = NDArray[np.float64]
@@ -54,21 +55,10 @@ def rotation_of(w0: float, w1: float, w2: float) -> Array:
 
 
 @compiled
-def _turned(A: Array, R: Array) -> Array:
-    """``A @ R`` of two (3, 3) matrices (a loop: numba's matrix product needs scipy's
-    BLAS)."""
-    out = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = A[i, 0] * R[0, j] + A[i, 1] * R[1, j] + A[i, 2] * R[2, j]
-    return out
-
-
-@compiled
 def turned(w: Array, R: Array) -> Array:
     """``exp([w]x) R``: the rotation ``R`` (3, 3) turned by the small rotation ``w`` (3,)
     about the axes of its left frame."""
-    return _turned(rotation_of(w[0], w[1], w[2]), R)
+    return times(rotation_of(w[0], w[1], w[2]), R)
 
 
 @compiled
