@@ -12,13 +12,14 @@ marker, puts black cells where white ones belong and fails.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.camera import CameraModel
+from perchpose.camera import CameraModel, lens_normalize, lens_project
 from perchpose.edge_geometry import bilinear_points
 from perchpose.jit import compiled
 from perchpose.small_linalg import homography_of_4, through_homography
@@ -102,31 +103,49 @@ def read_cells(
     """The cells of ``pattern`` read from ``grey`` inside ``corners_px`` (4, 2; ArUco order,
     corner 0 at the marker's top left as printed), through the lens model; None where the
     corners make no quad or a cell falls outside the image."""
-    corners_n = camera.normalize(np.asarray(corners_px, np.float64).reshape(4, 2))
-    if not (pattern.both_shades and np.isfinite(corners_n).all()):
+    if not pattern.both_shades:
         return None
-    n = float(pattern.n_cells)
-    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
-    found, H = homography_of_4(square, corners_n)
-    if not found:
-        return None
-    px, ok = camera.project(_through_homography(H, pattern.samples_uv))
-    if not ok.all():
-        return None
-    values = bilinear_points(grey, np.ascontiguousarray(px, np.float64))
-    wrong, black, white = _cell_levels(values, pattern.white)
-    if not (np.isfinite(black) and np.isfinite(white)):
-        return None
-    return CellReading(wrong, len(pattern.white), black, white)
+    corners = np.ascontiguousarray(np.asarray(corners_px, np.float64).reshape(4, 2))
+    read, wrong, black, white = _read_compiled(
+        camera.compiled_lens,
+        grey,
+        corners,
+        float(pattern.n_cells),
+        pattern.samples_uv,
+        pattern.white,
+    )
+    return CellReading(wrong, len(pattern.white), black, white) if read else None
 
 
 @compiled
-def _through_homography(H: Array, uv: Array) -> Array:
-    """Points ``uv`` (N, 2) through the homography ``H`` (3, 3), as (N, 3) with z = 1 (NaN
-    where one maps to infinity)."""
-    out = np.ones((uv.shape[0], 3))
-    out[:, :2] = through_homography(H, uv)
-    return out
+def _read_compiled(
+    lens: tuple[int, Array, Array],
+    grey: NDArray[np.uint8],
+    corners_px: Array,
+    n: float,
+    samples_uv: Array,
+    white: NDArray[np.bool_],
+) -> tuple[bool, int, float, float]:
+    """``read_cells`` through the lens of ``CameraModel.compiled_lens``: (whether the cells
+    could be read, then ``_cell_levels``' answer)."""
+    kind, K, d = lens
+    corners_n = lens_normalize(kind, corners_px, K, d)
+    if not np.isfinite(corners_n).all():
+        return False, 0, 0.0, 0.0
+    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
+    found, H = homography_of_4(square, corners_n)
+    if not found:
+        return False, 0, 0.0, 0.0
+    on_plane = through_homography(H, samples_uv)
+    rays = np.ones((on_plane.shape[0], 3))
+    rays[:, :2] = on_plane
+    px, in_front = lens_project(kind, rays, K, d)
+    if not in_front.all():
+        return False, 0, 0.0, 0.0
+    wrong, black, bright = _cell_levels(bilinear_points(grey, px), white)
+    if not (math.isfinite(black) and math.isfinite(bright)):
+        return False, 0, 0.0, 0.0
+    return True, wrong, black, bright
 
 
 @compiled
