@@ -106,9 +106,12 @@ def start_worker(name: str, src: Path, frames_path: Path, camera: str, cpu: int 
     env = dict(os.environ, PYTHONPATH=str(src))
     command = [sys.executable, str(Path(__file__).resolve()), "--worker", str(frames_path)]
     process = subprocess.Popen(
-        [*command, "--camera", camera], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-        text=True, env=env,
-    )  # fmt: skip
+        [*command, "--camera", camera],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     if cpu is not None:
         os.sched_setaffinity(process.pid, {cpu})
     worker = Worker(name, process)

@@ -137,8 +137,8 @@ def _pixel_model(
     surround: tuple[float, float, float],
     with_margin: bool,
 ) -> tuple[float, float, float, float, float]:
-    """The step model at a pixel ``t`` px from the edge: (the blurred step G, its derivative
-    by the edge, the model's derivative by log sigma and by the margin's drop, the model).
+    """The step model at a pixel ``t`` px from the edge: (the blurred step G, the model's
+    derivative by the edge, by log sigma and by the margin's drop, the model itself).
     ``levels``: the dark level, the contrast and the margin's drop; ``surround``: 1 where
     the cell inside the border is white (else 0), how far inside its edge lies and where the
     margin ends (px, ``fit_steps``)."""
