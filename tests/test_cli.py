@@ -356,6 +356,21 @@ def test_bench_times_a_rendered_approach(
     assert data["methods"]["perchpose"]["ratio_to_opencv"]["p50"] > 0
 
 
+def test_bench_plot_is_checked_before_the_run_and_written_after_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["bench", "--camera", "preset:webcam", "--frames", "3", "--repeat", "1", "--quiet"]
+    code, text, err = _run([*args, "--plot", str(tmp_path / "bench.jpg")], capsys)
+    assert code == 2
+    assert "bench.jpg" in _single_error_line(err)
+    assert text == ""  # refused before any frame was timed
+    plot = tmp_path / "plots" / "bench.png"
+    code, text, _ = _run([*args, "--plot", str(plot)], capsys)
+    assert code == 0
+    assert f"wrote {plot}" in text
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_bench_refuses_a_source_without_its_calibration(
     short_sequence: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

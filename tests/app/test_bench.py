@@ -13,6 +13,7 @@ from perchpose.app.bench import (
     format_report,
     rendered_frames,
     source_frames,
+    write_figure,
 )
 from perchpose.errors import PerchposeError, SourceError
 from perchpose.values import Timings
@@ -98,3 +99,32 @@ def test_bad_input(tmp_path: Path, webcam: CameraModel, paper_target: TargetSpec
     frames = rendered_frames(webcam, paper_target, 2)
     with pytest.raises(PerchposeError, match="--repeat"):
         bench(frames, webcam, paper_target, repeat=0)
+
+
+def test_frame_errors_agree_with_the_accuracy_summary(report: BenchReport) -> None:
+    errors = report.errors("perchpose")
+    accuracy = report.accuracy("perchpose")
+    assert errors is not None
+    assert accuracy is not None
+    assert errors.position_pct.shape == (10,)
+    assert np.nanmax(errors.position_pct) == pytest.approx(accuracy["max_position_error_pct"])
+    assert np.nanmax(errors.yaw_deg) == pytest.approx(accuracy["max_yaw_error_deg"])
+    assert int(errors.without_pose.sum()) == accuracy["in_view_without_pose"]
+    assert report.errors(BASELINE) is None
+
+
+def test_the_figure_has_a_panel_per_measure(report: BenchReport, tmp_path: Path) -> None:
+    path = tmp_path / "bench.png"
+    fig = write_figure(report, str(path))
+    assert path.stat().st_size > 10_000
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert labels[:4] == [
+        "ms per frame",
+        "perchpose by stage (ms)",
+        "position error (% of distance)",
+        "yaw error (deg)",
+    ]
+    # each method's times as drawn are the report's
+    drawn = {line.get_label(): line.get_ydata() for line in fig.axes[0].get_lines()}
+    for name, result in report.methods.items():
+        np.testing.assert_allclose(drawn[name], result.ms)

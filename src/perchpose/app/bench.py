@@ -22,12 +22,14 @@ from typing import Any
 
 import cv2
 import numpy as np
+from matplotlib.figure import Figure
 from numpy.typing import NDArray
 from tqdm import tqdm
 
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError, SourceError
 from perchpose.estimator import PerchingEstimator
+from perchpose.evaluation.plots import bench_figure
 from perchpose.geometry import wrap_angle_deg, yaw_rad
 from perchpose.io.sources import open_source
 from perchpose.sim.render import ImageQuality
@@ -191,6 +193,17 @@ class MethodResult:
 
 
 @dataclass(frozen=True)
+class FrameErrors:
+    """One method's error against the rendered truth on each frame: the position's as a
+    percentage of the distance and the yaw's (deg), NaN where the frame has no truth, no
+    marker in view or no pose; ``without_pose``: a marker in view and no pose."""
+
+    position_pct: Array
+    yaw_deg: Array
+    without_pose: NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
 class BenchReport:
     """What ``bench`` measured. ``stages_ms``: the default pipeline's per-frame time in each
     stage (``Timings.STAGES``), the least of the repeats."""
@@ -221,30 +234,40 @@ class BenchReport:
         order = np.argsort(-ratio, kind="stable")[:count]
         return [{"frame": int(k), "ms": float(mine[k]), "ratio": float(ratio[k])} for k in order]
 
-    def accuracy(self, name: str) -> dict[str, float] | None:
-        """Against the rendered truth, on the frames with a marker in view: those without a
-        pose, the largest position error as a percentage of the distance, and the largest yaw
-        error (deg); None for the baseline or frames without truth."""
+    def errors(self, name: str) -> FrameErrors | None:
+        """Each frame's error against the rendered truth (``FrameErrors``); None for the
+        baseline or frames without truth."""
         result = self.methods[name]
         if name == BASELINE or all(T is None for T in self.frames.truth):
             return None
-        missed = 0
-        position_pct: list[float] = []
-        yaw_deg: list[float] = []
-        for estimate, T, seen in zip(
-            result.estimates, self.frames.truth, self.frames.in_view, strict=True
+        n = len(self.frames.images)
+        position_pct, yaw_deg = np.full(n, math.nan), np.full(n, math.nan)
+        without_pose = np.zeros(n, dtype=bool)
+        for k, (estimate, T, seen) in enumerate(
+            zip(result.estimates, self.frames.truth, self.frames.in_view, strict=True)
         ):
             if T is None or estimate is None or not seen:
                 continue  # a pose coasted through a dropout is the filter's guess
             if not estimate.valid:
-                missed += int(seen)
+                without_pose[k] = True
                 continue
             distance = float(np.linalg.norm(T[:3, 3]))
             error = float(np.linalg.norm(estimate.t_m - T[:3, 3]))
-            position_pct.append(100.0 * error / distance)
-            yaw_deg.append(abs(wrap_angle_deg(estimate.yaw_deg - math.degrees(yaw_rad(T[:3, :3])))))
+            position_pct[k] = 100.0 * error / distance
+            yaw_deg[k] = abs(wrap_angle_deg(estimate.yaw_deg - math.degrees(yaw_rad(T[:3, :3]))))
+        return FrameErrors(position_pct, yaw_deg, without_pose)
+
+    def accuracy(self, name: str) -> dict[str, float] | None:
+        """Against the rendered truth, on the frames with a marker in view: those without a
+        pose, the largest position error as a percentage of the distance, and the largest yaw
+        error (deg); None for the baseline or frames without truth."""
+        errors = self.errors(name)
+        if errors is None:
+            return None
+        position_pct = [float(v) for v in errors.position_pct if math.isfinite(v)]
+        yaw_deg = [float(v) for v in errors.yaw_deg if math.isfinite(v)]
         return {
-            "in_view_without_pose": float(missed),
+            "in_view_without_pose": float(np.count_nonzero(errors.without_pose)),
             "max_position_error_pct": max(position_pct, default=math.nan),
             "p95_position_error_pct": _p95(position_pct),
             "max_yaw_error_deg": max(yaw_deg, default=math.nan),
@@ -400,3 +423,16 @@ def format_report(report: BenchReport) -> str:
                 f"{a['p95_yaw_error_deg']:7.2f}/{a['max_yaw_error_deg']:<7.2f}"
             )
     return "\n".join(lines)
+
+
+def write_figure(report: BenchReport, path: str) -> Figure:
+    """The report frame by frame as a figure (``plots.bench_figure``; the format follows the
+    suffix: .png, .svg or .pdf)."""
+    errors: dict[str, tuple[Array, Array]] = {}
+    for name in report.methods:
+        frame_errors = report.errors(name)
+        if frame_errors is not None:
+            errors[name] = (frame_errors.position_pct, frame_errors.yaw_deg)
+    out_of_view = ~np.asarray(report.frames.in_view, dtype=bool)
+    ms = {name: result.ms for name, result in report.methods.items()}
+    return bench_figure(path, ms, BASELINE, report.stages_ms, out_of_view, errors)

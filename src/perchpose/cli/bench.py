@@ -59,6 +59,13 @@ QUALITIES = ("default", "clean", "analog_fpv", "harsh")
     type=click.Path(dir_okay=False),
     help="Also write the report as JSON.",
 )
+@click.option(
+    "--plot",
+    "plot_out",
+    default=None,
+    type=click.Path(dir_okay=False),
+    help="Also draw it frame by frame: times, stages, errors (.png, .svg or .pdf).",
+)
 @budget_option("Also time perchpose within this budget per frame (perchpose-budget).")
 @quiet_option
 def bench(
@@ -70,6 +77,7 @@ def bench(
     repeat: int,
     seed: int,
     json_out: str | None,
+    plot_out: str | None,
     budget_ms: float | None,
     quiet: bool,
 ) -> None:
@@ -82,12 +90,16 @@ def bench(
         format_report,
         rendered_frames,
         source_frames,
+        write_figure,
     )
     from perchpose.errors import PerchposeError
+    from perchpose.printable import check_output_format
     from perchpose.sim.render import ImageQuality
 
     if source is not None and camera_file.startswith("preset:"):
         raise PerchposeError("a SOURCE needs its calibration: --camera camera.yaml")
+    if plot_out is not None:
+        check_output_format(Path(plot_out))  # before the run, not after it
     camera = load_camera(camera_file)
     target = load_target(target_file)
     progress = show_progress(quiet)
@@ -109,3 +121,7 @@ def bench(
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(report.to_json(), indent=2) + "\n")
         click.echo(f"wrote {path}")
+    if plot_out is not None:
+        Path(plot_out).parent.mkdir(parents=True, exist_ok=True)
+        write_figure(report, plot_out)
+        click.echo(f"wrote {plot_out}")

@@ -311,3 +311,73 @@ def wind_sweep_figure(
     ax_cause.grid(True, axis="y", lw=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def bench_figure(
+    path: str,
+    ms: dict[str, Array],
+    baseline: str,
+    stages_ms: dict[str, Array],
+    out_of_view: NDArray[np.bool_],
+    errors: dict[str, tuple[Array, Array]],
+) -> Figure:
+    """What ``perchpose bench`` measured, frame by frame: each method's time (log scale) with
+    the frames where no marker is in view shaded, the default pipeline's time by stage
+    (stacked), with ``errors`` each pose method's position error (% of the distance) and yaw
+    error (deg); beside them, each method's time over the baseline's on the same frame as a
+    cumulative distribution. Returns the figure (also written to ``path``).
+
+    ms : method -> (N,) ms per frame. stages_ms : stage -> (N,) ms per frame (the default
+    pipeline's). errors : method -> ((N,) position %, (N,) yaw deg), NaN where unknown.
+    """
+    rows = 4 if errors else 2
+    fig = Figure(figsize=(12, 2.4 * rows + 0.6))
+    grid = fig.add_gridspec(rows, 2, width_ratios=(3, 1))
+    frame = np.arange(len(out_of_view), dtype=np.float64)
+    ax_ms = fig.add_subplot(grid[0, 0])
+    left = [ax_ms] + [fig.add_subplot(grid[k, 0], sharex=ax_ms) for k in range(1, rows)]
+    for ax in left:
+        shade_mask(ax, frame, out_of_view, "no marker in view")
+    for name, values in ms.items():
+        ax_ms.plot(frame, values, lw=0.9, label=name, color="black" if name == baseline else None)
+    ax_ms.set_yscale("log")
+    ax_ms.set_ylabel("ms per frame")
+    ax_stages = left[1]
+    parts = [np.where(np.isfinite(v), v, 0.0) for v in stages_ms.values()]
+    ax_stages.stackplot(frame, parts, labels=list(stages_ms), lw=0)
+    ax_stages.set_ylabel("perchpose by stage (ms)")
+    total = np.sum(parts, axis=0) if parts else np.zeros(0)
+    if total.size and np.percentile(total, 99) > 0:  # a rare slow frame shows in the top panel
+        ax_stages.set_ylim(0.0, 1.3 * float(np.percentile(total, 99)))
+    if errors:
+        panels = (
+            (left[2], "position error (% of distance)", "1 %"),
+            (left[3], "yaw error (deg)", "1 deg"),
+        )
+        for k, (ax_error, label, reference) in enumerate(panels):
+            for name, series in errors.items():
+                ax_error.plot(frame, np.maximum(series[k], 1e-4), ".", ms=3, label=name)
+            ax_error.axhline(1.0, color="red", lw=0.8, ls="--", label=reference)
+            ax_error.set_yscale("log")
+            ax_error.set_ylabel(label)
+    left[-1].set_xlabel("frame")
+    for ax in left:
+        ax.grid(True, lw=0.3)
+        ax.legend(fontsize=7, ncol=3, loc="upper right")
+    ax_ratio = fig.add_subplot(grid[:, 1])
+    base = ms[baseline]
+    for name, values in ms.items():
+        if name == baseline:
+            continue
+        ratio = np.sort(values / base)
+        share = np.arange(1, ratio.size + 1) / ratio.size
+        ax_ratio.step(ratio, share, where="post", label=f"{name} (median {np.median(ratio):.2f}x)")
+    ax_ratio.axvline(1.0, color="black", lw=0.8, label=baseline)
+    ax_ratio.set_xscale("log")
+    ax_ratio.set_xlabel(f"time over {baseline}'s, same frame")
+    ax_ratio.set_ylabel("share of frames")
+    ax_ratio.grid(True, lw=0.3)
+    ax_ratio.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return fig
