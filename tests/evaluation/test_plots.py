@@ -40,6 +40,15 @@ def test_bench_figure_draws_each_methods_times_over_the_baseline(tmp_path: Path)
     median = np.median(ms["fast"] / ms["opencv"])
     assert fast.get_label() == f"fast (median {median:.2f}x)"
     assert not any(label.startswith("opencv (") for label in lines)
+    # a method has one colour in every panel
+    for name in ("fast", "slow"):
+        colours = {
+            line.get_color()
+            for ax in fig.axes
+            for line in ax.get_lines()
+            if line.get_label().split(" ")[0] == name
+        }
+        assert len(colours) == 1
 
 
 def test_bench_figure_without_truth_has_no_error_panels(tmp_path: Path) -> None:

@@ -338,8 +338,10 @@ def bench_figure(
     left = [ax_ms] + [fig.add_subplot(grid[k, 0], sharex=ax_ms) for k in range(1, rows)]
     for ax in left:
         shade_mask(ax, frame, out_of_view, "no marker in view")
+    others = [name for name in ms if name != baseline]
+    colour = {name: f"C{k}" for k, name in enumerate(others)} | {baseline: "black"}
     for name, values in ms.items():
-        ax_ms.plot(frame, values, lw=0.9, label=name, color="black" if name == baseline else None)
+        ax_ms.plot(frame, values, lw=0.9, label=name, color=colour[name])
     ax_ms.set_yscale("log")
     ax_ms.set_ylabel("ms per frame")
     ax_stages = left[1]
@@ -356,22 +358,32 @@ def bench_figure(
         )
         for k, (ax_error, label, reference) in enumerate(panels):
             for name, series in errors.items():
-                ax_error.plot(frame, np.maximum(series[k], 1e-4), ".", ms=3, label=name)
-            ax_error.axhline(1.0, color="red", lw=0.8, ls="--", label=reference)
+                shown = np.maximum(series[k], 1e-4)
+                ax_error.plot(frame, shown, ".", ms=3, label=name, color=colour[name])
+            ax_error.axhline(1.0, color="red", lw=0.8, ls="--")
+            ax_error.annotate(
+                reference,
+                (1.0, 1.0),
+                xycoords=("axes fraction", "data"),
+                ha="right",
+                va="bottom",
+                fontsize=7,
+                color="red",
+            )
             ax_error.set_yscale("log")
             ax_error.set_ylabel(label)
     left[-1].set_xlabel("frame")
     for ax in left:
         ax.grid(True, lw=0.3)
+    for ax in left[:2]:  # the error panels draw each method in its colour in the first one
         ax.legend(fontsize=7, ncol=3, loc="upper right")
     ax_ratio = fig.add_subplot(grid[:, 1])
     base = ms[baseline]
-    for name, values in ms.items():
-        if name == baseline:
-            continue
-        ratio = np.sort(values / base)
+    for name in others:
+        ratio = np.sort(ms[name] / base)
         share = np.arange(1, ratio.size + 1) / ratio.size
-        ax_ratio.step(ratio, share, where="post", label=f"{name} (median {np.median(ratio):.2f}x)")
+        label = f"{name} (median {np.median(ratio):.2f}x)"
+        ax_ratio.step(ratio, share, where="post", label=label, color=colour[name])
     ax_ratio.axvline(1.0, color="black", lw=0.8, label=baseline)
     ax_ratio.set_xscale("log")
     ax_ratio.set_xlabel(f"time over {baseline}'s, same frame")
