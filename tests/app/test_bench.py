@@ -80,7 +80,7 @@ def test_json_and_text(report: BenchReport) -> None:
 
 
 def test_source_frames_skip_nothing_readable(
-    approach_webcam_dir: Path, webcam: CameraModel
+    approach_webcam_dir: Path, webcam: CameraModel, tmp_path: Path
 ) -> None:
     frames = source_frames(str(approach_webcam_dir), webcam, max_frames=5)
     assert len(frames.images) == 5
@@ -89,6 +89,13 @@ def test_source_frames_skip_nothing_readable(
     report = bench(frames, camera, TargetSpec.paper(), repeat=1)
     assert report.accuracy("perchpose") is None
     assert math.isfinite(report.ratios("perchpose")["p50"])
+    # without truth the figure has the times and the stages, no error panels
+    fig = write_figure(report, str(tmp_path / "bench.svg"))
+    assert [ax.get_ylabel() for ax in fig.axes] == [
+        "ms per frame",
+        "perchpose by stage (ms)",
+        "share of frames",
+    ]
 
 
 def test_bad_input(tmp_path: Path, webcam: CameraModel, paper_target: TargetSpec) -> None:
