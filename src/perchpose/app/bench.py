@@ -18,18 +18,16 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-from matplotlib.figure import Figure
 from numpy.typing import NDArray
 from tqdm import tqdm
 
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError, SourceError
 from perchpose.estimator import PerchingEstimator
-from perchpose.evaluation.plots import bench_figure
 from perchpose.geometry import wrap_angle_deg, yaw_rad
 from perchpose.io.sources import open_source
 from perchpose.sim.render import ImageQuality
@@ -37,6 +35,9 @@ from perchpose.sim.scenarios import approach, markers_in_view
 from perchpose.sim.sequence import rendered_frames as rendered_sequence
 from perchpose.target import TargetSpec, aruco_dictionary
 from perchpose.values import Estimate, Timings
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 Array = NDArray[np.float64]
 
@@ -427,7 +428,10 @@ def format_report(report: BenchReport) -> str:
 
 def write_figure(report: BenchReport, path: str) -> Figure:
     """The report frame by frame as a figure (``plots.bench_figure``; the format follows the
-    suffix: .png, .svg or .pdf)."""
+    suffix: .png, .svg or .pdf). matplotlib is imported here, not with the module: a run
+    without a figure does not pay for it."""
+    from perchpose.evaluation.plots import bench_figure
+
     errors: dict[str, tuple[Array, Array]] = {}
     for name in report.methods:
         frame_errors = report.errors(name)
