@@ -24,7 +24,7 @@ DOWN = downward_T_body_camera()  # ArduPilot takes LANDING_TARGET only from a ca
 
 class Receiver:
     """A vehicle-side endpoint (UDP, or a TCP server with ``scheme="tcpin"``): collects what
-    arrives, optionally streams its own state."""
+    arrives, optionally streams its own state (with its heartbeat, as an autopilot does)."""
 
     def __init__(
         self,
@@ -52,6 +52,8 @@ class Receiver:
                 self.messages.append(msg)
                 if msg.get_type() == "TIMESYNC" and self.clock_offset_ns is not None:
                     self._timesync(msg)
+            if self.messages:
+                self.conn.mav.heartbeat_send(2, 3, 129, 4, 4)  # an armed ArduCopter
             if self.messages and self.attitude is not None:
                 roll, pitch, yaw = self.attitude
                 self.conn.mav.attitude_send(0, roll, pitch, yaw, 0.0, 0.0, 0.0)
@@ -217,8 +219,10 @@ def test_local_ned_waits_for_attitude(udp_port: int) -> None:
 
 
 def test_stale_and_non_finite_estimates_are_never_sent(udp_port: int) -> None:
-    """Only fresh, finite poses leave: a coasted estimate older than max_age_s, or one whose
-    vehicle attitude is NaN, is refused (reported once); a fresh one still goes out."""
+    """Only fresh, finite poses leave: a coasted estimate older than max_age_s is refused
+    (reported once); a NaN attitude from the vehicle is dropped by the link (reported once),
+    so local_ned has none to turn by and holds its estimates back; a fresh one still goes out
+    in body_frd."""
     receiver = Receiver(udp_port, attitude=(math.nan, 0.0, 0.0))
     reports: list[str] = []
     body = LandingTargetSink(
@@ -234,10 +238,10 @@ def test_stale_and_non_finite_estimates_are_never_sent(udp_port: int) -> None:
         assert body.send(fresh)
         assert body.refused == 1
         deadline = time.monotonic() + 5.0
-        while ned.vehicle.R_ned_frd is None and time.monotonic() < deadline:
+        while ned.vehicle.rejected == 0 and time.monotonic() < deadline:
             time.sleep(0.02)
         assert not ned.send(fresh)  # the attitude the vehicle sent is NaN
-        assert ned.refused == 1
+        assert ned.vehicle.R_ned_frd is None
     finally:
         body.close()
         ned.close()
@@ -245,9 +249,15 @@ def test_stale_and_non_finite_estimates_are_never_sent(udp_port: int) -> None:
     (msg,) = receiver.of_type("LANDING_TARGET")
     assert msg.time_usec == 1_000_000
     assert all(math.isfinite(v) for v in (msg.x, msg.y, msg.z, msg.angle_x, msg.distance))
-    assert len(reports) == 2
     assert "0.50 s old" in reports[0]
-    assert "non-finite" in reports[1]
+    # each link says it once (the vehicle answers whichever link spoke last, so the body_frd
+    # sink's link may or may not have had a NaN attitude too)
+    nan = [r for r in reports if "one ATTITUDE with a non-finite field was dropped" in r]
+    assert 1 <= len(nan) <= 2
+    assert all("(reported once; the link goes on)" in r for r in nan)
+    held = [r for r in reports if "no ATTITUDE from the vehicle yet; local_ned" in r]
+    assert len(held) == 1
+    assert len(reports) == 2 + len(nan)
 
 
 def test_a_link_that_cannot_open_is_reported_once_and_tracking_goes_on() -> None:
@@ -431,3 +441,98 @@ def test_distance_sensor_goes_out_with_each_landing_target(udp_port: int) -> Non
     assert [m.current_distance for m in readings] == [61, 62, 63]
     assert all(m.orientation == 25 and m.min_distance == 5 for m in readings)
     assert all(m.max_distance == 500 and m.covariance == 255 for m in readings)
+
+
+def test_no_packet_ends_the_link(udp_port: int) -> None:
+    """A TIMESYNC answer with a negative time (a clock 'before boot'), a message whose field
+    cannot be packed, an estimate before time zero: each is dropped or ignored and said once,
+    and LANDING_TARGET and HEARTBEAT go on."""
+    negative_clock_ns = -time.monotonic_ns() - 100_000_000_000  # the vehicle answers tc1 < 0
+    receiver = Receiver(udp_port, clock_offset_ns=negative_clock_ns)
+    reports: list[str] = []
+    sink = LandingTargetSink(
+        f"udpout:127.0.0.1:{udp_port}",
+        T_body_camera=DOWN,
+        timesync_period_s=0.1,
+        report=reports.append,
+    )
+    try:
+        wait_until(lambda: len(receiver.of_type("TIMESYNC")) >= 3)
+        time.sleep(0.1)  # the answers are in
+        grabbed = replace(estimate_at(0.5, (1.0, 2.0, 60.0), 0.0), grabbed_s=time.monotonic())
+        assert sink.send(grabbed)
+        unpackable = lambda mav: mav.landing_target_send(-1, 0, 12, 0, 0, 0, 0, 0, 0)  # noqa: E731
+        assert sink.link.post(unpackable, "LANDING_TARGET")
+        assert sink.link.post(unpackable, "LANDING_TARGET")
+        assert not sink.send(estimate_at(-1.0, (1.0, 2.0, 60.0), 0.0))
+        for i in range(5):
+            assert sink.send(estimate_at(1.0 + i / 30, (1.0, 2.0, 60.0), 0.0))
+        wait_until(lambda: len(receiver.of_type("LANDING_TARGET")) >= 6)
+        beats = len(receiver.of_type("HEARTBEAT"))
+        time.sleep(1.2)
+        assert len(receiver.of_type("HEARTBEAT")) > beats  # the link's thread lives
+        assert sink.connected
+    finally:
+        sink.close()
+        receiver.stop()
+    targets = receiver.of_type("LANDING_TARGET")
+    assert len(targets) == 6
+    assert targets[0].time_usec == 500_000  # no usable clock offset: the frame's time
+    assert sink.timesync.offset_ns is None
+    assert sink.timesync.ignored >= 1
+    assert sink.link.faults == 2
+    assert sink.refused == 1
+    unsent = [r for r in reports if "one LANDING_TARGET could not be sent" in r]
+    assert len(unsent) == 1
+    assert any("before time zero; not sent" in r for r in reports)
+
+
+def wait_until(condition: Callable[[], bool], seconds: float = 5.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert condition()
+
+
+def test_the_link_uses_only_its_vehicles_messages() -> None:
+    """Decoded by pymavlink's own parser: the first autopilot's HEARTBEAT locks the link on to
+    its system and component; another autopilot is a stranger, a ground station or another
+    component of the vehicle is neither, and nothing but the vehicle's samples is kept."""
+    from perchpose.io.mavlink_link import VehicleState
+
+    mavlink = mavutil_module().mavlink
+
+    def received(system: int, component: int, build: Callable[[Any], Any]) -> Any:
+        sender = mavlink.MAVLink(None, srcSystem=system, srcComponent=component)
+        return mavlink.MAVLink(None).decode(bytearray(build(sender).pack(sender)))
+
+    def beat(mav: Any) -> Any:
+        return mav.heartbeat_encode(2, 3, 129, 4, 4)
+
+    def gcs(mav: Any) -> Any:
+        return mav.heartbeat_encode(6, 8, 0, 0, 4)
+
+    def attitude(mav: Any) -> Any:
+        return mav.attitude_encode(0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def nan_attitude(mav: Any) -> Any:
+        return mav.attitude_encode(0, math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    state = VehicleState()
+    assert state.source(received(3, 1, attitude)) == "other"  # not locked yet
+    assert state.source(received(255, 190, gcs)) == "other"
+    assert state.source(received(3, 1, beat)) == "vehicle"
+    assert (state.system_id, state.component_id) == (3, 1)
+    assert state.source(received(4, 1, beat)) == "stranger"
+    assert state.source(received(4, 1, attitude)) == "other"
+    assert state.source(received(3, 154, attitude)) == "other"  # a gimbal of the vehicle
+    own = received(3, 1, attitude)
+    assert state.source(own) == "vehicle"
+    assert state.heard(own, 1.0)
+    assert state.heard(received(3, 1, nan_attitude), 2.0) is False
+    assert state.rejected == 1
+    assert state.attitude_t_s == 1.0  # the last good one stays, and ages
+    assert state.attitude_age_s(1.5) == pytest.approx(0.5)
+    chosen = VehicleState(target_system=4)
+    assert chosen.source(received(3, 1, beat)) == "stranger"
+    assert chosen.source(received(4, 1, beat)) == "vehicle"

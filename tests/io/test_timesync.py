@@ -57,3 +57,19 @@ def test_remote_time_is_in_microseconds(ours_s: float) -> None:
     sync = TimeSync(clock_ns=clocks.ours)
     clocks.round_trip(sync, 0, 0)
     assert sync.remote_usec(ours_s) == round(ours_s * 1e6) + clocks.offset_ns // 1000
+
+
+def test_negative_times_are_neither_answered_nor_used() -> None:
+    """TIMESYNC's fields are times since boot: a negative one (a broken or hostile sender) is
+    ignored, so no offset puts a LANDING_TARGET before the autopilot's boot."""
+    clocks = Clocks()
+    sync = TimeSync(clock_ns=clocks.ours)
+    _, ts1 = sync.request()
+    assert sync.handle(-5, ts1) is None  # an answer with a negative time
+    assert sync.handle(0, -7) is None  # a request with one
+    assert sync.offset_ns is None
+    assert sync.ignored == 2
+    clocks.offset_ns = -clocks.ours_ns - 10_000_000_000  # a clock 10 s behind our zero
+    clocks.round_trip(sync, 500_000, 500_000)
+    assert sync.offset_ns is None  # its answer is a negative time too
+    assert sync.remote_usec(float("nan")) is None

@@ -102,7 +102,10 @@ class LandingTargetSink:
     computer's clock to the autopilot's (or for estimates without ``grabbed_s``); then
     ``time_usec`` is ``Estimate.grabbed_s`` on the autopilot's clock. timesync_period_s : how
     often a TIMESYNC request is sent (0: never; requests from the vehicle are answered all the
-    same). max_age_s : an estimate whose
+    same). attitude_max_age_s, position_max_age_s : the vehicle's ATTITUDE and
+    LOCAL_POSITION_NED older than this are not used (``local_ned`` estimates wait for a fresh
+    attitude). target_system : the vehicle's MAVLink system id (None: the first autopilot
+    heard); nothing from another system is used. max_age_s : an estimate whose
     newest measurement is older than this (``Estimate.age_s``) is not sent; default 0.5 s, well
     inside the autopilots' own LANDING_TARGET timeouts (ArduPilot 2 s, PX4 ``PLD_BTOUT`` 5 s).
     target_relative : also send TARGET_RELATIVE (PX4's vision target estimator;
@@ -128,9 +131,11 @@ class LandingTargetSink:
         timesync_period_s: float = 1.0,
         retry_period_s: float = 2.0,
         position_max_age_s: float = 1.0,
+        attitude_max_age_s: float = 0.5,
         max_age_s: float = 0.5,
         target_relative: bool = False,
         distance_sensor: bool = False,
+        target_system: int | None = None,
         report: Callable[[str], None] | None = None,
     ) -> None:
         if frame not in FRAMES:
@@ -148,6 +153,7 @@ class LandingTargetSink:
         self.target_side_m = (target or TargetSpec.paper()).markers[0].side_m
         self.time_offset_s = time_offset_s
         self.position_max_age_s = position_max_age_s
+        self.attitude_max_age_s = attitude_max_age_s
         if not max_age_s > 0:
             raise LinkError(f"max_age_s must be positive, got {max_age_s}")
         self.max_age_s = max_age_s
@@ -158,7 +164,6 @@ class LandingTargetSink:
         self._relative_reported = False
         if target_relative:
             dialect()  # generated now: a broken pymavlink fails here, not on the first frame
-        self._no_attitude_reported = False
         self.link = MavlinkLink(
             self.url,
             source_system=source_system,
@@ -166,6 +171,7 @@ class LandingTargetSink:
             heartbeat_period_s=heartbeat_period_s,
             timesync_period_s=timesync_period_s,
             retry_period_s=retry_period_s,
+            target_system=target_system,
             report=report or log.warning,
         )
         self.report = self.link.report
@@ -213,19 +219,16 @@ class LandingTargetSink:
                 f"(limit {self.max_age_s:g} s); not sent"
             )
             return None
+        if not estimate.t_s + self.time_offset_s >= 0.0:
+            self._refuse(f"estimate at t = {estimate.t_s:.3f} s is before time zero; not sent")
+            return None
         R_ned_frd = p_ned = None
         if self.frame == "local_ned":
-            R_ned_frd = self.vehicle.R_ned_frd
+            R_ned_frd = self._attitude()
             if R_ned_frd is None:
-                if not self._no_attitude_reported:
-                    self.report(
-                        f"MAVLink {self.url}: no ATTITUDE from the vehicle yet; local_ned "
-                        "estimates are held back until it arrives"
-                    )
-                    self._no_attitude_reported = True
                 return None
-            age = time.monotonic() - self.vehicle.position_t_s
-            if self.vehicle.p_ned_m is not None and age < self.position_max_age_s:
+            age = self.vehicle.position_age_s(time.monotonic())
+            if age < self.position_max_age_s:
                 p_ned = self.vehicle.p_ned_m
         shifted = replace(estimate, t_s=estimate.t_s + self.time_offset_s)
         time_usec = None
@@ -244,6 +247,29 @@ class LandingTargetSink:
         except LinkError as exc:
             self._refuse(str(exc))
             return None
+
+    def _fresh_attitude(self) -> Array | None:
+        """The attitude if younger than ``attitude_max_age_s``, else None."""
+        age = self.vehicle.attitude_age_s(time.monotonic())
+        return self.vehicle.R_ned_frd if age < self.attitude_max_age_s else None
+
+    def _attitude(self) -> Array | None:
+        """``_fresh_attitude``, saying once why there is none: a local_ned estimate is never
+        turned by an old attitude."""
+        R_ned_frd = self._fresh_attitude()
+        if R_ned_frd is None:
+            age = self.vehicle.attitude_age_s(time.monotonic())
+            why = (
+                "no ATTITUDE from the vehicle yet"
+                if math.isinf(age)
+                else f"the vehicle's ATTITUDE is {age:.1f} s old "
+                f"(limit {self.attitude_max_age_s:g} s)"
+            )
+            self.link.say_once(
+                f"attitude {math.isinf(age)}",
+                f"MAVLink {self.url}: {why}; local_ned estimates are held back until it is fresh",
+            )
+        return R_ned_frd
 
     def send(self, estimate: Estimate | None) -> bool:
         """Hand LANDING_TARGET for a valid estimate to the link's thread; True if it was
@@ -269,7 +295,7 @@ class LandingTargetSink:
                 estimate,
                 self.T_body_camera,
                 frame=self.frame,
-                R_ned_frd=self.vehicle.R_ned_frd,
+                R_ned_frd=self._attitude() if self.frame == "local_ned" else self._fresh_attitude(),
                 timestamp_usec=time_usec,
             )
         except LinkError as exc:

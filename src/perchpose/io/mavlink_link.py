@@ -22,6 +22,7 @@ received from the vehicle, and ``pollers`` with the time on each turn of its loo
 from __future__ import annotations
 
 import logging
+import math
 import os
 import threading
 import time
@@ -94,15 +95,31 @@ def check_url(url: str) -> str:
     )
 
 
+def is_autopilot(msg: Any) -> bool:
+    """A HEARTBEAT from a flight controller (not a ground station or another companion)."""
+    return msg.autopilot != MAV_AUTOPILOT_INVALID and msg.type not in (
+        MAV_TYPE_GCS,
+        MAV_TYPE_ONBOARD_CONTROLLER,
+    )
+
+
+def finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
 @dataclass
 class VehicleState:
-    """What the link has heard from the vehicle (times on ``time.monotonic``).
+    """What the link has heard from the one vehicle it serves (times on ``time.monotonic``).
 
     The autopilot's HEARTBEAT: ``autopilot`` (MAV_AUTOPILOT: 3 ArduPilot, 12 PX4),
-    ``custom_mode``, ``base_mode``, and the system id it came from; ATTITUDE as ``R_ned_frd``;
-    LOCAL_POSITION_NED as ``p_ned_m`` and ``v_ned_mps``.
+    ``custom_mode``, ``base_mode``; ATTITUDE as ``R_ned_frd``; LOCAL_POSITION_NED as
+    ``p_ned_m`` and ``v_ned_mps``. ``system_id`` and ``component_id`` are the autopilot's:
+    ``target_system`` if given, else the first autopilot whose HEARTBEAT is heard. Nothing from
+    another system or component reaches this state. A sample with a non-finite field is dropped
+    whole (``rejected`` counts them): the last good one stays, and ages.
     """
 
+    target_system: int | None = None
     R_ned_frd: Array | None = None
     p_ned_m: Array | None = None
     v_ned_mps: Array | None = None
@@ -111,31 +128,62 @@ class VehicleState:
     autopilot: int | None = None
     custom_mode: int = 0
     base_mode: int = 0
-    system_id: int = 1
+    system_id: int | None = None
+    component_id: int | None = None
     heartbeat_t_s: float = float("nan")
+    rejected: int = 0
 
     @property
     def armed(self) -> bool:
         return bool(self.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
 
+    def attitude_age_s(self, now: float) -> float:
+        """Seconds since the last good ATTITUDE (infinite before the first)."""
+        return now - self.attitude_t_s if self.R_ned_frd is not None else math.inf
+
+    def position_age_s(self, now: float) -> float:
+        """Seconds since the last good LOCAL_POSITION_NED (infinite before the first)."""
+        return now - self.position_t_s if self.p_ned_m is not None else math.inf
+
+    def source(self, msg: Any) -> str:
+        """Whose message this is: ``vehicle`` (our autopilot's, locking on to the first
+        autopilot heard when no ``target_system`` was given), ``stranger`` (another
+        autopilot's) or ``other`` (anything else: not yet locked, another component, a
+        ground station)."""
+        system, component = msg.get_srcSystem(), msg.get_srcComponent()
+        if self.system_id is None:
+            if msg.get_type() != "HEARTBEAT" or not is_autopilot(msg):
+                return "other"
+            if self.target_system is not None and system != self.target_system:
+                return "stranger"
+            self.system_id, self.component_id = system, component
+            return "vehicle"
+        if system != self.system_id:
+            autopilot = msg.get_type() == "HEARTBEAT" and is_autopilot(msg)
+            return "stranger" if autopilot else "other"
+        return "vehicle" if component == self.component_id else "other"
+
     def heard(self, msg: Any, now: float) -> bool:
-        """Take in one received message; True if it was one of the vehicle's."""
+        """Take in one message from our vehicle (``source`` said so); True if it changed this
+        state, False if it was not one of the kinds kept or had a non-finite field."""
         kind = msg.get_type()
         if kind == "HEARTBEAT":
-            if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in (
-                MAV_TYPE_GCS,
-                MAV_TYPE_ONBOARD_CONTROLLER,
-            ):
-                return False  # a ground station or another companion, not the autopilot
+            if not is_autopilot(msg):
+                return False
             self.autopilot = int(msg.autopilot)
             self.custom_mode = int(msg.custom_mode)
             self.base_mode = int(msg.base_mode)
-            self.system_id = int(msg.get_srcSystem())
             self.heartbeat_t_s = now
         elif kind == "ATTITUDE":
+            if not finite(msg.roll, msg.pitch, msg.yaw):
+                self.rejected += 1
+                return False
             self.R_ned_frd = R_ned_frd_from_euler(msg.roll, msg.pitch, msg.yaw)
             self.attitude_t_s = now
         elif kind == "LOCAL_POSITION_NED":
+            if not finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz):
+                self.rejected += 1
+                return False
             self.p_ned_m = np.array([msg.x, msg.y, msg.z], dtype=float)
             self.v_ned_mps = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
             self.position_t_s = now
@@ -147,9 +195,15 @@ class VehicleState:
 class MavlinkLink:
     """A pymavlink connection to one vehicle, served by a thread of its own.
 
-    url : pymavlink connection string. timesync_period_s : how often a TIMESYNC request is
-    sent (0: never; requests from the vehicle are answered all the same). report : receives
-    the one-line link reports (default: this module's logger).
+    url : pymavlink connection string. target_system : the vehicle's MAVLink system id (None:
+    the first autopilot heard); messages from other systems are ignored (each stranger said
+    once). timesync_period_s : how often a TIMESYNC request is sent (0: never; requests from
+    the vehicle are answered all the same). report : receives the one-line link reports
+    (default: this module's logger).
+
+    No packet ends the link's thread: a message that cannot be packed is dropped, one that
+    cannot be used is ignored, and an error in a listener or poller is caught; each kind of
+    fault is reported once, in one line, and counted in ``faults``.
     """
 
     def __init__(
@@ -161,9 +215,12 @@ class MavlinkLink:
         heartbeat_period_s: float = 1.0,
         timesync_period_s: float = 1.0,
         retry_period_s: float = 2.0,
+        target_system: int | None = None,
         report: Callable[[str], None] | None = None,
     ) -> None:
         self.url = check_url(url)
+        if target_system is not None and not 1 <= target_system <= 255:
+            raise LinkError(f"MAVLink target system {target_system}: expected 1 to 255")
         self.source_system = source_system
         self.source_component = source_component
         self.heartbeat_period_s = heartbeat_period_s
@@ -171,7 +228,9 @@ class MavlinkLink:
         self.retry_period_s = retry_period_s
         self.report = report or log.warning
         self.timesync = TimeSync()
-        self.vehicle = VehicleState()
+        self.vehicle = VehicleState(target_system=target_system)
+        self.faults = 0
+        self._said: set[str] = set()  # the one-time reports already made
         self.listeners: list[Callable[[Any], None]] = []
         self.pollers: list[Callable[[float], None]] = []
         self.sent = 0
@@ -238,14 +297,28 @@ class MavlinkLink:
             )
             self._down_reported = True
 
+    def say_once(self, key: str, line: str) -> None:
+        """Report ``line`` the first time ``key`` comes up."""
+        if key not in self._said:
+            self._said.add(key)
+            self.report(line)
+
+    def _fault(self, key: str, line: str) -> None:
+        self.faults += 1
+        self.say_once(key, f"MAVLink {self.url}: {line} (reported once; the link goes on)")
+
     def _send(self, send: Send, what: str) -> bool:
-        """Send on the service thread; a transport error takes the link down."""
+        """Send on the service thread; a transport error takes the link down, a message that
+        cannot be packed (a field out of its range) is dropped."""
         if self._conn is None:
             return False
         try:
             send(self._conn.mav)
         except OSError as exc:
             self._link_down(f"{self.url} down while sending {what}: {exc}")
+            return False
+        except Exception as exc:  # pymavlink packs with struct: a bad field raises anything
+            self._fault(f"send {what}", f"one {what} could not be sent ({exc}); dropped")
             return False
         return True
 
@@ -265,31 +338,43 @@ class MavlinkLink:
     def _service(self) -> None:
         while True:
             stopping = self._stop.is_set()
-            now = time.monotonic()
-            if self._conn is None:
-                if stopping:
+            try:
+                if self._turn(stopping):
                     break
-                if now >= self._next_retry:
-                    self._open()
-            else:
-                self._drain()
-                if stopping:
-                    break
-                if now >= self._next_heartbeat:
-                    self._next_heartbeat = now + self.heartbeat_period_s
-                    self._send(self._heartbeat, "HEARTBEAT")
-                if self.timesync_period_s > 0 and now >= self._next_timesync:
-                    self._next_timesync = now + self.timesync_period_s
-                    tc1, ts1 = self.timesync.request()
-                    self._send(partial(_timesync_send, tc1=tc1, ts1=ts1), "TIMESYNC")
-                self._receive()
+            except Exception as exc:  # the thread serves the vehicle: it must not die
+                self._fault(f"turn {type(exc).__name__}", f"link error {exc!r}")
             for poll in self.pollers:
-                poll(time.monotonic())
+                try:
+                    poll(time.monotonic())
+                except Exception as exc:
+                    self._fault(f"poll {type(exc).__name__}", f"error while polling: {exc!r}")
             self._wake.wait(0.01)
             self._wake.clear()
         with self._lock:
             self.dropped += len(self._queue)
             self._queue.clear()
+
+    def _turn(self, stopping: bool) -> bool:
+        """One turn of the service loop; True when it is time to stop."""
+        now = time.monotonic()
+        if self._conn is None:
+            if stopping:
+                return True
+            if now >= self._next_retry:
+                self._open()
+            return False
+        self._drain()
+        if stopping:
+            return True
+        if now >= self._next_heartbeat:
+            self._next_heartbeat = now + self.heartbeat_period_s
+            self._send(self._heartbeat, "HEARTBEAT")
+        if self.timesync_period_s > 0 and now >= self._next_timesync:
+            self._next_timesync = now + self.timesync_period_s
+            tc1, ts1 = self.timesync.request()
+            self._send(partial(_timesync_send, tc1=tc1, ts1=ts1), "TIMESYNC")
+        self._receive()
+        return False
 
     def _heartbeat(self, mav: Any) -> None:
         mav.heartbeat_send(
@@ -310,13 +395,45 @@ class MavlinkLink:
                 return
             if msg is None:
                 return
-            if msg.get_type() == "TIMESYNC":
+            try:
+                self._take(msg)
+            except Exception as exc:  # one bad message is ignored, never the end of the link
+                kind = msg.get_type()
+                self._fault(f"take {kind}", f"one {kind} could not be used ({exc!r}); ignored")
+
+    def _take(self, msg: Any) -> None:
+        source = self.vehicle.source(msg)
+        kind = msg.get_type()
+        if source == "stranger":
+            self.say_once(
+                f"stranger {msg.get_srcSystem()}",
+                f"MAVLink {self.url}: ignoring autopilot system {msg.get_srcSystem()} "
+                f"(serving system {self.vehicle.system_id or self.vehicle.target_system}; "
+                "--target-system picks another)",
+            )
+            return
+        if kind == "TIMESYNC":
+            # requests are answered whoever asks; only our vehicle's answers set the offset
+            if msg.tc1 == 0 or source == "vehicle":
                 answer = self.timesync.handle(int(msg.tc1), int(msg.ts1))
                 if answer is not None:
                     self._send(partial(_timesync_send, tc1=answer[0], ts1=answer[1]), "TIMESYNC")
-            elif self.vehicle.heard(msg, time.monotonic()):
-                for listener in self.listeners:
-                    listener(msg)
+            return
+        if source != "vehicle":
+            return
+        if kind == "HEARTBEAT" and math.isnan(self.vehicle.heartbeat_t_s):
+            log.info(
+                "MAVLink %s: serving autopilot system %s (component %s)",
+                self.url,
+                self.vehicle.system_id,
+                self.vehicle.component_id,
+            )
+        rejected = self.vehicle.rejected
+        if self.vehicle.heard(msg, time.monotonic()):
+            for listener in self.listeners:
+                listener(msg)
+        elif self.vehicle.rejected > rejected:
+            self._fault(f"non-finite {kind}", f"one {kind} with a non-finite field was dropped")
 
     # -- for the senders ------------------------------------------------------------------
 

@@ -13,12 +13,14 @@ message is stamped on arrival and the camera's latency goes uncompensated.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Callable
 
 WINDOW = 10  # answers the offset is chosen from
 PENDING = 16  # requests remembered while their answers are on the way
+INT64_MAX = 2**63 - 1  # TIMESYNC's fields are int64
 
 
 class TimeSync:
@@ -35,6 +37,7 @@ class TimeSync:
         self._pending: deque[int] = deque(maxlen=PENDING)
         self._samples: deque[tuple[int, int]] = deque(maxlen=WINDOW)  # (rtt, offset)
         self.answered = 0
+        self.ignored = 0
 
     @property
     def offset_ns(self) -> int | None:
@@ -56,8 +59,13 @@ class TimeSync:
 
     def handle(self, tc1: int, ts1: int) -> tuple[int, int] | None:
         """A received TIMESYNC: the answer to send back for a request, None for an answer
-        (which updates the offset when it answers one of ours in time)."""
+        (which updates the offset when it answers one of ours in time). Times are ns since
+        each side's boot, so a negative one is not a time: it is neither answered nor used
+        (``ignored`` counts them)."""
         now = self.clock_ns()
+        if not (0 <= tc1 <= INT64_MAX and 0 <= ts1 <= INT64_MAX):
+            self.ignored += 1
+            return None
         if tc1 == 0:
             self.answered += 1
             return now, ts1
@@ -69,8 +77,10 @@ class TimeSync:
         return None
 
     def remote_usec(self, local_s: float) -> int | None:
-        """A time on our clock (s, as ``time.monotonic()``) on the autopilot's, in us."""
+        """A time on our clock (s, as ``time.monotonic()``) on the autopilot's, in us (None
+        before the first usable answer, or for a time before the autopilot's boot)."""
         offset = self.offset_ns
-        if offset is None:
+        if offset is None or not math.isfinite(local_s):
             return None
-        return (round(local_s * 1e9) + offset) // 1000
+        remote_us = (round(local_s * 1e9) + offset) // 1000
+        return remote_us if remote_us >= 0 else None
