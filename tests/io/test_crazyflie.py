@@ -7,6 +7,7 @@ the firmware's protocol-version handshake, so cflib picks today's setpoint encod
 import math
 import queue
 import struct
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -287,11 +288,14 @@ def test_stale_or_non_finite_estimates_are_not_flown(
     assert late.v_mps == (0.0, 0.0, 0.0)
     nan = Estimate.of_pose(2.1, (math.nan, 0.0, 0.6), 0.0)
     assert pilot.update(nan, 2.1).phase == "lost"
-    # a non-finite attitude from the vehicle makes a non-finite setpoint: a hover goes out
+    # a non-finite attitude from the vehicle is never flown on: a hover goes out, and a
+    # second of them lands the vehicle
     pilot.attitude = lambda: np.full((3, 3), np.nan)
     step = pilot.update(Estimate.of_pose(2.2, (0.1, 0.0, 0.6), 0.0), 2.2)
-    assert step.v_mps == (0.0, 0.0, 0.0)
-    assert pilot.replaced_setpoints == 1
+    assert (step.phase, step.v_mps) == ("hold", (0.0, 0.0, 0.0))
+    assert pilot.update(Estimate.of_pose(2.9, (0.1, 0.0, 0.6), 0.0), 2.9).phase == "hold"
+    assert pilot.update(Estimate.of_pose(3.0, (0.1, 0.0, 0.6), 0.0), 3.0).state == "landing"
+    assert pilot.replaced_setpoints == 0
     velocities = [decode(p)[1:] for p in link.sent]
     assert all(math.isfinite(v) for packet in velocities for v in packet)
 
@@ -301,6 +305,10 @@ def test_bad_uri_and_settings() -> None:
         connect("http://example.com")
     with pytest.raises(ControllerConfigError, match="land_speed_mps"):
         PilotSettings(land_speed_mps=0.0)
+    with pytest.raises(ControllerConfigError, match="must be below senses_lost_after_s"):
+        PilotSettings(stale_after_s=2.0)
+    with pytest.raises(ControllerConfigError, match="on_senses_lost 'hover'"):
+        PilotSettings(on_senses_lost="hover")
 
 
 def test_cli_without_a_radio_is_one_line(
@@ -331,32 +339,43 @@ def test_nothing_imports_cflib_without_the_crazyflie_link() -> None:
     assert out.stdout.strip() == "False"
 
 
+def bare_connection(cf: Crazyflie, clock: Callable[[], float] | None = None) -> Any:
+    """A ``CrazyflieConnection`` over ``cf`` without a radio to open: its log callbacks are
+    called by hand, as cflib would call them."""
+    from perchpose.io.crazyflie import CrazyflieConnection
+
+    connection = CrazyflieConnection.__new__(CrazyflieConnection)
+    connection.cf = cf
+    connection.uri = "radio://0/80/2M/E7E7E7E7E7"
+    connection.report = lambda _m: None
+    connection.clock = clock or time.monotonic
+    connection.rejected = 0
+    connection._R_world_body = np.eye(3)
+    connection._height_m = None
+    connection._odometry = None
+    connection._pilots = []
+    connection._state_t_s = math.nan
+    connection._motion_t_s = math.nan
+    return connection
+
+
+def state_sample(z_m: float, qw: float = 1.0) -> dict[str, float]:
+    """The attitude-and-height log block: level (or ``qw`` spoilt) at ``z_m``."""
+    names = ("qw", "qx", "qy", "qz", "z")
+    return dict(zip([f"stateEstimate.{n}" for n in names], (qw, 0.0, 0.0, 0.0, z_m), strict=True))
+
+
+STILL = {f"stateEstimate.{a}": 0.0 for a in ("x", "y", "vx", "vy", "vz")}
+
+
 def test_each_state_estimate_sample_ticks_the_pilot(
     crazyflie: tuple[Crazyflie, FakeRadioLink],
 ) -> None:
     """Between frames the link's odometry log (50 Hz) closes the lateral loop: each sample
     sends a setpoint that steers on it."""
-    from perchpose.io.crazyflie import CrazyflieConnection
-
     cf, link = crazyflie
-    connection = CrazyflieConnection.__new__(CrazyflieConnection)  # no radio to open
-    connection.cf = cf
-    connection.report = lambda _m: None
-    connection._R_world_body = np.eye(3)
-    connection._height_m = None
-    connection._odometry = None
-    connection._pilots = []
-    connection._state(
-        0,
-        {
-            "stateEstimate.qw": 1.0,
-            "stateEstimate.qx": 0.0,
-            "stateEstimate.qy": 0.0,
-            "stateEstimate.qz": 0.0,
-            "stateEstimate.z": 1.0,
-        },
-        None,
-    )
+    connection = bare_connection(cf)
+    connection._state(0, state_sample(1.0), None)
     still = {f"stateEstimate.{a}": 0.0 for a in ("x", "y", "vx", "vy", "vz")}
     connection._moved(0, still, None)
     pilot = connection.pilot()
@@ -372,3 +391,71 @@ def test_each_state_estimate_sample_ticks_the_pilot(
     kind, vx, _vy, _vz, _yaw_rate = packets[0]
     assert kind == "velocity"
     assert vx_frame - vx > 0.8 * settings.k_xy * 0.006  # back towards the held target
+
+
+def test_a_nan_state_sample_is_dropped_and_the_pilot_keeps_steering(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """One NaN in either log block: the sample is dropped (said once) and the pilot flies on
+    the last good one; every later setpoint still steers towards the target."""
+    cf, link = crazyflie
+    reports: list[str] = []
+    connection = bare_connection(cf)
+    connection.report = reports.append
+    connection._state(0, state_sample(1.0), None)
+    connection._moved(0, STILL, None)
+    pilot = connection.pilot()
+    ahead = Estimate.of_pose(0.0, (0.10, 0.0, 0.5), 0.0)  # upward camera: x is the body's front
+    for i in range(10):
+        pilot.update(replace(ahead, t_s=i / 30), i / 30)
+    connection._state(0, state_sample(1.0, qw=math.nan), None)
+    connection._moved(0, {**STILL, "stateEstimate.vx": math.nan}, None)
+    before = len(link.sent)
+    for i in range(10, 40):
+        connection._state(0, state_sample(1.0), None)
+        connection._moved(0, STILL, None)
+        pilot.update(replace(ahead, t_s=i / 30), i / 30)
+    packets = [decode(p) for p in link.sent[before:]]
+    assert len(packets) >= 30
+    assert all(p[0] == "velocity" and p[1] > 0.01 for p in packets)  # forward, to the target
+    assert pilot.replaced_setpoints == 0
+    assert connection.rejected == 2
+    assert sum("non-finite" in r for r in reports) == 1
+    assert pilot.state == "perching"
+
+
+def test_a_height_that_stops_updating_is_never_contact(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """The final climb with the state estimate's log stream frozen mid-climb: a height that
+    does not change is no evidence of the plate. The pilot hovers after a quarter of a second
+    (no climb) and lands after a second, saying why; the motors are never cut."""
+    cf, link = crazyflie
+    now = [0.0]
+    reports: list[str] = []
+    connection = bare_connection(cf, clock=lambda: now[0])
+    connection.report = reports.append
+    pilot = connection.pilot(clock=lambda: now[0])
+    height = 1.80
+    near = Estimate.of_pose(0.0, (-0.015, 0.0, 0.01), 0.0, stage=3)
+    for i in range(60):
+        now[0] = i / 30
+        if i < 12:  # the stream stops 0.4 s in
+            height += pilot.controller.settings.commit_speed_mps / 30
+            connection._state(0, state_sample(height), None)
+            connection._moved(0, STILL, None)
+        estimate = replace(near, t_s=now[0]) if i < 3 else None
+        pilot.update(estimate, now[0])
+    packets = [decode(p) for p in link.sent]
+    assert ("stop",) not in packets
+    assert all(p[0] == "velocity" and p[1:3] == (0.0, 0.0) for p in packets)
+    assert pilot.state == "landing"
+    vz = [p[3] for p in packets]
+    hover = vz.index(0.0)
+    descent = next(i for i, v in enumerate(vz) if v < 0.0)
+    assert all(v > 0.0 for v in vz[:hover])  # climbing while the stream was live
+    assert all(v == 0.0 for v in vz[hover:descent])
+    assert all(v < 0.0 for v in vz[descent:])
+    assert 21 <= descent - hover <= 23  # frames from 0.25 s to 1 s after the last sample
+    assert any("hovering, no climb" in r for r in reports)
+    assert any("landing" in r and "s old" in r for r in reports)

@@ -26,16 +26,25 @@ ARMED = 128 | 1  # MAV_MODE_FLAG_SAFETY_ARMED | MAV_MODE_FLAG_CUSTOM_MODE_ENABLE
 
 class Vehicle:
     """An autopilot on ``udpin``: level, still, 1 m up, in ``mode``; heartbeats at 10 Hz
-    (and at once on a mode change) until ``silent``."""
+    (and at once on a mode change) until ``silent``; ATTITUDE and LOCAL_POSITION_NED at 50 Hz
+    while ``streams`` names them, each sample through ``sample`` (to spoil one). ``stranger``:
+    a second autopilot on the same link (system 2, disarmed in LOITER, rolled 30 deg) sends
+    its heartbeats and attitude too."""
 
-    def __init__(self, port: int, autopilot: int, mode: int, system: int = 7) -> None:
+    def __init__(
+        self, port: int, autopilot: int, mode: int, system: int = 7, stranger: bool = False
+    ) -> None:
         self.conn = mavutil_module().mavlink_connection(
             f"udpin:127.0.0.1:{port}", source_system=system, source_component=1
         )
+        self.system = system
         self.autopilot = autopilot
         self.mode = mode
         self.armed = True
         self.silent = False
+        self.stranger = stranger
+        self.streams = {"ATTITUDE", "LOCAL_POSITION_NED"}
+        self.spoil: set[str] = set()  # the next sample of these kinds carries a NaN
         self.received: list[tuple[int, Any]] = []  # (the mode it arrived in, message)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -62,8 +71,24 @@ class Vehicle:
                 self._beat()
             if self.received and now >= next_state:
                 next_state = now + 0.02
-                self.conn.mav.attitude_send(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-                self.conn.mav.local_position_ned_send(0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0)
+                self._state()
+
+    def _state(self) -> None:
+        nan = float("nan")
+        if "ATTITUDE" in self.streams:
+            roll = nan if "ATTITUDE" in self.spoil else 0.0
+            self.spoil.discard("ATTITUDE")
+            self.conn.mav.attitude_send(0, roll, 0.0, 0.0, 0.0, 0.0, 0.0)
+        if "LOCAL_POSITION_NED" in self.streams:
+            x = nan if "LOCAL_POSITION_NED" in self.spoil else 0.0
+            self.spoil.discard("LOCAL_POSITION_NED")
+            self.conn.mav.local_position_ned_send(0, x, 0.0, -1.0, 0.0, 0.0, 0.0)
+        if self.stranger:  # the same socket, another system id
+            self.conn.mav.srcSystem = 2
+            self.conn.mav.heartbeat_send(2, self.autopilot, 1, LOITER, 4)
+            self.conn.mav.attitude_send(0, math.radians(30.0), 0.0, 0.0, 0.0, 0.0, 0.0)
+            self.conn.mav.local_position_ned_send(0, 5.0, 5.0, -3.0, 1.0, 0.0, 0.0)
+            self.conn.mav.srcSystem = self.system
 
     def setpoints(self) -> list[tuple[int, Any]]:
         return [
@@ -268,3 +293,159 @@ def test_mavlink_pilot_needs_a_link(
     )
     assert code == 2
     assert "--mavlink-pilot needs --mavlink" in capsys.readouterr().err
+
+
+def steering(sent: list[tuple[int, Any]]) -> list[Any]:
+    return [msg for _, msg in sent if (msg.vx, msg.vy, msg.vz) != (0, 0, 0)]
+
+
+def test_the_pilot_flies_its_own_system_and_ignores_a_stranger(udp_port: int) -> None:
+    """A second autopilot on the link (system 2, disarmed in LOITER, rolled 30 deg, elsewhere)
+    neither receives a setpoint nor feeds the pilot's state nor releases it."""
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED, stranger=True)
+    reports: list[str] = []
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", target_system=7, report=reports.append)
+    t0 = time.monotonic()
+    try:
+        wait_for(pilot.ready)
+        fly(pilot, 1.0, (0.10, 0.0, 0.6), t0)
+        assert pilot.pilot.state == "perching"
+        np.testing.assert_allclose(pilot.attitude(), np.eye(3), atol=1e-9)
+        p_nwu, v_nwu = pilot.odometry() or (None, None)
+        np.testing.assert_allclose(p_nwu, [0.0, 0.0, 1.0])
+        np.testing.assert_allclose(v_nwu, [0.0, 0.0, 0.0])
+    finally:
+        pilot.close()
+        vehicle.stop()
+    sent = vehicle.setpoints()
+    assert len(steering(sent)) > 10
+    assert {msg.target_system for _, msg in sent} == {7}
+    assert any("ignoring autopilot system 2" in r for r in reports)
+    assert not any("released" in r or "disarmed" in r or "left GUIDED" in r for r in reports[:-1])
+
+
+def test_the_first_autopilot_heard_is_the_one_flown(udp_port: int) -> None:
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=lambda _m: None)
+    try:
+        wait_for(pilot.ready)
+        vehicle.stranger = True
+        time.sleep(0.3)
+        assert pilot.vehicle.system_id == 7
+        np.testing.assert_allclose(pilot.attitude(), np.eye(3), atol=1e-9)
+        assert pilot.vehicle.armed
+        assert pilot.vehicle.custom_mode == GUIDED
+    finally:
+        pilot.close()
+        vehicle.stop()
+
+
+def test_one_nan_sample_is_dropped_and_the_pilot_keeps_steering(udp_port: int) -> None:
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
+    reports: list[str] = []
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append)
+    t0 = time.monotonic()
+    try:
+        wait_for(pilot.ready)
+        fly(pilot, 0.5, (0.10, 0.0, 0.6), t0)
+        vehicle.spoil = {"ATTITUDE", "LOCAL_POSITION_NED"}
+        wait_for(lambda: not vehicle.spoil)
+        time.sleep(0.1)
+        before = len(vehicle.setpoints())
+        fly(pilot, 1.0, (0.10, 0.0, 0.6), t0)
+        assert pilot.pilot.state == "perching"
+    finally:
+        pilot.close()
+        vehicle.stop()
+    after = vehicle.setpoints()[before:]
+    assert len(after) > 20
+    assert len(steering(after)) >= len(after) - 2  # the last: the hover at close
+    assert all(math.isfinite(msg.vx) and msg.vx > 0.0 for msg in steering(after))
+    assert pilot.vehicle.rejected == 2
+    assert any("one ATTITUDE with a non-finite field was dropped" in r for r in reports)
+    assert pilot.pilot.replaced_setpoints == 0
+
+
+@pytest.mark.parametrize("stream", ["ATTITUDE", "LOCAL_POSITION_NED"])
+def test_a_stream_that_stops_holds_the_vehicle_then_hands_it_back(
+    udp_port: int, stream: str
+) -> None:
+    """A quarter of a second without the stream: hover setpoints (no climb); after a second,
+    released to the autopilot, saying why; nothing sent after that."""
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
+    reports: list[str] = []
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append)
+    above = (0.0, 0.0, 0.6)
+    t0 = time.monotonic()
+    try:
+        wait_for(pilot.ready)
+        fly(pilot, 0.5, above, t0)
+        assert any(msg.vz < -0.05 for _, msg in vehicle.setpoints())  # climbing (NED z down)
+        vehicle.streams.discard(stream)
+        fly(pilot, 0.35, above, t0)  # past the quarter of a second
+        time.sleep(0.05)
+        holding = len(vehicle.setpoints())
+        end = time.monotonic() + 2.0
+        while pilot.pilot.state != "released" and time.monotonic() < end:
+            fly(pilot, 1 / 30, above, t0)
+        assert pilot.pilot.state == "released"
+        time.sleep(0.1)
+        released = len(vehicle.setpoints())
+        fly(pilot, 0.3, above, t0)
+        time.sleep(0.1)
+        assert len(vehicle.setpoints()) == released
+    finally:
+        pilot.close()
+        vehicle.stop()
+    late = vehicle.setpoints()[holding:released]
+    assert len(late) > 10
+    assert all((msg.vx, msg.vy, msg.vz) == (0, 0, 0) for _, msg in late)
+    name = "attitude" if stream == "ATTITUDE" else "position"
+    assert any(f"vehicle's {name} is" in r and "hovering, no climb" in r for r in reports)
+    assert any(f"{name} is" in r and "its autopilot flies it now" in r for r in reports)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        ("--mavlink", "udpout:127.0.0.1:9", "--mavlink-pilot", "--mount", "down"),
+        ("--crazyflie", "radio://0/80/2M/E7E7E7E7E7", "--mount", "down"),
+    ],
+)
+def test_a_pilot_with_a_downward_camera_is_refused(
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    track_argv: Callable[..., list[str]],
+    options: tuple[str, ...],
+) -> None:
+    """The perching pilot climbs towards a target above: with a camera looking down it would
+    climb away from a target below, so the command stops before any link opens."""
+    code = main(track_argv(approach_fpv_dir, tmp_path / "p.csv", *options))
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count("\n") == 1
+    assert "perches on a target above the vehicle, so the camera must look up" in err
+    assert "points down" in err
+    assert not (tmp_path / "p.csv").exists()
+
+
+def test_target_system_is_checked_and_needs_a_link(
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    track_argv: Callable[..., list[str]],
+) -> None:
+    argv = track_argv(approach_fpv_dir, tmp_path / "p.csv", "--target-system", "7")
+    assert main(argv) == 2
+    assert "--target-system needs --mavlink" in capsys.readouterr().err
+    argv = track_argv(
+        approach_fpv_dir,
+        tmp_path / "p.csv",
+        "--mavlink",
+        "udpout:127.0.0.1:9",
+        "--target-system",
+        "0",
+    )
+    assert main(argv) == 2
+    assert "--target-system" in capsys.readouterr().err

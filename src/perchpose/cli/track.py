@@ -37,11 +37,18 @@ def _vehicle_links(
     mavlink_pilot: bool = False,
     mavlink_target_relative: bool = False,
     mavlink_distance: bool = False,
+    target_system: int | None = None,
 ) -> Iterator[list[Callable[[Any, float], None]]]:
     """The per-frame hooks of the requested vehicle links; lands and closes them at the end."""
     from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
+    from perchpose.control.mount import require_upward
 
     T_body_camera = mount_T_body_camera(mount_file) if mount_file else None
+    if T_body_camera is not None:
+        pilots = [("--mavlink-pilot", mavlink_pilot), ("--crazyflie", crazyflie_uri is not None)]
+        for flag, on in pilots:
+            if on:
+                require_upward(T_body_camera, flag)
     hooks: list[Callable[[Any, float], None]] = []
     closers: list[Callable[[], None]] = []
     pilot = None
@@ -55,7 +62,10 @@ def _vehicle_links(
             from perchpose.io.mavlink_pilot import MavlinkPilot
 
             autopilot = MavlinkPilot(
-                mavlink_url, controller=PerchingController(settings), report=warn
+                mavlink_url,
+                controller=PerchingController(settings),
+                target_system=target_system,
+                report=warn,
             )
             closers.append(autopilot.close)
             hooks.append(autopilot)
@@ -70,6 +80,7 @@ def _vehicle_links(
                 target=target,
                 target_relative=mavlink_target_relative,
                 distance_sensor=mavlink_distance,
+                target_system=target_system,
                 report=warn,
             )
             closers.append(sink.close)
@@ -198,6 +209,13 @@ def _camera(source: str, camera_file: str | None, camera_info_topic: str | None)
     "armed in GUIDED (ArduPilot) or OFFBOARD (PX4); instead of LANDING_TARGET.",
 )
 @click.option(
+    "--target-system",
+    type=click.IntRange(1, 255),
+    default=None,
+    help="The vehicle's MAVLink system id (default: the first autopilot heard); messages from "
+    "other systems are ignored and nothing is sent to them.",
+)
+@click.option(
     "--crazyflie",
     "crazyflie_uri",
     default=None,
@@ -244,6 +262,7 @@ def track(
     mavlink_target_relative: bool,
     mavlink_distance: bool,
     mavlink_pilot: bool,
+    target_system: int | None,
     crazyflie_uri: str | None,
     mount_file: str | None,
     sigmas_file: str | None,
@@ -263,6 +282,7 @@ def track(
         "--mavlink-pilot": mavlink_pilot,
         "--mavlink-target-relative": mavlink_target_relative,
         "--mavlink-distance-sensor": mavlink_distance,
+        "--target-system": target_system is not None,
     }
     asked = [flag for flag, on in extras.items() if on]
     if asked and mavlink_url is None:
@@ -293,6 +313,7 @@ def track(
             mavlink_pilot,
             mavlink_target_relative,
             mavlink_distance,
+            target_system,
         ) as hooks,
     ):
         summary = run_track(

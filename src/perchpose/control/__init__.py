@@ -15,7 +15,13 @@ from perchpose.control.mount import (
     load_T_body_camera,
     mount_T_body_camera,
 )
-from perchpose.control.pilot import CommanderLike, PerchingPilot, PilotSettings, PilotStep
+from perchpose.control.pilot import (
+    CommanderLike,
+    PerchingPilot,
+    PilotSettings,
+    PilotStep,
+    SenseAges,
+)
 from perchpose.control.setpoint import Setpoint, SetpointLimits, safe_setpoint
 from perchpose.errors import ControllerConfigError
 
@@ -30,6 +36,7 @@ __all__ = [
     "PerchingPilot",
     "PilotSettings",
     "PilotStep",
+    "SenseAges",
     "Setpoint",
     "SetpointLimits",
     "default_T_body_camera",

@@ -57,3 +57,15 @@ def load_T_body_camera(path: str | Path) -> Array:
         return check_transform(np.asarray(data["T_body_camera"], dtype=float), "T_body_camera")
     except (ValueError, TypeError, PerchposeError) as exc:
         raise ControllerConfigError(f"{where}: T_body_camera: {exc}") from exc
+
+
+def require_upward(T_body_camera: Array, flag: str) -> None:
+    """The perching pilot flies up onto a target above it: refuse a camera whose optical axis
+    does not point up (a downward camera would make it climb away from a target below)."""
+    up_component = float(T_body_camera[2, 2])  # the optical axis's body-z component
+    if not up_component > 0.0:
+        raise ControllerConfigError(
+            f"{flag} perches on a target above the vehicle, so the camera must look up "
+            f"(--mount up, or a T_body_camera whose optical axis points up); this mount's axis "
+            f"points {'down' if up_component < 0 else 'sideways'}"
+        )

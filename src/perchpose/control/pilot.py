@@ -24,6 +24,14 @@ run it.
 
 Every setpoint passes ``safe_setpoint`` last: nothing non-finite is sent, and speeds and yaw
 rate are clamped to ``PilotSettings.limits``.
+
+The vehicle's own senses are checked too, where the link says how old they are (``ages``):
+a non-finite attitude, position or height is never flown on; a sample older than
+``PilotSettings.stale_after_s`` stops the climb (a hover setpoint, phase ``hold``, said once)
+until it is fresh again; one older than ``senses_lost_after_s`` lands the vehicle (the
+Crazyflie) or hands it back to its autopilot (MAVLink), saying why. Contact and "landed" need a
+live height: a sample younger than ``live_height_s``, so a height that stopped updating never
+reads as "stopped rising".
 """
 
 from __future__ import annotations
@@ -35,7 +43,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -60,6 +68,15 @@ STATES = (
 )
 DONE = ("landed", "perched", "link_lost", "released")
 FLYING = ("perching", "lost", "landing")
+ON_SENSES_LOST = ("land", "release")
+
+
+class SenseAges(NamedTuple):
+    """How old the vehicle's latest good samples are, in seconds (infinite: none yet)."""
+
+    attitude_s: float
+    position_s: float
+    height_s: float
 
 
 class CommanderLike(Protocol):
@@ -92,6 +109,10 @@ class PilotSettings:
     contact_window_s: float = 0.3
     contact_rise_m: float = 0.005
     setpoint_period_s: float = 0.05
+    stale_after_s: float = 0.25
+    senses_lost_after_s: float = 1.0
+    live_height_s: float = 0.1
+    on_senses_lost: str = "land"
     limits: SetpointLimits = field(default_factory=SetpointLimits)
 
     def __post_init__(self) -> None:
@@ -102,8 +123,21 @@ class PilotSettings:
             "contact_window_s",
             "contact_rise_m",
             "setpoint_period_s",
+            "stale_after_s",
+            "senses_lost_after_s",
+            "live_height_s",
         )
         require_positive(self, positive, ControllerConfigError, "pilot setting ")
+        if self.on_senses_lost not in ON_SENSES_LOST:
+            raise ControllerConfigError(
+                f"pilot setting on_senses_lost {self.on_senses_lost!r}: choose "
+                f"{' or '.join(ON_SENSES_LOST)}"
+            )
+        if not self.stale_after_s < self.senses_lost_after_s:
+            raise ControllerConfigError(
+                f"pilot setting stale_after_s ({self.stale_after_s:g} s) must be below "
+                f"senses_lost_after_s ({self.senses_lost_after_s:g} s)"
+            )
 
 
 @dataclass(frozen=True)
@@ -130,8 +164,10 @@ class ContactDetector:
 
     def touched(self, t_s: float, height_m: float | None) -> bool:
         """Add a height sample of the final climb; True once the height has risen less than
-        ``rise_m`` over a whole window."""
+        ``rise_m`` over a whole window. No live height (None, non-finite) starts the window
+        again: contact is never read across a gap."""
         if height_m is None or not math.isfinite(height_m):
+            self.reset()
             return False
         self._samples.append((t_s, height_m))
         while len(self._samples) > 1 and t_s - self._samples[1][0] >= self.window_s:
@@ -150,7 +186,8 @@ class PerchingPilot:
     estimate (None: unknown); it is the contact evidence that ends a perch. odometry : the
     vehicle's position and velocity now (world frame, z up, m and m/s) from its own state
     estimate, or None while unknown; with it the controller rejects disturbances and flies the
-    last centimetres on odometry.
+    last centimetres on odometry. ages : how old the link's latest attitude, position and
+    height samples are (None: always fresh, as in the simulation).
     """
 
     def __init__(
@@ -162,10 +199,14 @@ class PerchingPilot:
         settings: PilotSettings | None = None,
         height_m: Callable[[], float | None] | None = None,
         odometry: Callable[[], tuple[Array, Array] | None] | None = None,
+        ages: Callable[[], SenseAges] | None = None,
         report: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.commander = commander
+        self.ages = ages
+        self._holding = False
+        self._bad_attitude_since: float | None = None
         self.clock = clock
         self.attitude = attitude
         self.controller = controller or PerchingController()
@@ -252,8 +293,69 @@ class PerchingPilot:
         self._landing_since = t_s
         self._enter("landing", t_s, why)
 
+    # -- the vehicle's senses -------------------------------------------------------------
+
     def _height(self) -> float | None:
-        return self.height_m() if self.height_m is not None else None
+        """The vehicle's height if live (young enough and finite), else None."""
+        if self.height_m is None:
+            return None
+        if self.ages is not None and not self.ages().height_s < self.settings.live_height_s:
+            return None
+        height = self.height_m()
+        return height if height is not None and math.isfinite(height) else None
+
+    def _motion(self) -> tuple[Array, Array] | None:
+        """The vehicle's position and velocity, None if unknown or not finite."""
+        motion = self.odometry() if self.odometry is not None else None
+        if motion is None or not (
+            np.all(np.isfinite(motion[0])) and np.all(np.isfinite(motion[1]))
+        ):
+            return None
+        return motion
+
+    def _stale(self, t_s: float) -> tuple[str, float] | None:
+        """The oldest of the samples the pilot flies on, if it is older than
+        ``stale_after_s``. A non-finite attitude is stale at once, and ages from the first
+        frame that had one."""
+        if not np.all(np.isfinite(self.attitude())):
+            if self._bad_attitude_since is None:
+                self._bad_attitude_since = t_s
+            return "attitude", self.settings.stale_after_s + t_s - self._bad_attitude_since
+        self._bad_attitude_since = None
+        if self.ages is None:
+            return None
+        ages = self.ages()
+        named = [("attitude", ages.attitude_s)]
+        if self.odometry is not None:
+            named.append(("position", ages.position_s))
+        if self.height_m is not None:
+            named.append(("height", ages.height_s))
+        name, age = max(named, key=lambda item: item[1])
+        return None if age < self.settings.stale_after_s else (name, age)
+
+    def _hold(self, t_s: float, name: str, age_s: float) -> PilotStep:
+        """A stale sense: hover (no climb) until it is fresh; land or release once lost."""
+        s = self.settings
+        self._contact.reset()
+        if age_s >= s.senses_lost_after_s:
+            old = (
+                f"no {name} from the vehicle"
+                if math.isinf(age_s)
+                else (f"the vehicle's {name} is {age_s:.1f} s old")
+            )
+            if s.on_senses_lost == "release":
+                self._enter("released", t_s, f"{old}: its autopilot flies it now")
+                return PilotStep(t_s, self.state, None, None, None)
+            self._start_landing(t_s, old)
+            return self._land_step(t_s)
+        if not self._holding:
+            self.report(
+                f"pilot: the vehicle's {name} is {age_s:.2f} s old at t = {t_s:.2f} s: hovering, "
+                f"no climb, until it is fresh ({s.on_senses_lost} after "
+                f"{s.senses_lost_after_s:g} s)"
+            )
+            self._holding = True
+        return self._send(t_s, np.zeros(3), 0.0, "hold")
 
     def _land_step(self, t_s: float) -> PilotStep:
         s = self.settings
@@ -288,8 +390,8 @@ class PerchingPilot:
         with self._lock:
             if self.state != "perching" or self.odometry is None or t_s < self.last_t_s:
                 return None
-            motion = self.odometry()
-            if motion is None:
+            motion = self._motion()
+            if motion is None or self._stale(t_s) is not None:
                 return None
             odometry = Odometry(t_s, motion[0], motion[1])
             command = self.controller.between_frames(t_s, self.attitude(), odometry)
@@ -315,7 +417,13 @@ class PerchingPilot:
             return self._land_step(t_s)
         if fresh:
             self._last_valid_t = t_s
-        motion = self.odometry() if self.odometry is not None else None
+        stale = self._stale(t_s)
+        if stale is not None:
+            return self._hold(t_s, *stale)
+        if self._holding:
+            self.report(f"pilot: the vehicle's samples are fresh again at t = {t_s:.2f} s")
+            self._holding = False
+        motion = self._motion()
         odometry = None if motion is None else Odometry(t_s, motion[0], motion[1])
         command: Command = self.controller.update(estimate, t_s, self.attitude(), odometry)
         return self._follow(command, t_s)

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.control.pilot import PerchingPilot
+from perchpose.control.pilot import PerchingPilot, SenseAges
 from perchpose.errors import LinkError
 
 Array = NDArray[np.float64]
@@ -40,7 +41,12 @@ class CrazyflieConnection:
     from its state estimate (``stateEstimate.qw/qx/qy/qz`` and ``.z`` in one log block,
     ``stateEstimate.x/y/vx/vy/vz`` in a second: a block holds at most 26 bytes; 50 Hz). Each
     odometry sample ticks the pilots it handed out (``PerchingPilot.tick_now``): their lateral
-    loop closes at 50 Hz on odometry between camera frames."""
+    loop closes at 50 Hz on odometry between camera frames.
+
+    Each block is stamped on arrival (``time.monotonic``) so the pilots know how old the
+    vehicle's senses are (``ages``): a stream that stops is stale, never "height stopped
+    rising". A sample with a non-finite value is dropped whole (``rejected``; said once) and the
+    last good one ages."""
 
     def __init__(self, uri: str, report: Callable[[str], None] | None = None) -> None:
         try:
@@ -58,6 +64,10 @@ class CrazyflieConnection:
         self._height_m: float | None = None
         self._odometry: tuple[Array, Array] | None = None
         self._pilots: list[PerchingPilot] = []
+        self.clock: Callable[[], float] = time.monotonic  # stamps each block on arrival
+        self._state_t_s = math.nan
+        self._motion_t_s = math.nan
+        self.rejected = 0
         cflib.crtp.init_drivers()
         self.cf: Any = Crazyflie()
         self._sync = SyncCrazyflie(uri, cf=self.cf)
@@ -83,7 +93,23 @@ class CrazyflieConnection:
             self._sync.close_link()
             raise LinkError(f"{uri}: the firmware does not log the state estimate: {exc}") from exc
 
+    def _usable(self, data: dict[str, float]) -> bool:
+        """All of a log block's values are finite; else it is dropped (said once)."""
+        if all(math.isfinite(value) for value in data.values()):
+            return True
+        self.rejected += 1
+        if self.rejected == 1:
+            bad = sorted(name for name, value in data.items() if not math.isfinite(value))
+            self.report(
+                f"Crazyflie {self.uri}: a state estimate sample with non-finite "
+                f"{', '.join(bad)} was dropped (reported once; the pilot flies on the last "
+                "good one while it is fresh)"
+            )
+        return False
+
     def _state(self, _timestamp: int, data: dict[str, float], _config: object) -> None:
+        if not self._usable(data):
+            return
         self._R_world_body = R_world_body_from_quaternion(
             data["stateEstimate.qw"],
             data["stateEstimate.qx"],
@@ -91,8 +117,12 @@ class CrazyflieConnection:
             data["stateEstimate.qz"],
         )
         self._height_m = float(data["stateEstimate.z"])
+        self._state_t_s = self.clock()
 
     def _moved(self, _timestamp: int, data: dict[str, float], _config: object) -> None:
+        if not self._usable(data):
+            return
+        self._motion_t_s = self.clock()
         z = self._height_m if self._height_m is not None else 0.0
         p = np.array([data["stateEstimate.x"], data["stateEstimate.y"], z], np.float64)
         v = np.array(
@@ -113,6 +143,14 @@ class CrazyflieConnection:
     def height_m(self) -> float | None:
         return self._height_m
 
+    def ages(self) -> SenseAges:
+        """How old the last attitude-and-height block and the last odometry block are."""
+        now = self.clock()
+        state_s = now - self._state_t_s if math.isfinite(self._state_t_s) else math.inf
+        motion_s = now - self._motion_t_s if math.isfinite(self._motion_t_s) else math.inf
+        # the odometry's z is the first block's height: it is only as fresh as both
+        return SenseAges(state_s, max(state_s, motion_s), state_s)
+
     def pilot(self, **kwargs: Any) -> PerchingPilot:
         """A pilot on this link, told about a link loss."""
         pilot = PerchingPilot(
@@ -120,6 +158,7 @@ class CrazyflieConnection:
             self.attitude,
             height_m=self.height_m,
             odometry=self.odometry,
+            ages=self.ages,
             report=self.report,
             **kwargs,
         )

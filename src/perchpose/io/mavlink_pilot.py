@@ -12,9 +12,13 @@ The autopilot stays in charge:
 - the pilot takes over only while the vehicle is armed and its HEARTBEAT says GUIDED
   (ArduPilot Copter, custom mode 4) or OFFBOARD (PX4, main mode 6); no controller setpoint is
   ever sent in another mode;
+- it flies one vehicle: ``target_system``, or the first autopilot heard; nothing from another
+  system reaches its state, its setpoints or its release logic (``perchpose.io.mavlink_link``);
 - it stops (state ``released``, nothing more sent, said once) when the vehicle leaves that
-  mode, disarms, or its HEARTBEAT stops for ``heartbeat_timeout_s``: the autopilot's own mode
-  or failsafe then flies the vehicle;
+  mode, disarms, its HEARTBEAT stops for ``heartbeat_timeout_s``, or its ATTITUDE or
+  LOCAL_POSITION_NED is older than ``PilotSettings.senses_lost_after_s`` (older than
+  ``stale_after_s``, the pilot only hovers until they are fresh): the autopilot's own mode or
+  failsafe then flies the vehicle; a non-finite sample is dropped, never flown on;
 - PX4 switches into OFFBOARD only while a setpoint stream is already coming in (more than 2 Hz
   for a second): while the pilot waits, an armed PX4 vehicle gets a zero-velocity setpoint at
   ``proof_of_life_hz``, which outside OFFBOARD it ignores and inside holds it still;
@@ -39,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.control.controller import PerchingController
-from perchpose.control.pilot import PerchingPilot, PilotSettings
+from perchpose.control.pilot import PerchingPilot, PilotSettings, SenseAges
 from perchpose.io.mavlink_link import MavlinkLink, VehicleState
 from perchpose.values import Estimate
 
@@ -133,10 +137,15 @@ class SetpointCommander:
         self.withheld = 0
 
     def velocity(self, v_ned: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
-        """One SET_POSITION_TARGET_LOCAL_NED, whatever the mode (the caller decides)."""
+        """One SET_POSITION_TARGET_LOCAL_NED to our vehicle, whatever the mode (the caller
+        decides); nothing before an autopilot has been heard."""
+        system = self.link.vehicle.system_id
+        if system is None:
+            self.withheld += 1
+            return
         send = partial(
             _velocity_send,
-            system=self.link.vehicle.system_id,
+            system=system,
             v_ned=v_ned,
             yaw_rate_rad_s=yaw_rate_rad_s,
         )
@@ -151,10 +160,11 @@ class SetpointCommander:
         self.velocity((vx, -vy, -vz), -math.radians(yawrate))
 
     def send_stop_setpoint(self) -> None:
-        if not self.allowed():
+        system = self.link.vehicle.system_id
+        if not self.allowed() or system is None:
             self.withheld += 1
             return
-        send = partial(_disarm_send, system=self.link.vehicle.system_id, force=self.force_stop())
+        send = partial(_disarm_send, system=system, force=self.force_stop())
         self.link.post(send, "COMMAND_LONG")
 
     def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
@@ -168,7 +178,8 @@ class MavlinkPilot:
     heartbeat_timeout_s : a vehicle silent this long is taken to have failed over to its own
     failsafe. odometry_max_age_s : LOCAL_POSITION_NED older than this is not used.
     proof_of_life_hz : the zero-velocity stream an armed PX4 vehicle gets while the pilot
-    waits. link : an open ``MavlinkLink`` to use instead of opening ``url``.
+    waits. target_system : the vehicle's MAVLink system id (None: the first autopilot heard).
+    link : an open ``MavlinkLink`` to use instead of opening ``url``.
     """
 
     def __init__(
@@ -180,10 +191,13 @@ class MavlinkPilot:
         heartbeat_timeout_s: float = 3.0,
         odometry_max_age_s: float = 0.5,
         proof_of_life_hz: float = 10.0,
+        target_system: int | None = None,
         report: Callable[[str], None] | None = None,
         link: MavlinkLink | None = None,
     ) -> None:
-        self.link = link or MavlinkLink(url, report=report or log.warning)
+        self.link = link or MavlinkLink(
+            url, target_system=target_system, report=report or log.warning
+        )
         self.report = self.link.report
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.odometry_max_age_s = odometry_max_age_s
@@ -195,9 +209,10 @@ class MavlinkPilot:
             self.commander,
             self.attitude,
             controller=controller,
-            settings=settings,
+            settings=settings or PilotSettings(on_senses_lost="release"),
             height_m=self.height_m,
             odometry=self.odometry,
+            ages=self.ages,
             report=self.report,
         )
         self.proof_of_life = 0
@@ -223,6 +238,12 @@ class MavlinkPilot:
         if v.p_ned_m is None or v.v_ned_mps is None or not self._fresh(v.position_t_s):
             return None
         return F @ v.p_ned_m, F @ v.v_ned_mps
+
+    def ages(self) -> SenseAges:
+        """How old the vehicle's ATTITUDE and LOCAL_POSITION_NED (the height's source) are."""
+        now = time.monotonic()
+        position_s = self.vehicle.position_age_s(now)
+        return SenseAges(self.vehicle.attitude_age_s(now), position_s, position_s)
 
     def height_m(self) -> float | None:
         """Height above the local origin (``-z`` of LOCAL_POSITION_NED)."""
