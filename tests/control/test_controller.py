@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from scipy.spatial.transform import Rotation
 
 from perchpose.control import (
     ControllerConfigError,
@@ -15,6 +16,7 @@ from perchpose.control import (
     default_T_body_camera,
     load_T_body_camera,
 )
+from perchpose.control.controller import phase_margin_deg
 from perchpose.geometry import invert_transform, make_transform
 from perchpose.values import Estimate
 
@@ -154,8 +156,8 @@ def test_unstable_gains_are_refused() -> None:
         ControllerSettings(k_xy=3.0, commit_gain=3.0)  # stable, but not stiffened for the climb
     with pytest.raises(ControllerConfigError, match="must be positive"):
         ControllerSettings(max_z_mps=-1.0)
-    with pytest.raises(ControllerConfigError, match="commit_observer_rate = 40"):
-        ControllerSettings(commit_observer_rate=40.0)
+    with pytest.raises(ControllerConfigError, match="commit_observer_rate = 60"):
+        ControllerSettings(commit_observer_rate=60.0)  # 50 Hz odometry: under 50 rad/s
 
 
 def test_mount_file(tmp_path: Path) -> None:
@@ -402,3 +404,50 @@ def test_a_released_pilot_sends_nothing_more() -> None:
     assert len(commander.sent) == sent
     assert pilot.transitions[-1][1:] == ("perching", "released")
     assert sum("released" in r for r in reports) == 1
+
+
+def test_timing_outside_what_was_verified_is_refused() -> None:
+    """15-60 fps and up to 200 ms of latency fly the default gains with odometry; outside that
+    envelope, or without odometry where the camera's delay takes the phase margin, the
+    settings say why."""
+    for fps, latency_s in ((15.0, 0.2), (60.0, 0.2), (30.0, 0.0), (15.0, 0.0)):
+        ControllerSettings(camera_period_s=1.0 / fps, camera_latency_s=latency_s)
+    with pytest.raises(ControllerConfigError, match=r"10 fps is outside what was verified"):
+        ControllerSettings(camera_period_s=0.1)
+    with pytest.raises(ControllerConfigError, match=r"latency of 250 ms is outside"):
+        ControllerSettings(camera_latency_s=0.25)
+    ControllerSettings(odometry_period_s=None)  # 30 fps, a frame late: fine without odometry
+    with pytest.raises(ControllerConfigError, match=r"k_xy = 2.5 /s is unstable with a 0.067 s"):
+        ControllerSettings(camera_period_s=1 / 15, camera_latency_s=0.2, odometry_period_s=None)
+    with pytest.raises(ControllerConfigError, match="odometry_period_s must be positive"):
+        ControllerSettings(odometry_period_s=0.0)
+
+
+def test_phase_margin_of_the_position_loop() -> None:
+    """gain / (s (lag s + 1)) without delay: crossover where gain = w sqrt(1 + (lag w)^2) and
+    a margin of 90 deg - atan(lag w); each second of delay takes w radians more."""
+    gain, lag = 2.0, 0.25
+    w = math.sqrt((math.sqrt(1 + 4 * lag**2 * gain**2) - 1) / (2 * lag**2))
+    expected = 90.0 - math.degrees(math.atan(lag * w))
+    assert phase_margin_deg(gain, lag, 0.0) == pytest.approx(expected, abs=1e-6)
+    assert phase_margin_deg(gain, lag, 0.1) == pytest.approx(
+        expected - math.degrees(0.1 * w), abs=1e-6
+    )
+
+
+def test_a_late_fix_is_placed_with_the_attitude_at_its_capture() -> None:
+    """The vehicle rolled 10 deg and turned 20 deg between a frame's capture and its arrival:
+    the fix is turned into the world with the attitude it was captured at, and its heading
+    error carried to now by the turn."""
+    s = ControllerSettings()
+    rolled = Rotation.from_euler("ZX", [20.0, 10.0], degrees=True).as_matrix()
+    estimate = _estimate(2.0, -1.0, 40.0, yaw_deg=30.0)  # captured at t = 0, level
+    late = PerchingController(s)
+    late.update(None, 0.0, np.eye(3))  # level at the capture
+    command = late.update(replace(estimate, t_s=0.0), 0.1, rolled)
+    d_capture, heading_capture = late.magnet_to_target(estimate, np.eye(3))
+    assert command.error_m == pytest.approx(d_capture, abs=1e-12)
+    expected_rate = s.k_yaw * (heading_capture - math.radians(20.0))
+    assert command.yaw_rate_rad_s == pytest.approx(expected_rate, abs=1e-9)
+    d_now, _ = late.magnet_to_target(estimate, rolled)
+    assert np.linalg.norm(d_now - d_capture) > 0.05  # what the arrival's attitude would give

@@ -7,6 +7,7 @@ import pytest
 
 from perchpose import CameraModel, TargetSpec
 from perchpose.cli import main
+from perchpose.control import PerchingController
 from perchpose.evaluation.perching import summarise
 from perchpose.sim.campaign import run_campaign
 from perchpose.sim.perch import CONTACT_RADIUS_MM, PerchSetup, event_steps, run_perch
@@ -71,6 +72,9 @@ def test_bad_configurations(setup: PerchSetup) -> None:
         replace(setup, estimator="oracle")
     with pytest.raises(VehicleConfigError, match="odometry_hz"):
         replace(setup, odometry_hz=-1.0)
+    with pytest.raises(VehicleConfigError, match="camera_latency_s must be latency_frames / fps"):
+        replace(setup, latency_frames=3)  # the controller not told: with_timing tells it
+    assert setup.with_timing(15.0, 3).controller.camera_latency_s == pytest.approx(0.2)
 
 
 def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -111,6 +115,9 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         (["--wind", "breezy"], "'breezy' is not one of"),
         (["--sweep", "wind", "--wind-mps", "2"], "drop --wind-mps"),
         (["--estimator", "truth,truth"], "names an estimator twice"),
+        (["--fps", "10"], "10 fps is outside what was verified (15-60 fps)"),
+        (["--latency-ms", "300"], "latency of 300 ms is outside what was verified"),
+        (["--latency-ms", "-5"], "--latency-ms must be >= 0"),
     ],
 )
 def test_perch_bad_input(
@@ -173,3 +180,32 @@ def test_moderate_wind_needs_the_disturbance_rejection() -> None:
     for r in built:
         if r.success:
             assert r.contact_speed_mps < 0.3
+
+
+def test_latency_is_flown_with_the_attitude_at_capture(monkeypatch: pytest.MonkeyPatch) -> None:
+    """100 ms of camera latency (3 frames), still air, the true pose: each fix placed in the
+    world with the attitude the vehicle had when its frame was captured perches every run;
+    with the attitude of the moment the frame arrives (as before), the vehicle oscillates
+    sideways and misses the capture cone."""
+    base = PerchSetup(CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth")
+    late = base.with_timing(30.0, 3)
+    runs = [run_perch(late, seed) for seed in range(6)]
+    assert all(r.success for r in runs), [r.reason for r in runs]
+    assert max(r.contact_offset_mm for r in runs) < CONTACT_RADIUS_MM / 2
+    monkeypatch.setattr(PerchingController, "attitude_at", lambda _self, _t, R_now: R_now)
+    arrival = [run_perch(late, seed) for seed in range(6)]
+    assert sum(r.success for r in arrival) <= 3
+
+
+def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
+    """15 fps and 133 ms (the AI deck's rate, two frames late), moderate wind: the campaign
+    records the camera's timing and perches."""
+    out = tmp_path / "p"
+    argv = ["perch", "--runs", "3", "--estimator", "truth", "--wind", "moderate"]
+    argv += ["--fps", "15", "--latency-ms", "133", "--out", str(out), "--workers", "1"]
+    assert main([*argv, "--quiet"]) == 0
+    summary = json.loads((out / "perch.json").read_text())
+    assert summary["fps"] == 15.0
+    assert summary["latency_ms"] == pytest.approx(133.333, abs=1e-3)
+    assert summary["setup"]["controller"]["camera_period_s"] == pytest.approx(1 / 15)
+    assert summary["success_rate"] == 1.0

@@ -39,6 +39,8 @@ class PerchCampaign:
         gust_mps: float | None = None,
         sweep: str | None = None,
         disturbances: bool = True,
+        fps: float = 30.0,
+        latency_ms: float | None = None,
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -60,6 +62,10 @@ class PerchCampaign:
             estimator=names[0],
             disturbances=Disturbances() if disturbances else Disturbances.none(),
         )
+        try:
+            base = base.with_timing(fps, latency_frames(fps, latency_ms))
+        except PerchposeError as exc:  # the controller's or the simulation's own check
+            raise PerchposeError(f"--fps / --latency-ms: {exc}") from exc
         winds = list(WIND_LEVELS) if sweep == "wind" else [wind]
         setups = tuple(
             replace(base, estimator=e, wind=w, wind_mps=wind_mps, gust_mps=gust_mps)
@@ -89,7 +95,11 @@ class PerchCampaign:
             if resume and log.records:
                 say(f"{len(log.records)} runs kept from {log.path}; {len(jobs)} to fly")
             cells = len(self.setups)
-            say(f"{len(jobs)} runs: {cells} cell{'s' * (cells > 1)} of {self.runs} runs")
+            say(
+                f"{len(jobs)} runs: {cells} cell{'s' * (cells > 1)} of {self.runs} runs; camera "
+                f"at {base.fps:g} fps, {base.latency_s * 1000:.0f} ms of latency "
+                f"({base.latency_frames} frame{'s' * (base.latency_frames != 1)})"
+            )
             trajectories: list[PerchResult] = []
             for setup, result in execute(
                 jobs, workers=workers, scheduler=scheduler, progress=progress
@@ -99,6 +109,19 @@ class PerchCampaign:
                     trajectories.append(result)
             trajectories.sort(key=lambda r: r.seed)
             return write_reports(log, base, trajectories[:TRAJECTORIES])
+
+
+def latency_frames(fps: float, latency_ms: float | None) -> int:
+    """Whole frames of camera latency for ``latency_ms`` at ``fps`` (None: one frame, the
+    fastest a frame can be captured, sent and measured); the simulated camera delivers a frame
+    on a later frame's tick, so a latency between ticks rounds to the nearest."""
+    if not (math.isfinite(fps) and fps > 0):
+        raise PerchposeError(f"--fps must be a positive number, got {fps}")
+    if latency_ms is None:
+        return 1
+    if not (math.isfinite(latency_ms) and latency_ms >= 0):
+        raise PerchposeError(f"--latency-ms must be >= 0, got {latency_ms}")
+    return round(latency_ms * fps / 1000.0)
 
 
 def summary_table(content: dict[str, object]) -> str:

@@ -47,6 +47,20 @@ from perchpose.cli.group import group
     help="Draw per run: motor mismatch, attitude bias, latency jitter, dropout bursts, battery "
     "sag, odometry drift (off: a clean lab).",
 )
+@click.option(
+    "--fps",
+    default=30.0,
+    show_default=True,
+    type=float,
+    help="Camera frame rate (15-60 fps verified); the controller is told of it.",
+)
+@click.option(
+    "--latency-ms",
+    default=None,
+    type=float,
+    help="Camera latency, capture to estimate, rounded to whole frames (default: one frame; "
+    "up to 200 ms verified).",
+)
 @camera_option_fpv
 @click.option(
     "--out",
@@ -80,6 +94,8 @@ def perch(
     sweep: str | None,
     estimators: str,
     disturbances: bool,
+    fps: float,
+    latency_ms: float | None,
     camera_file: str,
     out: str,
     json_out: str | None,
@@ -101,6 +117,8 @@ def perch(
         gust_mps=gust_mps,
         sweep=sweep,
         disturbances=disturbances,
+        fps=fps,
+        latency_ms=latency_ms,
     )
     content = campaign.fly(
         out,

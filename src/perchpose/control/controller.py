@@ -21,6 +21,12 @@ that has run ``commit_timeout_s`` without the vehicle's own contact check ending
 (``lost``: hold, then descend to re-acquire). An estimate older than ``max_estimate_age_s`` or
 with a non-finite field counts as no target.
 
+Each fix is placed in the world with the vehicle's attitude at the frame's capture time
+(``Estimate.t_s``), from a short time-stamped history of the attitudes the controller was
+given, and its heading error is carried to now by the yaw turned since: with the attitude of
+the moment the frame arrives, a camera's latency turns every fix by however much the vehicle
+rolled, pitched and turned in between, and the vehicle oscillates sideways.
+
 With the vehicle's own odometry (``Odometry``: position and velocity from the flight
 controller's state estimate, in its own drifting world frame), the controller also
 
@@ -59,6 +65,11 @@ Array = NDArray[np.float64]
 
 STEERED = ("align", "climb", "commit")  # the phases that steer on the target
 STALL_FRAMES = 3  # camera periods without a frame after which odometry steering holds height
+# the camera timing the closed loop was verified at in simulation (``ControllerSettings``)
+MIN_CAMERA_PERIOD_S = 1.0 / 60.0
+MAX_CAMERA_PERIOD_S = 1.0 / 15.0
+MAX_CAMERA_LATENCY_S = 0.2
+MIN_PHASE_MARGIN_DEG = 30.0  # of each proportional loop (``phase_margin_deg``)
 
 
 @dataclass(frozen=True)
@@ -78,7 +89,13 @@ class ControllerSettings:
     commit_timeout_s : a final climb still going after this long backs off.
     max_estimate_age_s : estimates older than this (``Estimate.age_s`` plus the time since
     capture) are ignored. hold_s : hover after losing the target before descending at
-    descend_mps. camera_period_s : update period, for the stability check.
+    descend_mps.
+
+    Timing, for the stability check (``check_timing``): camera_period_s : the camera's frame
+    period. camera_latency_s : its latency, capture to estimate. odometry_period_s : the period
+    of the vehicle's odometry, on which the lateral loop and the disturbance observer close
+    between frames (None: no odometry; every loop then closes through the camera and its
+    latency). The verified envelope is 15-60 fps and up to 200 ms of latency.
 
     With odometry: hold_target_s : how long the target's position held from the last fix is
     flown on. fix_weight : the weight of a new fix against the held position (the target does
@@ -138,6 +155,8 @@ class ControllerSettings:
     hold_s: float = 1.0
     descend_mps: float = 0.1
     camera_period_s: float = 1.0 / 30.0
+    camera_latency_s: float = 1.0 / 30.0
+    odometry_period_s: float | None = 0.02
     p_body_magnet_m: tuple[float, float, float] = (0.0, 0.0, 0.02)
     T_body_camera: Array = field(default_factory=default_T_body_camera)
 
@@ -182,18 +201,47 @@ class ControllerSettings:
                 f"k_i_xy must be between 0 and k_xy^2 = {self.k_xy**2:.2f} /s^2 "
                 f"(an oscillating loop beyond), got {self.k_i_xy}"
             )
-        if not 0 <= self.commit_observer_rate * self.camera_period_s < 1.0:
+        self.check_timing()
+
+    def check_timing(self) -> None:
+        """Refuse a frame rate, latency or gain outside what the simulation verified.
+
+        Each proportional loop (lateral, its final-climb stiffening, vertical, yaw) is modelled
+        as its gain around the vehicle's velocity loop (a first-order lag of
+        1 / ``onboard_velocity_gain``) seen through the loop's delay, and needs a phase margin
+        of 30 deg (``phase_margin_deg``). With odometry the loops and the disturbance observer
+        close on it between frames (a delay of two odometry periods), and each fix is placed at
+        its capture time, so the camera's latency does not enter them; without odometry every
+        loop sees the target ``camera_latency_s`` plus a frame late."""
+        period, latency = self.camera_period_s, self.camera_latency_s
+        if not (MIN_CAMERA_PERIOD_S - 1e-9 <= period <= MAX_CAMERA_PERIOD_S + 1e-9):
             raise ControllerConfigError(
-                f"commit_observer_rate = {self.commit_observer_rate} rad/s must be >= 0 and "
-                f"under {1.0 / self.camera_period_s:.1f} rad/s at this camera period"
+                f"a camera at {1.0 / period:.3g} fps is outside what was verified "
+                f"({1.0 / MAX_CAMERA_PERIOD_S:g}-{1.0 / MIN_CAMERA_PERIOD_S:g} fps)"
             )
-        if not 0 <= self.observer_rate * self.camera_period_s < 0.5:
+        if not 0.0 <= latency <= MAX_CAMERA_LATENCY_S + 1e-9:
             raise ControllerConfigError(
-                f"observer_rate = {self.observer_rate} rad/s must be >= 0 and under "
-                f"{0.5 / self.camera_period_s:.1f} rad/s at this camera period"
+                f"a camera latency of {latency * 1000:.0f} ms is outside what was verified "
+                f"(0-{MAX_CAMERA_LATENCY_S * 1000:.0f} ms)"
             )
-        # a proportional loop closed through a sampled, one-frame-late measurement is stable
-        # only while gain * period stays well under 1
+        odometry = self.odometry_period_s
+        if odometry is not None and not odometry > 0.0:
+            raise ControllerConfigError(f"odometry_period_s must be positive, got {odometry}")
+        # with odometry the loops close at each sample and each frame, whichever comes first
+        step = min(odometry, period) if odometry is not None else period
+        if odometry is not None:  # the observer runs only on odometry; its step must be stable
+            rates = {
+                "commit_observer_rate": (self.commit_observer_rate, 1.0),
+                "observer_rate": (self.observer_rate, 0.5),
+            }
+            for name, (rate, bound) in rates.items():
+                if not 0 <= rate * step < bound:
+                    raise ControllerConfigError(
+                        f"{name} = {rate:g} rad/s must be >= 0 and under "
+                        f"{bound / step:.1f} rad/s at a {step:.3f} s update period"
+                    )
+        delay = 2.0 * step if odometry is not None else period + latency
+        lag = 1.0 / self.onboard_velocity_gain
         gains = {
             "k_xy": self.k_xy,
             "k_xy * commit_gain": self.k_xy * self.commit_gain,
@@ -201,14 +249,32 @@ class ControllerSettings:
             "k_yaw": self.k_yaw,
         }
         for name, gain in gains.items():
-            loop = gain * self.camera_period_s * 2.0
-            if loop >= 0.5:
-                raise ControllerConfigError(
-                    f"{name} = {gain:g} /s is unstable at a "
-                    f"{self.camera_period_s:.3f} s camera period with a frame of latency "
-                    f"(need {name} < "
-                    f"{0.25 / self.camera_period_s:.1f} /s)"
+            margin = phase_margin_deg(gain, lag, delay)
+            if margin < MIN_PHASE_MARGIN_DEG:
+                through = (
+                    f"{step:.3f} s update period (odometry)"
+                    if odometry is not None
+                    else f"{period:.3f} s camera period and {latency * 1000:.0f} ms of latency "
+                    "(no odometry)"
                 )
+                raise ControllerConfigError(
+                    f"{name} = {gain:g} /s is unstable with a {through}: a phase margin of "
+                    f"{margin:.0f} deg (need {MIN_PHASE_MARGIN_DEG:g})"
+                )
+
+
+def phase_margin_deg(gain: float, lag_s: float, delay_s: float) -> float:
+    """The phase margin of a proportional position loop around the vehicle's velocity loop,
+    ``gain * exp(-s delay) / (s (lag s + 1))``, in degrees."""
+    low, high = 0.0, gain  # |L| = 1 at a crossover below the gain itself
+    for _ in range(60):
+        w = 0.5 * (low + high)
+        if gain / (w * math.hypot(1.0, lag_s * w)) > 1.0:
+            low = w
+        else:
+            high = w
+    w = 0.5 * (low + high)
+    return 90.0 - math.degrees(math.atan(lag_s * w) + w * delay_s)
 
 
 @dataclass(frozen=True)
@@ -229,6 +295,13 @@ class Command:
     yaw_rate_rad_s: float
     phase: str
     error_m: Array | None = None
+
+
+def _yaw_turned(R_from: Array, R_to: Array) -> float:
+    """How far the body turned about the world's vertical from ``R_from`` to ``R_to``, rad."""
+    yaw_from = math.atan2(float(R_from[1, 0]), float(R_from[0, 0]))
+    yaw_to = math.atan2(float(R_to[1, 0]), float(R_to[0, 0]))
+    return wrap_angle_rad(yaw_to - yaw_from)
 
 
 def usable(estimate: Estimate | None, t_s: float, max_age_s: float) -> bool:
@@ -253,6 +326,8 @@ class PerchingController:
         self._recent: deque[Array] = deque(maxlen=self.settings.commit_frames)
         # odometry: recent positions (to match a frame's capture time), the held target
         self._track: deque[tuple[float, Array]] = deque(maxlen=64)
+        # the attitudes given with each frame and odometry sample, to place a late fix
+        self._attitudes: deque[tuple[float, Array]] = deque(maxlen=64)
         self._target_odom: Array | None = None
         self._target_t: float | None = None
         self._observer = DisturbanceObserver(
@@ -316,6 +391,25 @@ class PerchingController:
         self._commit_since = None
         self._lost_since = t_s
         self._recent.clear()
+
+    # -- the vehicle's past ---------------------------------------------------------------
+
+    def _remember_attitude(self, t_s: float, R_world_body: Array) -> None:
+        if self._attitudes and t_s < self._attitudes[-1][0]:
+            return  # out of order: the history stays sorted
+        self._attitudes.append((t_s, np.asarray(R_world_body, np.float64)))
+
+    def attitude_at(self, t_s: float, R_now: Array) -> Array:
+        """The vehicle's attitude at ``t_s`` from the history (the nearest sample at or
+        before it, or the oldest kept); ``R_now`` when there is none."""
+        chosen = None
+        for sample_t, R in self._attitudes:
+            if sample_t > t_s + 1e-9:
+                break
+            chosen = R
+        if chosen is None:
+            return self._attitudes[0][1] if self._attitudes else R_now
+        return chosen
 
     # -- odometry ---------------------------------------------------------------------------
 
@@ -428,6 +522,7 @@ class PerchingController:
         has come for ``STALL_FRAMES`` camera periods (a stalled camera) the vehicle holds its
         height, except in the final climb, and after ``hold_target_s`` nothing is sent."""
         s = self.settings
+        self._remember_attitude(t_s, R_world_body)
         last = self._frame_command
         if last is None or self.phase not in STEERED:
             return None
@@ -461,6 +556,7 @@ class PerchingController:
         odometry: Odometry | None,
     ) -> Command:
         s = self.settings
+        self._remember_attitude(t_s, R_world_body)
         if odometry is not None:
             self._remember(odometry)
         since = self._commit_since
@@ -472,12 +568,14 @@ class PerchingController:
         if usable(estimate, t_s, s.max_estimate_age_s):
             assert estimate is not None
             self._lost_since = None
-            d, heading_error = self.magnet_to_target(estimate, R_world_body)
+            R_capture = self.attitude_at(estimate.t_s, R_world_body)
+            d, heading_error = self.magnet_to_target(estimate, R_capture)
+            heading_error = wrap_angle_rad(heading_error - _yaw_turned(R_capture, R_world_body))
             yaw_rate = float(np.clip(s.k_yaw * heading_error, -s.max_yaw_rate, s.max_yaw_rate))
             if estimate.age_s <= 0.0:  # a measurement of this frame, not a coasting guess
                 self._recent.append(d)
                 if odometry is not None:
-                    self._hold_fix(estimate, d, R_world_body)
+                    self._hold_fix(estimate, d, R_capture)
             held = self._held_error(t_s, R_world_body, odometry, s.hold_target_s)
             error = held if held is not None else d
             return self._steer(error, yaw_rate, t_s, odometry)

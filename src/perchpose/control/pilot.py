@@ -368,7 +368,10 @@ class PerchingPilot:
         return self._send(t_s, np.array([0.0, 0.0, -s.land_speed_mps]), 0.0, None)
 
     def update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
-        """One frame: the estimate (None, not valid or too old: no target) at time ``t_s``."""
+        """One frame: the estimate (None, not valid or too old: no target) at time ``t_s``.
+        An estimate of a live frame (``grabbed_s`` known, on this pilot's ``clock``) moves the
+        pilot's time on to its capture time plus the time since its grab, so its latency is
+        counted and the controller places it at its capture time."""
         with self._lock:
             return self._update(estimate, t_s)
 
@@ -403,6 +406,10 @@ class PerchingPilot:
             return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
 
     def _update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
+        if estimate is not None and math.isfinite(estimate.grabbed_s):
+            # a live frame: now is its capture time plus the time since it was grabbed (the
+            # estimate's latency), not the frame's own time, on the frames' clock
+            t_s = max(t_s, estimate.t_s + max(0.0, self.clock() - estimate.grabbed_s))
         self.last_t_s = t_s
         self._frame_clock = (t_s, self.clock())
         limit_s = self.controller.settings.max_estimate_age_s

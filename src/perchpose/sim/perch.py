@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -90,7 +90,26 @@ class PerchSetup:
             raise VehicleConfigError("need 0 <= odometry_hz <= physics_hz")
         if abs(self.controller.camera_period_s - 1.0 / self.fps) > 1e-9:
             raise VehicleConfigError("the controller's camera_period_s must be 1 / fps")
+        if self.latency_frames < 0:
+            raise VehicleConfigError(f"latency_frames must be >= 0, got {self.latency_frames}")
+        if abs(self.controller.camera_latency_s - self.latency_s) > 1e-9:
+            raise VehicleConfigError(
+                f"the controller's camera_latency_s must be latency_frames / fps "
+                f"({self.latency_s:.4f} s); PerchSetup.with_timing sets both"
+            )
         self.check_start_box()
+
+    @property
+    def latency_s(self) -> float:
+        """The camera's latency, capture to estimate (before jitter)."""
+        return self.latency_frames / self.fps
+
+    def with_timing(self, fps: float, latency_frames: int) -> PerchSetup:
+        """This setup with another frame rate and latency, the controller told of both."""
+        controller = replace(
+            self.controller, camera_period_s=1.0 / fps, camera_latency_s=latency_frames / fps
+        )
+        return replace(self, fps=fps, latency_frames=latency_frames, controller=controller)
 
     @property
     def wind_level(self) -> WindLevel:
