@@ -459,3 +459,26 @@ def test_a_height_that_stops_updating_is_never_contact(
     assert 21 <= descent - hover <= 23  # frames from 0.25 s to 1 s after the last sample
     assert any("hovering, no climb" in r for r in reports)
     assert any("landing" in r and "s old" in r for r in reports)
+
+
+def test_a_live_frame_is_placed_at_its_capture(crazyflie: tuple[Crazyflie, FakeRadioLink]) -> None:
+    """A live frame grabbed 0.1 s before the pilot sees its estimate: the pilot's time moves
+    on to the capture plus that 0.1 s, and the controller places the fix with the attitude
+    the vehicle had at the capture, not the one it has now."""
+    cf, _link = crazyflie
+    now = [100.0]
+    attitude = [np.eye(3)]
+    pilot = PerchingPilot(
+        cf.commander, lambda: attitude[0], report=lambda _m: None, clock=lambda: now[0]
+    )
+    seen = Estimate.of_pose(5.0, (0.05, 0.0, 0.5), 0.0)
+    pilot.update(seen, 5.0)  # level at 5.0
+    attitude[0] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # turned 90 deg
+    now[0] = 100.2
+    live = replace(seen, t_s=5.1, grabbed_s=100.1)  # grabbed 0.1 s ago, while still level
+    step = pilot.update(live, 5.1)
+    assert pilot.last_t_s == pytest.approx(5.2)
+    reference = PerchingController()
+    d_level, _ = reference.magnet_to_target(live, np.eye(3))
+    assert step.v_mps is not None
+    assert np.sign(step.v_mps[0]) == np.sign(d_level[0])  # steered along the level fix's x

@@ -1,3 +1,4 @@
+import csv
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -209,3 +210,10 @@ def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
     assert summary["latency_ms"] == pytest.approx(133.333, abs=1e-3)
     assert summary["setup"]["controller"]["camera_period_s"] == pytest.approx(1 / 15)
     assert summary["success_rate"] == 1.0
+    assert summary["cells"]["moderate/truth"]["contact_first"] == {"magnet": 3}
+    rows = list(csv.DictReader((out / "runs.csv").open()))
+    for row in rows:  # what happened at contact, run by run
+        assert row["contact_first"] == "magnet"
+        assert 0.0 <= float(row["contact_tilt_deg"]) < 15.0
+        assert 0.0 <= float(row["contact_lateral_speed_mps"]) < 0.1
+        assert 0.0 < float(row["contact_vertical_speed_mps"]) < 0.3

@@ -157,7 +157,7 @@ class ControllerSettings:
     camera_period_s: float = 1.0 / 30.0
     camera_latency_s: float = 1.0 / 30.0
     odometry_period_s: float | None = 0.02
-    p_body_magnet_m: tuple[float, float, float] = (0.0, 0.0, 0.02)
+    p_body_magnet_m: tuple[float, float, float] = (0.0, 0.0, 0.035)
     T_body_camera: Array = field(default_factory=default_T_body_camera)
 
     def __post_init__(self) -> None:

@@ -38,6 +38,10 @@ RUN_COLUMNS = (
     "time_to_perch_s",
     "tries",
     "wind_direction_deg",
+    "contact_first",
+    "contact_tilt_deg",
+    "contact_lateral_speed_mps",
+    "contact_vertical_speed_mps",
 )
 
 
@@ -71,10 +75,15 @@ class RunRecord:
     time_to_perch_s: float
     tries: int
     wind_direction_deg: float
+    contact_first: str = ""
+    contact_tilt_deg: float = math.nan
+    contact_lateral_speed_mps: float = math.nan
+    contact_vertical_speed_mps: float = math.nan
 
     @staticmethod
     def of(result: PerchResult, setup: PerchSetup) -> RunRecord:
         level = setup.wind_level
+        touch = result.contact
         return RunRecord(
             result.estimator,
             setup.wind,
@@ -88,6 +97,10 @@ class RunRecord:
             result.time_to_perch_s,
             result.tries,
             math.degrees(result.wind_direction_rad),
+            touch.part if touch is not None else "",
+            touch.tilt_deg if touch is not None else math.nan,
+            touch.lateral_speed_mps if touch is not None else math.nan,
+            touch.v_mps[2] if touch is not None else math.nan,
         )
 
     @property
@@ -115,6 +128,10 @@ class RunRecord:
             f"{self.time_to_perch_s:.3f}",
             str(self.tries),
             f"{self.wind_direction_deg:.1f}",
+            self.contact_first,
+            f"{self.contact_tilt_deg:.2f}",
+            f"{self.contact_lateral_speed_mps:.4f}",
+            f"{self.contact_vertical_speed_mps:.4f}",
         ]
 
     @staticmethod
@@ -133,6 +150,10 @@ class RunRecord:
                 float(row["time_to_perch_s"]),
                 int(row["tries"]),
                 float(row["wind_direction_deg"]),
+                row["contact_first"],
+                float(row["contact_tilt_deg"]),
+                float(row["contact_lateral_speed_mps"]),
+                float(row["contact_vertical_speed_mps"]),
             )
         except (KeyError, ValueError, TypeError) as exc:
             raise CampaignError(f"{where}: not a perchpose runs.csv row ({exc})") from exc
@@ -216,6 +237,7 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "disturbances": asdict(setup.disturbances),
         "vehicle": asdict(setup.vehicle),
         "controller": {k: v for k, v in asdict(setup.controller).items() if k != "T_body_camera"},
+        "contact": asdict(setup.contact),
         "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
     }
 
@@ -333,6 +355,11 @@ def _summary_dict(s: CampaignSummary, records: list[RunRecord]) -> dict[str, obj
         "contact_offset_mm": _clean(s.contact_offset_mm),
         "contact_speed_mps": _clean(s.contact_speed_mps),
         "time_to_perch_s": _clean(s.time_to_perch_s),
+        "contact_tilt_deg": _clean(_percentiles(r.contact_tilt_deg for r in records)),
+        "contact_lateral_speed_mps": _clean(
+            _percentiles(r.contact_lateral_speed_mps for r in records)
+        ),
+        "contact_first": dict(Counter(r.contact_first or "none" for r in records)),
     }
 
 

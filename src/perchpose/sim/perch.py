@@ -28,6 +28,7 @@ from perchpose.control import (
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import stage_of
 from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad, yaw_rad
+from perchpose.sim.contact import Contact, ContactRules, PlateContact
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams, VehicleConfigError
 from perchpose.sim.render import ImageQuality, Renderer
@@ -40,9 +41,19 @@ Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 ESTIMATORS = ("paper", "outer", "inner", "covariance", "truth")
-REASONS = ("perched", "off-centre", "too-fast", "timeout", "lost", "gave-up", "crash")
-CONTACT_RADIUS_MM = 12.5  # the paper's 25 mm magnet
-MAX_CONTACT_SPEED_MPS = 0.3
+REASONS = (
+    "perched",
+    "off-centre",
+    "too-fast",
+    "sideways",
+    "tilted",
+    "rotor-strike",
+    "timeout",
+    "lost",
+    "gave-up",
+    "crash",
+)
+CONTACT_RADIUS_MM = ContactRules().max_offset_mm  # the paper's 25 mm magnet
 MAX_TILT_DEG = 60.0  # beyond this the vehicle has flipped: a crash
 R_WORLD_TARGET = np.diag([1.0, -1.0, -1.0])  # printed face down, x along world x
 
@@ -74,6 +85,7 @@ class PerchSetup:
     ceiling_effect: bool = True
     supersample: int = 1
     quality: ImageQuality = field(default_factory=ImageQuality)
+    contact: ContactRules = field(default_factory=ContactRules)
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -160,7 +172,8 @@ class PerchSetup:
 @dataclass(frozen=True)
 class PerchResult:
     """One run. ``reason``: one of ``REASONS``. ``tries``: final climbs the controller backed
-    off from. ``wind_direction_rad``: where this run's mean wind blew to."""
+    off from. ``wind_direction_rad``: where this run's mean wind blew to. ``contact``: the
+    first contact with the plate (None: none)."""
 
     seed: int
     estimator: str
@@ -175,6 +188,7 @@ class PerchResult:
     phase: tuple[str, ...] = field(repr=False)
     tries: int = 0
     wind_direction_rad: float = 0.0
+    contact: Contact | None = None
 
 
 class HeldSetpoint:
@@ -273,6 +287,8 @@ class _Flight:
             report=log.debug,
         )
         # frames on their way to the estimator: (arrival frame, capture time, image or pose)
+        magnet = setup.controller.p_body_magnet_m
+        self.plate = PlateContact(setup.plate_z_m, magnet, setup.contact)
         self.pipeline: deque[tuple[int, float, Array | NDArray[np.uint8] | None]] = deque()
         self._last_arrival = 0
 
@@ -315,9 +331,10 @@ class _Flight:
                 estimate = self.estimator.update(np.asarray(payload, np.uint8), t_capture)
         return estimate
 
-    def fly(self, t_s: float, steps: int, p_magnet_body: Array) -> int | None:
+    def fly(self, t_s: float, steps: int) -> int | None:
         """The vehicle through ``steps`` physics steps from ``t_s`` on the setpoint it holds;
-        the odometry follows at the end. The contact step or None."""
+        the odometry follows at the end. The contact step (``plate.contact`` says what
+        touched) or None."""
         s = self.setup
         v = self.vehicle
         v.thrust_scale = self.draw.thrust_scale(t_s)
@@ -328,8 +345,7 @@ class _Flight:
             self.commander.v_mps,
             self.commander.yaw_rate_rad_s,
             self.odometry.v_mps,
-            stop_z_m=s.plate_z_m,
-            p_body_point_m=p_magnet_body,
+            touched=self.plate,
         )
         self.odometry.update(v.p_m, v.v_mps, dt_s * (steps if contact is None else contact + 1))
         return contact
@@ -369,7 +385,14 @@ def run_perch(
     stages: list[int] = []
     phases: list[str] = []
 
-    def result(success: bool, reason: str, offset: float, speed: float, t: float) -> PerchResult:
+    def result(
+        success: bool,
+        reason: str,
+        offset: float,
+        speed: float,
+        t: float,
+        contact: Contact | None = None,
+    ) -> PerchResult:
         return PerchResult(
             seed,
             setup.estimator,
@@ -384,6 +407,7 @@ def run_perch(
             tuple(phases),
             flight.controller.tries,
             flight.wind_direction_rad,
+            contact,
         )
 
     events = event_steps(setup)
@@ -401,7 +425,7 @@ def run_perch(
             stages.append(estimate.stage if estimate is not None else 0)
             phases.append(step.phase or step.state)
         steps = (events[n + 1][0] if n + 1 < len(events) else setup.physics_steps) - i
-        contact = flight.fly(t, steps, p_magnet_body)
+        contact = flight.fly(t, steps)
         if k is not None or contact is not None:
             magnet = np.array(flight.vehicle.point_in_world(tuple(p_magnet_body)))
             if k is None:  # contact between frames: its row
@@ -410,17 +434,12 @@ def run_perch(
                 phases.append(flight.controller.phase)
             magnets.append(magnet)
         if contact is not None:
-            offset_mm = float(np.hypot(magnet[0], magnet[1]) * 1000.0)
-            speed = float(flight.vehicle.v_mps[2])
-            ok_offset = offset_mm <= CONTACT_RADIUS_MM
-            ok_speed = speed < MAX_CONTACT_SPEED_MPS
-            reason = (
-                "perched"
-                if ok_offset and ok_speed
-                else ("off-centre" if not ok_offset else "too-fast")
-            )
+            touch = flight.plate.contact
+            assert touch is not None
+            reason = touch.verdict(setup.contact)
             t_contact = t + (contact + 1) * dt_s
-            return result(ok_offset and ok_speed, reason, offset_mm, speed, t_contact)
+            speed = touch.v_mps[2]
+            return result(reason == "perched", reason, touch.offset_mm, speed, t_contact, touch)
         if flight.crashed():
             return result(False, "crash", math.nan, math.nan, math.nan)
         if flight.pilot.state in ("landing", "landed"):

@@ -24,7 +24,7 @@ with the same rotor commands and wind.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,8 +50,10 @@ class QuadrotorParams:
     k_thrust : thrust per squared rotor speed, N/(rad/s)^2. yaw_moment_m : drag torque per
     newton of thrust. rotor_drag_kg_per_rad, inflow_drag_kg_per_rad : the H-force's in-plane
     and axial coefficients (k_d, k_z), N per (m/s of airspeed x rad/s of rotor speed).
-    body_drag_n_per_mps2 : quadratic body drag along body x/y and z. prop_radius_m : for the
-    ceiling effect.
+    body_drag_n_per_mps2 : quadratic body drag along body x/y and z. prop_radius_m : the
+    rotor discs' radius. rotor_plane_m : the rotor plane's height above the centre of mass
+    (where the ceiling effect acts on each rotor, and what a tilted vehicle may strike the
+    plate with; ``perchpose.sim.contact``).
 
     k_thrust, yaw_moment_m (k_m / k_thrust), k_d and k_z are RotorPy's Crazyflie values
     (k_d, k_z from Forster 2015). Neither source identifies the body drag of a Crazyflie; the
@@ -70,6 +72,7 @@ class QuadrotorParams:
     inflow_drag_kg_per_rad: float = 7.553e-7
     body_drag_n_per_mps2: tuple[float, float] = (9.2e-4, 1.8e-3)
     prop_radius_m: float = 0.0235
+    rotor_plane_m: float = 0.012
 
     def __post_init__(self) -> None:
         if not self.mass_kg > 0:
@@ -272,13 +275,17 @@ class Quadrotor:
         """Heading of the body x axis."""
         return math.atan2(self._R[1][0], self._R[0][0])
 
-    def ceiling_factor(self) -> float:
-        """Thrust gain near a ceiling: 1 / (1 - (r / 4d)^2), capped at 1.5."""
+    def ceiling_factor(self, rotor: int | None = None) -> float:
+        """Thrust gain near a ceiling: 1 / (1 - (r / 4d)^2), capped at 1.5, with ``d`` the
+        distance from the ceiling to the rotor's hub in the rotor plane (``rotor`` None: to
+        the centre of the rotor plane)."""
         if self.ceiling_z_m is None:
             return 1.0
-        d = max(self.ceiling_z_m - self._p[2], 1e-3)
-        ratio = self.params.prop_radius_m / (4.0 * d)
-        return min(1.5, 1.0 / max(1e-3, 1.0 - ratio * ratio))
+        hx, hy = (0.0, 0.0) if rotor is None else self._hubs[rotor]
+        return _ceiling_gain(
+            self.ceiling_z_m - self.point_in_world((hx, hy, self.params.rotor_plane_m))[2],
+            self.params.prop_radius_m,
+        )
 
     def point_in_world(self, p_body_m: Vec3) -> Vec3:
         """A point fixed to the body (body frame, metres) in the world frame."""
@@ -311,11 +318,12 @@ class Quadrotor:
         v_estimate_mps: Array,
         stop_z_m: float | None = None,
         p_body_point_m: Array | None = None,
+        touched: Callable[[Quadrotor], bool] | None = None,
     ) -> int | None:
         """``n_steps`` steps of the onboard loops and the dynamics with the same setpoint and
-        velocity estimate. With ``stop_z_m``, stops after the step on which the body point
-        ``p_body_point_m`` reaches that height and returns that step's index; otherwise
-        returns None."""
+        velocity estimate. Stops after the step on which ``touched`` says the vehicle touched
+        something, or (with ``stop_z_m``) the body point ``p_body_point_m`` reached that
+        height, and returns that step's index; otherwise returns None."""
         v_sp, v_est, yaw_rate = _vec3(v_sp_mps), _vec3(v_estimate_mps), float(yaw_rate_sp)
         point = (0.0, 0.0, 0.0) if p_body_point_m is None else _vec3(p_body_point_m)
         for i in range(n_steps):
@@ -323,7 +331,14 @@ class Quadrotor:
             self._step(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
             if stop_z_m is not None and self.point_in_world(point)[2] >= stop_z_m:
                 return i
+            if touched is not None and touched(self):
+                return i
         return None
+
+    @property
+    def hubs_m(self) -> tuple[tuple[float, float], ...]:
+        """The rotor hubs' (x, y) on the body, metres."""
+        return self._hubs
 
     def _integrate_velocity_error(self, dt_s: float, v_sp: Vec3, v_est: Vec3) -> None:
         g = self.gains
@@ -400,12 +415,20 @@ class Quadrotor:
         az = R[0][2] * dx + R[1][2] * dy + R[2][2] * dz
         wx, wy, wz = self._w
         kd, kz = p.rotor_drag_kg_per_rad, p.inflow_drag_kg_per_rad
-        gain = self.ceiling_factor()
         fx = fy = fz = 0.0
         tau_x = tau_y = tau_z = 0.0
+        ceiling = self.ceiling_z_m
+        plane_z = self._p[2] + R[2][2] * p.rotor_plane_m
         for (hx, hy), spin, scale, w in zip(
             self._hubs, self._spin, self.thrust_scale, rotor, strict=True
         ):
+            gain = (
+                1.0
+                if ceiling is None
+                else _ceiling_gain(
+                    ceiling - (plane_z + R[2][0] * hx + R[2][1] * hy), p.prop_radius_m
+                )
+            )
             thrust = gain * scale * k_thrust * w * w
             # H-force from the air at this hub (body velocity plus omega x r)
             h_x = -w * kd * (ax - wz * hy)
@@ -441,6 +464,13 @@ class Quadrotor:
         angle = dt_s * math.sqrt(wx * wx + wy * wy + wz * wz)
         if angle > 0:
             self._R = _rotated(R, (dt_s * wx / angle, dt_s * wy / angle, dt_s * wz / angle), angle)
+
+
+def _ceiling_gain(distance_m: float, prop_radius_m: float) -> float:
+    """The ceiling effect's thrust gain for a rotor ``distance_m`` below the ceiling
+    (Cheeseman and Bennett's image-rotor model, 1 / (1 - (r / 4d)^2)), capped at 1.5."""
+    ratio = prop_radius_m / (4.0 * max(distance_m, 1e-3))
+    return min(1.5, 1.0 / max(1e-3, 1.0 - ratio * ratio))
 
 
 def _mixed(
