@@ -207,7 +207,8 @@ def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
     assert main([*argv, "--quiet"]) == 0
     summary = json.loads((out / "perch.json").read_text())
     assert summary["fps"] == 15.0
-    assert summary["latency_ms"] == pytest.approx(133.333, abs=1e-3)
+    assert summary["sensing"] == "realistic"  # the default
+    assert summary["latency_range_ms"] == [133.0, 133.0]
     assert summary["setup"]["controller"]["camera_period_s"] == pytest.approx(1 / 15)
     assert summary["success_rate"] == 1.0
     assert summary["cells"]["moderate/truth"]["contact_first"] == {"magnet": 3}
@@ -217,3 +218,12 @@ def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
         assert 0.0 <= float(row["contact_tilt_deg"]) < 15.0
         assert 0.0 <= float(row["contact_lateral_speed_mps"]) < 0.1
         assert 0.0 < float(row["contact_vertical_speed_mps"]) < 0.3
+        assert float(row["latency_ms"]) == 133.0  # and the run's own draws of the rest
+        assert 50.0 <= float(row["odometry_hz"]) <= 100.0
+        assert 0.99 <= float(row["focal_scale"]) <= 1.01
+    ideal = tmp_path / "ideal"
+    argv = ["perch", "--runs", "1", "--estimator", "truth", "--sensing", "ideal", "--quiet"]
+    assert main([*argv, "--fps", "15", "--latency-ms", "133", "--out", str(ideal)]) == 0
+    summary = json.loads((ideal / "perch.json").read_text())
+    assert summary["sensing"] == "ideal"
+    assert summary["latency_range_ms"] == [pytest.approx(133.333, abs=1e-3)] * 2  # 2 frames

@@ -13,6 +13,7 @@ from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write
 from perchpose.sim.campaign import campaign_jobs, execute
 from perchpose.sim.disturbances import Disturbances
 from perchpose.sim.perch import ESTIMATORS, PerchResult, PerchSetup
+from perchpose.sim.sensing import Sensing
 from perchpose.sim.wind import WIND_LEVELS
 from perchpose.target import TargetSpec
 
@@ -41,6 +42,7 @@ class PerchCampaign:
         disturbances: bool = True,
         fps: float = 30.0,
         latency_ms: float | None = None,
+        sensing: str = "realistic",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -63,7 +65,13 @@ class PerchCampaign:
             disturbances=Disturbances() if disturbances else Disturbances.none(),
         )
         try:
-            base = base.with_timing(fps, latency_frames(fps, latency_ms))
+            if sensing == "ideal":
+                base = base.with_timing(fps, latency_frames(fps, latency_ms))
+            else:
+                senses = Sensing()
+                if latency_ms is not None:
+                    senses = senses.with_latency(latency_seconds(latency_ms))
+                base = base.with_sensing(senses).with_timing(fps, 1)
         except PerchposeError as exc:  # the controller's or the simulation's own check
             raise PerchposeError(f"--fps / --latency-ms: {exc}") from exc
         winds = list(WIND_LEVELS) if sweep == "wind" else [wind]
@@ -95,11 +103,8 @@ class PerchCampaign:
             if resume and log.records:
                 say(f"{len(log.records)} runs kept from {log.path}; {len(jobs)} to fly")
             cells = len(self.setups)
-            say(
-                f"{len(jobs)} runs: {cells} cell{'s' * (cells > 1)} of {self.runs} runs; camera "
-                f"at {base.fps:g} fps, {base.latency_s * 1000:.0f} ms of latency "
-                f"({base.latency_frames} frame{'s' * (base.latency_frames != 1)})"
-            )
+            plural = "s" * (cells > 1)
+            say(f"{len(jobs)} runs: {cells} cell{plural} of {self.runs} runs; {senses(base)}")
             trajectories: list[PerchResult] = []
             for setup, result in execute(
                 jobs, workers=workers, scheduler=scheduler, progress=progress
@@ -111,6 +116,28 @@ class PerchCampaign:
             return write_reports(log, base, trajectories[:TRAJECTORIES])
 
 
+def senses(setup: PerchSetup) -> str:
+    """The campaign's senses in words."""
+    if setup.sensing.is_ideal:
+        frames = setup.latency_frames
+        return (
+            f"ideal senses, camera at {setup.fps:g} fps, {setup.latency_s * 1000:.0f} ms of "
+            f"latency ({frames} frame{'s' * (frames != 1)})"
+        )
+    low, high = (v * 1000.0 for v in setup.latency_range_s)
+    latency = f"{low:.0f} ms" if low == high else f"{low:.0f}-{high:.0f} ms"
+    return (
+        f"realistic senses, camera at {setup.fps:g} fps with {latency} of latency, odometry "
+        "and attitude late and noisy, calibration, mount and print off (--sensing ideal: none)"
+    )
+
+
+def latency_seconds(latency_ms: float) -> float:
+    if not (math.isfinite(latency_ms) and latency_ms >= 0):
+        raise PerchposeError(f"--latency-ms must be >= 0, got {latency_ms}")
+    return latency_ms / 1000.0
+
+
 def latency_frames(fps: float, latency_ms: float | None) -> int:
     """Whole frames of camera latency for ``latency_ms`` at ``fps`` (None: one frame, the
     fastest a frame can be captured, sent and measured); the simulated camera delivers a frame
@@ -119,9 +146,7 @@ def latency_frames(fps: float, latency_ms: float | None) -> int:
         raise PerchposeError(f"--fps must be a positive number, got {fps}")
     if latency_ms is None:
         return 1
-    if not (math.isfinite(latency_ms) and latency_ms >= 0):
-        raise PerchposeError(f"--latency-ms must be >= 0, got {latency_ms}")
-    return round(latency_ms * fps / 1000.0)
+    return round(latency_seconds(latency_ms) * fps)
 
 
 def summary_table(content: dict[str, object]) -> str:

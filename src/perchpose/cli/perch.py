@@ -48,6 +48,15 @@ from perchpose.cli.group import group
     "sag, odometry drift (off: a clean lab).",
 )
 @click.option(
+    "--sensing",
+    type=click.Choice(["realistic", "ideal"]),
+    default="realistic",
+    show_default=True,
+    help="The vehicle's senses: realistic (drawn per run: camera latency 40-150 ms with jitter, "
+    "flow-deck-like odometry 10-30 ms late, attitude noise and delay, clock offset, "
+    "calibration, mount and print errors) or ideal (exact, one frame of latency).",
+)
+@click.option(
     "--fps",
     default=30.0,
     show_default=True,
@@ -58,8 +67,8 @@ from perchpose.cli.group import group
     "--latency-ms",
     default=None,
     type=float,
-    help="Camera latency, capture to estimate, rounded to whole frames (default: one frame; "
-    "up to 200 ms verified).",
+    help="Camera latency, capture to estimate (default: drawn, 40-150 ms; with --sensing "
+    "ideal one frame, and whole frames); up to 200 ms verified.",
 )
 @camera_option_fpv
 @click.option(
@@ -94,6 +103,7 @@ def perch(
     sweep: str | None,
     estimators: str,
     disturbances: bool,
+    sensing: str,
     fps: float,
     latency_ms: float | None,
     camera_file: str,
@@ -119,6 +129,7 @@ def perch(
         disturbances=disturbances,
         fps=fps,
         latency_ms=latency_ms,
+        sensing=sensing,
     )
     content = campaign.fly(
         out,

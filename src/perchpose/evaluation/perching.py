@@ -24,6 +24,7 @@ import numpy as np
 from perchpose.errors import PerchposeError
 from perchpose.evaluation.plots import perch_figure, wind_sweep_figure
 from perchpose.sim.perch import CONTACT_RADIUS_MM, REASONS, PerchResult, PerchSetup
+from perchpose.sim.sensing import SensingDraw
 
 RUN_COLUMNS = (
     "estimator",
@@ -42,7 +43,18 @@ RUN_COLUMNS = (
     "contact_tilt_deg",
     "contact_lateral_speed_mps",
     "contact_vertical_speed_mps",
+    "latency_ms",
+    "odometry_hz",
+    "odometry_delay_ms",
+    "attitude_delay_ms",
+    "clock_offset_ms",
+    "focal_scale",
+    "principal_point_shift_px",
+    "mount_error_deg",
+    "mount_error_mm",
+    "target_scale",
 )
+SENSE_COLUMNS = RUN_COLUMNS[RUN_COLUMNS.index("latency_ms") :]
 
 
 RunKey = tuple[str, str, float, float, int]
@@ -79,6 +91,7 @@ class RunRecord:
     contact_tilt_deg: float = math.nan
     contact_lateral_speed_mps: float = math.nan
     contact_vertical_speed_mps: float = math.nan
+    senses: tuple[float, ...] = ()  # SENSE_COLUMNS' values (empty: ideal senses)
 
     @staticmethod
     def of(result: PerchResult, setup: PerchSetup) -> RunRecord:
@@ -101,6 +114,7 @@ class RunRecord:
             touch.tilt_deg if touch is not None else math.nan,
             touch.lateral_speed_mps if touch is not None else math.nan,
             touch.v_mps[2] if touch is not None else math.nan,
+            sense_values(result.senses, setup),
         )
 
     @property
@@ -132,6 +146,7 @@ class RunRecord:
             f"{self.contact_tilt_deg:.2f}",
             f"{self.contact_lateral_speed_mps:.4f}",
             f"{self.contact_vertical_speed_mps:.4f}",
+            *(f"{v:.6g}" for v in (self.senses or (math.nan,) * len(SENSE_COLUMNS))),
         ]
 
     @staticmethod
@@ -154,6 +169,7 @@ class RunRecord:
                 float(row["contact_tilt_deg"]),
                 float(row["contact_lateral_speed_mps"]),
                 float(row["contact_vertical_speed_mps"]),
+                tuple(float(row[name]) for name in SENSE_COLUMNS),
             )
         except (KeyError, ValueError, TypeError) as exc:
             raise CampaignError(f"{where}: not a perchpose runs.csv row ({exc})") from exc
@@ -217,6 +233,28 @@ def summarise(records: list[RunRecord] | list[PerchResult]) -> CampaignSummary:
     )
 
 
+def sense_values(draw: SensingDraw | None, setup: PerchSetup) -> tuple[float, ...]:
+    """A run's senses as ``SENSE_COLUMNS`` holds them (ideal: the setup's latency and
+    odometry rate, no error)."""
+    if draw is None:
+        return (setup.latency_s * 1000.0, setup.odometry_hz, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    K, K_true = draw.camera.K, setup.camera.K
+    mount = draw.T_true_believed
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(mount[:3, :3])) - 1) / 2))))
+    return (
+        draw.latency_s * 1000.0,
+        draw.odometry_hz,
+        draw.odometry_delay_s * 1000.0,
+        draw.attitude_delay_s * 1000.0,
+        draw.clock_offset_s * 1000.0,
+        float(K[0, 0] / K_true[0, 0]),
+        float(math.hypot(K[0, 2] - K_true[0, 2], K[1, 2] - K_true[1, 2])),
+        angle,
+        float(np.linalg.norm(mount[:3, 3]) * 1000.0),
+        draw.target_scale,
+    )
+
+
 def setup_description(setup: PerchSetup) -> dict[str, object]:
     """What a campaign's runs depend on besides estimator, wind and seed."""
     c = setup.camera
@@ -238,6 +276,7 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "vehicle": asdict(setup.vehicle),
         "controller": {k: v for k, v in asdict(setup.controller).items() if k != "T_body_camera"},
         "contact": asdict(setup.contact),
+        "sensing": asdict(setup.sensing),
         "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
     }
 
@@ -389,8 +428,10 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "runs": top["runs"],
         "contact_offset_mm": top["contact_offset_mm"],
         "time_to_perch_s": top["time_to_perch_s"],
+        "sensing": setup.sensing.name,
         "fps": setup.fps,
         "latency_ms": round(setup.latency_s * 1000.0, 3),
+        "latency_range_ms": [round(v * 1000.0, 3) for v in setup.latency_range_s],
         "by_estimator": by_estimator,
         "cells": cells,
         "setup": setup_description(setup),

@@ -126,11 +126,15 @@ class VehicleDraw:
 class OdometryModel:
     """The flight controller's position and velocity: the truth plus white velocity noise and
     a velocity bias that random-walks; the position integrates the biased velocity, so it
-    drifts from the truth as a real state estimate does."""
+    drifts from the truth as a real state estimate does. ``flow_noise_mps``: white velocity
+    noise that the position integrates too (an optical-flow estimator's)."""
 
-    def __init__(self, d: Disturbances, p_m: Array, rng: np.random.Generator) -> None:
+    def __init__(
+        self, d: Disturbances, p_m: Array, rng: np.random.Generator, flow_noise_mps: float = 0.0
+    ) -> None:
         self._d = d
         self._rng = rng
+        self.flow_noise_mps = flow_noise_mps
         self.bias_mps = np.zeros(3)
         self.drift_m = np.zeros(3)
         self.p_m = np.asarray(p_m, np.float64).copy()
@@ -143,6 +147,8 @@ class OdometryModel:
             dt_s
         ) * self._rng.normal(size=3)
         noise = self._rng.normal(0.0, d.odometry_noise_mps, 3)
-        self.drift_m = self.drift_m + dt_s * self.bias_mps
-        self.v_mps = np.asarray(v_true_mps, np.float64) + self.bias_mps + noise
+        # an optical-flow velocity's own noise, which the position integrates
+        flow = self._rng.normal(0.0, self.flow_noise_mps, 3) if self.flow_noise_mps else 0.0
+        self.drift_m = self.drift_m + dt_s * (self.bias_mps + flow)
+        self.v_mps = np.asarray(v_true_mps, np.float64) + self.bias_mps + noise + flow
         self.p_m = np.asarray(p_true_m, np.float64) + self.drift_m

@@ -33,6 +33,7 @@ from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams, VehicleConfigError
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
+from perchpose.sim.sensing import SensedState, Sensing, SensingDraw, noisy_attitude
 from perchpose.sim.wind import DrydenWind, WindLevel, wind_level
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
@@ -86,6 +87,7 @@ class PerchSetup:
     supersample: int = 1
     quality: ImageQuality = field(default_factory=ImageQuality)
     contact: ContactRules = field(default_factory=ContactRules)
+    sensing: Sensing = field(default_factory=Sensing.ideal)
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -105,22 +107,38 @@ class PerchSetup:
         if self.latency_frames < 0:
             raise VehicleConfigError(f"latency_frames must be >= 0, got {self.latency_frames}")
         if abs(self.controller.camera_latency_s - self.latency_s) > 1e-9:
+            what = "latency_frames / fps" if self.sensing.is_ideal else "the sensing's longest"
             raise VehicleConfigError(
-                f"the controller's camera_latency_s must be latency_frames / fps "
-                f"({self.latency_s:.4f} s); PerchSetup.with_timing sets both"
+                f"the controller's camera_latency_s must be {what} latency "
+                f"({self.latency_s:.4f} s); PerchSetup.with_timing or with_sensing sets both"
             )
         self.check_start_box()
 
     @property
     def latency_s(self) -> float:
-        """The camera's latency, capture to estimate (before jitter)."""
-        return self.latency_frames / self.fps
+        """The camera's latency, capture to estimate, before jitter (with realistic senses the
+        longest drawn)."""
+        if self.sensing.is_ideal:
+            return self.latency_frames / self.fps
+        return self.sensing.max_latency_s
+
+    @property
+    def latency_range_s(self) -> tuple[float, float]:
+        """The range the camera's latency is drawn from (one value with ideal senses)."""
+        if self.sensing.is_ideal:
+            return (self.latency_s, self.latency_s)
+        return self.sensing.latency_s
+
+    def with_sensing(self, sensing: Sensing) -> PerchSetup:
+        """This setup with other senses, the controller told of their longest latency."""
+        latency_s = self.latency_frames / self.fps if sensing.is_ideal else sensing.max_latency_s
+        controller = replace(self.controller, camera_latency_s=latency_s)
+        return replace(self, sensing=sensing, controller=controller)
 
     def with_timing(self, fps: float, latency_frames: int) -> PerchSetup:
         """This setup with another frame rate and latency, the controller told of both."""
-        controller = replace(
-            self.controller, camera_period_s=1.0 / fps, camera_latency_s=latency_frames / fps
-        )
+        latency_s = latency_frames / fps if self.sensing.is_ideal else self.latency_s
+        controller = replace(self.controller, camera_period_s=1.0 / fps, camera_latency_s=latency_s)
         return replace(self, fps=fps, latency_frames=latency_frames, controller=controller)
 
     @property
@@ -173,7 +191,8 @@ class PerchSetup:
 class PerchResult:
     """One run. ``reason``: one of ``REASONS``. ``tries``: final climbs the controller backed
     off from. ``wind_direction_rad``: where this run's mean wind blew to. ``contact``: the
-    first contact with the plate (None: none)."""
+    first contact with the plate (None: none). ``senses``: the run's draw of the vehicle's
+    senses (None: ideal)."""
 
     seed: int
     estimator: str
@@ -189,6 +208,7 @@ class PerchResult:
     tries: int = 0
     wind_direction_rad: float = 0.0
     contact: Contact | None = None
+    senses: SensingDraw | None = None
 
 
 class HeldSetpoint:
@@ -233,15 +253,14 @@ def truth_estimate(
     )
 
 
-def _estimator_for(setup: PerchSetup) -> PerchingEstimator | None:
+def _estimator_for(setup: PerchSetup, camera: CameraModel) -> PerchingEstimator | None:
+    """The run's estimator, given the calibration the user has (``camera``)."""
     if setup.estimator == "truth":
         return None
     if setup.estimator == "covariance":
-        return PerchingEstimator(setup.camera, setup.target, fusion="covariance")
+        return PerchingEstimator(camera, setup.target, fusion="covariance")
     markers = {"paper": None, "outer": (0,), "inner": tuple(range(1, len(setup.target.markers)))}
-    return PerchingEstimator(
-        setup.camera, setup.target, markers=markers[setup.estimator], fusion="paper"
-    )
+    return PerchingEstimator(camera, setup.target, markers=markers[setup.estimator], fusion="paper")
 
 
 class _Flight:
@@ -250,9 +269,11 @@ class _Flight:
     def __init__(self, setup: PerchSetup, seed: int, renderer: Renderer[TargetSpec]) -> None:
         self.setup = setup
         self.seed = seed
-        world_seq, camera_seq = np.random.SeedSequence(seed).spawn(2)
+        # the senses draw from a third generator: ideal senses fly the worlds they always did
+        world_seq, camera_seq, senses_seq = np.random.SeedSequence(seed).spawn(3)
         world = np.random.default_rng(world_seq)
         self.camera_rng = np.random.default_rng(camera_seq)
+        self.senses_rng = np.random.default_rng(senses_seq)
         below = float(world.uniform(*setup.start_below_m))
         lateral = setup.start_lateral_fraction * below
         start = np.array(
@@ -272,18 +293,32 @@ class _Flight:
         )
         self.draw = VehicleDraw.draw(setup.disturbances, setup.duration_s, world)
         self.vehicle.attitude_bias = self.draw.attitude_bias
-        self.odometry = OdometryModel(setup.disturbances, start, world)
+        self.senses: SensingDraw | None = None
+        self.T_body_camera = np.asarray(setup.controller.T_body_camera, np.float64)
+        flow_noise = 0.0
+        if not setup.sensing.is_ideal:
+            self.senses = SensingDraw.draw(setup.sensing, setup.camera, self.senses_rng)
+            self.T_body_camera = self.T_body_camera @ self.senses.T_true_believed
+            flow_noise = setup.sensing.flow_noise_mps
+        self.odometry = OdometryModel(setup.disturbances, start, world, flow_noise)
         self.render = renderer
-        self.estimator = _estimator_for(setup)
+        self.estimator = _estimator_for(
+            setup, self.senses.camera if self.senses is not None else setup.camera
+        )
         self.commander = HeldSetpoint()
         self.controller = PerchingController(setup.controller)
+        self.now_s = 0.0
+        self.sensed: SensedState | None = None
+        if self.senses is not None:
+            self.sensed = SensedState(self.senses.attitude_delay_s, self.senses.odometry_delay_s)
+            self.sense(0.0)
         self.pilot = PerchingPilot(
             self.commander,
-            lambda: self.vehicle.R_estimate,
+            self.attitude,
             controller=self.controller,
             settings=setup.pilot,
-            height_m=lambda: float(self.odometry.p_m[2]),
-            odometry=lambda: (self.odometry.p_m, self.odometry.v_mps),
+            height_m=lambda: float(self.motion()[0][2]),
+            odometry=self.motion,
             report=log.debug,
         )
         # frames on their way to the estimator: (arrival frame, capture time, image or pose)
@@ -292,18 +327,46 @@ class _Flight:
         self.pipeline: deque[tuple[int, float, Array | NDArray[np.uint8] | None]] = deque()
         self._last_arrival = 0
 
+    def attitude(self) -> Array:
+        """The attitude the pilot has now: the flight controller's estimate, as it arrives."""
+        if self.sensed is None:
+            return self.vehicle.R_estimate
+        return self.sensed.attitude(self.now_s)
+
+    def motion(self) -> tuple[Array, Array]:
+        """The odometry the pilot has now (position, velocity), as it arrives."""
+        if self.sensed is None:
+            return self.odometry.p_m, self.odometry.v_mps
+        return self.sensed.odometry(self.now_s)
+
+    def sense(self, t_s: float) -> None:
+        """The flight controller makes a sample of its state now (realistic senses only)."""
+        if self.sensed is None:
+            return
+        R = noisy_attitude(
+            self.vehicle.R_estimate, self.setup.sensing.attitude_noise_deg, self.senses_rng
+        )
+        self.sensed.record(t_s, R, self.odometry.p_m, self.odometry.v_mps)
+
+    def frames_late(self) -> int:
+        """How many frame periods after its capture this frame reaches the pilot: the
+        latency (with its jitter) to the next frame's tick, at least one."""
+        s = self.setup
+        if self.senses is None:
+            return s.latency_frames
+        jitter = abs(float(self.senses_rng.normal(0.0, s.sensing.latency_jitter_s)))
+        return max(1, math.ceil((self.senses.latency_s + jitter) * s.fps - 1e-9))
+
     def capture(self, k: int, t_s: float) -> None:
-        """The camera captures frame ``k`` now; it arrives ``latency_frames`` (sometimes one
+        """The camera captures frame ``k`` now; it arrives ``frames_late`` (sometimes one
         more) frames later, never before the frame captured before it."""
         s = self.setup
         rng = self.camera_rng
-        T_camera_target = (
-            invert_transform(s.T_world_camera(self.vehicle.p_m, self.vehicle.R_world_body))
-            @ s.T_world_target
-        )
+        T_world_camera = make_transform(self.vehicle.R_world_body, self.vehicle.p_m)
+        T_camera_target = invert_transform(T_world_camera @ self.T_body_camera) @ s.T_world_target
         dropped = rng.random() < s.drop_probability or self.draw.in_burst(t_s)
         late = rng.random() < s.disturbances.latency_jitter
-        arrival = max(self._last_arrival, k + s.latency_frames + int(late))
+        arrival = max(self._last_arrival, k + self.frames_late() + int(late))
         self._last_arrival = arrival
         payload: Array | NDArray[np.uint8] | None
         if dropped:
@@ -311,8 +374,13 @@ class _Flight:
         elif self.estimator is None:
             payload = T_camera_target
         else:
-            payload = self.render.render(T_camera_target, s.quality, rng)
-        self.pipeline.append((arrival, t_s, payload))
+            shown = T_camera_target
+            if self.senses is not None:  # a print s times the size at d looks as one at d / s
+                shown = T_camera_target.copy()
+                shown[:3, 3] /= self.senses.target_scale
+            payload = self.render.render(shown, s.quality, rng)
+        stamp = t_s + (self.senses.clock_offset_s if self.senses is not None else 0.0)
+        self.pipeline.append((arrival, stamp, payload))
 
     def arrived(self, k: int) -> Estimate | None:
         """Every frame that has reached the estimator by frame ``k``, in order; the newest
@@ -361,15 +429,19 @@ def _step_of(n: int, rate_hz: float, physics_hz: float) -> int:
     return int(math.ceil(n * physics_hz / rate_hz - 1e-9))
 
 
-def event_steps(setup: PerchSetup) -> list[tuple[int, int | None]]:
+def event_steps(
+    setup: PerchSetup, odometry_hz: float | None = None
+) -> list[tuple[int, int | None]]:
     """The physics steps at which something happens, in order: (step, frame index) for a
-    camera frame, (step, None) for an odometry sample between frames."""
+    camera frame, (step, None) for an odometry sample between frames (at ``odometry_hz``,
+    default the setup's)."""
     hz = setup.physics_hz
+    rate = setup.odometry_hz if odometry_hz is None else odometry_hz
     frames = {_step_of(k, setup.fps, hz): k for k in range(int(setup.duration_s * setup.fps) + 1)}
     ticks: set[int] = set()
-    if setup.odometry_hz > 0:
-        count = int(setup.duration_s * setup.odometry_hz) + 1
-        ticks = {_step_of(j, setup.odometry_hz, hz) for j in range(count)}
+    if rate > 0:
+        count = int(setup.duration_s * rate) + 1
+        ticks = {_step_of(j, rate, hz) for j in range(count)}
     steps = sorted(i for i in frames.keys() | ticks if i < setup.physics_steps)
     return [(i, frames.get(i)) for i in steps]
 
@@ -408,12 +480,15 @@ def run_perch(
             flight.controller.tries,
             flight.wind_direction_rad,
             contact,
+            flight.senses,
         )
 
-    events = event_steps(setup)
+    senses = flight.senses
+    events = event_steps(setup, senses.odometry_hz if senses is not None else None)
     dt_s = 1.0 / setup.physics_hz
     for n, (i, k) in enumerate(events):
         t = i * dt_s
+        flight.now_s = t
         if k is None:  # an odometry sample between frames
             flight.pilot.tick(t)
         else:
@@ -426,6 +501,7 @@ def run_perch(
             phases.append(step.phase or step.state)
         steps = (events[n + 1][0] if n + 1 < len(events) else setup.physics_steps) - i
         contact = flight.fly(t, steps)
+        flight.sense((i + steps) * dt_s)
         if k is not None or contact is not None:
             magnet = np.array(flight.vehicle.point_in_world(tuple(p_magnet_body)))
             if k is None:  # contact between frames: its row

@@ -1,0 +1,221 @@
+"""The vehicle's senses as a real drone has them, drawn per run.
+
+``Sensing`` holds the spreads; ``Sensing.ideal()`` is the simulation's earlier, nearly perfect
+senses (a frame of latency, odometry at 50 Hz with no delay, the attitude without noise, the
+renderer's exact calibration and mount). ``SensingDraw.draw`` makes one run's draws;
+``SensedState`` keeps what the flight controller reports and hands it out late.
+
+Where the default magnitudes come from:
+
+- camera latency, capture to estimate, 40-150 ms: glass-to-estimate latency of USB (UVC)
+  webcams, of FPV video through a receiver and a USB grabber, and of the Crazyflie AI deck's
+  WiFi stream is typically 50-150 ms; the lower end is a global-shutter camera on a companion
+  computer's CSI port. 8 ms of jitter per frame (scheduling, USB transfers);
+- odometry as an onboard estimator gives it: the Crazyflie's Flow deck (PMW3901 optical flow
+  with a VL53L1x range) fused in its Kalman filter reports velocity with a few cm/s of noise;
+  its position integrates that velocity, so it drifts as a random walk (3 cm/s of white
+  velocity noise per sample, integrated, beside the disturbances' slow velocity bias); its
+  state log and an autopilot's LOCAL_POSITION_NED stream at 50-100 Hz and describe the
+  vehicle 10-30 ms before they arrive;
+- the attitude estimate: 0.2 deg of noise per sample (a MEMS IMU's complementary or Kalman
+  filter at rest) and 0-10 ms of delay;
+- clocks: the camera's time stamps and the flight controller's agree to a few ms (±5 ms);
+- calibration: an OpenCV calibration from a few dozen views of a board leaves the focal
+  length within about 1 % and the principal point within about 3 px on a 640 x 480 camera,
+  and k1 within about 0.01; the camera's mount is measured to about 1 deg and 1 mm;
+- the print: an office printer's scale is right to about 0.5 % (so is the target's size).
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_right
+from collections import deque
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.camera import CameraModel
+from perchpose.errors import PerchposeError
+from perchpose.geometry import make_transform, rot_x, rot_y, rot_z
+
+Array = NDArray[np.float64]
+
+SENSINGS = ("realistic", "ideal")
+HISTORY = 256  # samples kept: seconds at the fastest rates, far beyond any delay drawn
+
+
+class SensingConfigError(PerchposeError):
+    """Sensing settings outside their meaning (a negative spread, a range upside down)."""
+
+
+@dataclass(frozen=True)
+class Sensing:
+    """Per-run spreads of the vehicle's senses (SI units; ranges are uniform, others the
+    standard deviation of a normal or the half-width of a uniform, as named).
+
+    latency_s : the camera's latency range. latency_jitter_s : per-frame jitter (the absolute
+    value of a normal). odometry_hz, odometry_delay_s : the odometry's rate and age on
+    arrival. flow_noise_mps : white velocity noise per odometry sample, integrated into the
+    position. attitude_noise_deg : per sample. attitude_delay_s : its age on arrival.
+    clock_offset_s : half-width of the camera clock's offset from the flight controller's.
+    focal_error, principal_point_px, k1_error : half-widths of the calibration's error.
+    mount_deg, mount_mm : the camera mount's error (per axis). target_scale_error : the print's
+    scale error. ``name`` ideal: none of this is drawn (``Sensing.ideal()``).
+    """
+
+    name: str = "realistic"
+    latency_s: tuple[float, float] = (0.04, 0.15)
+    latency_jitter_s: float = 0.008
+    odometry_hz: tuple[float, float] = (50.0, 100.0)
+    odometry_delay_s: tuple[float, float] = (0.01, 0.03)
+    flow_noise_mps: float = 0.03
+    attitude_noise_deg: float = 0.2
+    attitude_delay_s: tuple[float, float] = (0.0, 0.01)
+    clock_offset_s: float = 0.005
+    focal_error: float = 0.01
+    principal_point_px: float = 3.0
+    k1_error: float = 0.01
+    mount_deg: float = 1.0
+    mount_mm: float = 1.0
+    target_scale_error: float = 0.005
+
+    def __post_init__(self) -> None:
+        if self.name not in SENSINGS:
+            raise SensingConfigError(f"unknown sensing {self.name!r} (choose realistic or ideal)")
+        for name in ("latency_s", "odometry_hz", "odometry_delay_s", "attitude_delay_s"):
+            low, high = getattr(self, name)
+            if not (math.isfinite(low) and math.isfinite(high) and 0 <= low <= high):
+                raise SensingConfigError(f"{name} must be 0 <= low <= high, got {low}, {high}")
+        if self.odometry_hz[0] <= 0:
+            raise SensingConfigError("odometry_hz must be positive")
+        spreads = (
+            "latency_jitter_s",
+            "flow_noise_mps",
+            "attitude_noise_deg",
+            "clock_offset_s",
+            "focal_error",
+            "principal_point_px",
+            "k1_error",
+            "mount_deg",
+            "mount_mm",
+            "target_scale_error",
+        )
+        for name in spreads:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise SensingConfigError(f"{name} must be a non-negative number, got {value}")
+
+    @property
+    def is_ideal(self) -> bool:
+        return self.name == "ideal"
+
+    @staticmethod
+    def ideal() -> Sensing:
+        """The simulation's earlier senses: nothing drawn here (the latency is
+        ``PerchSetup.latency_frames``, the odometry ``PerchSetup.odometry_hz`` with the
+        disturbances' noise and drift)."""
+        return Sensing(name="ideal")
+
+    def with_latency(self, latency_s: float) -> Sensing:
+        """These senses with the camera's latency fixed (its jitter kept)."""
+        return replace(self, latency_s=(latency_s, latency_s))
+
+    @property
+    def max_latency_s(self) -> float:
+        """The longest latency drawn, jitter aside."""
+        return self.latency_s[1]
+
+
+@dataclass(frozen=True)
+class SensingDraw:
+    """One run's senses: the camera's latency, the odometry's rate and delay, the attitude's
+    delay, the clock offset, the calibration the estimator is given (``camera``), the mount's
+    error ``T_true_believed`` (the true ``T_body_camera`` is the believed one times it) and the
+    print's scale."""
+
+    latency_s: float
+    odometry_hz: float
+    odometry_delay_s: float
+    attitude_delay_s: float
+    clock_offset_s: float
+    camera: CameraModel
+    T_true_believed: Array = field(repr=False)
+    target_scale: float
+
+    @staticmethod
+    def draw(sensing: Sensing, camera: CameraModel, rng: np.random.Generator) -> SensingDraw:
+        """Draws for one run from ``rng``; ``camera`` is the true camera."""
+        s = sensing
+
+        def spread(half: float, n: int | None = None) -> Array:
+            return np.asarray(rng.uniform(-half, half, n), np.float64)
+
+        K = np.array(camera.K, np.float64)
+        focal = 1.0 + float(spread(s.focal_error))
+        K[0, 0] *= focal
+        K[1, 1] *= focal
+        K[0, 2] += float(spread(s.principal_point_px))
+        K[1, 2] += float(spread(s.principal_point_px))
+        dist = np.array(camera.dist, np.float64)
+        if camera.model == "plumb_bob":
+            dist[0] += float(spread(s.k1_error))
+        calibrated = CameraModel(
+            K, dist, camera.width_px, camera.height_px, camera.model, f"{camera.name} (calibrated)"
+        )
+        roll, pitch, yaw = np.radians(spread(s.mount_deg, 3))
+        shift = spread(s.mount_mm, 3) / 1000.0
+        mount = make_transform(rot_z(float(yaw)) @ rot_y(float(pitch)) @ rot_x(float(roll)), shift)
+        return SensingDraw(
+            latency_s=float(rng.uniform(*s.latency_s)),
+            odometry_hz=float(rng.uniform(*s.odometry_hz)),
+            odometry_delay_s=float(rng.uniform(*s.odometry_delay_s)),
+            attitude_delay_s=float(rng.uniform(*s.attitude_delay_s)),
+            clock_offset_s=float(spread(s.clock_offset_s)),
+            camera=calibrated,
+            T_true_believed=mount,
+            target_scale=1.0 + float(spread(s.target_scale_error)),
+        )
+
+
+class SensedState:
+    """What the flight controller reports, as it reaches the pilot: each sample stored when it
+    is made (the attitude with its noise), handed out once it is its delay old."""
+
+    def __init__(self, attitude_delay_s: float, odometry_delay_s: float) -> None:
+        self.attitude_delay_s = attitude_delay_s
+        self.odometry_delay_s = odometry_delay_s
+        self._t: deque[float] = deque(maxlen=HISTORY)
+        self._R: deque[Array] = deque(maxlen=HISTORY)
+        self._p: deque[Array] = deque(maxlen=HISTORY)
+        self._v: deque[Array] = deque(maxlen=HISTORY)
+
+    def record(self, t_s: float, R_world_body: Array, p_m: Array, v_mps: Array) -> None:
+        """A sample the flight controller made at ``t_s``."""
+        self._t.append(t_s)
+        self._R.append(R_world_body)
+        self._p.append(np.array(p_m, np.float64))
+        self._v.append(np.array(v_mps, np.float64))
+
+    def _newest(self, t_s: float) -> int:
+        """The newest sample made at or before ``t_s`` (the oldest kept before any)."""
+        return max(0, bisect_right(self._t, t_s + 1e-12) - 1)
+
+    def attitude(self, t_s: float) -> Array:
+        """The attitude that has reached the pilot at ``t_s``."""
+        return self._R[self._newest(t_s - self.attitude_delay_s)]
+
+    def odometry(self, t_s: float) -> tuple[Array, Array]:
+        """The position and velocity that have reached the pilot at ``t_s``."""
+        i = self._newest(t_s - self.odometry_delay_s)
+        return self._p[i], self._v[i]
+
+
+def noisy_attitude(R_world_body: Array, noise_deg: float, rng: np.random.Generator) -> Array:
+    """``R_world_body`` turned by a small random rotation (``noise_deg`` per axis)."""
+    if noise_deg <= 0:
+        return R_world_body
+    rx, ry, rz = np.radians(rng.normal(0.0, noise_deg, 3))
+    turned: Array = R_world_body @ rot_z(float(rz)) @ rot_y(float(ry)) @ rot_x(float(rx))
+    return turned
