@@ -36,6 +36,7 @@ def _record(seed: int, success: bool = True, wind: str = "light") -> RunRecord:
         5.0,
         0,
         90.0,
+        "33",
     )
 
 
@@ -89,6 +90,19 @@ def test_a_damaged_runs_file_is_named(tmp_path: Path) -> None:
 def test_markdown_has_a_row_per_wind_and_estimator() -> None:
     rows = [_record(k) for k in range(4)] + [_record(k, k % 2 == 0, "none") for k in range(4)]
     table = markdown(rows)
-    assert "| light | 1.5 / 0.5 | truth | 4 | 100.0% |" in table
+    assert "| light | 1.5 / 0.5 | truth | 33 | 4 | 100.0% |" in table
     assert "| none |" in table
     assert "off-centre 2" in table
+
+
+def test_a_latency_sweep_has_a_cell_and_a_point_per_latency(tmp_path: Path) -> None:
+    """Cells of several latencies are told apart (in the key, the names, the table) and drawn
+    as success against latency."""
+    rows = [replace(_record(k), latency_set_ms=lat) for lat in ("0", "100") for k in range(3)]
+    rows[-1] = replace(rows[-1], success=False, reason="off-centre")
+    setup = PerchSetup(CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth")
+    content = summary_json(rows, setup)
+    assert set(content["cells"]) == {"light/truth/0 ms", "light/truth/100 ms"}
+    assert content["cells"]["light/truth/100 ms"]["success_rate"] == pytest.approx(2 / 3)
+    assert len({r.key for r in rows}) == 6
+    assert "| truth | 100 | 3 | 66.7% |" in markdown(rows)

@@ -115,6 +115,7 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         (["--gust-mps", "nan"], "turbulence must be a non-negative number"),
         (["--wind", "breezy"], "'breezy' is not one of"),
         (["--sweep", "wind", "--wind-mps", "2"], "drop --wind-mps"),
+        (["--sweep", "latency", "--latency-ms", "50"], "drop --latency-ms"),
         (["--estimator", "truth,truth"], "names an estimator twice"),
         (["--fps", "10"], "10 fps is outside what was verified (15-60 fps)"),
         (["--latency-ms", "300"], "latency of 300 ms is outside what was verified"),
@@ -227,3 +228,15 @@ def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
     summary = json.loads((ideal / "perch.json").read_text())
     assert summary["sensing"] == "ideal"
     assert summary["latency_range_ms"] == [pytest.approx(133.333, abs=1e-3)] * 2  # 2 frames
+
+
+def test_perch_sweeps_latency(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "p"
+    argv = ["perch", "--sweep", "latency", "--runs", "1", "--estimator", "truth", "--quiet"]
+    assert main([*argv, "--out", str(out), "--workers", "1"]) == 0
+    summary = json.loads((out / "perch.json").read_text())
+    assert list(summary["cells"]) == [f"none/truth/{ms} ms" for ms in (0, 50, 100, 150, 200)]
+    rows = list(csv.DictReader((out / "runs.csv").open()))
+    assert [float(r["latency_ms"]) for r in rows] == [0.0, 50.0, 100.0, 150.0, 200.0]
+    assert (out / "latency.png").stat().st_size > 0
+    assert "150 ms" in capsys.readouterr().out

@@ -56,27 +56,22 @@ class PerchCampaign:
             raise PerchposeError(f"--estimator: {estimators!r} names an estimator twice")
         if runs < 1:
             raise PerchposeError(f"--runs must be >= 1, got {runs}")
-        if sweep is not None and (wind_mps is not None or gust_mps is not None):
+        if sweep == "wind" and (wind_mps is not None or gust_mps is not None):
             raise PerchposeError("--sweep wind flies the named levels: drop --wind-mps/--gust-mps")
+        if sweep == "latency" and latency_ms is not None:
+            raise PerchposeError("--sweep latency flies 0-200 ms: drop --latency-ms")
         base = PerchSetup(
             camera,
             TargetSpec.paper(),
             estimator=names[0],
             disturbances=Disturbances() if disturbances else Disturbances.none(),
         )
-        try:
-            if sensing == "ideal":
-                base = base.with_timing(fps, latency_frames(fps, latency_ms))
-            else:
-                senses = Sensing()
-                if latency_ms is not None:
-                    senses = senses.with_latency(latency_seconds(latency_ms))
-                base = base.with_sensing(senses).with_timing(fps, 1)
-        except PerchposeError as exc:  # the controller's or the simulation's own check
-            raise PerchposeError(f"--fps / --latency-ms: {exc}") from exc
+        latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
+        timed = [timed_setup(base, sensing, fps, ms) for ms in latencies]
         winds = list(WIND_LEVELS) if sweep == "wind" else [wind]
         setups = tuple(
-            replace(base, estimator=e, wind=w, wind_mps=wind_mps, gust_mps=gust_mps)
+            replace(t, estimator=e, wind=w, wind_mps=wind_mps, gust_mps=gust_mps)
+            for t in timed
             for w in winds
             for e in names
         )
@@ -110,10 +105,27 @@ class PerchCampaign:
                 jobs, workers=workers, scheduler=scheduler, progress=progress
             ):
                 log.add(RunRecord.of(result, setup))
-                if (setup.estimator, setup.wind) == (base.estimator, base.wind):
+                cell = (setup.estimator, setup.wind, setup.latency_label)
+                if cell == (base.estimator, base.wind, base.latency_label):
                     trajectories.append(result)
             trajectories.sort(key=lambda r: r.seed)
             return write_reports(log, base, trajectories[:TRAJECTORIES])
+
+
+SWEEP_LATENCIES_MS = (0.0, 50.0, 100.0, 150.0, 200.0)  # --sweep latency
+
+
+def timed_setup(base: PerchSetup, sensing: str, fps: float, latency_ms: float | None) -> PerchSetup:
+    """``base`` with the senses, frame rate and latency asked for (None: the senses' own)."""
+    try:
+        if sensing == "ideal":
+            return base.with_timing(fps, latency_frames(fps, latency_ms))
+        senses = Sensing()
+        if latency_ms is not None:
+            senses = senses.with_latency(latency_seconds(latency_ms))
+        return base.with_sensing(senses).with_timing(fps, 1)
+    except PerchposeError as exc:  # the controller's or the simulation's own check
+        raise PerchposeError(f"--fps / --latency-ms: {exc}") from exc
 
 
 def senses(setup: PerchSetup) -> str:
@@ -150,24 +162,26 @@ def latency_frames(fps: float, latency_ms: float | None) -> int:
 
 
 def summary_table(content: dict[str, object]) -> str:
-    """The terminal's table: one line per wind and estimator."""
+    """The terminal's table: one line per cell (wind, estimator and, where several were
+    flown, latency)."""
     cells = content["cells"]
     assert isinstance(cells, dict)
     lines = [
-        f"{'wind':9} {'estimator':10} {'runs':>5} {'perched':>8} {'95 % interval':>15} "
-        f"{'offset p50/p95 (mm)':>20}  failures"
+        f"{'wind':9} {'estimator':10} {'latency':>8} {'runs':>5} {'perched':>8} "
+        f"{'95 % interval':>15} {'offset p50/p95 (mm)':>20}  failures"
     ]
 
     def num(v: object) -> str:
         return f"{v:.1f}" if isinstance(v, float) and math.isfinite(v) else "-"
 
     for name, c in cells.items():
-        wind, estimator = name.split("/", 1)
+        wind, estimator, *latency = name.split("/")
         low, high = c["success_interval_95"]
         off = c["contact_offset_mm"]
         fails = {k: v for k, v in c["reasons"].items() if k != "perched"}
         lines.append(
-            f"{wind:9} {estimator:10} {c['runs']:5d} {c['success_rate']:8.1%} "
+            f"{wind:9} {estimator:10} {(latency or [content['latency_label']])[0]:>8} "
+            f"{c['runs']:5d} {c['success_rate']:8.1%} "
             f"{low:6.1%} - {high:6.1%} {num(off['p50']):>9}/{num(off['p95']):<10} "
             f"{fails or 'none'}"
         )

@@ -29,9 +29,10 @@ from perchpose.cli.group import group
 )
 @click.option(
     "--sweep",
-    type=click.Choice(["wind"]),
+    type=click.Choice(["wind", "latency"]),
     default=None,
-    help="Fly every wind level for every estimator; writes perch.md and wind.png.",
+    help="Fly every wind level (wind.png), or camera latencies of 0, 50, 100, 150 and 200 ms "
+    "at --wind (latency.png), for every estimator.",
 )
 @click.option(
     "--estimator",

@@ -14,7 +14,7 @@ import hashlib
 import json
 import math
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TextIO
@@ -22,7 +22,7 @@ from typing import TextIO
 import numpy as np
 
 from perchpose.errors import PerchposeError
-from perchpose.evaluation.plots import perch_figure, wind_sweep_figure
+from perchpose.evaluation.plots import perch_figure, sweep_figure
 from perchpose.sim.perch import CONTACT_RADIUS_MM, REASONS, PerchResult, PerchSetup
 from perchpose.sim.sensing import SensingDraw
 
@@ -39,6 +39,7 @@ RUN_COLUMNS = (
     "time_to_perch_s",
     "tries",
     "wind_direction_deg",
+    "latency_set_ms",
     "contact_first",
     "contact_tilt_deg",
     "contact_lateral_speed_mps",
@@ -57,13 +58,21 @@ RUN_COLUMNS = (
 SENSE_COLUMNS = RUN_COLUMNS[RUN_COLUMNS.index("latency_ms") :]
 
 
-RunKey = tuple[str, str, float, float, int]
+RunKey = tuple[str, str, float, float, str, int]
+Cell = tuple[str, str, str]  # wind, estimator, latency label
 
 
 def run_key(setup: PerchSetup, seed: int) -> RunKey:
     """The key of the run ``setup`` flies with ``seed`` (``RunRecord.key`` of its record)."""
     level = setup.wind_level
-    return (setup.estimator, setup.wind, level.mean_mps, level.turbulence_sigma_mps, seed)
+    return (
+        setup.estimator,
+        setup.wind,
+        level.mean_mps,
+        level.turbulence_sigma_mps,
+        setup.latency_label,
+        seed,
+    )
 
 
 class CampaignError(PerchposeError):
@@ -87,6 +96,7 @@ class RunRecord:
     time_to_perch_s: float
     tries: int
     wind_direction_deg: float
+    latency_set_ms: str = ""  # the cell's latency (PerchSetup.latency_label)
     contact_first: str = ""
     contact_tilt_deg: float = math.nan
     contact_lateral_speed_mps: float = math.nan
@@ -110,6 +120,7 @@ class RunRecord:
             result.time_to_perch_s,
             result.tries,
             math.degrees(result.wind_direction_rad),
+            setup.latency_label,
             touch.part if touch is not None else "",
             touch.tilt_deg if touch is not None else math.nan,
             touch.lateral_speed_mps if touch is not None else math.nan,
@@ -119,12 +130,13 @@ class RunRecord:
 
     @property
     def key(self) -> RunKey:
-        """What identifies a run: estimator, wind and seed."""
+        """What identifies a run: estimator, wind, latency and seed."""
         return (
             self.estimator,
             self.wind,
             self.wind_mean_mps,
             self.turbulence_sigma_mps,
+            self.latency_set_ms,
             self.seed,
         )
 
@@ -142,6 +154,7 @@ class RunRecord:
             f"{self.time_to_perch_s:.3f}",
             str(self.tries),
             f"{self.wind_direction_deg:.1f}",
+            self.latency_set_ms,
             self.contact_first,
             f"{self.contact_tilt_deg:.2f}",
             f"{self.contact_lateral_speed_mps:.4f}",
@@ -165,6 +178,7 @@ class RunRecord:
                 float(row["time_to_perch_s"]),
                 int(row["tries"]),
                 float(row["wind_direction_deg"]),
+                row["latency_set_ms"],
                 row["contact_first"],
                 float(row["contact_tilt_deg"]),
                 float(row["contact_lateral_speed_mps"]),
@@ -370,12 +384,18 @@ def read_runs(path: str | Path) -> Iterator[RunRecord]:
         yield RunRecord.from_row(row, f"{path}: line {i}")
 
 
-def group(records: list[RunRecord]) -> dict[tuple[str, str], list[RunRecord]]:
-    """Runs by (wind, estimator), each in seed order, winds in the order first met."""
-    out: dict[tuple[str, str], list[RunRecord]] = {}
+def group(records: list[RunRecord]) -> dict[Cell, list[RunRecord]]:
+    """Runs by (wind, estimator, latency), each in seed order, cells in the order first met."""
+    out: dict[Cell, list[RunRecord]] = {}
     for r in records:
-        out.setdefault((r.wind, r.estimator), []).append(r)
+        out.setdefault((r.wind, r.estimator, r.latency_set_ms), []).append(r)
     return {k: sorted(v, key=lambda r: r.seed) for k, v in out.items()}
+
+
+def cell_names(groups: dict[Cell, list[RunRecord]]) -> dict[Cell, str]:
+    """``wind/estimator``, with ``/latency ms`` where the campaign flew several latencies."""
+    several = len({lat for _, _, lat in groups}) > 1
+    return {(w, e, lat): f"{w}/{e}/{lat} ms" if several else f"{w}/{e}" for (w, e, lat) in groups}
 
 
 def _clean(d: dict[str, float]) -> dict[str, float | None]:
@@ -410,15 +430,21 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
     if not records:
         raise CampaignError("the campaign has no finished runs")
     groups = group(records)
-    cells = {f"{w}/{e}": _summary_dict(summarise(rs), rs) for (w, e), rs in groups.items()}
-    first_wind = next(iter(groups))[0]
-    by_estimator = {e: cells[f"{w}/{e}"] for (w, e) in groups if w == first_wind}
+    names = cell_names(groups)
+    cells = {names[key]: _summary_dict(summarise(rs), rs) for key, rs in groups.items()}
+    first_wind, _, first_latency = next(iter(groups))
+    by_estimator = {
+        e: cells[names[(w, e, lat)]]
+        for (w, e, lat) in groups
+        if (w, lat) == (first_wind, first_latency)
+    }
     top = next(iter(by_estimator.values()))
     first_name = next(iter(by_estimator))
+    first_cell = names[(first_wind, first_name, first_latency)]
     return {
-        "top_level": f"the figures at this level are the cell {first_wind}/{first_name}'s "
-        "(the first wind and estimator flown); every cell is under 'cells', every estimator "
-        f"at {first_wind} wind under 'by_estimator'",
+        "top_level": f"the figures at this level are the cell {first_cell}'s "
+        "(the first wind, estimator and latency flown); every cell is under 'cells', every "
+        f"estimator at the first wind and latency under 'by_estimator'",
         "estimator": first_name,
         "wind": first_wind,
         "wind_mean_mps": top["wind_mean_mps"],
@@ -432,6 +458,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "fps": setup.fps,
         "latency_ms": round(setup.latency_s * 1000.0, 3),
         "latency_range_ms": [round(v * 1000.0, 3) for v in setup.latency_range_s],
+        "latency_label": f"{setup.latency_label} ms",
         "by_estimator": by_estimator,
         "cells": cells,
         "setup": setup_description(setup),
@@ -445,11 +472,11 @@ def _num(v: object, fmt: str = ".1f") -> str:
 def markdown(records: list[RunRecord]) -> str:
     """``perch.md``: one row per wind and estimator."""
     lines = [
-        "| wind | mean / gust (m/s) | estimator | runs | perched | 95 % interval | "
+        "| wind | mean / gust (m/s) | estimator | latency (ms) | runs | perched | 95 % interval | "
         "offset p50 / p95 (mm) | speed max (m/s) | failures |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for (wind, estimator), rs in group(records).items():
+    for (wind, estimator, latency), rs in group(records).items():
         s = summarise(rs)
         low, high = s.success_interval
         fails = (
@@ -457,7 +484,7 @@ def markdown(records: list[RunRecord]) -> str:
         )
         lines.append(
             f"| {wind} | {rs[0].wind_mean_mps:g} / {rs[0].turbulence_sigma_mps:g} | "
-            f"{estimator} | {s.runs} | {s.success_rate:.1%} | {low:.1%} - {high:.1%} | "
+            f"{estimator} | {latency} | {s.runs} | {s.success_rate:.1%} | {low:.1%} - {high:.1%} | "
             f"{_num(s.contact_offset_mm['p50'])} / {_num(s.contact_offset_mm['p95'])} | "
             f"{_num(s.contact_speed_mps['max'], '.2f')} | {fails} |"
         )
@@ -468,7 +495,8 @@ def write_reports(
     log: CampaignLog, setup: PerchSetup, trajectories: list[PerchResult]
 ) -> dict[str, object]:
     """``perch.json``, ``perch.md``, ``trajectories.png`` and, with several winds,
-    ``wind.png`` beside ``runs.csv``; returns the JSON content."""
+    ``wind.png`` (with several latencies ``latency.png``) beside ``runs.csv``; returns the
+    JSON content."""
     out = log.out
     content = summary_json(log.records, setup)
     (out / "perch.json").write_text(json.dumps(content, indent=2, default=str), encoding="utf-8")
@@ -484,11 +512,29 @@ def write_reports(
             CONTACT_RADIUS_MM,
         )
     groups = group(log.records)
-    if len({w for w, _ in groups}) > 1:
-        series: dict[str, list[tuple[float, int, int, dict[str, int]]]] = {}
-        for (_, estimator), rs in groups.items():
-            wins = sum(r.success for r in rs)
-            reasons = dict(Counter(r.reason for r in rs if not r.success))
-            series.setdefault(estimator, []).append((rs[0].wind_mean_mps, wins, len(rs), reasons))
-        wind_sweep_figure(str(out / "wind.png"), series, wilson_interval, REASONS[1:])
+    if len({w for w, _, _ in groups}) > 1:
+        by_wind = _series(groups, lambda rs: rs[0].wind_mean_mps)
+        sweep_figure(str(out / "wind.png"), by_wind, wilson_interval, REASONS[1:])
+    if len({lat for _, _, lat in groups}) > 1:
+        by_latency = _series(groups, lambda rs: float(rs[0].latency_set_ms.split("-")[0]))
+        sweep_figure(
+            str(out / "latency.png"),
+            by_latency,
+            wilson_interval,
+            REASONS[1:],
+            x_label="camera latency (ms)",
+            unit="ms",
+        )
     return content
+
+
+def _series(
+    groups: dict[Cell, list[RunRecord]], x: Callable[[list[RunRecord]], float]
+) -> dict[str, list[tuple[float, int, int, dict[str, int]]]]:
+    """Per estimator, each cell's (x, successes, runs, failures by cause)."""
+    series: dict[str, list[tuple[float, int, int, dict[str, int]]]] = {}
+    for (_, estimator, _), rs in groups.items():
+        wins = sum(r.success for r in rs)
+        reasons = dict(Counter(r.reason for r in rs if not r.success))
+        series.setdefault(estimator, []).append((x(rs), wins, len(rs), reasons))
+    return series

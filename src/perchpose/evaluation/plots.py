@@ -263,16 +263,19 @@ def perch_figure(
     fig.savefig(path, dpi=110)
 
 
-def wind_sweep_figure(
+def sweep_figure(
     path: str,
     series: dict[str, list[tuple[float, int, int, dict[str, int]]]],
     interval: Callable[[int, int], tuple[float, float]],
     causes: tuple[str, ...],
+    *,
+    x_label: str = "mean wind (m/s)",
+    unit: str = "m/s",
 ) -> None:
-    """Success rate against mean wind per estimator with each rate's interval (left), and
-    the failures by cause per wind and estimator (right).
+    """Success rate against what was swept (mean wind, camera latency) per estimator with
+    each rate's interval (left), and the failures by cause per cell (right).
 
-    series : estimator -> [(mean wind m/s, successes, runs, {cause: count})].
+    series : estimator -> [(x, successes, runs, {cause: count})].
     """
     fig = Figure(figsize=(11, 4.5))
     ax_rate, ax_cause = fig.subplots(1, 2)
@@ -289,7 +292,7 @@ def wind_sweep_figure(
             capsize=3,
             label=name,
         )
-    ax_rate.set_xlabel("mean wind (m/s)")
+    ax_rate.set_xlabel(x_label)
     ax_rate.set_ylabel("perched (%), 95 % Wilson interval")
     ax_rate.set_ylim(-2, 102)
     ax_rate.grid(True, lw=0.3)
@@ -298,7 +301,7 @@ def wind_sweep_figure(
     bottoms: list[float] = []
     rows = [(name, p) for name, points in series.items() for p in sorted(points)]
     for name, p in rows:
-        labels.append(f"{name}\n{p[0]:g} m/s")
+        labels.append(f"{name}\n{p[0]:g} {unit}")
         bottoms.append(0.0)
     for cause in causes:
         heights = [100.0 * p[3].get(cause, 0) / p[2] for _, p in rows]
@@ -307,7 +310,10 @@ def wind_sweep_figure(
             bottoms = [b + h for b, h in zip(bottoms, heights, strict=True)]
     ax_cause.set_xticks(range(len(rows)), labels, fontsize=7)
     ax_cause.set_ylabel("failed runs (%) by cause")
-    ax_cause.legend(fontsize=8)
+    if any(bottoms):
+        ax_cause.legend(fontsize=8)
+    else:
+        ax_cause.text(0.5, 0.5, "no failures", ha="center", transform=ax_cause.transAxes)
     ax_cause.grid(True, axis="y", lw=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

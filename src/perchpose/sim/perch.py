@@ -129,6 +129,12 @@ class PerchSetup:
             return (self.latency_s, self.latency_s)
         return self.sensing.latency_s
 
+    @property
+    def latency_label(self) -> str:
+        """The latency a campaign cell flies, in ms: ``33``, or a drawn range ``40-150``."""
+        low, high = (round(v * 1000.0) for v in self.latency_range_s)
+        return f"{low}" if low == high else f"{low}-{high}"
+
     def with_sensing(self, sensing: Sensing) -> PerchSetup:
         """This setup with other senses, the controller told of their longest latency."""
         latency_s = self.latency_frames / self.fps if sensing.is_ideal else sensing.max_latency_s
