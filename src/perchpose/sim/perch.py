@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -42,6 +43,8 @@ Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 ESTIMATORS = ("paper", "outer", "inner", "covariance", "truth")
+# makes the simulated vehicle: parameters, start position, heading, onboard gains
+Plant = Callable[[QuadrotorParams, Array, float, OnboardGains], Quadrotor]
 REASONS = (
     "perched",
     "off-centre",
@@ -272,7 +275,13 @@ def _estimator_for(setup: PerchSetup, camera: CameraModel) -> PerchingEstimator 
 class _Flight:
     """One run's world and vehicle, stepped frame by frame."""
 
-    def __init__(self, setup: PerchSetup, seed: int, renderer: Renderer[TargetSpec]) -> None:
+    def __init__(
+        self,
+        setup: PerchSetup,
+        seed: int,
+        renderer: Renderer[TargetSpec],
+        plant: Plant = Quadrotor.hovering,
+    ) -> None:
         self.setup = setup
         self.seed = seed
         # the senses draw from a third generator: ideal senses fly the worlds they always did
@@ -289,7 +298,7 @@ class _Flight:
                 setup.plate_z_m - below,
             ]
         )
-        self.vehicle = Quadrotor.hovering(
+        self.vehicle = plant(
             setup.vehicle, start, float(world.uniform(-math.pi, math.pi)), setup.onboard
         )
         self.vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
@@ -453,10 +462,15 @@ def event_steps(
 
 
 def run_perch(
-    setup: PerchSetup, seed: int, renderer: Renderer[TargetSpec] | None = None
+    setup: PerchSetup,
+    seed: int,
+    renderer: Renderer[TargetSpec] | None = None,
+    plant: Plant = Quadrotor.hovering,
 ) -> PerchResult:
-    """One perching run from a random start drawn with ``seed``."""
-    flight = _Flight(setup, seed, renderer or setup.renderer())
+    """One perching run from a random start drawn with ``seed``. ``plant`` makes the vehicle
+    (parameters, start, heading, onboard gains): this package's ``Quadrotor`` by default,
+    ``perchpose.sim.rotorpy_plant`` for RotorPy's."""
+    flight = _Flight(setup, seed, renderer or setup.renderer(), plant)
     p_magnet_body = np.asarray(setup.controller.p_body_magnet_m, np.float64)
     ts: list[float] = []
     magnets: list[Array] = []
