@@ -451,3 +451,19 @@ def test_a_late_fix_is_placed_with_the_attitude_at_its_capture() -> None:
     assert command.yaw_rate_rad_s == pytest.approx(expected_rate, abs=1e-9)
     d_now, _ = late.magnet_to_target(estimate, rolled)
     assert np.linalg.norm(d_now - d_capture) > 0.05  # what the arrival's attitude would give
+
+
+def test_a_late_odometry_sample_is_carried_to_now_by_its_velocity() -> None:
+    """Odometry that describes the vehicle 50 ms ago, moving at 0.1 m/s along x: the held
+    target is steered to from where the vehicle is now, 5 mm further along."""
+    s = ControllerSettings()
+    c = PerchingController(s)
+    still = Odometry(0.0, np.zeros(3), np.zeros(3))
+    est = _camera_view(s, np.array([0.0, 0.0, 0.5]))
+    first = c.update(est, 0.0, np.eye(3), still)
+    assert first.error_m is not None
+    late = Odometry(0.05, np.zeros(3), np.array([0.1, 0.0, 0.0]))  # arrives at 0.1
+    command = c.between_frames(0.1, np.eye(3), late)
+    assert command is not None
+    assert command.error_m is not None
+    np.testing.assert_allclose(command.error_m - first.error_m, [-0.005, 0.0, 0.0], atol=1e-12)

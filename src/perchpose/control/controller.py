@@ -69,6 +69,7 @@ STALL_FRAMES = 3  # camera periods without a frame after which odometry steering
 MIN_CAMERA_PERIOD_S = 1.0 / 60.0
 MAX_CAMERA_PERIOD_S = 1.0 / 15.0
 MAX_CAMERA_LATENCY_S = 0.2
+MAX_CARRY_S = 0.1  # the longest an odometry sample is carried forward by its velocity
 MIN_PHASE_MARGIN_DEG = 30.0  # of each proportional loop (``phase_margin_deg``)
 
 
@@ -279,8 +280,9 @@ def phase_margin_deg(gain: float, lag_s: float, delay_s: float) -> float:
 
 @dataclass(frozen=True)
 class Odometry:
-    """The flight controller's own state estimate at ``t_s``: position and velocity in its
-    world frame (z up; the origin and a slow drift are its own)."""
+    """The flight controller's own state estimate at ``t_s`` (the moment it describes, which
+    a late sample puts before the frame's time): position and velocity in its world frame
+    (z up; the origin and a slow drift are its own)."""
 
     t_s: float
     p_m: Array
@@ -295,6 +297,16 @@ class Command:
     yaw_rate_rad_s: float
     phase: str
     error_m: Array | None = None
+
+
+def _carried(odometry: Odometry, t_s: float) -> Array:
+    """The odometry's position carried from its own time to ``t_s`` by its velocity (a
+    sample that arrives late describes the vehicle as it was; at most ``MAX_CARRY_S``)."""
+    age = min(MAX_CARRY_S, max(0.0, t_s - odometry.t_s))
+    carried: Array = np.asarray(odometry.p_m, np.float64) + age * np.asarray(
+        odometry.v_mps, np.float64
+    )
+    return carried
 
 
 def _yaw_turned(R_from: Array, R_to: Array) -> float:
@@ -470,7 +482,7 @@ class PerchingController:
             return None
         if t_s - self._target_t > limit_s:
             return None
-        return self._target_odom - self._magnet_odom(odometry.p_m, R_world_body)
+        return self._target_odom - self._magnet_odom(_carried(odometry, t_s), R_world_body)
 
     def _reject(self, v_cmd: Array, t_s: float, odometry: Odometry | None) -> Array:
         """The velocity setpoint with the disturbance observer's offset added."""
@@ -482,7 +494,7 @@ class PerchingController:
         previous = self._last_sp if self._last_sp is not None else np.zeros(3)
         fast = self.phase == "commit" and s.commit_observer_rate > 0
         self._observer.rate = s.commit_observer_rate if fast else s.observer_rate
-        self._observer.update(previous, odometry.v_mps, dt)
+        self._observer.update(previous, odometry.v_mps, dt, max(0.0, t_s - odometry.t_s))
         v_sp = v_cmd + self._observer.offset_mps
         self._last_sp = v_sp
         return v_sp
@@ -495,9 +507,13 @@ class PerchingController:
         t_s: float,
         R_world_body: Array,
         odometry: Odometry | None = None,
+        attitude_age_s: float = 0.0,
     ) -> Command:
         """The setpoint for this frame; an estimate that is None, not valid, not finite or too
-        old means no target. ``odometry``: the flight controller's state estimate now."""
+        old means no target. ``odometry``: the flight controller's latest state estimate.
+        ``attitude_age_s``: how long before ``t_s`` the attitude ``R_world_body`` was
+        measured (it is kept in the history at that time)."""
+        self._remember_attitude(t_s - attitude_age_s, R_world_body)
         command = self._command(estimate, t_s, R_world_body, odometry)
         steered = command.phase in STEERED and command.error_m is not None
         self._frame_command = command if steered else None
@@ -511,7 +527,9 @@ class PerchingController:
             command.error_m,
         )
 
-    def between_frames(self, t_s: float, R_world_body: Array, odometry: Odometry) -> Command | None:
+    def between_frames(
+        self, t_s: float, R_world_body: Array, odometry: Odometry, attitude_age_s: float = 0.0
+    ) -> Command | None:
         """The setpoint between camera frames, from a new odometry sample: the lateral loop
         steers on the target held in the odometry frame (the vertical speed, the yaw rate and
         the phase stay the last frame's, which alone decides them). None where there is nothing
@@ -522,7 +540,7 @@ class PerchingController:
         has come for ``STALL_FRAMES`` camera periods (a stalled camera) the vehicle holds its
         height, except in the final climb, and after ``hold_target_s`` nothing is sent."""
         s = self.settings
-        self._remember_attitude(t_s, R_world_body)
+        self._remember_attitude(t_s - attitude_age_s, R_world_body)
         last = self._frame_command
         if last is None or self.phase not in STEERED:
             return None
@@ -556,7 +574,6 @@ class PerchingController:
         odometry: Odometry | None,
     ) -> Command:
         s = self.settings
-        self._remember_attitude(t_s, R_world_body)
         if odometry is not None:
             self._remember(odometry)
         since = self._commit_since

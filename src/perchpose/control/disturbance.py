@@ -11,15 +11,19 @@ the odometry's velocity estimates ``v`` and ``a``:
 with both error poles at ``rate`` (``k_v + L1 = 2 rate``, ``L2 = rate^2``). The velocity
 setpoint that cancels it is ``v_cmd - a^ / k_v``. Because the observer predicts the loop's own
 lag, a commanded change of speed is not mistaken for a disturbance, which a plain integral of
-the velocity error would wind up on.
+the velocity error would wind up on. A velocity that arrives late (it describes the vehicle
+``age_s`` ago) is compared with the observer's own estimate of that moment, not of now.
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
+HISTORY = 32  # the observer's past estimates kept for late measurements
 
 
 class DisturbanceObserver:
@@ -33,6 +37,8 @@ class DisturbanceObserver:
         self.max_offset_mps = np.asarray(max_offset_mps, np.float64)
         self.v_mps: Array | None = None
         self.a_mps2 = np.zeros(3)
+        self._clock_s = 0.0
+        self._past: deque[tuple[float, Array]] = deque(maxlen=HISTORY)
 
     @property
     def rate(self) -> float:
@@ -51,22 +57,39 @@ class DisturbanceObserver:
         """The setpoint offset that cancels the disturbance (clamped)."""
         return np.clip(-self.a_mps2 / self.k_v, -self.max_offset_mps, self.max_offset_mps)
 
-    def update(self, v_sp_mps: Array, v_odometry_mps: Array, dt_s: float) -> None:
-        """Advance ``dt_s`` with the setpoint the vehicle flew over it and the velocity it now
-        reports."""
+    def _estimate_at(self, t_s: float) -> Array:
+        """The observer's velocity estimate at ``t_s`` (the newest at or before it)."""
+        assert self.v_mps is not None
+        chosen = self.v_mps
+        for sample_t, v in reversed(self._past):
+            chosen = v
+            if sample_t <= t_s + 1e-9:
+                break
+        return chosen
+
+    def update(
+        self, v_sp_mps: Array, v_odometry_mps: Array, dt_s: float, age_s: float = 0.0
+    ) -> None:
+        """Advance ``dt_s`` with the setpoint the vehicle flew over it and the velocity it
+        reports, which describes it ``age_s`` ago."""
         v_odo = np.asarray(v_odometry_mps, np.float64)
         if self.v_mps is None:
             self.v_mps = v_odo.copy()
+            self._past.append((self._clock_s, self.v_mps))
             return
         if dt_s <= 0:
             return
-        error = v_odo - self.v_mps
+        then = self._estimate_at(self._clock_s - age_s) if age_s > 0 else self.v_mps
+        error = v_odo - then
         dv = self.k_v * (np.asarray(v_sp_mps, np.float64) - self.v_mps) + self.a_mps2
         self.v_mps = self.v_mps + dt_s * (dv + self.l1 * error)
         limit = self.max_offset_mps * self.k_v
         # anti-windup: the estimate never leaves what the clamp lets the setpoint cancel
         self.a_mps2 = np.clip(self.a_mps2 + dt_s * self.l2 * error, -limit, limit)
+        self._clock_s += dt_s
+        self._past.append((self._clock_s, self.v_mps))
 
     def reset(self) -> None:
         self.v_mps = None
         self.a_mps2 = np.zeros(3)
+        self._past.clear()

@@ -313,6 +313,15 @@ class PerchingPilot:
             return None
         return motion
 
+    def _age(self, sense: str) -> float:
+        """How old the vehicle's latest ``attitude`` or ``position`` sample is (0 without
+        ``ages``): the controller keeps each sample at the time it describes."""
+        if self.ages is None:
+            return 0.0
+        ages = self.ages()
+        age = ages.attitude_s if sense == "attitude" else ages.position_s
+        return age if math.isfinite(age) and age >= 0.0 else 0.0
+
     def _stale(self, t_s: float) -> tuple[str, float] | None:
         """The oldest of the samples the pilot flies on, if it is older than
         ``stale_after_s``. A non-finite attitude is stale at once, and ages from the first
@@ -396,8 +405,10 @@ class PerchingPilot:
             motion = self._motion()
             if motion is None or self._stale(t_s) is not None:
                 return None
-            odometry = Odometry(t_s, motion[0], motion[1])
-            command = self.controller.between_frames(t_s, self.attitude(), odometry)
+            odometry = Odometry(t_s - self._age("position"), motion[0], motion[1])
+            command = self.controller.between_frames(
+                t_s, self.attitude(), odometry, self._age("attitude")
+            )
             if command is None:
                 return None
             self.last_t_s = t_s
@@ -431,8 +442,10 @@ class PerchingPilot:
             self.report(f"pilot: the vehicle's samples are fresh again at t = {t_s:.2f} s")
             self._holding = False
         motion = self._motion()
-        odometry = None if motion is None else Odometry(t_s, motion[0], motion[1])
-        command: Command = self.controller.update(estimate, t_s, self.attitude(), odometry)
+        odometry = None if motion is None else Odometry(t_s - self._age("position"), *motion)
+        command: Command = self.controller.update(
+            estimate, t_s, self.attitude(), odometry, self._age("attitude")
+        )
         return self._follow(command, t_s)
 
     def _follow(self, command: Command, t_s: float) -> PilotStep:

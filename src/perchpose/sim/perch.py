@@ -25,6 +25,7 @@ from perchpose.control import (
     PerchingController,
     PerchingPilot,
     PilotSettings,
+    SenseAges,
 )
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import stage_of
@@ -334,6 +335,7 @@ class _Flight:
             settings=setup.pilot,
             height_m=lambda: float(self.motion()[0][2]),
             odometry=self.motion,
+            ages=None if self.sensed is None else self.sense_ages,
             report=log.debug,
         )
         # frames on their way to the estimator: (arrival frame, capture time, image or pose)
@@ -353,6 +355,12 @@ class _Flight:
         if self.sensed is None:
             return self.odometry.p_m, self.odometry.v_mps
         return self.sensed.odometry(self.now_s)
+
+    def sense_ages(self) -> SenseAges:
+        """How old the attitude and odometry the pilot has now are (realistic senses)."""
+        assert self.sensed is not None
+        attitude_s, odometry_s = self.sensed.ages(self.now_s)
+        return SenseAges(attitude_s, odometry_s, odometry_s)
 
     def sense(self, t_s: float) -> None:
         """The flight controller makes a sample of its state now (realistic senses only)."""

@@ -206,6 +206,13 @@ class SensedState:
         """The attitude that has reached the pilot at ``t_s``."""
         return self._R[self._newest(t_s - self.attitude_delay_s)]
 
+    def ages(self, t_s: float) -> tuple[float, float]:
+        """How old, at ``t_s``, the attitude and the odometry the pilot has are (from when
+        the flight controller made them)."""
+        attitude = self._t[self._newest(t_s - self.attitude_delay_s)]
+        odometry = self._t[self._newest(t_s - self.odometry_delay_s)]
+        return t_s - attitude, t_s - odometry
+
     def odometry(self, t_s: float) -> tuple[Array, Array]:
         """The position and velocity that have reached the pilot at ``t_s``."""
         i = self._newest(t_s - self.odometry_delay_s)
