@@ -2,7 +2,10 @@
 loopback by the generated dialect."""
 
 import math
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -156,3 +159,30 @@ def test_track_sends_one_per_valid_row(
         assert [v * 100 for v in msg.pos_std] == pytest.approx(
             [std_cm[1], std_cm[0], std_cm[2]], rel=1e-3, abs=1e-4
         )
+
+
+def test_no_code_is_imported_from_the_shared_temporary_folder(tmp_path: Path) -> None:
+    """A module another local user planted where the dialect used to be cached (a predictable
+    folder under the system's temporary directory) never runs; the dialect is generated in a
+    private folder, run from memory, and nothing is left behind."""
+    planted = tmp_path / "ran"
+    code = f"""
+import glob, hashlib, os, tempfile
+from pathlib import Path
+import perchpose.io.target_relative as tr
+digest = hashlib.sha256(tr.DIALECT_XML.read_bytes()).hexdigest()[:12]
+folder = Path(tempfile.gettempdir()) / f"perchpose-mavlink-{{digest}}-{{os.getuid()}}"
+folder.mkdir(parents=True, exist_ok=True)
+(folder / "perchpose_targets.py").write_text("open({str(planted)!r}, 'w').write('x')")
+before = set(glob.glob(os.path.join(tempfile.gettempdir(), "perchpose-mavlink-*")))
+module = tr.dialect()
+after = set(glob.glob(os.path.join(tempfile.gettempdir(), "perchpose-mavlink-*")))
+print(module.MAVLINK_MSG_ID_TARGET_RELATIVE, sorted(after - before))
+"""
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    out = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, env=env
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["511", "[]"]
+    assert not planted.exists()
