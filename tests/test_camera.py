@@ -1,6 +1,8 @@
 import math
+import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -197,3 +199,33 @@ def test_a_rigid_projection_is_the_projection_of_the_moved_points(name: str) -> 
     np.testing.assert_allclose(uv, expected[0], atol=1e-10)
     np.testing.assert_allclose(duv_dq, expected[1], rtol=1e-10, atol=1e-8)
     np.testing.assert_array_equal(in_front, expected[2])
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"fx": 1e300}, "fx = 1e+300 px is over 100 times"),
+        ({"cx": 1e9}, "cx = 1e+09 px lies more than an image's size outside"),
+        ({"k1": 1e300}, "distortion coefficient of 1e+300 is over 10000"),
+    ],
+)
+def test_intrinsics_no_camera_has_are_refused(change: dict[str, float], message: str) -> None:
+    K = np.array([[400.0, 0.0, 320.0], [0.0, 400.0, 240.0], [0.0, 0.0, 1.0]])
+    dist = np.zeros(5)
+    K[0, 0] = change.get("fx", K[0, 0])
+    K[0, 2] = change.get("cx", K[0, 2])
+    dist[0] = change.get("k1", 0.0)
+    with pytest.raises(CameraFileError, match=re.escape(message)):
+        CameraModel(K, dist, 640, 480)
+
+
+def test_an_opencv_file_with_a_2x2_camera_matrix_is_named(tmp_path: Path) -> None:
+    path = tmp_path / "cam.xml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", np.array([[400.0, 0.0], [0.0, 400.0]]))
+    fs.write("distortion_coefficients", np.zeros((5, 1)))
+    fs.release()
+    with pytest.raises(CameraFileError, match=r"cam\.xml: camera_matrix must be 3 x 3, got 2 x 2"):
+        CameraModel.load(path)

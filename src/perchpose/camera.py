@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from perchpose import plumb_bob
+from perchpose import plumb_bob, safe_yaml
 from perchpose.errors import CameraFileError, ImageError
 from perchpose.jit import compiled
 
@@ -80,6 +80,7 @@ class CameraModel:
             raise CameraFileError(f"camera {self.name!r}: distortion coefficients are not finite")
         if self.width_px <= 0 or self.height_px <= 0:
             raise CameraFileError(f"camera {self.name!r}: image size must be positive")
+        _check_plausible(K, dist, self.width_px, self.height_px, self.name)
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
 
@@ -279,7 +280,7 @@ class CameraModel:
         if text.lstrip().startswith(("%YAML", "<?xml", "<opencv_storage")):
             return _load_opencv_storage(p)
         try:
-            data = yaml.safe_load(text)
+            data = safe_yaml.load(text)
         except yaml.YAMLError as exc:
             raise CameraFileError(f"{p}: not valid YAML ({_first_line(exc)})") from exc
         if not isinstance(data, dict):
@@ -322,6 +323,32 @@ class CameraModel:
 
 def _floats(a: Array) -> list[float]:
     return [float(v) for v in np.asarray(a).reshape(-1)]
+
+
+MAX_FOCAL_PER_SIDE = 100.0  # fx, fy over the image's longer side: a 0.6 deg field of view
+MAX_DISTORTION = 1e4  # no lens model's coefficient comes near this
+
+
+def _check_plausible(K: Array, dist: Array, width: int, height: int, name: str) -> None:
+    """Refuse intrinsics no camera has (they pass every other check and give garbage)."""
+    side = max(width, height)
+    for axis, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not f <= MAX_FOCAL_PER_SIDE * side:
+            raise CameraFileError(
+                f"camera {name!r}: {axis} = {f:g} px is over {MAX_FOCAL_PER_SIDE:g} times the "
+                f"image's {side} px: not a camera"
+            )
+    for axis, c, size in (("cx", K[0, 2], width), ("cy", K[1, 2], height)):
+        if not -size <= c <= 2 * size:
+            raise CameraFileError(
+                f"camera {name!r}: {axis} = {c:g} px lies more than an image's size outside "
+                f"the {width} x {height} image"
+            )
+    if np.abs(dist).max(initial=0.0) > MAX_DISTORTION:
+        raise CameraFileError(
+            f"camera {name!r}: a distortion coefficient of {np.abs(dist).max():g} is over "
+            f"{MAX_DISTORTION:g}: not a lens"
+        )
 
 
 def _first_line(exc: Exception) -> str:
@@ -396,6 +423,10 @@ def _load_opencv_storage(path: Path) -> CameraModel:
         if K is None or dist is None:
             raise CameraFileError(
                 f"{path}: camera_matrix or distortion_coefficients is not a matrix"
+            )
+        if np.asarray(K).size != 9:
+            raise CameraFileError(
+                f"{path}: camera_matrix must be 3 x 3, got {' x '.join(map(str, K.shape))}"
             )
         width = _size_field(node("image_width", "width"), "image_width", path)
         height = _size_field(node("image_height", "height"), "image_height", path)

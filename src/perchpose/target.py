@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from perchpose import safe_yaml
 from perchpose.errors import TargetSpecError
 from perchpose.geometry import invert_transform, make_transform, rot_z
 
@@ -304,9 +305,10 @@ class TargetSpec:
         if not p.is_file():
             raise TargetSpecError(f"{p}: target file not found")
         try:
-            data = yaml.safe_load(p.read_text(encoding="utf-8", errors="replace"))
+            data = safe_yaml.load(p.read_text(encoding="utf-8", errors="replace"))
         except yaml.YAMLError as exc:
-            raise TargetSpecError(f"{p}: not valid YAML") from exc
+            reason = (str(exc).strip().splitlines() or ["no reason given"])[0]
+            raise TargetSpecError(f"{p}: not valid YAML ({reason})") from exc
         try:
             return TargetSpec.from_dict(data)
         except TargetSpecError as exc:

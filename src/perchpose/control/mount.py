@@ -9,6 +9,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from perchpose import safe_yaml
 from perchpose.errors import ControllerConfigError, PerchposeError
 from perchpose.geometry import check_transform, make_transform
 
@@ -46,7 +47,7 @@ def load_T_body_camera(path: str | Path) -> Array:
     forward, y left, z up; camera: OpenCV optical frame)."""
     where = Path(path)
     try:
-        data = yaml.safe_load(where.read_text())
+        data = safe_yaml.load(where.read_text())
     except OSError as exc:
         raise ControllerConfigError(f"{where}: cannot read ({exc.strerror})") from exc
     except yaml.YAMLError as exc:
