@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from perchpose.cli import main
+from perchpose.io import mavlink_link
 from perchpose.io.mavlink import mavutil_module
 from perchpose.io.mavlink_link import MavlinkLink
 from perchpose.io.mavlink_pilot import MavlinkPilot, SetpointCommander
@@ -276,6 +277,7 @@ def test_track_flies_the_autopilot_and_hands_it_back_at_the_end(
     assert "LANDING_TARGET" not in kinds
     assert "waiting -> perching" in err  # track waited for the vehicle before the first frame
     assert "tracking ended: a hover setpoint" in err
+    assert "MAVLink pilot: took over at t = " in err
     sent = vehicle.setpoints()
     assert any(msg.vz < 0 for _, msg in sent)  # it climbed (NED z down) towards the target
     last = sent[-1][1]
@@ -321,7 +323,9 @@ def test_the_pilot_flies_its_own_system_and_ignores_a_stranger(udp_port: int) ->
     assert len(steering(sent)) > 10
     assert {msg.target_system for _, msg in sent} == {7}
     assert any("ignoring autopilot system 2" in r for r in reports)
-    assert not any("released" in r or "disarmed" in r or "left GUIDED" in r for r in reports[:-1])
+    assert not any("disarmed" in r or "left GUIDED" in r for r in reports)
+    assert reports[-1].startswith("MAVLink pilot: took over at t = ")
+    assert reports[-1].endswith("ended released")  # by the end of tracking, not system 2
 
 
 def test_the_first_autopilot_heard_is_the_one_flown(udp_port: int) -> None:
@@ -449,3 +453,46 @@ def test_target_system_is_checked_and_needs_a_link(
     )
     assert main(argv) == 2
     assert "--target-system" in capsys.readouterr().err
+
+
+def test_the_pilot_asks_for_its_streams_and_says_why_it_never_took_over(
+    udp_port: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A vehicle that sends only heartbeats: the link asks it for ATTITUDE (30) and
+    LOCAL_POSITION_NED (32) at 50 Hz with MAV_CMD_SET_MESSAGE_INTERVAL, asks again, says once
+    that they never came, and the pilot's summary says why it never took over."""
+    monkeypatch.setattr(mavlink_link, "STREAM_RETRY_S", 0.2)
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
+    vehicle.streams = set()
+    reports: list[str] = []
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append)
+    try:
+        wait_for(lambda: any("though asked 3 times" in r for r in reports))
+        fly(pilot, 0.2, (0.0, 0.0, 0.6), time.monotonic())
+    finally:
+        pilot.close()
+        vehicle.stop()
+    asked = [m for _, m in vehicle.received if m.get_type() == "COMMAND_LONG"]
+    assert {(m.command, m.param1, m.param2) for m in asked} == {
+        (511, 30, 20000),
+        (511, 32, 20000),
+    }
+    assert len(asked) == 6  # each stream, three times
+    assert all((m.target_system, m.target_component) == (7, 1) for m in asked)
+    assert not vehicle.setpoints()
+    assert reports[-1] == (
+        "MAVLink pilot: never took over (no ATTITUDE and LOCAL_POSITION_NED streaming)"
+    )
+
+
+def test_streams_that_arrive_are_not_asked_again(udp_port: int) -> None:
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=lambda _m: None)
+    try:
+        wait_for(pilot.ready)
+        time.sleep(2.5)  # past the time a missing stream would be asked for again
+    finally:
+        pilot.close()
+        vehicle.stop()
+    asked = [m for _, m in vehicle.received if m.get_type() == "COMMAND_LONG"]
+    assert len(asked) <= 2  # at most the first request, before the streams were seen

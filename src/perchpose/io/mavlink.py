@@ -172,6 +172,7 @@ class LandingTargetSink:
             timesync_period_s=timesync_period_s,
             retry_period_s=retry_period_s,
             target_system=target_system,
+            streams=("ATTITUDE", "LOCAL_POSITION_NED") if frame == "local_ned" else (),
             report=report or log.warning,
         )
         self.report = self.link.report

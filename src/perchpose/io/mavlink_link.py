@@ -50,6 +50,10 @@ MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_ACTIVE = 4
 MAV_MODE_FLAG_SAFETY_ARMED = 128
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+STREAM_IDS = {"ATTITUDE": 30, "LOCAL_POSITION_NED": 32}
+STREAM_RETRY_S = 2.0  # a stream not arriving this long after it was asked for is asked again
+STREAM_TRIES = 3
 # messages waiting for the link's thread; a link this far behind drops the oldest
 QUEUE_LENGTH = 8
 
@@ -75,6 +79,15 @@ def _peer_closed() -> None:
 
 def _timesync_send(mav: Any, *, tc1: int, ts1: int) -> None:
     mav.timesync_send(tc1, ts1)
+
+
+def _interval_send(
+    mav: Any, *, system: int, component: int, message_id: int, interval_us: int
+) -> None:
+    """COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL: send ``message_id`` every ``interval_us``."""
+    mav.command_long_send(
+        system, component, MAV_CMD_SET_MESSAGE_INTERVAL, 0, message_id, interval_us, 0, 0, 0, 0, 0
+    )
 
 
 def check_url(url: str) -> str:
@@ -197,7 +210,10 @@ class MavlinkLink:
 
     url : pymavlink connection string. target_system : the vehicle's MAVLink system id (None:
     the first autopilot heard); messages from other systems are ignored (each stranger said
-    once). timesync_period_s : how often a TIMESYNC request is sent (0: never; requests from
+    once). streams : the vehicle's messages the link asks for (``ATTITUDE``,
+    ``LOCAL_POSITION_NED``) with MAV_CMD_SET_MESSAGE_INTERVAL at ``stream_hz`` once it knows
+    the vehicle, again while one does not arrive (3 tries, 2 s apart), then says which never
+    came. timesync_period_s : how often a TIMESYNC request is sent (0: never; requests from
     the vehicle are answered all the same). report : receives the one-line link reports
     (default: this module's logger).
 
@@ -216,9 +232,21 @@ class MavlinkLink:
         timesync_period_s: float = 1.0,
         retry_period_s: float = 2.0,
         target_system: int | None = None,
+        streams: tuple[str, ...] = (),
+        stream_hz: float = 50.0,
         report: Callable[[str], None] | None = None,
     ) -> None:
         self.url = check_url(url)
+        unknown = [name for name in streams if name not in STREAM_IDS]
+        if unknown:
+            raise LinkError(f"MAVLink streams {unknown}: the link asks only for {list(STREAM_IDS)}")
+        if not stream_hz > 0:
+            raise LinkError(f"MAVLink stream rate must be positive, got {stream_hz}")
+        self.streams = streams
+        self.stream_interval_us = round(1e6 / stream_hz)
+        self.stream_requests = 0
+        self._stream_tries = 0
+        self._next_stream_request = 0.0
         if target_system is not None and not 1 <= target_system <= 255:
             raise LinkError(f"MAVLink target system {target_system}: expected 1 to 255")
         self.source_system = source_system
@@ -369,12 +397,48 @@ class MavlinkLink:
         if now >= self._next_heartbeat:
             self._next_heartbeat = now + self.heartbeat_period_s
             self._send(self._heartbeat, "HEARTBEAT")
+        self._ask_for_streams(now)
         if self.timesync_period_s > 0 and now >= self._next_timesync:
             self._next_timesync = now + self.timesync_period_s
             tc1, ts1 = self.timesync.request()
             self._send(partial(_timesync_send, tc1=tc1, ts1=ts1), "TIMESYNC")
         self._receive()
         return False
+
+    def _missing_streams(self, now: float) -> list[str]:
+        v = self.vehicle
+        ages = {"ATTITUDE": v.attitude_age_s(now), "LOCAL_POSITION_NED": v.position_age_s(now)}
+        return [name for name in self.streams if not ages[name] < STREAM_RETRY_S]
+
+    def _ask_for_streams(self, now: float) -> None:
+        """SET_MESSAGE_INTERVAL for each stream asked for that does not arrive, once the
+        vehicle is known; said once if they never come."""
+        system, component = self.vehicle.system_id, self.vehicle.component_id
+        if system is None or component is None or now < self._next_stream_request:
+            return
+        missing = self._missing_streams(now)
+        if not missing:
+            return
+        if self._stream_tries >= STREAM_TRIES:
+            self.say_once(
+                "streams",
+                f"MAVLink {self.url}: the vehicle does not send {' and '.join(missing)} though "
+                f"asked {STREAM_TRIES} times (MAV_CMD_SET_MESSAGE_INTERVAL); set its stream "
+                "rates (ArduPilot SRn_EXTRA1 / SRn_POSITION, PX4 the MAVLink mode)",
+            )
+            return
+        self._stream_tries += 1
+        self._next_stream_request = now + STREAM_RETRY_S
+        for name in missing:
+            send = partial(
+                _interval_send,
+                system=system,
+                component=component,
+                message_id=STREAM_IDS[name],
+                interval_us=self.stream_interval_us,
+            )
+            if self._send(send, "COMMAND_LONG"):
+                self.stream_requests += 1
 
     def _heartbeat(self, mav: Any) -> None:
         mav.heartbeat_send(

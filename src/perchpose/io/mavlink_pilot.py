@@ -196,7 +196,10 @@ class MavlinkPilot:
         link: MavlinkLink | None = None,
     ) -> None:
         self.link = link or MavlinkLink(
-            url, target_system=target_system, report=report or log.warning
+            url,
+            target_system=target_system,
+            streams=("ATTITUDE", "LOCAL_POSITION_NED"),
+            report=report or log.warning,
         )
         self.report = self.link.report
         self.heartbeat_timeout_s = heartbeat_timeout_s
@@ -269,6 +272,30 @@ class MavlinkPilot:
             and self.odometry() is not None
         )
 
+    def missing(self) -> str:
+        """What keeps the pilot from taking over, in words ('' when nothing does)."""
+        v = self.vehicle
+        if not self.alive():
+            return "no HEARTBEAT from an autopilot"
+        if not (v.armed and takes_setpoints(v)):
+            mode = setpoint_mode(v) or "GUIDED or OFFBOARD"
+            return f"the vehicle is not armed in {mode}"
+        if not self.ready():
+            return "no ATTITUDE and LOCAL_POSITION_NED streaming"
+        return ""
+
+    def summary(self) -> str:
+        """One line: whether the pilot took over, what it sent and how it ended, or why it
+        never took over."""
+        taken = [t for t, before, _ in self.pilot.transitions if before == "waiting"]
+        if not taken:
+            why = self.missing() or "no target in view while the vehicle was ready"
+            return f"MAVLink pilot: never took over ({why})"
+        return (
+            f"MAVLink pilot: took over at t = {taken[0]:.2f} s, sent "
+            f"{self.commander.setpoints} setpoints, ended {self.pilot.state}"
+        )
+
     def wait_until_ready(self, timeout_s: float, poll_s: float = 0.02) -> bool:
         """Wait up to ``timeout_s`` for ``ready``; say once what is missing if it is not."""
         deadline = time.monotonic() + timeout_s
@@ -276,14 +303,7 @@ class MavlinkPilot:
             time.sleep(poll_s)
         if self.ready():
             return True
-        v = self.vehicle
-        if not self.alive():
-            missing = "no HEARTBEAT from an autopilot"
-        elif not (v.armed and takes_setpoints(v)):
-            mode = setpoint_mode(v) or "GUIDED or OFFBOARD"
-            missing = f"the vehicle is not armed in {mode}"
-        else:
-            missing = "no ATTITUDE and LOCAL_POSITION_NED streaming"
+        missing = self.missing()
         self.report(
             f"MAVLink {self.link.url}: {missing} after {timeout_s:g} s; tracking starts, and "
             "the pilot takes over once it is ready"
@@ -348,4 +368,5 @@ class MavlinkPilot:
                 f"{reason}: a hover setpoint, then nothing more; the autopilot holds the "
                 f"vehicle in {mode} or its failsafe acts"
             )
+        self.report(self.summary())
         self.link.close()
