@@ -1,5 +1,7 @@
 import csv
 import json
+import socket
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -166,6 +168,43 @@ def test_perch_scheduler_that_does_not_answer(
     )
     assert code == 2
     assert f"{silent_scheduler}: no Dask scheduler answered" in capsys.readouterr().err
+
+
+def test_perch_scheduler_that_is_another_service(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], tcp_port: int
+) -> None:
+    """A service that speaks first (an SSH server's banner) is not taken for a scheduler:
+    Dask read the banner as a frame length and asked for exabytes."""
+    pytest.importorskip("dask.distributed")
+    server = socket.create_server(("127.0.0.1", tcp_port))
+    stop = threading.Event()
+
+    def serve() -> None:
+        server.settimeout(0.2)
+        peers = []
+        while not stop.is_set():
+            try:
+                peer, _ = server.accept()
+            except TimeoutError:
+                continue
+            peer.sendall(b"SSH-2.0-OpenSSH_9.6p1 Ubuntu-3ubuntu13\r\n" * 4)
+            peers.append(peer)
+        for peer in peers:
+            peer.close()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        argv = ["perch", "--runs", "1", "--estimator", "truth", "--out", str(tmp_path / "p")]
+        code = main([*argv, "--scheduler", f"tcp://127.0.0.1:{tcp_port}"])
+    finally:
+        stop.set()
+        thread.join()
+        server.close()
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "the service there is not a Dask scheduler" in err
+    assert "Traceback" not in err
 
 
 def test_moderate_wind_needs_the_disturbance_rejection() -> None:

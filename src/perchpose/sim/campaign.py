@@ -128,6 +128,12 @@ def _dask(
             f"--scheduler {scheduler}: no Dask scheduler answered within "
             f"{SCHEDULER_TIMEOUT_S} s ({exc.__class__.__name__})"
         ) from exc
+    except MemoryError as exc:
+        # another service (ssh, say) speaks first: Dask reads its banner as a frame length
+        raise SchedulerError(
+            f"--scheduler {scheduler}: the service there is not a Dask scheduler (what it "
+            "sent reads as a message of exabytes)"
+        ) from exc
     try:
         futures = client.map(run_job, jobs, pure=False)
         try:
