@@ -147,6 +147,25 @@ def test_perch_resume_keeps_runs_and_refuses_another_setup(
     assert main([*base, "--runs", "3", "--resume", "--no-disturbances"]) == 2
     assert "another setup" in capsys.readouterr().err
     assert len((tmp_path / "p" / "runs.csv").read_text().splitlines()) == 4
+    # resumed with other seeds: their rows stay in the file, but the reports cover the asked
+    assert main([*base, "--runs", "1", "--seed", "2", "--resume", "--json", f"{out}.json"]) == 0
+    err = capsys.readouterr().err
+    assert "1 runs kept" in err
+    assert "2 rows of other seeds or cells stay in it, out of the reports" in err
+    assert json.loads(Path(f"{out}.json").read_text())["runs"] == 1
+
+
+def test_two_campaigns_never_write_one_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from perchpose.evaluation.perching import CampaignLog
+
+    setup = PerchSetup(CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth")
+    with CampaignLog(tmp_path / "p", setup):  # a campaign running there
+        argv = ["perch", "--runs", "1", "--estimator", "truth", "--out", str(tmp_path / "p")]
+        assert main([*argv, "--resume"]) == 2
+        assert "another perchpose campaign is writing here" in capsys.readouterr().err
+    assert main([*argv, "--quiet"]) == 0  # free again once it ended
 
 
 def test_perch_scheduler_that_does_not_answer(

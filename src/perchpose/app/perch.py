@@ -95,8 +95,18 @@ class PerchCampaign:
             jobs = campaign_jobs(
                 list(self.setups), self.runs, self.seed, lambda s, k: run_key(s, k) in done
             )
+            wanted = {
+                run_key(s, k) for s in self.setups for k in range(self.seed, self.seed + self.runs)
+            }
             if resume and log.records:
-                say(f"{len(log.records)} runs kept from {log.path}; {len(jobs)} to fly")
+                kept = sum(r.key in wanted for r in log.records)
+                others = len(log.records) - kept
+                aside = (
+                    f" ({others} rows of other seeds or cells stay in it, out of the reports)"
+                    if others
+                    else ""
+                )
+                say(f"{kept} runs kept from {log.path}{aside}; {len(jobs)} to fly")
             cells = len(self.setups)
             plural = "s" * (cells > 1)
             say(f"{len(jobs)} runs: {cells} cell{plural} of {self.runs} runs; {senses(base)}")
@@ -109,7 +119,7 @@ class PerchCampaign:
                 if cell == (base.estimator, base.wind, base.latency_label):
                     trajectories.append(result)
             trajectories.sort(key=lambda r: r.seed)
-            return write_reports(log, base, trajectories[:TRAJECTORIES])
+            return write_reports(log, base, trajectories[:TRAJECTORIES], wanted)
 
 
 SWEEP_LATENCIES_MS = (0.0, 50.0, 100.0, 150.0, 200.0)  # --sweep latency

@@ -300,6 +300,25 @@ def _fingerprint(description: dict[str, object]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def _lock_folder(out: Path) -> TextIO:
+    """An exclusive lock on ``out`` (``campaign.lock``, released when the file is closed or
+    the process ends): two campaigns writing one folder would count runs twice."""
+    handle = (out / "campaign.lock").open("a", encoding="utf-8")
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock to take
+        return handle
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        handle.close()
+        raise CampaignError(
+            f"{out}: another perchpose campaign is writing here; wait for it to end or use "
+            "another --out"
+        ) from exc
+    return handle
+
+
 class CampaignLog:
     """``runs.csv`` written a row at a time (flushed), with ``campaign.json`` naming the setup.
 
@@ -313,6 +332,7 @@ class CampaignLog:
             self.out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise CampaignError(f"{self.out}: cannot create the output folder ({exc})") from exc
+        self._lock = _lock_folder(self.out)
         self.path = self.out / "runs.csv"
         description = setup_description(setup)
         fingerprint = _fingerprint(description)
@@ -364,6 +384,7 @@ class CampaignLog:
 
     def close(self) -> None:
         self._file.close()
+        self._lock.close()  # and with it the lock
 
     def __enter__(self) -> CampaignLog:
         return self
@@ -492,15 +513,20 @@ def markdown(records: list[RunRecord]) -> str:
 
 
 def write_reports(
-    log: CampaignLog, setup: PerchSetup, trajectories: list[PerchResult]
+    log: CampaignLog,
+    setup: PerchSetup,
+    trajectories: list[PerchResult],
+    keys: set[RunKey] | None = None,
 ) -> dict[str, object]:
     """``perch.json``, ``perch.md``, ``trajectories.png`` and, with several winds,
     ``wind.png`` (with several latencies ``latency.png``) beside ``runs.csv``; returns the
-    JSON content."""
+    JSON content. ``keys``: the runs the reports cover (default every row of the log; a
+    resumed campaign's file may hold rows of other seeds or cells)."""
     out = log.out
-    content = summary_json(log.records, setup)
+    records = log.records if keys is None else [r for r in log.records if r.key in keys]
+    content = summary_json(records, setup)
     (out / "perch.json").write_text(json.dumps(content, indent=2, default=str), encoding="utf-8")
-    (out / "perch.md").write_text(markdown(log.records), encoding="utf-8")
+    (out / "perch.md").write_text(markdown(records), encoding="utf-8")
     if trajectories:
         perch_figure(
             str(out / "trajectories.png"),
@@ -511,7 +537,7 @@ def write_reports(
             setup.plate_z_m,
             CONTACT_RADIUS_MM,
         )
-    groups = group(log.records)
+    groups = group(records)
     if len({w for w, _, _ in groups}) > 1:
         by_wind = _series(groups, lambda rs: rs[0].wind_mean_mps)
         sweep_figure(str(out / "wind.png"), by_wind, wilson_interval, REASONS[1:])
