@@ -260,16 +260,20 @@ class _Server:
 
 def test_a_network_stream_is_read_live_and_reopened_when_it_drops(tmp_path: Path) -> None:
     """http:// through OpenCV's FFmpeg backend: every frame of the first connection, then,
-    after the stream drops, every frame of the second (one reconnect); the source ends once
-    the stream stays down past reconnect_for_s. Indices and grab times go on across the drop."""
+    after the stream drops, every frame of the second (one reconnect); once the stream stays
+    down past reconnect_for_s the source ends with an error that says so (a run on a stream
+    lost for good does not end as if it had finished). Indices and grab times go on across
+    the drop."""
     _numbered_video(tmp_path / "v.avi", 20)
     server = _Server(tmp_path, times=2)
+    frames = []
     try:
         source = open_source(f"http://127.0.0.1:{server.port}/v.avi")
         assert isinstance(source, VideoSource)
         assert source.live
         source.reconnect_for_s = 1.0
-        frames = list(source)
+        with pytest.raises(SourceError, match="dropped and did not come back within 1 s"):
+            frames.extend(source)
     finally:
         server.close()
     assert server.served == [2]

@@ -113,6 +113,7 @@ class VideoSource(FrameSource):
         self.reopen = reopen
         self.reconnect_for_s = reconnect_for_s
         self.reconnects = 0
+        self.gave_up = False  # a dropped stream that never came back
 
     def __iter__(self) -> Iterator[Frame]:
         if self.live:
@@ -172,9 +173,15 @@ class VideoSource(FrameSource):
         finally:
             grabber.close()
             grabber.capture.release()
+        if self.gave_up:
+            raise SourceError(
+                f"{self.description}: the stream dropped and did not come back within "
+                f"{self.reconnect_for_s:g} s; tracking stopped there"
+            )
 
     def _reconnect(self) -> cv2.VideoCapture | None:
-        """A dropped stream, opened again (None: it stayed down ``reconnect_for_s``)."""
+        """A dropped stream, opened again (None: it stayed down ``reconnect_for_s``, and the
+        source ends with a ``SourceError`` after its last frame)."""
         assert self.reopen is not None
         deadline = time.monotonic() + self.reconnect_for_s
         while time.monotonic() < deadline:
@@ -183,6 +190,7 @@ class VideoSource(FrameSource):
                 self.reconnects += 1
                 return capture
             time.sleep(RECONNECT_PERIOD_S)
+        self.gave_up = True
         return None
 
     def _index_of_last_read(self, expected: int) -> int:
