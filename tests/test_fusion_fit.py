@@ -1,6 +1,7 @@
 """The sigma fits of perchpose.fusion (closed-form least squares and the paper's LMS)."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,3 +68,42 @@ def test_both_fits_hold_sigma_to_a_weighted_mean() -> None:
     assert lms == 1.0
     # and the other side: the outer marker the worse one by far
     assert fit_sigma_least_squares(inner, outer, truth) == 0.0
+
+
+def _write_data(path: Path, outer_sd: float, inner_sd: float, shared: float = 0.0) -> None:
+    """Markers with independent errors, the inner's also ``shared`` times the outer's (a
+    common cause, such as the corners' bias on one frame, makes them correlate)."""
+    rng = np.random.default_rng(4)
+    n = 400
+    truth = rng.uniform(-10, 10, (n, 4))
+    truth[:, 2] = rng.uniform(30, 150, n)
+    rows = [
+        "true_x_cm,true_y_cm,true_z_cm,true_yaw_deg,"
+        + ",".join(f"m{m}_{c}" for m in (0, 1) for c in ("x_cm", "y_cm", "z_cm", "yaw_deg"))
+    ]
+    outer = truth + rng.normal(0, outer_sd, truth.shape)
+    inner = truth + shared * (outer - truth) + rng.normal(0, inner_sd, truth.shape)
+    for t, a, b in zip(truth, outer, inner, strict=True):
+        rows.append(",".join(f"{v:.6f}" for v in (*t, *a, *b)))
+    path.write_text("\n".join(rows) + "\n")
+
+
+def test_weights_at_their_bound_are_said_to_be_one_marker_alone(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An inner marker whose error is three times the outer's and more (as on clean frames,
+    where the big marker is far the better and both share the frame's corner bias) pins every
+    weight at 1: fit-fusion says so for each, with both markers' errors, and points to the
+    default fusion; independent, comparable markers give weights inside (0, 1) and no line."""
+    from perchpose.cli import main
+
+    lopsided, balanced = tmp_path / "lopsided.csv", tmp_path / "balanced.csv"
+    _write_data(lopsided, 0.001, 0.002, shared=3.0)
+    _write_data(balanced, 0.3, 0.5)
+    assert main(["fit-fusion", str(lopsided)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("sits at its bound (1.000)") == 4
+    assert "the outer marker alone does best (rms error outer 0.0010 cm, inner 0.0034 cm)" in err
+    assert "needs no fit" in err
+    assert main(["fit-fusion", str(balanced)]) == 0
+    assert "sits at its bound" not in capsys.readouterr().err

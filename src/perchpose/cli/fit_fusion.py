@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from perchpose.cli.common import warn
 from perchpose.cli.group import group
 from perchpose.errors import PerchposeError
 
@@ -45,6 +46,18 @@ def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
         click.echo(
             f"{name:10} {result.least_squares[name]:10.3f} {result.lms[name]:10.3f} "
             f"{PAPER_SIGMAS[name]:10.3f}"
+        )
+    rms = samples.rms_errors()
+    for name in result.at_bounds:
+        unit = "deg" if name == "sigma_yaw" else "cm"
+        outer, inner = rms[name]
+        alone = "outer" if result.least_squares[name] > 0.5 else "inner"
+        warn(
+            f"fit-fusion: {name} sits at its bound ({result.least_squares[name]:.3f}): on these "
+            f"frames the {alone} marker alone does best (rms error outer {outer:.4f} {unit}, "
+            f"inner {inner:.4f} {unit}), so with these weights the paper's fusion takes the "
+            f"{alone} marker's pose wherever both are seen; the default fusion (no --sigmas) "
+            "weighs the markers frame by frame by their covariance and needs no fit"
         )
     if json_out:
         write_fusion_fit(json_out, result)

@@ -432,6 +432,19 @@ class FusionSamples:
     inner: Array
     position_index: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
 
+    def rms_errors(self) -> dict[str, tuple[float, float]]:
+        """Each component's rms error against the truth: (outer, inner), cm or deg."""
+        out = {}
+        for k, name in enumerate(COMPONENT_NAMES):
+            errors = []
+            for marker in (self.outer, self.inner):
+                e = marker[:, k] - self.truth[:, k]
+                if k == 3:  # yaw, on the circle
+                    e = (e + 180.0) % 360.0 - 180.0
+                errors.append(float(np.sqrt(np.mean(e * e))))
+            out[name] = (errors[0], errors[1])
+        return out
+
 
 @dataclass(frozen=True)
 class FusionFit:
@@ -441,6 +454,12 @@ class FusionFit:
     lms: dict[str, float]
     lms_passes: dict[str, int]
     samples: int
+
+    @property
+    def at_bounds(self) -> list[str]:
+        """The components whose least-squares weight sits at 0 or 1: there the data say one
+        marker alone does best, which is no fit of the two markers' noise."""
+        return [name for name, v in self.least_squares.items() if min(v, 1.0 - v) < 1e-6]
 
     def sigmas(self, method: str = "least_squares") -> FusionSigmas:
         """The fitted weights (``least_squares`` or ``lms``) as the paper's fusion takes them."""
