@@ -5,6 +5,7 @@ The library raises these; only the command line turns them into one-line message
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 
 
@@ -60,3 +61,15 @@ def require_positive(
         value = getattr(settings, name)
         if not value > 0:
             raise error(f"{prefix}{name} must be positive, got {value}")
+
+
+def require_non_negative(
+    settings: object, names: Iterable[str], error: type[PerchposeError], prefix: str = ""
+) -> None:
+    """Raise ``error`` naming the first of the fields ``names`` of ``settings`` that is not a
+    finite number of zero or more: ``"{prefix}{name} must be a non-negative number, got
+    {value}"``."""
+    for name in names:
+        value = getattr(settings, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise error(f"{prefix}{name} must be a non-negative number, got {value}")

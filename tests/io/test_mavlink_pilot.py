@@ -5,7 +5,8 @@ loopback that plays the vehicle: HEARTBEAT with its mode, ATTITUDE and LOCAL_POS
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -297,6 +298,23 @@ def test_mavlink_pilot_needs_a_link(
     assert "--mavlink-pilot needs --mavlink" in capsys.readouterr().err
 
 
+@contextmanager
+def guided(
+    udp_port: int, stranger: bool = False, **pilot_options: Any
+) -> Iterator[tuple[Vehicle, MavlinkPilot, list[str]]]:
+    """An ArduPilot vehicle armed in GUIDED and the pilot on its link, ready; both closed at
+    the end. Yields the vehicle, the pilot and the pilot's reports."""
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED, stranger=stranger)
+    reports: list[str] = []
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append, **pilot_options)
+    try:
+        wait_for(pilot.ready)
+        yield vehicle, pilot, reports
+    finally:
+        pilot.close()
+        vehicle.stop()
+
+
 def steering(sent: list[tuple[int, Any]]) -> list[Any]:
     return [msg for _, msg in sent if (msg.vx, msg.vy, msg.vz) != (0, 0, 0)]
 
@@ -304,21 +322,13 @@ def steering(sent: list[tuple[int, Any]]) -> list[Any]:
 def test_the_pilot_flies_its_own_system_and_ignores_a_stranger(udp_port: int) -> None:
     """A second autopilot on the link (system 2, disarmed in LOITER, rolled 30 deg, elsewhere)
     neither receives a setpoint nor feeds the pilot's state nor releases it."""
-    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED, stranger=True)
-    reports: list[str] = []
-    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", target_system=7, report=reports.append)
-    t0 = time.monotonic()
-    try:
-        wait_for(pilot.ready)
-        fly(pilot, 1.0, (0.10, 0.0, 0.6), t0)
+    with guided(udp_port, stranger=True, target_system=7) as (vehicle, pilot, reports):
+        fly(pilot, 1.0, (0.10, 0.0, 0.6), time.monotonic())
         assert pilot.pilot.state == "perching"
         np.testing.assert_allclose(pilot.attitude(), np.eye(3), atol=1e-9)
         p_nwu, v_nwu = pilot.odometry() or (None, None)
         np.testing.assert_allclose(p_nwu, [0.0, 0.0, 1.0])
         np.testing.assert_allclose(v_nwu, [0.0, 0.0, 0.0])
-    finally:
-        pilot.close()
-        vehicle.stop()
     sent = vehicle.setpoints()
     assert len(steering(sent)) > 10
     assert {msg.target_system for _, msg in sent} == {7}
@@ -329,28 +339,18 @@ def test_the_pilot_flies_its_own_system_and_ignores_a_stranger(udp_port: int) ->
 
 
 def test_the_first_autopilot_heard_is_the_one_flown(udp_port: int) -> None:
-    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
-    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=lambda _m: None)
-    try:
-        wait_for(pilot.ready)
+    with guided(udp_port) as (vehicle, pilot, _reports):
         vehicle.stranger = True
         time.sleep(0.3)
         assert pilot.vehicle.system_id == 7
         np.testing.assert_allclose(pilot.attitude(), np.eye(3), atol=1e-9)
         assert pilot.vehicle.armed
         assert pilot.vehicle.custom_mode == GUIDED
-    finally:
-        pilot.close()
-        vehicle.stop()
 
 
 def test_one_nan_sample_is_dropped_and_the_pilot_keeps_steering(udp_port: int) -> None:
-    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
-    reports: list[str] = []
-    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append)
-    t0 = time.monotonic()
-    try:
-        wait_for(pilot.ready)
+    with guided(udp_port) as (vehicle, pilot, reports):
+        t0 = time.monotonic()
         fly(pilot, 0.5, (0.10, 0.0, 0.6), t0)
         vehicle.spoil = {"ATTITUDE", "LOCAL_POSITION_NED"}
         wait_for(lambda: not vehicle.spoil)
@@ -358,9 +358,6 @@ def test_one_nan_sample_is_dropped_and_the_pilot_keeps_steering(udp_port: int) -
         before = len(vehicle.setpoints())
         fly(pilot, 1.0, (0.10, 0.0, 0.6), t0)
         assert pilot.pilot.state == "perching"
-    finally:
-        pilot.close()
-        vehicle.stop()
     after = vehicle.setpoints()[before:]
     assert len(after) > 20
     assert len(steering(after)) >= len(after) - 2  # the last: the hover at close
@@ -376,13 +373,9 @@ def test_a_stream_that_stops_holds_the_vehicle_then_hands_it_back(
 ) -> None:
     """A quarter of a second without the stream: hover setpoints (no climb); after a second,
     released to the autopilot, saying why; nothing sent after that."""
-    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
-    reports: list[str] = []
-    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append)
     above = (0.0, 0.0, 0.6)
-    t0 = time.monotonic()
-    try:
-        wait_for(pilot.ready)
+    with guided(udp_port) as (vehicle, pilot, reports):
+        t0 = time.monotonic()
         fly(pilot, 0.5, above, t0)
         assert any(msg.vz < -0.05 for _, msg in vehicle.setpoints())  # climbing (NED z down)
         vehicle.streams.discard(stream)
@@ -398,9 +391,6 @@ def test_a_stream_that_stops_holds_the_vehicle_then_hands_it_back(
         fly(pilot, 0.3, above, t0)
         time.sleep(0.1)
         assert len(vehicle.setpoints()) == released
-    finally:
-        pilot.close()
-        vehicle.stop()
     late = vehicle.setpoints()[holding:released]
     assert len(late) > 10
     assert all((msg.vx, msg.vy, msg.vz) == (0, 0, 0) for _, msg in late)
@@ -486,13 +476,7 @@ def test_the_pilot_asks_for_its_streams_and_says_why_it_never_took_over(
 
 
 def test_streams_that_arrive_are_not_asked_again(udp_port: int) -> None:
-    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
-    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=lambda _m: None)
-    try:
-        wait_for(pilot.ready)
+    with guided(udp_port) as (vehicle, _pilot, _reports):
         time.sleep(2.5)  # past the time a missing stream would be asked for again
-    finally:
-        pilot.close()
-        vehicle.stop()
     asked = [m for _, m in vehicle.received if m.get_type() == "COMMAND_LONG"]
     assert len(asked) <= 2  # at most the first request, before the streams were seen

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from perchpose.errors import require_positive
 from perchpose.sim.quadrotor import Quadrotor, VehicleConfigError
 
 MAGNET = "magnet"
@@ -39,16 +40,15 @@ class ContactRules:
     max_tilt_deg: float = 15.0
 
     def __post_init__(self) -> None:
-        values = (
-            self.magnet_radius_m,
-            self.plate_half_size_m,
-            self.max_offset_mm,
-            self.max_speed_mps,
-            self.max_lateral_speed_mps,
-            self.max_tilt_deg,
+        names = (
+            "magnet_radius_m",
+            "plate_half_size_m",
+            "max_offset_mm",
+            "max_speed_mps",
+            "max_lateral_speed_mps",
+            "max_tilt_deg",
         )
-        if not all(math.isfinite(v) and v > 0 for v in values):
-            raise VehicleConfigError("contact rules: every size and limit must be positive")
+        require_positive(self, names, VehicleConfigError, "contact rule ")
 
 
 @dataclass(frozen=True)

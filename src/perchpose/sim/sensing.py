@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.errors import PerchposeError
+from perchpose.errors import PerchposeError, require_non_negative
 from perchpose.geometry import make_transform, rot_x, rot_y, rot_z
 
 Array = NDArray[np.float64]
@@ -102,10 +102,7 @@ class Sensing:
             "mount_mm",
             "target_scale_error",
         )
-        for name in spreads:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise SensingConfigError(f"{name} must be a non-negative number, got {value}")
+        require_non_negative(self, spreads, SensingConfigError)
 
     @property
     def is_ideal(self) -> bool:
