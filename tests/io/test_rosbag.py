@@ -217,10 +217,7 @@ def test_bad_bags_get_one_line(
 
 
 def test_an_unsupported_encoding_keeps_the_rows_before(
-    approach_webcam_dir: Path,
-    tmp_path: Path,
-    capsys: pytest.CaptureFixture[str],
-    monkeypatch: pytest.MonkeyPatch,
+    approach_webcam_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     bag = Bag(tmp_path / "run", "sqlite3")
     camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
@@ -228,20 +225,11 @@ def test_an_unsupported_encoding_keeps_the_rows_before(
     frames = _frames(approach_webcam_dir)
     for k in range(3):
         bag.image("/camera/image_raw", frames[k], "bgr8", T0_NS + k * 33_333_333)
-    bag.image("/camera/image_raw", frames[3], "bgr8", T0_NS + 3 * 33_333_333)
+    # the fourth message claims an encoding perchpose does not read: not damage, a stream
+    # it cannot follow
+    bag.image("/camera/image_raw", frames[3], "yuv422", T0_NS + 3 * 33_333_333)
     bag.close()
-    # the fourth message claims an encoding perchpose does not read
     out = tmp_path / "p.csv"
-    from perchpose.io import rosbag
-
-    original = rosbag.image_of
-
-    def yuv_at_three(msg: Any, where: str) -> np.ndarray:
-        if where.endswith("message 3"):
-            msg.encoding = "yuv422"
-        return original(msg, where)
-
-    monkeypatch.setattr(rosbag, "image_of", yuv_at_three)
     code = main(["track", str(tmp_path / "run"), "--image-topic", "/camera/image_raw",
                  "--out", str(out), "--quiet"])  # fmt: skip
     assert code == 2
@@ -314,3 +302,50 @@ def test_a_track_written_as_a_bag_reads_back_as_its_csv(
     assert image.shape == (480, 640, 3)
     # a bag is never written over
     assert main(["track", str(folder), "--camera", camera, "--out", str(bag), "--quiet"]) == 2
+
+
+def test_one_damaged_message_is_a_flagged_row_and_the_rest_are_tracked(
+    approach_webcam_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A cut PNG, bytes that are no CDR and a stamp 50 ms backwards, each one message among
+    eight: each is a row with its error (no pose, nothing passed to the estimator), and the
+    messages after them are tracked as usual."""
+    bag = Bag(tmp_path / "run", "sqlite3")
+    camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
+    bag.camera_info("/camera/camera_info", camera, T0_NS)
+    frames = _frames(approach_webcam_dir)
+    topic = "/camera/image_raw/compressed"
+    for k in range(8):
+        t_ns = T0_NS + k * 33_333_333
+        if k == 2:  # cut in half on its way to the disk
+            ok, png = cv2.imencode(".png", frames[k])
+            assert ok
+            msg = bag.ts.types["sensor_msgs/msg/CompressedImage"](
+                header=bag.header(t_ns), format="png", data=png.reshape(-1)[: png.size // 2]
+            )
+            bag.write(topic, msg, t_ns)
+        elif k == 4:  # not the message it claims to be
+            bag.writer.write(bag.connections[topic], t_ns, b"\x00\x01\x00\x00\xff\xff\xff\x7f")
+        elif k == 6:  # a camera clock that stepped back; the bag's own time goes on
+            ok, png = cv2.imencode(".png", frames[k])
+            assert ok
+            msg = bag.ts.types["sensor_msgs/msg/CompressedImage"](
+                header=bag.header(t_ns - 83_333_333), format="png", data=png.reshape(-1)
+            )
+            bag.write(topic, msg, t_ns)
+        else:
+            bag.compressed(topic, frames[k], t_ns)
+    bag.close()
+    out = tmp_path / "p.csv"
+    argv = ["track", str(tmp_path / "run"), "--image-topic", topic, "--out", str(out)]
+    assert main([*argv, "--quiet"]) == 0
+    err = capsys.readouterr().err
+    rows = read_track_csv(out)
+    assert len(rows) == 8
+    flagged = {int(r["frame"]): r["error"] for r in rows if r["error"]}
+    assert sorted(flagged) == [2, 4, 6]
+    assert "cannot be decoded; skipped" in flagged[2]
+    assert "cannot be deserialized" in flagged[4]
+    assert "its stamp goes back 50.0 ms" in flagged[6]
+    assert all(r["valid"] == "1" for r in rows if int(r["frame"]) in (3, 5, 7))
+    assert err.count("warning:") == 3

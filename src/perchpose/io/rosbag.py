@@ -4,12 +4,16 @@ bag folders (sqlite3 or MCAP storage) and bare ``.mcap`` files, with their image
 camera from a ``CameraInfo`` topic.
 
 One ``Frame`` per image message, in the bag's order; ``t_s`` from the message's header stamp
-(the bag's receive time where the stamp is zero); ``file`` is ``BAG#TOPIC#N``. A message that
-cannot be decoded ends the reading with a ``SourceError`` after the frames before it."""
+(the bag's receive time where the stamp is zero); ``file`` is ``BAG#TOPIC#N``. One damaged
+message (bytes that do not deserialize, a cut JPEG, image data shorter than its rows, a stamp
+that goes backwards) is a flagged frame without an image, as a damaged video's frame is, and
+the reading goes on; an image encoding perchpose does not read, or a bag that cannot be read
+on, ends the reading with a ``SourceError`` after the frames before it."""
 
 from __future__ import annotations
 
 import importlib
+import math
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -85,6 +89,11 @@ def _stamp_s(msg: Any, bag_time_ns: int) -> float:
     return seconds + nanoseconds * 1e-9
 
 
+def supported(msg: Any) -> bool:
+    """A ``CompressedImage``, or an ``Image`` whose encoding perchpose reads."""
+    return hasattr(msg, "format") or str(msg.encoding).lower() in ENCODINGS
+
+
 def image_of(msg: Any, where: str) -> NDArray[np.uint8]:
     """The grey or BGR uint8 image of an ``Image`` or ``CompressedImage`` message."""
     if hasattr(msg, "format"):  # CompressedImage
@@ -139,29 +148,50 @@ class BagSource(FrameSource):
             connections = [c for c in reader.connections if c.topic == self.topic]
             messages = reader.messages(connections=connections)
             index = 0
+            last_t_s = -math.inf
             while True:
                 where = f"{self.path} {self.topic} message {index}"
                 try:
                     item = next(messages, None)
-                    if item is None:
-                        return
-                    connection, bag_time_ns, raw = item
-                    msg = reader.deserialize(raw, connection.msgtype)
                 except Exception as exc:  # a damaged bag: each format fails its own way
                     raise SourceError(f"{where}: cannot be read ({_first_line(exc)})") from exc
-                grabbed = time.monotonic()
-                image = image_of(msg, where)
-                yield Frame(
-                    index,
-                    _stamp_s(msg, bag_time_ns),
-                    image,
-                    f"message {index}",
-                    file=f"{self.path}#{self.topic}#{index}",
-                    grabbed_s=grabbed,
-                )
+                if item is None:
+                    return
+                frame = self._frame(reader, item, index, where, last_t_s)
+                if frame.image is not None:
+                    last_t_s = frame.t_s
+                yield frame
                 index += 1
         finally:
             reader.close()
+
+    def _frame(
+        self, reader: Any, item: tuple[Any, int, bytes], index: int, where: str, last_t_s: float
+    ) -> Frame:
+        """The message's frame, or a flagged one without an image where it is damaged."""
+        connection, bag_time_ns, raw = item
+        name, file = f"message {index}", f"{self.path}#{self.topic}#{index}"
+        fallback_t_s = last_t_s if math.isfinite(last_t_s) else bag_time_ns * 1e-9
+        try:
+            msg = reader.deserialize(raw, connection.msgtype)
+        except Exception as exc:  # bytes that are not the message they claim to be
+            why = f"{where}: cannot be deserialized ({_first_line(exc)}); skipped"
+            return Frame(index, fallback_t_s, None, name, why, file)
+        t_s = _stamp_s(msg, bag_time_ns)
+        if t_s < last_t_s:
+            why = (
+                f"{where}: its stamp goes back {1000 * (last_t_s - t_s):.1f} ms from the frame "
+                "before; skipped"
+            )
+            return Frame(index, last_t_s, None, name, why, file)
+        if supported(msg):
+            try:
+                image = image_of(msg, where)
+            except SourceError as exc:  # cut data: this message only
+                return Frame(index, t_s, None, name, f"{exc}; skipped", file)
+        else:
+            image = image_of(msg, where)  # raises: the topic's encoding is not read at all
+        return Frame(index, t_s, image, name, file=file, grabbed_s=time.monotonic())
 
 
 def camera_from_bag(path: str | Path, topic: str | None = None) -> CameraModel:
