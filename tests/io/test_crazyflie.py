@@ -309,6 +309,8 @@ def test_bad_uri_and_settings() -> None:
         PilotSettings(stale_after_s=2.0)
     with pytest.raises(ControllerConfigError, match="on_senses_lost 'hover'"):
         PilotSettings(on_senses_lost="hover")
+    with pytest.raises(ControllerConfigError, match="a frozen height would read as contact"):
+        PilotSettings(live_height_s=0.4)
 
 
 def test_cli_without_a_radio_is_one_line(

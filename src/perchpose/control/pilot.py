@@ -100,6 +100,13 @@ class PilotSettings:
     says so earlier. landed_height_m : height under which the vehicle counts as landed.
     contact_window_s, contact_rise_m : contact is a final climb whose height rose less than
     contact_rise_m over the last contact_window_s. limits : the largest setpoint sent.
+    stale_after_s : a vehicle sample (attitude, position, height) older than this stops the
+    climb: the pilot hovers until it is fresh. senses_lost_after_s : older than this, the
+    pilot lands or releases the vehicle (``on_senses_lost``: ``land`` for the Crazyflie,
+    ``release`` for an autopilot, whose own modes then fly it). live_height_s : contact and
+    "landed" count only height samples younger than this (a stream at 10 Hz or faster stays
+    live between its samples); it must be shorter than the contact window, so that a height
+    that froze never makes a contact on its own.
     """
 
     land_after_lost_s: float = 4.0
@@ -111,7 +118,7 @@ class PilotSettings:
     setpoint_period_s: float = 0.05
     stale_after_s: float = 0.25
     senses_lost_after_s: float = 1.0
-    live_height_s: float = 0.1
+    live_height_s: float = 0.2
     on_senses_lost: str = "land"
     limits: SetpointLimits = field(default_factory=SetpointLimits)
 
@@ -132,6 +139,12 @@ class PilotSettings:
             raise ControllerConfigError(
                 f"pilot setting on_senses_lost {self.on_senses_lost!r}: choose "
                 f"{' or '.join(ON_SENSES_LOST)}"
+            )
+        if not self.live_height_s < self.contact_window_s:
+            raise ControllerConfigError(
+                f"pilot setting live_height_s ({self.live_height_s:g} s) must be below "
+                f"contact_window_s ({self.contact_window_s:g} s): a frozen height would read as "
+                "contact"
             )
         if not self.stale_after_s < self.senses_lost_after_s:
             raise ControllerConfigError(
