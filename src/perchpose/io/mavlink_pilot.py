@@ -179,6 +179,9 @@ class MavlinkPilot:
     failsafe. odometry_max_age_s : LOCAL_POSITION_NED older than this is not used.
     proof_of_life_hz : the zero-velocity stream an armed PX4 vehicle gets while the pilot
     waits. target_system : the vehicle's MAVLink system id (None: the first autopilot heard).
+    settings : the pilot's settings; by default those with ``on_senses_lost="release"`` (the
+    autopilot's own modes fly a vehicle whose senses went stale); given settings are used as
+    they are.
     link : an open ``MavlinkLink`` to use instead of opening ``url``.
     """
 
