@@ -116,3 +116,37 @@ def test_track_serves_the_view_while_it_runs(
     )
     assert code == 0
     assert "live view for Foxglove at ws://127.0.0.1:" in capsys.readouterr().err
+
+
+def test_a_web_page_of_another_origin_is_refused_and_said_once() -> None:
+    """A browser sends its page's Origin: a page from anywhere else could read the overlay
+    and the pose, so only no Origin (native apps, scripts), the Foxglove web app's and those
+    the user allows are relayed; others get HTTP 403, and a client that does not speak
+    foxglove.sdk.v1 HTTP 400, each said once with the reason."""
+    from websockets.exceptions import InvalidStatus
+
+    reports: list[str] = []
+    view = LiveView(
+        TargetSpec.paper(),
+        port=0,
+        allowed_origins=("http://localhost:8080",),
+        report=reports.append,
+    )
+    url = f"ws://127.0.0.1:{view.port}"
+    try:
+        for _ in range(2):
+            with pytest.raises(InvalidStatus) as refused:
+                connect(url, subprotocols=[SUBPROTOCOL], origin="http://evil.example")
+            assert refused.value.response.status_code == 403
+        with pytest.raises(InvalidStatus) as old:
+            connect(url, subprotocols=["foxglove.websocket.v1"])
+        assert old.value.response.status_code == 400
+        for origin in ("https://app.foxglove.dev", "http://localhost:8080"):
+            with connect(url, subprotocols=[SUBPROTOCOL], origin=origin) as ws:
+                assert _json_until(ws, "serverInfo")["name"] == "perchpose"
+    finally:
+        view.close()
+    assert view.gate.refused == 3
+    assert len(reports) == 2
+    assert "Origin http://evil.example is not allowed (--view-origin" in reports[0]
+    assert "offers foxglove.websocket.v1, not foxglove.sdk.v1" in reports[1]

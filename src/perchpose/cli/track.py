@@ -106,14 +106,16 @@ def _vehicle_links(
 
 
 @contextmanager
-def _live_view(wanted: bool, port: int, target: TargetSpec) -> Iterator[Any]:
+def _live_view(
+    wanted: bool, port: int, target: TargetSpec, origins: tuple[str, ...] = ()
+) -> Iterator[Any]:
     """The live view when asked for (imported only then), closed at the end."""
     if not wanted:
         yield None
         return
     from perchpose.io.view import LiveView
 
-    view = LiveView(target, port=port)
+    view = LiveView(target, port=port, allowed_origins=origins, report=warn)
     warn(f"live view for Foxglove at ws://127.0.0.1:{view.port}")
     try:
         yield view
@@ -245,6 +247,13 @@ def _camera(source: str, camera_file: str | None, camera_info_topic: str | None)
     "a 3D scene and plots (extra [view]).",
 )
 @click.option("--view-port", default=8765, show_default=True, help="Port of the live view.")
+@click.option(
+    "--view-origin",
+    "view_origins",
+    multiple=True,
+    help="Also let web pages of this Origin connect to the live view (repeatable; pages of "
+    "other origins are refused, so that no web page opened on this machine can read it).",
+)
 @budget_option(
     "Time budget per frame: past it the detection leaves out what it can (a pattern fit, "
     "a whole-frame search) and the track file's 'skipped' column says what."
@@ -271,6 +280,7 @@ def track(
     camera_info_topic: str | None,
     view: bool,
     view_port: int,
+    view_origins: tuple[str, ...],
 ) -> None:
     """Track the target in SOURCE: a folder of images, a glob, a video file, a camera index,
     a network stream (rtsp://, udp://, http://...; reopened when it drops), or a ROS bag
@@ -303,7 +313,7 @@ def track(
     if overlay is not None:
         check_overlay_path(overlay)  # before any vehicle link takes over
     with (
-        _live_view(view, view_port, spec) as live,
+        _live_view(view, view_port, spec, view_origins) as live,
         _vehicle_links(
             spec,
             mavlink_url,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import importlib
 import json
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ from perchpose.errors import PerchposeError
 from perchpose.geometry import quaternion_xyzw
 from perchpose.io.overlay import encode_jpeg
 from perchpose.io.sinks import stamp_ns
+from perchpose.io.view_gate import OriginGate
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
@@ -64,18 +66,32 @@ def _finite(value: float) -> float | None:
 
 class LiveView:
     """A Foxglove WebSocket server publishing each frame (``publish``); ``port`` 0 picks a free
-    one (``self.port`` says which)."""
+    one (``self.port`` says which). Clients reach it through an ``OriginGate``
+    (``perchpose.io.view_gate``): no Origin, or ``allowed_origins`` (the Foxglove web app's by
+    default); ``report`` says each refusal once."""
 
-    def __init__(self, target: TargetSpec, port: int = 8765, host: str = "127.0.0.1") -> None:
+    def __init__(
+        self,
+        target: TargetSpec,
+        port: int = 8765,
+        host: str = "127.0.0.1",
+        allowed_origins: tuple[str, ...] = (),
+        report: Callable[[str], None] | None = None,
+    ) -> None:
         fox = _foxglove()
         self.target = target
         self.m = importlib.import_module("foxglove.messages")
         channels = importlib.import_module("foxglove.channels")
+        try:  # on loopback only: every client comes through the gate
+            self.server = fox.start_server(name="perchpose", host="127.0.0.1", port=0)
+        except Exception as exc:  # the SDK reports its own error kinds
+            raise PerchposeError(f"--view: cannot start the Foxglove server ({exc})") from exc
         try:
-            self.server = fox.start_server(name="perchpose", host=host, port=port)
-        except Exception as exc:  # the SDK reports a port in use as its own error kind
-            raise PerchposeError(f"--view: cannot serve on {host}:{port} ({exc})") from exc
-        self.port = int(self.server.port)
+            self.gate = OriginGate(host, port, int(self.server.port), allowed_origins, report)
+        except PerchposeError:
+            self.server.stop()
+            raise
+        self.port = self.gate.port
         self.image = channels.CompressedImageChannel("/perchpose/overlay")
         self.pose = channels.PoseInFrameChannel("/perchpose/pose")
         self.tf = channels.FrameTransformsChannel("/tf")
@@ -156,4 +172,5 @@ class LiveView:
 
     def close(self) -> None:
         """Stop serving."""
+        self.gate.close()
         self.server.stop()
