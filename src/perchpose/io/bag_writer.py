@@ -11,6 +11,13 @@ Per frame (stamped with the frame's capture time, in the camera's frame ``camera
   ``--overlay`` video shows, on every frame with an image;
 - ``/perchpose/track``: ``std_msgs/String``, the frame's track row as JSON (stage, markers,
   timings, errors), on every frame.
+
+A bag's index and metadata are written when it is closed, so a run killed outright (a power
+loss) would leave nothing readable. The writer therefore writes ``SEGMENT_S`` of frames at a
+time into complete bags of their own, ``OUT.parts/part_NNNN`` (each closed, indexed and with
+its ``metadata.yaml`` before the next begins), and joins them into ``OUT`` when the run ends:
+a killed run leaves every part but the last whole, readable by rosbags or ``ros2 bag`` (all
+parts at once: ``AnyReader(sorted(parts))``).
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ POSE_TOPIC = "/perchpose/pose"
 TF_TOPIC = "/tf"
 OVERLAY_TOPIC = "/perchpose/overlay/compressed"
 TRACK_TOPIC = "/perchpose/track"
+SEGMENT_S = 10.0  # of frame time per part: what a killed run can lose
 CAMERA_FRAME = "camera"
 TARGET_FRAME = "target"
 
@@ -63,21 +71,43 @@ class BagWriter:
         typesys = _rosbags("rosbags.typesys")
         self.ts = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
         self.types = self.ts.types
+        self._rosbag2 = rosbag2
         self._bare = self.path.suffix.lower() == ".mcap"
         self._folder = self.path.with_name(self.path.name + ".bag") if self._bare else self.path
-        for place in (self.path, self._folder):
+        self.parts = self.path.with_name(self.path.name + ".parts")
+        for place in (self.path, self._folder, self.parts):
             if place.exists():
                 raise PerchposeError(f"{place}: already exists (a bag is never overwritten)")
+        self._part = -1
+        self._part_start_s: float | None = None
+        self._connections: dict[str, Any] = {}
         try:
-            self._folder.parent.mkdir(parents=True, exist_ok=True)
-            self.writer = rosbag2.Writer(
-                self._folder, version=9, storage_plugin=rosbag2.StoragePlugin.MCAP
-            )
-            self.writer.open()
+            self.parts.mkdir(parents=True)
+            self._open_part()
         except OSError as exc:
             raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
-        self._connections: dict[str, Any] = {}
         self.rows = 0
+
+    def _new_writer(self, folder: Path) -> Any:
+        writer = self._rosbag2.Writer(
+            folder, version=9, storage_plugin=self._rosbag2.StoragePlugin.MCAP
+        )
+        writer.open()
+        return writer
+
+    def _open_part(self) -> None:
+        self._part += 1
+        self.writer = self._new_writer(self.parts / f"part_{self._part:04d}")
+        self._connections = {}
+
+    def _next_part_if_due(self, t_s: float) -> None:
+        """Close the part once it holds ``SEGMENT_S`` of frames, and start the next."""
+        if self._part_start_s is None:
+            self._part_start_s = t_s
+        elif t_s - self._part_start_s >= SEGMENT_S:
+            self.writer.close()
+            self._open_part()
+            self._part_start_s = t_s
 
     def _write(self, topic: str, msg: Any, t_ns: int) -> None:
         msgtype = msg.__msgtype__
@@ -102,6 +132,7 @@ class BagWriter:
         t_ns = stamp_ns(t_s)
         types = self.types
         try:
+            self._next_part_if_due(t_s)
             if estimate is not None and estimate.valid:
                 self._pose(estimate, t_s, t_ns)
             jpeg = None if overlay is None else encode_jpeg(overlay, 90)
@@ -145,12 +176,31 @@ class BagWriter:
         self._write(TF_TOPIC, types["tf2_msgs/msg/TFMessage"](transforms=[transform]), t_ns)
 
     def close(self) -> None:
-        """Finish the bag; for ``.mcap``, move its one file into place."""
+        """Finish the bag: the parts joined into one (for ``.mcap``, its one file moved into
+        place), the parts removed."""
         try:
             self.writer.close()
+            self._join_parts()
             if self._bare:
                 (inner,) = self._folder.glob("*.mcap")
                 inner.replace(self.path)
                 shutil.rmtree(self._folder)
+            shutil.rmtree(self.parts)
         except OSError as exc:
             raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
+
+    def _join_parts(self) -> None:
+        """Every part's messages, in order, into the bag at ``self._folder``."""
+        highlevel = _rosbags("rosbags.highlevel")
+        parts = sorted(self.parts.glob("part_*"))
+        out = self._new_writer(self._folder)
+        connections: dict[tuple[str, str], Any] = {}
+        try:
+            with highlevel.AnyReader(parts, default_typestore=self.ts) as reader:
+                for connection, t_ns, raw in reader.messages():
+                    key = (connection.topic, connection.msgtype)
+                    if key not in connections:
+                        connections[key] = out.add_connection(*key, typestore=self.ts)
+                    out.write(connections[key], t_ns, raw)
+        finally:
+            out.close()
