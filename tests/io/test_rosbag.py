@@ -349,3 +349,26 @@ def test_one_damaged_message_is_a_flagged_row_and_the_rest_are_tracked(
     assert "its stamp goes back 50.0 ms" in flagged[6]
     assert all(r["valid"] == "1" for r in rows if int(r["frame"]) in (3, 5, 7))
     assert err.count("warning:") == 3
+
+
+def test_a_bare_mcap_cut_short_is_read_up_to_the_damage(
+    approach_webcam_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A recorder killed outright: the file stops in the middle of its messages, without the
+    summary rosbags needs. Its whole messages are tracked, its CameraInfo included, and a
+    warning says where it stops."""
+    folder = _write(tmp_path / "run", "mcap", approach_webcam_dir, "bgr8")
+    (whole,) = folder.glob("*.mcap")
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    out = tmp_path / "poses.csv"
+    with caplog.at_level("WARNING", logger="perchpose.io.rosbag"):
+        code = main(["track", str(cut), "--image-topic", "/camera/image_raw", "--out", str(out),
+                     "--quiet"])  # fmt: skip
+    assert code == 0
+    rows = read_track_csv(out)
+    assert 3 <= len(rows) < FRAMES
+    assert all(r["valid"] == "1" for r in rows)
+    assert [int(r["frame"]) for r in rows] == list(range(len(rows)))
+    assert any("cut.mcap: cut short" in m for m in caplog.messages)

@@ -13,6 +13,7 @@ on, ends the reading with a ``SourceError`` after the frames before it."""
 from __future__ import annotations
 
 import importlib
+import logging
 import math
 import time
 from collections.abc import Iterator
@@ -26,6 +27,8 @@ from numpy.typing import NDArray
 from perchpose.camera import CameraModel
 from perchpose.errors import SourceError
 from perchpose.io.sources import Frame, FrameSource
+
+log = logging.getLogger(__name__)
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -55,7 +58,28 @@ def _open(path: Path) -> Any:
     try:
         reader.open()
     except Exception as exc:  # rosbags raises its own error kinds per format
-        raise SourceError(f"{path}: not a readable ROS bag ({_first_line(exc)})") from exc
+        salvaged = _salvage(path)
+        if salvaged is None:
+            raise SourceError(f"{path}: not a readable ROS bag ({_first_line(exc)})") from exc
+        return salvaged
+    return reader
+
+
+def _salvage(path: Path) -> Any:
+    """A bare ``.mcap`` that rosbags cannot open (cut short before its summary: a recorder
+    killed outright), read in order up to the damage (``CutMcap``); None for anything else."""
+    if path.suffix.lower() != ".mcap" or not path.is_file():
+        return None
+    try:
+        from perchpose.io.cut_mcap import CutMcap
+    except ImportError:  # the mcap library is not installed
+        return None
+    reader = CutMcap(path)
+    if not reader.connections:
+        return None
+    log.warning(
+        "%s: cut short (%s); reading its messages in order up to the damage", path, reader.damage
+    )
     return reader
 
 
