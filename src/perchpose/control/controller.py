@@ -56,6 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.control.disturbance import DisturbanceObserver
+from perchpose.control.history import newest_at
 from perchpose.control.mount import default_T_body_camera
 from perchpose.errors import ControllerConfigError, require_positive
 from perchpose.geometry import wrap_angle_rad
@@ -414,14 +415,7 @@ class PerchingController:
     def attitude_at(self, t_s: float, R_now: Array) -> Array:
         """The vehicle's attitude at ``t_s`` from the history (the nearest sample at or
         before it, or the oldest kept); ``R_now`` when there is none."""
-        chosen = None
-        for sample_t, R in self._attitudes:
-            if sample_t > t_s + 1e-9:
-                break
-            chosen = R
-        if chosen is None:
-            return self._attitudes[0][1] if self._attitudes else R_now
-        return chosen
+        return newest_at(self._attitudes, t_s) if self._attitudes else R_now
 
     # -- odometry ---------------------------------------------------------------------------
 

@@ -22,6 +22,8 @@ from collections import deque
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.control.history import newest_at
+
 Array = NDArray[np.float64]
 HISTORY = 32  # the observer's past estimates kept for late measurements
 
@@ -57,16 +59,6 @@ class DisturbanceObserver:
         """The setpoint offset that cancels the disturbance (clamped)."""
         return np.clip(-self.a_mps2 / self.k_v, -self.max_offset_mps, self.max_offset_mps)
 
-    def _estimate_at(self, t_s: float) -> Array:
-        """The observer's velocity estimate at ``t_s`` (the newest at or before it)."""
-        assert self.v_mps is not None
-        chosen = self.v_mps
-        for sample_t, v in reversed(self._past):
-            chosen = v
-            if sample_t <= t_s + 1e-9:
-                break
-        return chosen
-
     def update(
         self, v_sp_mps: Array, v_odometry_mps: Array, dt_s: float, age_s: float = 0.0
     ) -> None:
@@ -79,7 +71,7 @@ class DisturbanceObserver:
             return
         if dt_s <= 0:
             return
-        then = self._estimate_at(self._clock_s - age_s) if age_s > 0 else self.v_mps
+        then = newest_at(self._past, self._clock_s - age_s) if age_s > 0 else self.v_mps
         error = v_odo - then
         dv = self.k_v * (np.asarray(v_sp_mps, np.float64) - self.v_mps) + self.a_mps2
         self.v_mps = self.v_mps + dt_s * (dv + self.l1 * error)

@@ -29,14 +29,15 @@ Where the default magnitudes come from:
 from __future__ import annotations
 
 import math
-from bisect import bisect_right
 from collections import deque
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
+from perchpose.control.history import newest_at
 from perchpose.errors import PerchposeError, require_non_negative
 from perchpose.geometry import make_transform, rot_x, rot_y, rot_z
 
@@ -176,6 +177,15 @@ class SensingDraw:
         )
 
 
+class Sample(NamedTuple):
+    """One sample the flight controller made: when, and what it said."""
+
+    t_s: float
+    R_world_body: Array
+    p_m: Array
+    v_mps: Array
+
+
 class SensedState:
     """What the flight controller reports, as it reaches the pilot: each sample stored when it
     is made (the attitude with its noise), handed out once it is its delay old."""
@@ -183,37 +193,32 @@ class SensedState:
     def __init__(self, attitude_delay_s: float, odometry_delay_s: float) -> None:
         self.attitude_delay_s = attitude_delay_s
         self.odometry_delay_s = odometry_delay_s
-        self._t: deque[float] = deque(maxlen=HISTORY)
-        self._R: deque[Array] = deque(maxlen=HISTORY)
-        self._p: deque[Array] = deque(maxlen=HISTORY)
-        self._v: deque[Array] = deque(maxlen=HISTORY)
+        self._samples: deque[tuple[float, Sample]] = deque(maxlen=HISTORY)
 
     def record(self, t_s: float, R_world_body: Array, p_m: Array, v_mps: Array) -> None:
         """A sample the flight controller made at ``t_s``."""
-        self._t.append(t_s)
-        self._R.append(R_world_body)
-        self._p.append(np.array(p_m, np.float64))
-        self._v.append(np.array(v_mps, np.float64))
+        sample = Sample(t_s, R_world_body, np.array(p_m, np.float64), np.array(v_mps, np.float64))
+        self._samples.append((t_s, sample))
 
-    def _newest(self, t_s: float) -> int:
-        """The newest sample made at or before ``t_s`` (the oldest kept before any)."""
-        return max(0, bisect_right(self._t, t_s + 1e-12) - 1)
+    def _attitude_sample(self, t_s: float) -> Sample:
+        return newest_at(self._samples, t_s - self.attitude_delay_s)
+
+    def _odometry_sample(self, t_s: float) -> Sample:
+        return newest_at(self._samples, t_s - self.odometry_delay_s)
 
     def attitude(self, t_s: float) -> Array:
         """The attitude that has reached the pilot at ``t_s``."""
-        return self._R[self._newest(t_s - self.attitude_delay_s)]
+        return self._attitude_sample(t_s).R_world_body
 
     def ages(self, t_s: float) -> tuple[float, float]:
         """How old, at ``t_s``, the attitude and the odometry the pilot has are (from when
         the flight controller made them)."""
-        attitude = self._t[self._newest(t_s - self.attitude_delay_s)]
-        odometry = self._t[self._newest(t_s - self.odometry_delay_s)]
-        return t_s - attitude, t_s - odometry
+        return t_s - self._attitude_sample(t_s).t_s, t_s - self._odometry_sample(t_s).t_s
 
     def odometry(self, t_s: float) -> tuple[Array, Array]:
         """The position and velocity that have reached the pilot at ``t_s``."""
-        i = self._newest(t_s - self.odometry_delay_s)
-        return self._p[i], self._v[i]
+        sample = self._odometry_sample(t_s)
+        return sample.p_m, sample.v_mps
 
 
 def noisy_attitude(R_world_body: Array, noise_deg: float, rng: np.random.Generator) -> Array:
