@@ -164,6 +164,19 @@ def rotation_vector_jacobian_inverse(yaw_rad_: float, pitch_rad: float) -> Array
     return np.array([[c / cp, s / cp, 0.0], [-s, c, 0.0], [sp * c / cp, sp * s / cp, 1.0]])
 
 
+def rotation_from_quaternion(qw: float, qx: float, qy: float, qz: float) -> Array:
+    """The rotation matrix of a quaternion (normalised first; all zero: the identity)."""
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) or 1.0
+    w, x, y, z = qw / n, qx / n, qy / n, qz / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
 def quaternion_xyzw(R: Array) -> tuple[float, float, float, float]:
     """The unit quaternion (x, y, z, w) of a rotation matrix, w >= 0."""
     m = np.asarray(R, np.float64)

@@ -59,7 +59,7 @@ from perchpose.control.disturbance import DisturbanceObserver
 from perchpose.control.history import newest_at
 from perchpose.control.mount import default_T_body_camera
 from perchpose.errors import ControllerConfigError, require_positive
-from perchpose.geometry import wrap_angle_rad
+from perchpose.geometry import angle_diff_rad, wrap_angle_rad, yaw_rad
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -308,13 +308,6 @@ def _carried(odometry: Odometry, t_s: float) -> Array:
         odometry.v_mps, np.float64
     )
     return carried
-
-
-def _yaw_turned(R_from: Array, R_to: Array) -> float:
-    """How far the body turned about the world's vertical from ``R_from`` to ``R_to``, rad."""
-    yaw_from = math.atan2(float(R_from[1, 0]), float(R_from[0, 0]))
-    yaw_to = math.atan2(float(R_to[1, 0]), float(R_to[0, 0]))
-    return wrap_angle_rad(yaw_to - yaw_from)
 
 
 def usable(estimate: Estimate | None, t_s: float, max_age_s: float) -> bool:
@@ -581,7 +574,8 @@ class PerchingController:
             self._lost_since = None
             R_capture = self.attitude_at(estimate.t_s, R_world_body)
             d, heading_error = self.magnet_to_target(estimate, R_capture)
-            heading_error = wrap_angle_rad(heading_error - _yaw_turned(R_capture, R_world_body))
+            turned = angle_diff_rad(yaw_rad(R_world_body), yaw_rad(R_capture))
+            heading_error = wrap_angle_rad(heading_error - turned)
             yaw_rate = float(np.clip(s.k_yaw * heading_error, -s.max_yaw_rate, s.max_yaw_rate))
             if estimate.age_s <= 0.0:  # a measurement of this frame, not a coasting guess
                 self._recent.append(d)

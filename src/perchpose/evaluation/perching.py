@@ -23,6 +23,7 @@ import numpy as np
 
 from perchpose.errors import PerchposeError
 from perchpose.evaluation.plots import perch_figure, sweep_figure
+from perchpose.pose import rotation_angle_rad
 from perchpose.sim.perch import CONTACT_RADIUS_MM, REASONS, PerchResult, PerchSetup
 from perchpose.sim.sensing import SensingDraw
 
@@ -254,7 +255,7 @@ def sense_values(draw: SensingDraw | None, setup: PerchSetup) -> tuple[float, ..
         return (setup.latency_s * 1000.0, setup.odometry_hz, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
     K, K_true = draw.camera.K, setup.camera.K
     mount = draw.T_true_believed
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(mount[:3, :3])) - 1) / 2))))
+    angle = math.degrees(rotation_angle_rad(mount[:3, :3], np.eye(3)))
     return (
         draw.latency_s * 1000.0,
         draw.odometry_hz,

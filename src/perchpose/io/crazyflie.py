@@ -18,22 +18,10 @@ from numpy.typing import NDArray
 
 from perchpose.control.pilot import PerchingPilot, SenseAges
 from perchpose.errors import LinkError
+from perchpose.geometry import rotation_from_quaternion
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
-
-
-def R_world_body_from_quaternion(qw: float, qx: float, qy: float, qz: float) -> Array:
-    """Rotation matrix of a unit quaternion (body to world)."""
-    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) or 1.0
-    w, x, y, z = qw / n, qx / n, qy / n, qz / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class CrazyflieConnection:
@@ -110,7 +98,7 @@ class CrazyflieConnection:
     def _state(self, _timestamp: int, data: dict[str, float], _config: object) -> None:
         if not self._usable(data):
             return
-        self._R_world_body = R_world_body_from_quaternion(
+        self._R_world_body = rotation_from_quaternion(
             data["stateEstimate.qw"],
             data["stateEstimate.qx"],
             data["stateEstimate.qy"],

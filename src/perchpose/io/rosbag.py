@@ -208,13 +208,12 @@ class BagSource(FrameSource):
                 "before; skipped"
             )
             return Frame(index, last_t_s, None, name, why, file)
-        if supported(msg):
-            try:
-                image = image_of(msg, where)
-            except SourceError as exc:  # cut data: this message only
-                return Frame(index, t_s, None, name, f"{exc}; skipped", file)
-        else:
-            image = image_of(msg, where)  # raises: the topic's encoding is not read at all
+        try:
+            image = image_of(msg, where)
+        except SourceError as exc:
+            if not supported(msg):
+                raise  # the topic's encoding, not this message: no frame of it can be read
+            return Frame(index, t_s, None, name, f"{exc}; skipped", file)  # cut data
         return Frame(index, t_s, image, name, file=file, grabbed_s=time.monotonic())
 
 

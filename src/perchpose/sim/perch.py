@@ -30,7 +30,7 @@ from perchpose.control import (
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import stage_of
 from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad, yaw_rad
-from perchpose.sim.contact import Contact, ContactRules, PlateContact
+from perchpose.sim.contact import Contact, ContactRules, PlateContact, tilt_deg
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams, VehicleConfigError
 from perchpose.sim.render import ImageQuality, Renderer
@@ -443,8 +443,7 @@ class _Flight:
 
     def crashed(self) -> bool:
         v = self.vehicle
-        tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(v.R_world_body[2, 2])))))
-        return bool(v.p_m[2] < 0.02 or tilt > MAX_TILT_DEG or not np.isfinite(v.p_m).all())
+        return bool(v.p_m[2] < 0.02 or tilt_deg(v) > MAX_TILT_DEG or not np.isfinite(v.p_m).all())
 
 
 def _step_of(n: int, rate_hz: float, physics_hz: float) -> int:

@@ -316,21 +316,16 @@ class Quadrotor:
         v_sp_mps: Array,
         yaw_rate_sp: float,
         v_estimate_mps: Array,
-        stop_z_m: float | None = None,
-        p_body_point_m: Array | None = None,
         touched: Callable[[Quadrotor], bool] | None = None,
     ) -> int | None:
         """``n_steps`` steps of the onboard loops and the dynamics with the same setpoint and
         velocity estimate. Stops after the step on which ``touched`` says the vehicle touched
-        something, or (with ``stop_z_m``) the body point ``p_body_point_m`` reached that
-        height, and returns that step's index; otherwise returns None."""
+        something (``perchpose.sim.contact``) and returns that step's index; otherwise returns
+        None."""
         v_sp, v_est, yaw_rate = _vec3(v_sp_mps), _vec3(v_estimate_mps), float(yaw_rate_sp)
-        point = (0.0, 0.0, 0.0) if p_body_point_m is None else _vec3(p_body_point_m)
         for i in range(n_steps):
             self._integrate_velocity_error(dt_s, v_sp, v_est)
             self._step(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
-            if stop_z_m is not None and self.point_in_world(point)[2] >= stop_z_m:
-                return i
             if touched is not None and touched(self):
                 return i
         return None

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import PerchposeError
+from perchpose.geometry import quaternion_xyzw, rotation_from_quaternion
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 
 Array = NDArray[np.float64]
@@ -52,35 +53,6 @@ def rotorpy_crazyflie() -> tuple[QuadrotorParams, dict[str, Any]]:
         body_drag_n_per_mps2=(float(rp["c_Dx"]), float(rp["c_Dz"])),
     )
     return ours, rp
-
-
-def _quaternion_xyzw(R: Array) -> Array:
-    """The unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
-    trace = float(np.trace(R))
-    if trace > 0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-    out = np.array(q, np.float64)
-    return out / np.linalg.norm(out)
-
-
-def _matrix(q_xyzw: Array) -> Array:
-    x, y, z, w = (float(v) for v in q_xyzw)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class RotorpyQuadrotor(Quadrotor):
@@ -125,7 +97,7 @@ class RotorpyQuadrotor(Quadrotor):
         state = {
             "x": np.array(self._p),
             "v": np.array(self._v),
-            "q": _quaternion_xyzw(np.array(self._R)),
+            "q": np.array(quaternion_xyzw(np.array(self._R))),
             "w": np.array(self._w),
             "wind": np.array(self.wind_mps),
             "rotor_speeds": np.array(self._rotor),
@@ -133,6 +105,7 @@ class RotorpyQuadrotor(Quadrotor):
         new = self._multirotor.step(state, {"cmd_motor_speeds": speeds}, dt_s)
         self.p_m = new["x"]
         self.v_mps = new["v"]
-        self.R_world_body = _matrix(new["q"])
+        qx, qy, qz, qw = (float(v) for v in new["q"])
+        self.R_world_body = rotation_from_quaternion(qw, qx, qy, qz)
         self.omega_rad_s = new["w"]
         self.rotor_speed_rad_s = new["rotor_speeds"]
