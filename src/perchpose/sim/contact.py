@@ -105,13 +105,17 @@ class PlateContact:
         self.rules = rules
         self.contact: Contact | None = None
 
+    @staticmethod
     def _disc_top(
-        self, vehicle: Quadrotor, centre_body: tuple[float, float, float], radius_m: float
+        vehicle: Quadrotor,
+        centre_body: tuple[float, float, float],
+        radius_m: float,
+        normal: tuple[float, float, float],
     ) -> tuple[float, float, float]:
-        """The highest point of a disc fixed to the body, parallel to its rotor plane."""
+        """The highest point of a disc fixed to the body, parallel to its rotor plane (whose
+        ``normal`` is the body's z axis in the world)."""
         cx, cy, cz = vehicle.point_in_world(centre_body)
-        R = vehicle.R_world_body
-        nx, ny, nz = float(R[0, 2]), float(R[1, 2]), float(R[2, 2])
+        nx, ny, nz = normal
         across = math.sqrt(max(0.0, 1.0 - nz * nz))  # |e_z - n n_z|
         if across < 1e-9:
             return cx, cy, cz
@@ -126,10 +130,12 @@ class PlateContact:
         if vehicle.point_in_world(self.magnet_top)[2] < self.plate_z_m - NEAR_M:
             return False
         params = vehicle.params
-        parts = [(MAGNET, self._disc_top(vehicle, self.magnet_top, self.rules.magnet_radius_m))]
+        R = vehicle.R_world_body
+        up = (float(R[0, 2]), float(R[1, 2]), float(R[2, 2]))
+        parts = [(MAGNET, self._disc_top(vehicle, self.magnet_top, self.rules.magnet_radius_m, up))]
         for name, (hx, hy) in zip(ROTORS, vehicle.hubs_m, strict=True):
             hub = (hx, hy, params.rotor_plane_m)
-            parts.append((name, self._disc_top(vehicle, hub, params.prop_radius_m)))
+            parts.append((name, self._disc_top(vehicle, hub, params.prop_radius_m, up)))
         touching = [(top[2], name) for name, top in parts if self._on_plate(*top)]
         if not touching:
             return False
