@@ -70,6 +70,28 @@ def test_aligns_before_climbing_and_commits_at_the_end() -> None:
     assert blind.phase == "commit"
 
 
+def test_out_of_the_cone_near_the_plate_backs_down() -> None:
+    """Near the plate, holding height off-centre is not enough (the climb's momentum would
+    carry the vehicle into the plate): outside the cone it descends; further down it holds."""
+    s = ControllerSettings()
+    magnet = np.array(s.p_body_magnet_m)
+    near = PerchingController(s).update(
+        _camera_view(s, magnet + np.array([0.012, 0.0, 0.03])), 0.0, np.eye(3)
+    )
+    assert near.phase == "align"
+    assert near.v_mps[2] == pytest.approx(-s.descend_mps)
+    lower = PerchingController(s).update(
+        _camera_view(s, magnet + np.array([0.05, 0.0, 0.3])), 0.0, np.eye(3)
+    )
+    assert lower.phase == "align"
+    assert lower.v_mps[2] == 0.0
+    centred = PerchingController(s).update(
+        _camera_view(s, magnet + np.array([0.001, 0.0, 0.03])), 0.0, np.eye(3)
+    )
+    assert centred.phase == "climb"
+    assert centred.v_mps[2] > 0
+
+
 def test_commit_needs_consistent_frames_and_ends_on_far_evidence() -> None:
     s = ControllerSettings()
     c = PerchingController(s)

@@ -81,8 +81,9 @@ class ControllerSettings:
     k_xy, k_z, k_yaw : proportional gains, 1/s. align_radius_m : lateral error under which the
     vehicle climbs at full rate far from the plate (none beyond twice it). cone_slope : nearer
     the plate that radius narrows to cone_slope times the height, down to commit_align_m.
-    commit_distance_m : height below the plate where the final constant-speed climb starts.
-    commit_speed_mps : that speed. blind_commit_m : losing the target closer than this while
+    commit_distance_m : height below the plate where the final constant-speed climb starts;
+    nearer than this, a vehicle outside the cone descends at descend_mps instead of holding
+    height. commit_speed_mps : that speed. blind_commit_m : losing the target closer than this while
     aligned (the camera is then too close to see it) commits instead of counting as lost
     (without odometry: when the last frames were within twice the align radius; with it:
     within blind_align_m, and the odometry steers the rest). commit_frames : consecutive valid
@@ -129,7 +130,7 @@ class ControllerSettings:
     max_z_mps: float = 0.3
     max_yaw_rate: float = 1.5
     align_radius_m: float = 0.015
-    cone_slope: float = 0.05
+    cone_slope: float = 0.1
     commit_distance_m: float = 0.04
     commit_speed_mps: float = 0.15
     commit_align_m: float = 0.004
@@ -646,6 +647,11 @@ class PerchingController:
         aligned = self._aligned(lateral, height)
         self.phase = "climb" if aligned > 0 else "align"
         v[2] = aligned * float(np.clip(s.k_z * height, s.commit_speed_mps, s.max_z_mps))
+        if aligned == 0.0 and height < s.commit_distance_m:
+            # outside the cone this near the plate, holding height is not enough: the climb's
+            # momentum (its speed over onboard_velocity_gain, 35 mm at commit_speed_mps)
+            # would carry the vehicle into the plate off-centre
+            v[2] = -s.descend_mps
         return Command(v, yaw_rate, self.phase, d)
 
     def _aligned(self, lateral_m: float, height_m: float) -> float:
