@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -75,12 +74,16 @@ def invert_transform(T_a_b: Array) -> Array:
 
 def transform_from_rvec_tvec(rvec: Array, tvec_m: Array) -> Array:
     """Build ``T_camera_object`` from OpenCV's Rodrigues vector and translation (metres)."""
+    import cv2  # here, not above: the controller and the vehicle links import this module
+
     R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
     return make_transform(np.asarray(R, dtype=np.float64), np.asarray(tvec_m).reshape(3))
 
 
 def rvec_tvec_from_transform(T: Array) -> tuple[Array, Array]:
     """Return OpenCV's (Rodrigues vector (3, 1), translation (3, 1)) for a 4x4 transform."""
+    import cv2  # here, not above: the controller and the vehicle links import this module
+
     rvec, _ = cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))
     return np.asarray(rvec, dtype=np.float64).reshape(3, 1), T[:3, 3].reshape(3, 1).copy()
 
