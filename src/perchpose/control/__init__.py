@@ -6,6 +6,7 @@ from perchpose.control.controller import (
     ControllerSettings,
     Odometry,
     PerchingController,
+    Phase,
     usable,
 )
 from perchpose.control.mount import (
@@ -19,6 +20,7 @@ from perchpose.control.pilot import (
     CommanderLike,
     PerchingPilot,
     PilotSettings,
+    PilotState,
     PilotStep,
     SenseAges,
 )
@@ -34,7 +36,9 @@ __all__ = [
     "Odometry",
     "PerchingController",
     "PerchingPilot",
+    "Phase",
     "PilotSettings",
+    "PilotState",
     "PilotStep",
     "SenseAges",
     "Setpoint",

@@ -51,6 +51,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,7 +65,20 @@ from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
 
-STEERED = ("align", "climb", "commit")  # the phases that steer on the target
+
+class Phase(StrEnum):
+    """The controller's phases (strings as well, as they appear in files and logs)."""
+
+    SEARCH = "search"
+    ALIGN = "align"
+    CLIMB = "climb"
+    COMMIT = "commit"
+    RETREAT = "retreat"
+    LOST = "lost"
+    GIVE_UP = "give-up"
+
+
+STEERED = (Phase.ALIGN, Phase.CLIMB, Phase.COMMIT)  # the phases that steer on the target
 STALL_FRAMES = 3  # camera periods without a frame after which odometry steering holds height
 # the camera timing the closed loop was verified at in simulation (``ControllerSettings``)
 MIN_CAMERA_PERIOD_S = 1.0 / 60.0
@@ -297,7 +311,7 @@ class Command:
 
     v_mps: Array
     yaw_rate_rad_s: float
-    phase: str
+    phase: Phase
     error_m: Array | None = None
 
 
@@ -325,7 +339,7 @@ class PerchingController:
 
     def __init__(self, settings: ControllerSettings | None = None) -> None:
         self.settings = settings or ControllerSettings()
-        self.phase = "search"
+        self.phase = Phase.SEARCH
         self.tries = 0
         self._lost_since: float | None = None
         self._commit_since: float | None = None
@@ -386,18 +400,19 @@ class PerchingController:
         )
 
     def _enter_commit(self, t_s: float) -> None:
-        if self.phase != "commit":
+        if self.phase != Phase.COMMIT:
             self._commit_since = t_s
-        self.phase = "commit"
+        self.phase = Phase.COMMIT
 
-    def back_off(self, t_s: float) -> None:
+    def back_off(self, t_s: float) -> Phase:
         """Abandon the final climb (no contact came, or it left the capture cone): descend
         under the target and align again (``retreat``), or give up after ``max_tries``."""
         self.tries += 1
-        self.phase = "give-up" if self.tries >= self.settings.max_tries else "retreat"
+        self.phase = Phase.GIVE_UP if self.tries >= self.settings.max_tries else Phase.RETREAT
         self._commit_since = None
         self._lost_since = t_s
         self._recent.clear()
+        return self.phase
 
     # -- the vehicle's past ---------------------------------------------------------------
 
@@ -480,7 +495,7 @@ class PerchingController:
         if odometry is None or s.observer_rate == 0:
             return v_cmd
         previous = self._last_sp if self._last_sp is not None else np.zeros(3)
-        fast = self.phase == "commit" and s.commit_observer_rate > 0
+        fast = self.phase == Phase.COMMIT and s.commit_observer_rate > 0
         self._observer.rate = s.commit_observer_rate if fast else s.observer_rate
         self._observer.update(previous, odometry.v_mps, dt, max(0.0, t_s - odometry.t_s))
         v_sp = v_cmd + self._observer.offset_mps
@@ -506,7 +521,7 @@ class PerchingController:
         steered = command.phase in STEERED and command.error_m is not None
         self._frame_command = command if steered else None
         self._frame_t = t_s
-        if command.phase in ("search", "give-up"):
+        if command.phase in (Phase.SEARCH, Phase.GIVE_UP):
             return command
         return Command(
             self._reject(command.v_mps, t_s, odometry),
@@ -533,13 +548,13 @@ class PerchingController:
         if last is None or self.phase not in STEERED:
             return None
         self._remember(odometry)
-        limit = s.commit_timeout_s if self.phase == "commit" else s.hold_target_s
+        limit = s.commit_timeout_s if self.phase == Phase.COMMIT else s.hold_target_s
         held = self._held_error(t_s, R_world_body, odometry, limit)
         if held is None:
             return None
         v = np.array(last.v_mps, np.float64)
         v[:2] = self._lateral_mps(held, t_s)
-        if self.phase != "commit" and t_s - self._frame_t > STALL_FRAMES * s.camera_period_s:
+        if self.phase != Phase.COMMIT and t_s - self._frame_t > STALL_FRAMES * s.camera_period_s:
             v[2] = 0.0  # the camera has stalled mid-approach: hold height, stay aligned
         return Command(self._reject(v, t_s, odometry), last.yaw_rate_rad_s, last.phase, held)
 
@@ -548,7 +563,7 @@ class PerchingController:
         (saturated at ``max_xy_mps``) plus the position integral."""
         s = self.settings
         lateral = float(np.hypot(d[0], d[1]))
-        k = s.k_xy * (s.commit_gain if self.phase == "commit" else 1.0)
+        k = s.k_xy * (s.commit_gain if self.phase == Phase.COMMIT else 1.0)
         scale = min(1.0, s.max_xy_mps / max(1e-9, k * lateral))
         return k * np.asarray(d[:2], np.float64) * scale + self._integrate(
             d, t_s, wind=lateral < s.integrate_within_m
@@ -565,10 +580,10 @@ class PerchingController:
         if odometry is not None:
             self._remember(odometry)
         since = self._commit_since
-        if self.phase == "commit" and since is not None and t_s - since >= s.commit_timeout_s:
+        if self.phase == Phase.COMMIT and since is not None and t_s - since >= s.commit_timeout_s:
             self.back_off(t_s)
-        if self.phase == "give-up":
-            return Command(np.zeros(3), 0.0, "give-up")
+        if self.phase == Phase.GIVE_UP:
+            return Command(np.zeros(3), 0.0, Phase.GIVE_UP)
         yaw_rate = 0.0
         if usable(estimate, t_s, s.max_estimate_age_s):
             assert estimate is not None
@@ -585,10 +600,15 @@ class PerchingController:
             held = self._held_error(t_s, R_world_body, odometry, s.hold_target_s)
             error = held if held is not None else d
             return self._steer(error, yaw_rate, t_s, odometry)
-        limit = s.commit_timeout_s if self.phase == "commit" else s.hold_target_s
+        limit = s.commit_timeout_s if self.phase == Phase.COMMIT else s.hold_target_s
         held = self._held_error(t_s, R_world_body, odometry, limit)
-        if held is not None and self.phase in ("commit", "retreat", "climb", "align"):
-            if self.phase in ("align", "climb") and not self._all_recent(
+        if held is not None and self.phase in (
+            Phase.COMMIT,
+            Phase.RETREAT,
+            Phase.CLIMB,
+            Phase.ALIGN,
+        ):
+            if self.phase in (Phase.ALIGN, Phase.CLIMB) and not self._all_recent(
                 s.blind_commit_m, 2 * s.align_radius_m
             ):
                 # a camera dropout mid-approach: hold height and stay aligned on odometry
@@ -614,26 +634,25 @@ class PerchingController:
         height = float(d[2])
         v = np.zeros(3)
         v[:2] = self._lateral_mps(d, t_s)
-        if self.phase == "retreat":
+        if self.phase == Phase.RETREAT:
             if height < s.retry_below_m:
                 v[2] = -s.descend_mps
-                return Command(v, yaw_rate, "retreat", d)
-            self.phase = "align"
+                return Command(v, yaw_rate, Phase.RETREAT, d)
+            self.phase = Phase.ALIGN
             self._recent.clear()
-        if self.phase == "commit" and (
+        if self.phase == Phase.COMMIT and (
             height > s.commit_exit_m or lateral > s.commit_exit_lateral_m
         ):
             # the evidence says the target is not where the climb is
             if odometry is not None:
-                self.back_off(t_s)
-                if self.phase == "give-up":
-                    return Command(np.zeros(3), 0.0, "give-up")
+                if self.back_off(t_s) == Phase.GIVE_UP:
+                    return Command(np.zeros(3), 0.0, Phase.GIVE_UP)
                 v[2] = -s.descend_mps
-                return Command(v, yaw_rate, "retreat", d)
-            self.phase = "align"
+                return Command(v, yaw_rate, Phase.RETREAT, d)
+            self.phase = Phase.ALIGN
             self._commit_since = None
         slow = odometry is None or self._sideways_mps(odometry) < s.capture_speed_mps
-        if self.phase == "commit" or (
+        if self.phase == Phase.COMMIT or (
             may_commit
             and slow
             and (
@@ -643,9 +662,9 @@ class PerchingController:
         ):
             self._enter_commit(t_s)
             v[2] = s.commit_speed_mps
-            return Command(v, yaw_rate, "commit", d)
+            return Command(v, yaw_rate, Phase.COMMIT, d)
         aligned = self._aligned(lateral, height)
-        self.phase = "climb" if aligned > 0 else "align"
+        self.phase = Phase.CLIMB if aligned > 0 else Phase.ALIGN
         v[2] = aligned * float(np.clip(s.k_z * height, s.commit_speed_mps, s.max_z_mps))
         if aligned == 0.0 and height < s.commit_distance_m:
             # outside the cone this near the plate, holding height is not enough: the climb's
@@ -679,19 +698,19 @@ class PerchingController:
 
     def _no_target(self, t_s: float) -> Command:
         s = self.settings
-        if self.phase == "commit":  # the last centimetres: the camera is too close to see
-            return Command(np.array([0.0, 0.0, s.commit_speed_mps]), 0.0, "commit")
-        if self.phase == "search":
-            return Command(np.zeros(3), 0.0, "search")
-        if self.phase in ("align", "climb") and self._all_recent(
+        if self.phase == Phase.COMMIT:  # the last centimetres: the camera is too close to see
+            return Command(np.array([0.0, 0.0, s.commit_speed_mps]), 0.0, Phase.COMMIT)
+        if self.phase == Phase.SEARCH:
+            return Command(np.zeros(3), 0.0, Phase.SEARCH)
+        if self.phase in (Phase.ALIGN, Phase.CLIMB) and self._all_recent(
             s.blind_commit_m, 2 * s.align_radius_m
         ):
             self._enter_commit(t_s)
-            return Command(np.array([0.0, 0.0, s.commit_speed_mps]), 0.0, "commit")
+            return Command(np.array([0.0, 0.0, s.commit_speed_mps]), 0.0, Phase.COMMIT)
         if self._lost_since is None:
             self._lost_since = t_s
-        self.phase = "lost"
+        self.phase = Phase.LOST
         self._recent.clear()
         if t_s - self._lost_since < s.hold_s:
-            return Command(np.zeros(3), 0.0, "lost")
-        return Command(np.array([0.0, 0.0, -s.descend_mps]), 0.0, "lost")
+            return Command(np.zeros(3), 0.0, Phase.LOST)
+        return Command(np.array([0.0, 0.0, -s.descend_mps]), 0.0, Phase.LOST)

@@ -43,12 +43,13 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.control.controller import Command, Odometry, PerchingController, usable
+from perchpose.control.controller import Command, Odometry, PerchingController, Phase, usable
 from perchpose.control.setpoint import SetpointLimits, safe_setpoint
 from perchpose.errors import ControllerConfigError, require_positive
 from perchpose.values import Estimate
@@ -56,18 +57,23 @@ from perchpose.values import Estimate
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-STATES = (
-    "waiting",
-    "perching",
-    "lost",
-    "landing",
-    "perched",
-    "landed",
-    "link_lost",
-    "released",
-)
-DONE = ("landed", "perched", "link_lost", "released")
-FLYING = ("perching", "lost", "landing")
+
+class PilotState(StrEnum):
+    """The pilot's safety states (strings as well, as they appear in files and logs)."""
+
+    WAITING = "waiting"
+    PERCHING = "perching"
+    LOST = "lost"
+    LANDING = "landing"
+    PERCHED = "perched"
+    LANDED = "landed"
+    LINK_LOST = "link_lost"
+    RELEASED = "released"
+
+
+STATES = tuple(PilotState)
+DONE = (PilotState.LANDED, PilotState.PERCHED, PilotState.LINK_LOST, PilotState.RELEASED)
+FLYING = (PilotState.PERCHING, PilotState.LOST, PilotState.LANDING)
 ON_SENSES_LOST = ("land", "release")
 
 
@@ -158,7 +164,7 @@ class PilotStep:
     """What the pilot did for one frame: its state and the setpoint sent (None: nothing)."""
 
     t_s: float
-    state: str
+    state: PilotState
     v_mps: tuple[float, float, float] | None
     yaw_rate_deg_s: float | None
     phase: str | None
@@ -227,7 +233,7 @@ class PerchingPilot:
         self.height_m = height_m
         self.odometry = odometry
         self.report = report or log.warning
-        self.state = "waiting"
+        self.state = PilotState.WAITING
         self.transitions: list[tuple[float, str, str]] = []
         self.replaced_setpoints = 0
         self._last_valid_t: float | None = None
@@ -248,7 +254,7 @@ class PerchingPilot:
 
     # -- state ----------------------------------------------------------------------------
 
-    def _enter(self, state: str, t_s: float, why: str) -> None:
+    def _enter(self, state: PilotState, t_s: float, why: str) -> None:
         if state != self.state:
             self.transitions.append((t_s, self.state, state))
             self.report(f"pilot: {self.state} -> {state} at t = {t_s:.2f} s ({why})")
@@ -264,9 +270,9 @@ class PerchingPilot:
 
     def link_lost(self, reason: str = "link lost") -> None:
         """The radio link is gone: send nothing more (the firmware's watchdog takes over)."""
-        self.release(reason, "link_lost")
+        self.release(reason, PilotState.LINK_LOST)
 
-    def release(self, reason: str, state: str = "released") -> None:
+    def release(self, reason: str, state: PilotState = PilotState.RELEASED) -> None:
         """Control is taken back from the pilot (``reason`` says why): send nothing more."""
         with self._lock:
             if self.state not in DONE:
@@ -275,10 +281,10 @@ class PerchingPilot:
     def abort(self, t_s: float, reason: str = "stopped by the user") -> None:
         """Stop perching: land if flying; otherwise never take over."""
         with self._lock:
-            if self.flying and self.state != "landing":
+            if self.flying and self.state != PilotState.LANDING:
                 self._start_landing(t_s, reason)
-            elif self.state == "waiting":
-                self._enter("landed", t_s, reason)
+            elif self.state == PilotState.WAITING:
+                self._enter(PilotState.LANDED, t_s, reason)
 
     # -- setpoints ------------------------------------------------------------------------
 
@@ -296,7 +302,7 @@ class PerchingPilot:
         self.commander.send_velocity_world_setpoint(vx, vy, vz, yaw_rate_deg_s)
         return PilotStep(t_s, self.state, sp.v_mps, yaw_rate_deg_s, phase)
 
-    def _stop(self, t_s: float, state: str, why: str) -> PilotStep:
+    def _stop(self, t_s: float, state: PilotState, why: str) -> PilotStep:
         self._enter(state, t_s, why)  # first: a commander may ask which stop this is
         self.commander.send_stop_setpoint()
         self.commander.send_notify_setpoint_stop(0)
@@ -304,7 +310,7 @@ class PerchingPilot:
 
     def _start_landing(self, t_s: float, why: str) -> None:
         self._landing_since = t_s
-        self._enter("landing", t_s, why)
+        self._enter(PilotState.LANDING, t_s, why)
 
     # -- the vehicle's senses -------------------------------------------------------------
 
@@ -366,7 +372,7 @@ class PerchingPilot:
                 else (f"the vehicle's {name} is {age_s:.1f} s old")
             )
             if s.on_senses_lost == "release":
-                self._enter("released", t_s, f"{old}: its autopilot flies it now")
+                self._enter(PilotState.RELEASED, t_s, f"{old}: its autopilot flies it now")
                 return PilotStep(t_s, self.state, None, None, None)
             self._start_landing(t_s, old)
             return self._land_step(t_s)
@@ -386,7 +392,7 @@ class PerchingPilot:
         if (height is not None and height < s.landed_height_m) or t_s - since >= (
             s.land_duration_s
         ):
-            return self._stop(t_s, "landed", "on the ground")
+            return self._stop(t_s, PilotState.LANDED, "on the ground")
         return self._send(t_s, np.array([0.0, 0.0, -s.land_speed_mps]), 0.0, None)
 
     def update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
@@ -413,7 +419,7 @@ class PerchingPilot:
         (``PerchingController.between_frames``) and the contact check; None when nothing was
         sent (not perching, no odometry, nothing held to steer on)."""
         with self._lock:
-            if self.state != "perching" or self.odometry is None or t_s < self.last_t_s:
+            if self.state != PilotState.PERCHING or self.odometry is None or t_s < self.last_t_s:
                 return None
             motion = self._motion()
             if motion is None or self._stale(t_s) is not None:
@@ -425,8 +431,10 @@ class PerchingPilot:
             if command is None:
                 return None
             self.last_t_s = t_s
-            if command.phase == "commit" and self._contact.touched(t_s, self._height()):
-                return self._stop(t_s, "perched", "the final climb stopped against the plate")
+            if command.phase == Phase.COMMIT and self._contact.touched(t_s, self._height()):
+                return self._stop(
+                    t_s, PilotState.PERCHED, "the final climb stopped against the plate"
+                )
             return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
 
     def _update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
@@ -438,13 +446,13 @@ class PerchingPilot:
         self._frame_clock = (t_s, self.clock())
         limit_s = self.controller.settings.max_estimate_age_s
         fresh = usable(estimate, t_s, limit_s)
-        if self.state == "waiting":
+        if self.state == PilotState.WAITING:
             if not fresh:
                 return PilotStep(t_s, self.state, None, None, None)
-            self._enter("perching", t_s, "target in view")
+            self._enter(PilotState.PERCHING, t_s, "target in view")
         if self.state in DONE:
             return PilotStep(t_s, self.state, None, None, None)
-        if self.state == "landing":
+        if self.state == PilotState.LANDING:
             return self._land_step(t_s)
         if fresh:
             self._last_valid_t = t_s
@@ -464,24 +472,26 @@ class PerchingPilot:
     def _follow(self, command: Command, t_s: float) -> PilotStep:
         """The state the controller's command leads to, and the setpoint sent in it."""
         s = self.settings
-        if command.phase == "give-up":
+        if command.phase == Phase.GIVE_UP:
             tries = self.controller.tries
             self._start_landing(t_s, f"gave up after {tries} final climbs without contact")
             return self._land_step(t_s)
-        if command.phase == "commit":
+        if command.phase == Phase.COMMIT:
             if self._contact.touched(t_s, self._height()):
-                return self._stop(t_s, "perched", "the final climb stopped against the plate")
-            self._enter("perching", t_s, "final climb")
+                return self._stop(
+                    t_s, PilotState.PERCHED, "the final climb stopped against the plate"
+                )
+            self._enter(PilotState.PERCHING, t_s, "final climb")
         else:
             self._contact.reset()
-            if command.phase == "lost":
+            if command.phase == Phase.LOST:
                 last = self._last_valid_t if self._last_valid_t is not None else t_s
                 if t_s - last >= s.land_after_lost_s:
                     self._start_landing(t_s, f"target lost for {t_s - last:.1f} s")
                     return self._land_step(t_s)
-                self._enter("lost", t_s, "target lost")
+                self._enter(PilotState.LOST, t_s, "target lost")
             else:
-                self._enter("perching", t_s, "target in view")
+                self._enter(PilotState.PERCHING, t_s, "target in view")
         return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
 
     def __call__(self, estimate: Estimate | None, t_s: float) -> None:
@@ -496,7 +506,7 @@ class PerchingPilot:
         """Finish a landing in real time (after ``abort`` or a lost target), sending a setpoint
         every ``setpoint_period_s`` until landed."""
         t0 = clock() - self.last_t_s
-        while self.state == "landing":
+        while self.state == PilotState.LANDING:
             with self._lock:
                 self._land_step(clock() - t0)
             sleep(self.settings.setpoint_period_s)

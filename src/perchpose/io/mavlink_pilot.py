@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.control.controller import PerchingController
-from perchpose.control.pilot import PerchingPilot, PilotSettings, SenseAges
+from perchpose.control.pilot import PerchingPilot, PilotSettings, PilotState, SenseAges
 from perchpose.io.mavlink_link import MavlinkLink, VehicleState
 from perchpose.values import Estimate
 
@@ -209,7 +209,7 @@ class MavlinkPilot:
         self.odometry_max_age_s = odometry_max_age_s
         self.proof_of_life_period_s = 1.0 / proof_of_life_hz
         self.commander = SetpointCommander(
-            self.link, self.engaged, lambda: self.pilot.state == "perched"
+            self.link, self.engaged, lambda: self.pilot.state == PilotState.PERCHED
         )
         self.pilot = PerchingPilot(
             self.commander,
@@ -290,7 +290,7 @@ class MavlinkPilot:
     def summary(self) -> str:
         """One line: whether the pilot took over, what it sent and how it ended, or why it
         never took over."""
-        taken = [t for t, before, _ in self.pilot.transitions if before == "waiting"]
+        taken = [t for t, before, _ in self.pilot.transitions if before == PilotState.WAITING]
         if not taken:
             why = self.missing() or "no target in view while the vehicle was ready"
             return f"MAVLink pilot: never took over ({why})"
@@ -318,7 +318,7 @@ class MavlinkPilot:
 
     def __call__(self, estimate: Estimate | None, t_s: float) -> None:
         """The per-frame hook ``track`` calls: the pilot takes over only when ``ready``."""
-        if self.pilot.state == "waiting" and not self.ready():
+        if self.pilot.state == PilotState.WAITING and not self.ready():
             if not self._waiting_reported and estimate is not None and estimate.valid:
                 mode = setpoint_mode(self.vehicle) or "GUIDED (ArduPilot) or OFFBOARD (PX4)"
                 self.report(
@@ -350,7 +350,7 @@ class MavlinkPilot:
                 "failsafe takes over"
             )
         proof = (
-            self.pilot.state == "waiting"
+            self.pilot.state == PilotState.WAITING
             and self.vehicle.autopilot == MAV_AUTOPILOT_PX4
             and self.alive()
             and self.vehicle.armed

@@ -24,7 +24,9 @@ from perchpose.control import (
     ControllerSettings,
     PerchingController,
     PerchingPilot,
+    Phase,
     PilotSettings,
+    PilotState,
     SenseAges,
 )
 from perchpose.estimator import PerchingEstimator
@@ -545,7 +547,7 @@ def run_perch(
             return result(reason == "perched", reason, touch.offset_mm, speed, t_contact, touch)
         if flight.crashed():
             return result(False, "crash", math.nan, math.nan, math.nan)
-        if flight.pilot.state in ("landing", "landed"):
-            reason = "gave-up" if flight.controller.phase == "give-up" else "lost"
+        if flight.pilot.state in (PilotState.LANDING, PilotState.LANDED):
+            reason = "gave-up" if flight.controller.phase == Phase.GIVE_UP else "lost"
             return result(False, reason, math.nan, math.nan, math.nan)
     return result(False, "timeout", math.nan, math.nan, math.nan)
