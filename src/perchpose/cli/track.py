@@ -3,8 +3,7 @@ fly on it."""
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -23,86 +22,6 @@ from perchpose.cli.common import (
 )
 from perchpose.cli.group import group
 from perchpose.target import TargetSpec
-
-MAVLINK_READY_WAIT_S = 3.0  # how long --mavlink-pilot waits for the vehicle before the frames
-
-
-@contextmanager
-def _vehicle_links(
-    target: TargetSpec,
-    mavlink_url: str | None,
-    mavlink_frame: str,
-    crazyflie_uri: str | None,
-    mount_file: str | None,
-    mavlink_pilot: bool = False,
-    mavlink_target_relative: bool = False,
-    mavlink_distance: bool = False,
-    target_system: int | None = None,
-) -> Iterator[list[Callable[[Any, float], None]]]:
-    """The per-frame hooks of the requested vehicle links; lands and closes them at the end."""
-    from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
-    from perchpose.control.mount import require_upward
-
-    T_body_camera = mount_T_body_camera(mount_file) if mount_file else None
-    if T_body_camera is not None:
-        pilots = [("--mavlink-pilot", mavlink_pilot), ("--crazyflie", crazyflie_uri is not None)]
-        for flag, on in pilots:
-            if on:
-                require_upward(T_body_camera, flag)
-    hooks: list[Callable[[Any, float], None]] = []
-    closers: list[Callable[[], None]] = []
-    pilot = None
-    settings = (
-        ControllerSettings()
-        if T_body_camera is None
-        else ControllerSettings(T_body_camera=T_body_camera)
-    )
-    try:
-        if mavlink_url is not None and mavlink_pilot:
-            from perchpose.io.mavlink_pilot import MavlinkPilot
-
-            autopilot = MavlinkPilot(
-                mavlink_url,
-                controller=PerchingController(settings),
-                target_system=target_system,
-                report=warn,
-            )
-            closers.append(autopilot.close)
-            hooks.append(autopilot)
-            autopilot.wait_until_ready(MAVLINK_READY_WAIT_S)
-        elif mavlink_url is not None:
-            from perchpose.io.mavlink import LandingTargetSink
-
-            sink = LandingTargetSink(
-                mavlink_url,
-                frame=mavlink_frame,
-                T_body_camera=T_body_camera,
-                target=target,
-                target_relative=mavlink_target_relative,
-                distance_sensor=mavlink_distance,
-                target_system=target_system,
-                report=warn,
-            )
-            closers.append(sink.close)
-            hooks.append(sink)
-        if crazyflie_uri is not None:
-            from perchpose.io.crazyflie import connect
-
-            # cflib logs its connection failures with tracebacks; the error below says it once
-            logging.getLogger("cflib").addHandler(logging.NullHandler())
-            link = connect(crazyflie_uri, report=warn)
-            closers.append(link.close)
-            pilot = link.pilot(controller=PerchingController(settings))
-            hooks.append(pilot)
-        try:
-            yield hooks
-        finally:
-            if pilot is not None:  # source ended, an error, or Ctrl-C: land
-                pilot.abort(pilot.last_t_s, "tracking ended")
-                pilot.land()
-    finally:
-        for close in reversed(closers):
-            close()
 
 
 @contextmanager
@@ -298,6 +217,7 @@ def track(
     if asked and mavlink_url is None:
         flag = asked[0]
         raise click.UsageError(f"{flag} needs --mavlink URL (the autopilot's link).")
+    from perchpose.app.links import LinkOptions, vehicle_links
     from perchpose.app.track import track as run_track
     from perchpose.estimator import PerchingEstimator
     from perchpose.fusion import FusionSigmas
@@ -314,16 +234,19 @@ def track(
         check_overlay_path(overlay)  # before any vehicle link takes over
     with (
         _live_view(view, view_port, spec, view_origins) as live,
-        _vehicle_links(
+        vehicle_links(
             spec,
-            mavlink_url,
-            mavlink_frame,
-            crazyflie_uri,
-            mount_file,
-            mavlink_pilot,
-            mavlink_target_relative,
-            mavlink_distance,
-            target_system,
+            LinkOptions(
+                mavlink_url=mavlink_url,
+                mavlink_frame=mavlink_frame,
+                mavlink_pilot=mavlink_pilot,
+                target_relative=mavlink_target_relative,
+                distance_sensor=mavlink_distance,
+                target_system=target_system,
+                crazyflie_uri=crazyflie_uri,
+                mount=mount_file,
+            ),
+            warn,
         ) as hooks,
     ):
         summary = run_track(

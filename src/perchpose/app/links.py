@@ -1,0 +1,106 @@
+"""The vehicle links a track flies on: opened for the options given, closed (and a Crazyflie
+landed) when the frames end, fail or are interrupted."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from perchpose.target import TargetSpec
+from perchpose.values import Estimate
+
+MAVLINK_READY_WAIT_S = 3.0  # how long the MAVLink pilot waits for the vehicle before the frames
+
+FrameHook = Callable[[Estimate | None, float], None]  # an estimate and its frame's time
+
+
+@dataclass(frozen=True)
+class LinkOptions:
+    """Which links to open. mavlink_url : a pymavlink connection string (None: no MAVLink).
+    mavlink_frame : LANDING_TARGET's frame (``body_frd`` or ``local_ned``). mavlink_pilot : fly
+    the perching controller through velocity setpoints instead of sending LANDING_TARGET.
+    target_relative, distance_sensor : also send TARGET_RELATIVE, DISTANCE_SENSOR.
+    target_system : the autopilot's system id (None: the first heard). crazyflie_uri : a cflib
+    URI (None: no Crazyflie). mount : ``up``, ``down`` or a mount YAML (None: upward)."""
+
+    mavlink_url: str | None = None
+    mavlink_frame: str = "body_frd"
+    mavlink_pilot: bool = False
+    target_relative: bool = False
+    distance_sensor: bool = False
+    target_system: int | None = None
+    crazyflie_uri: str | None = None
+    mount: str | None = None
+
+
+@contextmanager
+def vehicle_links(
+    target: TargetSpec, options: LinkOptions, report: Callable[[str], None]
+) -> Iterator[list[FrameHook]]:
+    """The per-frame hooks of the links ``options`` asks for (each takes an estimate and its
+    time); at the end a Crazyflie is landed and every link closed, newest first."""
+    from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
+    from perchpose.control.mount import require_upward
+
+    o = options
+    T_body_camera = mount_T_body_camera(o.mount) if o.mount else None
+    if T_body_camera is not None:
+        for flag, on in (("--mavlink-pilot", o.mavlink_pilot), ("--crazyflie", o.crazyflie_uri)):
+            if on:
+                require_upward(T_body_camera, flag)
+    settings = (
+        ControllerSettings()
+        if T_body_camera is None
+        else ControllerSettings(T_body_camera=T_body_camera)
+    )
+    hooks: list[FrameHook] = []
+    closers: list[Callable[[], None]] = []
+    pilot = None
+    try:
+        if o.mavlink_url is not None and o.mavlink_pilot:
+            from perchpose.io.mavlink_pilot import MavlinkPilot
+
+            autopilot = MavlinkPilot(
+                o.mavlink_url,
+                controller=PerchingController(settings),
+                target_system=o.target_system,
+                report=report,
+            )
+            closers.append(autopilot.close)
+            hooks.append(autopilot)
+            autopilot.wait_until_ready(MAVLINK_READY_WAIT_S)
+        elif o.mavlink_url is not None:
+            from perchpose.io.mavlink import LandingTargetSink
+
+            sink = LandingTargetSink(
+                o.mavlink_url,
+                frame=o.mavlink_frame,
+                T_body_camera=T_body_camera,
+                target=target,
+                target_relative=o.target_relative,
+                distance_sensor=o.distance_sensor,
+                target_system=o.target_system,
+                report=report,
+            )
+            closers.append(sink.close)
+            hooks.append(sink)
+        if o.crazyflie_uri is not None:
+            from perchpose.io.crazyflie import connect
+
+            # cflib logs its connection failures with tracebacks; the link's error says it once
+            logging.getLogger("cflib").addHandler(logging.NullHandler())
+            link = connect(o.crazyflie_uri, report=report)
+            closers.append(link.close)
+            pilot = link.pilot(controller=PerchingController(settings))
+            hooks.append(pilot)
+        try:
+            yield hooks
+        finally:
+            if pilot is not None:  # source ended, an error, or Ctrl-C: land
+                pilot.abort(pilot.last_t_s, "tracking ended")
+                pilot.land()
+    finally:
+        for close in reversed(closers):
+            close()

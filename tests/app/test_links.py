@@ -1,0 +1,52 @@
+import time
+
+import pytest
+
+from perchpose.app.links import LinkOptions, vehicle_links
+from perchpose.errors import ControllerConfigError
+from perchpose.io.mavlink import mavutil_module
+from perchpose.target import TargetSpec
+from perchpose.values import Estimate
+
+
+def test_no_options_open_no_link() -> None:
+    said: list[str] = []
+    with vehicle_links(TargetSpec.paper(), LinkOptions(), said.append) as hooks:
+        assert hooks == []
+    assert said == []
+
+
+@pytest.mark.parametrize("flag", ["mavlink_pilot", "crazyflie"])
+def test_a_pilot_refuses_a_downward_camera_before_any_link_opens(flag: str) -> None:
+    options = (
+        LinkOptions(mavlink_url="udpout:127.0.0.1:9", mavlink_pilot=True, mount="down")
+        if flag == "mavlink_pilot"
+        else LinkOptions(crazyflie_uri="radio://0/80/2M/E7E7E7E7E7", mount="down")
+    )
+    with (
+        pytest.raises(ControllerConfigError, match="camera must look up"),
+        vehicle_links(TargetSpec.paper(), options, print),
+    ):
+        pass
+
+
+def test_landing_target_goes_out_and_the_link_closes(udp_port: int) -> None:
+    vehicle = mavutil_module().mavlink_connection(f"udpin:127.0.0.1:{udp_port}")
+    options = LinkOptions(mavlink_url=f"udpout:127.0.0.1:{udp_port}", mount="down")
+    try:
+        with vehicle_links(TargetSpec.paper(), options, print) as hooks:
+            assert len(hooks) == 1
+            for k in range(5):
+                estimate = Estimate.of_pose(0.1 * k, (0.01, -0.02, 0.5), 0.3)
+                hooks[0](estimate, 0.1 * k)
+                time.sleep(0.05)
+        received = []
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline and len(received) < 5:
+            msg = vehicle.recv_match(type="LANDING_TARGET", blocking=True, timeout=0.1)
+            if msg is not None:
+                received.append(msg)
+        assert len(received) == 5
+        assert received[0].distance == pytest.approx(0.5, abs=0.01)
+    finally:
+        vehicle.close()
