@@ -11,15 +11,14 @@ from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.app.calibrate import format_report
 from perchpose.calibration import (
     BoardView,
-    CalibrationError,
     CharucoBoardSpec,
-    SolverFailedError,
     calibrate,
     calibrate_views,
     detect_board,
     select_views,
 )
 from perchpose.cli import main
+from perchpose.errors import CalibrationError, SolverFailedError
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import spread_board_poses

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel, DistortionModel
-from perchpose.errors import PerchposeError
+from perchpose.errors import CalibrationError, PerchposeError, SolverFailedError
 from perchpose.target import aruco_dictionary
 
 Array = NDArray[np.float64]
@@ -26,10 +26,6 @@ MIN_CORNERS_PER_VIEW = 6
 MIN_VIEWS = {"plumb_bob": 3, "equidistant": 4}
 GOOD_VIEWS = 10
 GOOD_COVERAGE = 0.5
-
-
-class CalibrationError(PerchposeError):
-    """A calibration that cannot be made from the given images or board."""
 
 
 @dataclass(frozen=True)
@@ -408,10 +404,6 @@ class Solution(NamedTuple):
     per_view_rms_px: dict[str, float]
     rms_px: float
     errors_px: dict[str, Array]
-
-
-class SolverFailedError(CalibrationError):
-    """OpenCV's solver stopped on this set of views (an ill-conditioned view)."""
 
 
 def outlier_views(per_view_rms_px: dict[str, float]) -> list[str]:

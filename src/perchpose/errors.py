@@ -52,6 +52,39 @@ class ControllerConfigError(PerchposeError):
     mounting file that cannot be read."""
 
 
+class CampaignError(PerchposeError):
+    """A campaign that cannot start or go on: a resume file from another setup, a scheduler
+    that does not answer."""
+
+
+class CalibrationError(PerchposeError):
+    """A calibration that cannot be made from the given images or board."""
+
+
+class SolverFailedError(CalibrationError):
+    """OpenCV's solver stopped on this set of views (an ill-conditioned view)."""
+
+
+class SensingConfigError(PerchposeError):
+    """Sensing settings outside their meaning (a negative spread, a range upside down)."""
+
+
+class WindConfigError(PerchposeError):
+    """A wind level, speed or turbulence intensity that cannot be flown."""
+
+
+class SchedulerError(PerchposeError):
+    """A Dask scheduler that cannot be reached or used."""
+
+
+class VehicleConfigError(PerchposeError):
+    """Physically impossible or unstable vehicle or controller settings."""
+
+
+class DisturbanceConfigError(PerchposeError):
+    """Disturbance settings outside their meaning (a negative spread, a probability over 1)."""
+
+
 def require_positive(
     settings: object, names: Iterable[str], error: type[PerchposeError], prefix: str = ""
 ) -> None:

@@ -5,8 +5,8 @@ from pathlib import Path
 import pytest
 
 from perchpose import CameraModel, TargetSpec
+from perchpose.errors import CampaignError
 from perchpose.evaluation.perching import (
-    CampaignError,
     CampaignLog,
     RunRecord,
     markdown,

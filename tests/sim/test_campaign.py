@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from perchpose import CameraModel, TargetSpec
-from perchpose.sim.campaign import SchedulerError, execute, run_campaign
+from perchpose.errors import SchedulerError
+from perchpose.sim.campaign import execute, run_campaign
 from perchpose.sim.perch import PerchSetup
 
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from perchpose.errors import VehicleConfigError
 from perchpose.sim.contact import MAGNET, Contact, ContactRules, PlateContact, tilt_deg
-from perchpose.sim.quadrotor import Quadrotor, QuadrotorParams, VehicleConfigError
+from perchpose.sim.quadrotor import Quadrotor, QuadrotorParams
 
 PLATE_Z = 2.0
 

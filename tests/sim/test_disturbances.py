@@ -1,12 +1,8 @@
 import numpy as np
 import pytest
 
-from perchpose.sim.disturbances import (
-    DisturbanceConfigError,
-    Disturbances,
-    OdometryModel,
-    VehicleDraw,
-)
+from perchpose.errors import DisturbanceConfigError
+from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 
 
 def test_draws_stay_in_their_ranges_and_repeat_with_the_seed() -> None:

@@ -11,11 +11,10 @@ import pytest
 from perchpose import CameraModel, TargetSpec
 from perchpose.cli import main
 from perchpose.control import PerchingController
+from perchpose.errors import VehicleConfigError, WindConfigError
 from perchpose.evaluation.perching import summarise
 from perchpose.sim.campaign import run_campaign
 from perchpose.sim.perch import CONTACT_RADIUS_MM, PerchSetup, event_steps, run_perch
-from perchpose.sim.quadrotor import VehicleConfigError
-from perchpose.sim.wind import WindConfigError
 
 
 @pytest.fixture(scope="module")

@@ -3,13 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from perchpose.sim.quadrotor import (
-    GRAVITY_MPS2,
-    Quadrotor,
-    QuadrotorParams,
-    VehicleConfigError,
-    mixer,
-)
+from perchpose.errors import VehicleConfigError
+from perchpose.sim.quadrotor import GRAVITY_MPS2, Quadrotor, QuadrotorParams, mixer
 
 
 def _fly(

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from perchpose import CameraModel, TargetSpec
+from perchpose.errors import SensingConfigError
 from perchpose.sim.perch import PerchSetup, run_perch
-from perchpose.sim.sensing import SensedState, Sensing, SensingConfigError, SensingDraw
+from perchpose.sim.sensing import SensedState, Sensing, SensingDraw
 
 
 def test_draws_stay_in_their_ranges_and_repeat_with_the_seed() -> None:

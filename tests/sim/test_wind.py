@@ -3,10 +3,10 @@ import math
 import numpy as np
 import pytest
 
+from perchpose.errors import WindConfigError
 from perchpose.sim.wind import (
     WIND_LEVELS,
     DrydenWind,
-    WindConfigError,
     WindLevel,
     scale_lengths_m,
     vertical_intensity_ratio,

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from perchpose.calibration import (
-    CalibrationError,
     CalibrationResult,
     CharucoBoardSpec,
     calibrate,
@@ -15,6 +14,7 @@ from perchpose.calibration import (
     select_views,
 )
 from perchpose.camera import DistortionModel
+from perchpose.errors import CalibrationError
 from perchpose.evaluation.plots import coverage_figure
 from perchpose.io.sources import ImageFilesSource, open_source
 

@@ -21,7 +21,7 @@ from typing import TextIO
 
 import numpy as np
 
-from perchpose.errors import PerchposeError
+from perchpose.errors import CampaignError
 from perchpose.evaluation.plots import perch_figure, sweep_figure
 from perchpose.pose import rotation_angle_rad
 from perchpose.sim.perch import CONTACT_RADIUS_MM, REASONS, PerchResult, PerchSetup
@@ -74,11 +74,6 @@ def run_key(setup: PerchSetup, seed: int) -> RunKey:
         setup.latency_label,
         seed,
     )
-
-
-class CampaignError(PerchposeError):
-    """A campaign that cannot start or go on: a resume file from another setup, a scheduler
-    that does not answer."""
 
 
 @dataclass(frozen=True)

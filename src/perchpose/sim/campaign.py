@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from perchpose.errors import PerchposeError
+from perchpose.errors import SchedulerError
 from perchpose.sim.perch import PerchResult, PerchSetup, run_perch
 from perchpose.sim.render import Renderer
 from perchpose.target import TargetSpec
@@ -28,10 +28,6 @@ from perchpose.target import TargetSpec
 Job = tuple[PerchSetup, int]
 _RENDERERS: dict[tuple[object, ...], Renderer[TargetSpec]] = {}
 SCHEDULER_TIMEOUT_S = 10
-
-
-class SchedulerError(PerchposeError):
-    """A Dask scheduler that cannot be reached or used."""
 
 
 def _camera_key(setup: PerchSetup) -> tuple[object, ...]:

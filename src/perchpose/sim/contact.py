@@ -20,8 +20,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from perchpose.errors import require_positive
-from perchpose.sim.quadrotor import Quadrotor, VehicleConfigError
+from perchpose.errors import VehicleConfigError, require_positive
+from perchpose.sim.quadrotor import Quadrotor
 
 MAGNET = "magnet"
 ROTORS = ("rotor 1", "rotor 2", "rotor 3", "rotor 4")

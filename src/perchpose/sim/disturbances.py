@@ -14,14 +14,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.errors import PerchposeError
+from perchpose.errors import DisturbanceConfigError
 from perchpose.geometry import rot_x, rot_y
 
 Array = NDArray[np.float64]
-
-
-class DisturbanceConfigError(PerchposeError):
-    """Disturbance settings outside their meaning (a negative spread, a probability over 1)."""
 
 
 @dataclass(frozen=True)

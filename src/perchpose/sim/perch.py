@@ -29,12 +29,13 @@ from perchpose.control import (
     PilotState,
     SenseAges,
 )
+from perchpose.errors import VehicleConfigError
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import stage_of
 from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad, yaw_rad
 from perchpose.sim.contact import Contact, ContactRules, PlateContact, tilt_deg
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
-from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams, VehicleConfigError
+from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
 from perchpose.sim.sensing import SensedState, Sensing, SensingDraw, noisy_attitude

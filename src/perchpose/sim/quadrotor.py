@@ -30,15 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.errors import PerchposeError
+from perchpose.errors import VehicleConfigError
 from perchpose.geometry import rot_z
 
 Array = NDArray[np.float64]
 GRAVITY_MPS2 = 9.81
-
-
-class VehicleConfigError(PerchposeError):
-    """Physically impossible or unstable vehicle or controller settings."""
 
 
 @dataclass(frozen=True)

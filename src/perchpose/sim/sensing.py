@@ -38,17 +38,13 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.control.history import newest_at
-from perchpose.errors import PerchposeError, require_non_negative
+from perchpose.errors import SensingConfigError, require_non_negative
 from perchpose.geometry import make_transform, rot_x, rot_y, rot_z
 
 Array = NDArray[np.float64]
 
 SENSINGS = ("realistic", "ideal")
 HISTORY = 256  # samples kept: seconds at the fastest rates, far beyond any delay drawn
-
-
-class SensingConfigError(PerchposeError):
-    """Sensing settings outside their meaning (a negative spread, a range upside down)."""
 
 
 @dataclass(frozen=True)

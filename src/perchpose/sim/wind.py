@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.errors import PerchposeError
+from perchpose.errors import WindConfigError
 
 Array = NDArray[np.float64]
 
@@ -33,10 +33,6 @@ FT_M = 0.3048
 LOW_ALTITUDE_FLOOR_FT = 10.0
 MIN_AIRSPEED_MPS = 0.5
 MAX_WIND_MPS = 15.0
-
-
-class WindConfigError(PerchposeError):
-    """A wind level, speed or turbulence intensity that cannot be flown."""
 
 
 @dataclass(frozen=True)
