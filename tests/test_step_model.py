@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from perchpose.step_model import fit_steps, normal_cdf_pdf_at, pixel_step
+from perchpose.numeric.normal import normal_cdf_pdf_at
+from perchpose.step_model import fit_steps, pixel_step
 
 
 def test_normal_cdf_and_density() -> None:

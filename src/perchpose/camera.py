@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from perchpose import plumb_bob, safe_yaml
 from perchpose.errors import CameraFileError, ImageError
-from perchpose.jit import compiled
+from perchpose.numeric.jit import compiled
 
 Array = NDArray[np.float64]
 DistortionModel = Literal["plumb_bob", "equidistant"]

@@ -45,7 +45,7 @@ from perchpose.edge_geometry import (
     side_lengths,
     side_probes,
 )
-from perchpose.jit import compiled
+from perchpose.numeric.jit import compiled
 from perchpose.step_model import (
     MAX_BLUR_PX,
     MIN_BLUR_PX,

@@ -5,7 +5,7 @@ through those points with their uncertainty.
 ``perchpose.corners`` calls these around its lens model (``CameraModel.project``, which may be
 OpenCV's) and the blurred-step fit (``perchpose.step_model``). Each is a loop over a few hundred
 points; written as numpy expressions they made dozens of small temporary arrays a marker, which
-cost several times the arithmetic (``perchpose.jit``).
+cost several times the arithmetic (``perchpose.numeric.jit``).
 
 Sides run in ArUco corner order: side i from corner i to corner i + 1; corner i joins side
 i - 1 and side i.
@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.jit import compiled
+from perchpose.numeric.jit import compiled
 
 Array = NDArray[np.float64]
 

@@ -38,7 +38,7 @@ from perchpose.joint_pose import (
     solve_joint_pose,
 )
 from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
-from perchpose.small_linalg import sandwiched
+from perchpose.numeric.linalg import sandwiched
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection, MarkerPose, corner_noise_px
 

@@ -20,16 +20,16 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel, lens_project_rigid_with_jacobian
 from perchpose.geometry import make_transform
-from perchpose.jit import compiled
-from perchpose.pnp import normal_equations, pose_rows, turned
-from perchpose.small_linalg import (
+from perchpose.numeric.jit import compiled
+from perchpose.numeric.linalg import (
     inverted,
+    solve_in_place,
     symmetric_eigenvalues,
     times,
     times_transposed,
     transposed_times,
 )
-from perchpose.step_model import solve_in_place
+from perchpose.pnp import normal_equations, pose_rows, turned
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
 

@@ -12,9 +12,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.jit import compiled
-from perchpose.small_linalg import times, times_transposed
-from perchpose.step_model import solve_in_place
+from perchpose.numeric.jit import compiled
+from perchpose.numeric.linalg import solve_in_place, times, times_transposed
 
 Array = NDArray[np.float64]
 

@@ -27,8 +27,8 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.edge_geometry import largest_move, side_lengths
+from perchpose.numeric.linalg import homography_of_4
 from perchpose.pattern_model import REACH_SIGMAS, fit_pattern
-from perchpose.small_linalg import homography_of_4
 from perchpose.step_model import MIN_CONTRAST
 from perchpose.target import TargetSpec
 from perchpose.values import quad_side_px

@@ -18,8 +18,9 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.jit import compiled
-from perchpose.step_model import normal_cdf_pdf_at, solve_in_place
+from perchpose.numeric.jit import compiled
+from perchpose.numeric.linalg import solve_in_place
+from perchpose.numeric.normal import normal_cdf_pdf_at
 
 Array = NDArray[np.float64]
 

@@ -16,8 +16,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.jit import compiled
-from perchpose.small_linalg import times
+from perchpose.numeric.jit import compiled
+from perchpose.numeric.linalg import times
 
 Array = NDArray[np.float64]
 

@@ -19,9 +19,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.jit import compiled
-from perchpose.small_linalg import times
-from perchpose.step_model import solve_in_place
+from perchpose.numeric.jit import compiled
+from perchpose.numeric.linalg import solve_in_place, times
 
 Array = NDArray[np.float64]
 

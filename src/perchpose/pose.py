@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel, lens_project
-from perchpose.jit import compiled
+from perchpose.numeric.jit import compiled
 from perchpose.pnp import refine_pose, rotation_of
 from perchpose.target import MarkerSpec
 from perchpose.values import MarkerPose, PoseFailure

@@ -3,9 +3,9 @@
 ``perchpose.corners`` samples K profiles across a marker's sides and fits them all at once
 with ``a + b * F(s - d_k)`` (F a step blurred by a Gaussian of ``sigma`` and integrated over
 the pixel), one edge offset ``d_k`` per profile and the levels, contrasts, the margin's drop
-and log sigma shared. This module holds that fit's arithmetic: the standard normal CDF and
-density, the pixel-integrated step and the Gauss-Newton rounds, each a loop over the
-samples (``perchpose.jit``); ``corners`` prepares the data and reads the result.
+and log sigma shared. This module holds that fit's arithmetic: the pixel-integrated step
+(through ``perchpose.numeric.normal``) and the Gauss-Newton rounds, each a loop over the
+samples (``perchpose.numeric.jit``); ``corners`` prepares the data and reads the result.
 """
 
 from __future__ import annotations
@@ -15,21 +15,12 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.jit import compiled
+from perchpose.numeric.jit import compiled
+from perchpose.numeric.linalg import solve_in_place
+from perchpose.numeric.normal import normal_cdf_pdf_at
 
 Array = NDArray[np.float64]
 
-_SQRT2 = math.sqrt(2.0)
-_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
-# Abramowitz and Stegun 7.1.26: erf to 1.5e-7
-_ERF_P = 0.3275911
-_ERF_A1, _ERF_A2, _ERF_A3, _ERF_A4, _ERF_A5 = (
-    0.254829592,
-    -0.284496736,
-    1.421413741,
-    -1.453152027,
-    1.061405429,
-)
 # grey levels between dark and light under which there is no edge (or pattern) to fit
 MIN_CONTRAST = 4.0
 # bounds of the fitted optical blur sigma, px
@@ -37,17 +28,6 @@ MIN_BLUR_PX, MAX_BLUR_PX = 0.05, 6.0
 _LOG_MIN_BLUR, _LOG_MAX_BLUR = math.log(MIN_BLUR_PX), math.log(MAX_BLUR_PX)
 # steps shrink about tenfold a round: after steps this small the edges would move ~1e-3 px
 _SETTLED = 8e-3
-
-
-@compiled
-def normal_cdf_pdf_at(u: float) -> tuple[float, float]:
-    """Standard normal CDF and density at ``u`` (the CDF via Abramowitz and Stegun 7.1.26,
-    which shares its exponential with the density)."""
-    z = abs(u) * (1.0 / _SQRT2)
-    t = 1.0 / (1.0 + _ERF_P * z)
-    gauss = math.exp(-z * z)
-    erf = 1.0 - t * (_ERF_A1 + t * (_ERF_A2 + t * (_ERF_A3 + t * (_ERF_A4 + t * _ERF_A5)))) * gauss
-    return 0.5 + 0.5 * math.copysign(erf, u), gauss * _INV_SQRT_2PI
 
 
 @compiled
@@ -62,36 +42,6 @@ def pixel_step(t: float, sigma: float) -> tuple[float, float, float]:
     cdf_b, pdf_b = normal_cdf_pdf_at(b)
     value = sigma * (a * cdf_a + pdf_a - b * cdf_b - pdf_b)
     return value, cdf_a - cdf_b, sigma * (pdf_a - pdf_b)
-
-
-@compiled
-def solve_in_place(A: Array, rhs: Array) -> bool:
-    """Solves ``A x = rhs`` in place (``rhs`` becomes x; ``A`` is overwritten) by Gaussian
-    elimination with partial pivoting; False where A is singular (a zero or NaN pivot)."""
-    n = rhs.shape[0]
-    for col in range(n):
-        pivot, best = -1, 0.0
-        for row in range(col, n):
-            if abs(A[row, col]) > best:
-                pivot, best = row, abs(A[row, col])
-        if pivot < 0:
-            return False
-        if pivot != col:
-            for j in range(n):
-                A[col, j], A[pivot, j] = A[pivot, j], A[col, j]
-            rhs[col], rhs[pivot] = rhs[pivot], rhs[col]
-        for row in range(col + 1, n):
-            f = A[row, col] / A[col, col]
-            if f != 0.0:
-                for j in range(col, n):
-                    A[row, j] -= f * A[col, j]
-                rhs[row] -= f * rhs[col]
-    for col in range(n - 1, -1, -1):
-        s = rhs[col]
-        for j in range(col + 1, n):
-            s -= A[col, j] * rhs[j]
-        rhs[col] = s / A[col, col]
-    return True
 
 
 @compiled

@@ -21,8 +21,8 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel, lens_normalize, lens_project
 from perchpose.edge_geometry import bilinear_points
-from perchpose.jit import compiled
-from perchpose.small_linalg import homography_of_4, through_homography
+from perchpose.numeric.jit import compiled
+from perchpose.numeric.linalg import homography_of_4, through_homography
 from perchpose.target import TargetSpec
 
 Array = NDArray[np.float64]

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.numeric.linalg import homography_of_4, through_homography
 from perchpose.rectification import Rectification
-from perchpose.small_linalg import homography_of_4, through_homography
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
 

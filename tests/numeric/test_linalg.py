@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from perchpose.small_linalg import (
+from perchpose.numeric.linalg import (
     inverted,
     symmetric_eigenvalues,
     times,
@@ -38,7 +38,7 @@ def test_a_singular_matrix_is_said() -> None:
 
 
 def test_sandwiched_is_a_b_a_transposed() -> None:
-    from perchpose.small_linalg import sandwiched
+    from perchpose.numeric.linalg import sandwiched
 
     rng = np.random.default_rng(4)
     A, B = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
@@ -48,7 +48,7 @@ def test_sandwiched_is_a_b_a_transposed() -> None:
 def test_the_homography_of_four_points_maps_them_exactly() -> None:
     import cv2
 
-    from perchpose.small_linalg import homography_of_4, through_homography
+    from perchpose.numeric.linalg import homography_of_4, through_homography
 
     src = np.array([[-0.05, 0.05], [0.05, 0.05], [0.05, -0.05], [-0.05, -0.05]])
     dst = np.array([[310.2, 200.7], [402.9, 208.1], [398.4, 297.3], [305.5, 290.0]])

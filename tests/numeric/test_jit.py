@@ -1,4 +1,4 @@
-"""The compiled kernels (``perchpose.jit``) on a plain install."""
+"""The compiled kernels (``perchpose.numeric.jit``) on a plain install."""
 
 import os
 import subprocess

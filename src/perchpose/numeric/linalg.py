@@ -12,13 +12,42 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.jit import compiled
-from perchpose.step_model import solve_in_place
+from perchpose.numeric.jit import compiled
 
 Array = NDArray[np.float64]
 
 # Jacobi sweeps after which the eigenvalues are taken as found (a 6 x 6 matrix needs 5-8)
 _JACOBI_SWEEPS = 50
+
+
+@compiled
+def solve_in_place(A: Array, rhs: Array) -> bool:
+    """Solves ``A x = rhs`` in place (``rhs`` becomes x; ``A`` is overwritten) by Gaussian
+    elimination with partial pivoting; False where A is singular (a zero or NaN pivot)."""
+    n = rhs.shape[0]
+    for col in range(n):
+        pivot, best = -1, 0.0
+        for row in range(col, n):
+            if abs(A[row, col]) > best:
+                pivot, best = row, abs(A[row, col])
+        if pivot < 0:
+            return False
+        if pivot != col:
+            for j in range(n):
+                A[col, j], A[pivot, j] = A[pivot, j], A[col, j]
+            rhs[col], rhs[pivot] = rhs[pivot], rhs[col]
+        for row in range(col + 1, n):
+            f = A[row, col] / A[col, col]
+            if f != 0.0:
+                for j in range(col, n):
+                    A[row, j] -= f * A[col, j]
+                rhs[row] -= f * rhs[col]
+    for col in range(n - 1, -1, -1):
+        s = rhs[col]
+        for j in range(col + 1, n):
+            s -= A[col, j] * rhs[j]
+        rhs[col] = s / A[col, col]
+    return True
 
 
 @compiled
