@@ -7,6 +7,7 @@ import pytest
 
 from perchpose.detection import MarkerDetector
 from perchpose.errors import FusionFileError
+from perchpose.filters.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
 from perchpose.fusion import (
     STAGE_BOTH,
     STAGE_INNER,
@@ -19,8 +20,7 @@ from perchpose.fusion import (
     stage_of,
 )
 from perchpose.geometry import facing_pose
-from perchpose.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
-from perchpose.pose import solve_marker_pose
+from perchpose.pose.marker import solve_marker_pose
 from perchpose.sim.render import Renderer
 from perchpose.values import MarkerDetection, MarkerPose
 

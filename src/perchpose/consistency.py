@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.joint_pose import pose_covariance
+from perchpose.pose.joint import pose_covariance
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerPose
 

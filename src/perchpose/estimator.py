@@ -19,6 +19,7 @@ from perchpose.detection import (
     MarkerDetector,
 )
 from perchpose.errors import TimestampError
+from perchpose.filters.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
 from perchpose.fusion import (
     STAGE_NONE,
     CovarianceFusion,
@@ -27,8 +28,7 @@ from perchpose.fusion import (
     PaperFusion,
 )
 from perchpose.geometry import angle_diff_rad, rot_z, yaw_rad
-from perchpose.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
-from perchpose.pose import solve_marker_pose
+from perchpose.pose.marker import solve_marker_pose
 from perchpose.target import TargetSpec
 from perchpose.values import (
     Estimate,

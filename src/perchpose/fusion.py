@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
 from perchpose.errors import FusionFileError
+from perchpose.filters.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
 from perchpose.geometry import (
     rotation_vector_jacobian,
     rotation_vector_jacobian_inverse,
@@ -32,13 +33,12 @@ from perchpose.geometry import (
     weighted_circular_mean_rad,
     yaw_rad,
 )
-from perchpose.joint_pose import (
+from perchpose.numeric.linalg import sandwiched
+from perchpose.pose.joint import (
     measurement_jacobian,
     pose_covariance,
     solve_joint_pose,
 )
-from perchpose.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
-from perchpose.numeric.linalg import sandwiched
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection, MarkerPose, corner_noise_px
 
@@ -226,7 +226,7 @@ class Fused:
 
 
 def angles_covariance(T: Array, covariance_w_dt: Array) -> Array:
-    """A pose covariance over (w, dt) (``joint_pose``) carried to (6, 6) over
+    """A pose covariance over (w, dt) (``pose.joint``) carried to (6, 6) over
     [roll, pitch, yaw, x, y, z] (``geometry.tilt_rad``, ``geometry.yaw_rad``)."""
     _, pitch = tilt_rad(T[:3, :3])
     A = np.eye(6)
@@ -410,7 +410,7 @@ class CornerNoise(_FadingSums):
 
 
 class VarianceFactor(_FadingSums):
-    """The corners' covariance's a-posteriori variance factor (``joint_pose.corner_misfit``)
+    """The corners' covariance's a-posteriori variance factor (``pose.joint.corner_misfit``)
     pooled over frames (``add(observed, expected)``, each frame's ``r^T S^-1 r`` and its
     expected value, both sums fading with a time constant of ``frames`` frames): the observed
     over the expected, never under 1 (1 before any frame); a frame with a non-finite value is

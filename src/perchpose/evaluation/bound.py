@@ -18,8 +18,8 @@ import numpy as np
 
 from perchpose.detection import MarkerDetector
 from perchpose.geometry import facing_pose, yaw_rad
-from perchpose.joint_pose import pose_covariance, solve_joint_pose, uncertainty
-from perchpose.pose import solve_marker_pose
+from perchpose.pose.joint import pose_covariance, solve_joint_pose, uncertainty
+from perchpose.pose.marker import solve_marker_pose
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection, MarkerPose

@@ -15,7 +15,7 @@ from perchpose.detection import CornerMethod, MarkerDetector
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion import FusionSigmas, fit_sigma_least_squares, fit_sigma_lms
 from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
-from perchpose.pose import rotation_angle_rad
+from perchpose.pose.marker import rotation_angle_rad
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import Scenario, markers_in_view
 from perchpose.sim.sequence import render_frame

@@ -23,7 +23,7 @@ import numpy as np
 
 from perchpose.errors import CampaignError
 from perchpose.evaluation.plots import perch_figure, sweep_figure
-from perchpose.pose import rotation_angle_rad
+from perchpose.pose.marker import rotation_angle_rad
 from perchpose.sim.perch import CONTACT_RADIUS_MM, REASONS, PerchResult, PerchSetup
 from perchpose.sim.sensing import SensingDraw
 

@@ -7,7 +7,7 @@ microseconds, where a call of OpenCV's costs tens of them in argument handling a
 every marker pose of every frame makes two (one per IPPE solution).
 
 Parametrisation: ``R' = exp([w]x) R``, ``t' = t + dt`` with ``(w, dt)`` as in
-``joint_pose``; Levenberg-Marquardt with the damping on the normal matrix's diagonal. The
+``pose.joint``; Levenberg-Marquardt with the damping on the normal matrix's diagonal. The
 projected points' Jacobian over (w, dt) (``pose_rows``) and the weighted normal equations
 (``normal_equations``) are the joint pose's too, through the lens model there.
 """

@@ -4,7 +4,7 @@ The state is four (value, rate) pairs, ``[psi, psi_dot, tx, tx_dot, ty, ty_dot, 
 and the measurement picks the values (even indices). Both structures are used directly: the
 transition adds ``dt`` times each rate to its value, and ``H P`` is P's even rows. Each step is
 a few hundred multiply-adds on 8 x 8 matrices, which numpy spends tens of microseconds setting
-up; ``perchpose.kalman`` holds the filter and calls these (yaw wrapping stays there).
+up; ``perchpose.filters.kalman`` holds the filter and calls these (yaw wrapping stays there).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ import pytest
 
 from perchpose import CameraModel, TargetSpec
 from perchpose.geometry import facing_pose, rot_x
-from perchpose.pose import PoseFailure, rotation_angle_rad, solve_marker_pose
+from perchpose.pose.marker import PoseFailure, rotation_angle_rad, solve_marker_pose
 from perchpose.target import MarkerSpec
 
 

@@ -16,8 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.geometry import angle_diff_rad, wrap_angle_rad
-from perchpose.kalman_steps import (
+from perchpose.filters.steps import (
     corrected_state,
     gain,
     innovation_covariance,
@@ -26,6 +25,7 @@ from perchpose.kalman_steps import (
     propagated_covariance,
     propagated_state,
 )
+from perchpose.geometry import angle_diff_rad, wrap_angle_rad
 
 Array = NDArray[np.float64]
 
@@ -124,7 +124,7 @@ class ConstantVelocityFilter:
         self.S = np.full((4, 4), np.nan)
 
     def predict_with(self, dt_s: float, Q: Array) -> None:
-        """x = F x, P = F P F^T + Q for a step of ``dt_s`` seconds (``kalman_steps``)."""
+        """x = F x, P = F P F^T + Q for a step of ``dt_s`` seconds (``filters.steps``)."""
         self.x = propagated_state(self.x, dt_s)
         self.x[0] = wrap_angle_rad(float(self.x[0]))
         self.P = propagated_covariance(self.P, dt_s, Q)

@@ -29,7 +29,7 @@ from perchpose.numeric.linalg import (
     times_transposed,
     transposed_times,
 )
-from perchpose.pnp import normal_equations, pose_rows, turned
+from perchpose.pose.refine import normal_equations, pose_rows, turned
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
 

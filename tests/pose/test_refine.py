@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 
 from perchpose.geometry import facing_pose, rot_x, transform_from_rvec_tvec
-from perchpose.pnp import refine_pose
+from perchpose.pose.refine import refine_pose
 
 SQUARE_M = np.array([[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0]], np.float64) * 0.05
 

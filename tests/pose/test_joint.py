@@ -8,14 +8,14 @@ import pytest
 
 from perchpose import CameraModel, TargetSpec
 from perchpose.geometry import facing_pose
-from perchpose.joint_pose import (
+from perchpose.pose.joint import (
     pose_covariance,
     sandwich_covariance,
     solve_joint_pose,
     target_points,
     uncertainty,
 )
-from perchpose.pose import solve_marker_pose
+from perchpose.pose.marker import solve_marker_pose
 from perchpose.values import MarkerDetection
 
 
@@ -138,7 +138,7 @@ def test_sandwich_covariance_of_correlated_corners() -> None:
 def test_corner_misfit_is_the_variance_factor() -> None:
     """Corner errors drawn from the covariance the fit is told: the residuals' squared length
     in its metric averages its expected value (factor 1); errors twice as large give 4."""
-    from perchpose.joint_pose import corner_misfit
+    from perchpose.pose.joint import corner_misfit
 
     camera = CameraModel.preset("fpv")
     target = TargetSpec.paper()
@@ -166,7 +166,7 @@ def test_corner_misfit_is_the_variance_factor() -> None:
 def test_the_pose_jacobian_is_what_small_moves_of_the_pose_do(camera_name: str) -> None:
     """Columns of the pixels' Jacobian over (w, dt), by central differences of
     ``R' = exp([w]x) R``, ``t' = t + dt`` through the camera's own projection."""
-    from perchpose.joint_pose import _project_with_jacobian
+    from perchpose.pose.joint import _project_with_jacobian
 
     camera = CameraModel.preset(camera_name)
     target = TargetSpec.paper()
@@ -192,7 +192,7 @@ def test_the_pose_jacobian_is_what_small_moves_of_the_pose_do(camera_name: str) 
 
 def test_the_measurement_jacobian_is_what_small_turns_do_to_the_yaw() -> None:
     from perchpose.geometry import yaw_rad
-    from perchpose.joint_pose import measurement_jacobian
+    from perchpose.pose.joint import measurement_jacobian
 
     T = facing_pose(0.05, -0.04, 0.35, 2.9, 0.4, -0.3)
     step = 1e-7
@@ -213,7 +213,7 @@ def test_the_measurement_jacobian_is_what_small_turns_do_to_the_yaw() -> None:
 
 
 def test_compiled_covariances_and_misfit_are_the_matrix_formulas() -> None:
-    from perchpose.joint_pose import _covariances, corner_misfit
+    from perchpose.pose.joint import _covariances, corner_misfit
 
     rng = np.random.default_rng(11)
     J = rng.normal(size=(16, 6)) * np.array([200.0, 200.0, 50.0, 900.0, 900.0, 300.0])

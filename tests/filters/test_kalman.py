@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from perchpose.kalman import (
+from perchpose.filters.kalman import (
     PAPER_COAST_S,
     CovarianceFilterSettings,
     CovarianceTrack,

@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel, lens_project
 from perchpose.numeric.jit import compiled
-from perchpose.pnp import refine_pose, rotation_of
+from perchpose.pose.refine import refine_pose, rotation_of
 from perchpose.target import MarkerSpec
 from perchpose.values import MarkerPose, PoseFailure
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from perchpose import kalman_steps as steps
-from perchpose.kalman import H, transition, white_acceleration_noise
+from perchpose.filters import steps
+from perchpose.filters.kalman import H, transition, white_acceleration_noise
 
 
 def spd(rng: np.random.Generator, n: int) -> np.ndarray:
