@@ -177,6 +177,8 @@ def test_px4_gets_a_proof_of_life_stream_then_offboard_setpoints_until_its_heart
     t0 = time.monotonic()
     try:
         wait_for(lambda: pilot.proof_of_life >= 3)
+        # and the vehicle has them, before its mode changes under a datagram still in flight
+        wait_for(lambda: sum(mode == POSCTL for mode, _ in vehicle.setpoints()) >= 3)
         assert pilot.pilot.state == "waiting"
         vehicle.set_mode(OFFBOARD)
         wait_for(pilot.engaged)
