@@ -602,12 +602,7 @@ class PerchingController:
             return self._steer(error, yaw_rate, t_s, odometry)
         limit = s.commit_timeout_s if self.phase == Phase.COMMIT else s.hold_target_s
         held = self._held_error(t_s, R_world_body, odometry, limit)
-        if held is not None and self.phase in (
-            Phase.COMMIT,
-            Phase.RETREAT,
-            Phase.CLIMB,
-            Phase.ALIGN,
-        ):
+        if held is not None and self.phase in (*STEERED, Phase.RETREAT):
             if self.phase in (Phase.ALIGN, Phase.CLIMB) and not self._all_recent(
                 s.blind_commit_m, 2 * s.align_radius_m
             ):

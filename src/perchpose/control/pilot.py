@@ -71,7 +71,6 @@ class PilotState(StrEnum):
     RELEASED = "released"
 
 
-STATES = tuple(PilotState)
 DONE = (PilotState.LANDED, PilotState.PERCHED, PilotState.LINK_LOST, PilotState.RELEASED)
 FLYING = (PilotState.PERCHING, PilotState.LOST, PilotState.LANDING)
 ON_SENSES_LOST = ("land", "release")
@@ -234,7 +233,7 @@ class PerchingPilot:
         self.odometry = odometry
         self.report = report or log.warning
         self.state = PilotState.WAITING
-        self.transitions: list[tuple[float, str, str]] = []
+        self.transitions: list[tuple[float, PilotState, PilotState]] = []
         self.replaced_setpoints = 0
         self._last_valid_t: float | None = None
         self._landing_since: float | None = None
