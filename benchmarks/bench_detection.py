@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 
 from perchpose import CameraModel, TargetSpec
+from perchpose.detection.quads import detector_parameters, target_dictionaries
 from perchpose.geometry import facing_pose
-from perchpose.quads import detector_parameters, target_dictionaries
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.target import aruco_dictionary
 

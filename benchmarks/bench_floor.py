@@ -34,7 +34,7 @@ from numba.core.registry import CPUDispatcher
 import perchpose
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.app.bench import BASELINE, default_methods, rendered_frames
-from perchpose.quads import QuadPass
+from perchpose.detection.quads import QuadPass
 from perchpose.sim.render import ImageQuality
 
 CV2_CALLS = (

@@ -326,7 +326,7 @@ def test_a_budget_does_not_keep_the_target_from_being_found_under_glare(
     """Under glare the frame as it is shows no marker and a spent budget leaves no room for a
     second search in the same frame; the next frame starts from the next clip level, so the
     target is found within a few frames all the same."""
-    from perchpose.detection import GLARE_CLIP_LEVELS
+    from perchpose.detection.detector import GLARE_CLIP_LEVELS
     from perchpose.sim.render import ImageQuality
 
     r = renderers["fpv"]
@@ -421,8 +421,8 @@ def test_tracking_hints_move_on_at_the_pace_of_the_last_two_frames() -> None:
     """The hint for the next frame carries each corner on at the velocity it had between the
     last two frames; a marker seen once stays where it was, and a gap longer than twice the
     frames' spacing leaves every marker where it was."""
+    from perchpose.detection.windows import extrapolated
     from perchpose.values import MarkerDetection
-    from perchpose.windows import extrapolated
 
     square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
     earlier = (MarkerDetection(0, square, "raw"),)

@@ -11,22 +11,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.consistency import DISAGREE_CHI2, disagreements
-from perchpose.detection import (
+from perchpose.detection.detector import (
     PATTERN_BESIDE_RATIO,
     THOROUGH_EVERY,
     CornerMethod,
     MarkerDetector,
 )
+from perchpose.detection.windows import extrapolated
 from perchpose.errors import TimestampError
 from perchpose.filters.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
-from perchpose.fusion import (
-    STAGE_NONE,
-    CovarianceFusion,
-    Fusion,
-    FusionSigmas,
-    PaperFusion,
-)
+from perchpose.fusion.base import STAGE_NONE, Fusion
+from perchpose.fusion.consistency import DISAGREE_CHI2, disagreements
+from perchpose.fusion.covariance import CovarianceFusion
+from perchpose.fusion.paper import FusionSigmas, PaperFusion
 from perchpose.geometry import angle_diff_rad, rot_z, yaw_rad
 from perchpose.pose.marker import solve_marker_pose
 from perchpose.target import TargetSpec
@@ -39,7 +36,6 @@ from perchpose.values import (
     Timings,
     corner_noise_px,
 )
-from perchpose.windows import extrapolated
 
 FusionMethod = Literal["paper", "covariance"]
 FUSION_METHODS: tuple[FusionMethod, ...] = ("paper", "covariance")
@@ -71,7 +67,7 @@ class PerchingEstimator:
     disagree_chi2 : markers whose positions are further apart than this squared Mahalanobis
         distance (with ``covariance_filter.corner_sigma_px`` corner noise) are not fused: the
         one nearer the filter's prediction is kept, neither without one
-        (``perchpose.consistency``).
+        (``perchpose.fusion.consistency``).
     fusion : ``"covariance"`` (default: one PnP over every corner of every marker, its
         covariance from the Jacobian, and one filter of the fused pose with a
         white-noise-acceleration model; settings in ``covariance_filter``) or ``"paper"``

@@ -4,7 +4,7 @@ import pytest
 
 from perchpose.app.links import LinkOptions, vehicle_links
 from perchpose.errors import ControllerConfigError
-from perchpose.io.mavlink import mavutil_module
+from perchpose.io.mavlink.landing_target_sink import mavutil_module
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 

@@ -6,8 +6,9 @@ import pytest
 
 from perchpose.cli import main
 from perchpose.evaluation.fusion_data import load_fusion_samples
+from perchpose.evaluation.fusion_fit import fit_sigma_lms
 from perchpose.evaluation.report import EvalPlan
-from perchpose.fusion import FusionSigmas, fit_sigma_lms
+from perchpose.fusion.paper import FusionSigmas
 from perchpose.io.sinks import read_track_csv
 
 

@@ -335,7 +335,7 @@ def test_nothing_imports_cflib_without_the_crazyflie_link() -> None:
 
     code = (
         "import sys, perchpose.cli, perchpose.app.track, perchpose.io.crazyflie, "
-        "perchpose.io.mavlink; print('cflib' in sys.modules)"
+        "perchpose.io.mavlink.landing_target_sink; print('cflib' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

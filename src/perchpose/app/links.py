@@ -60,7 +60,7 @@ def vehicle_links(
     pilot = None
     try:
         if o.mavlink_url is not None and o.mavlink_pilot:
-            from perchpose.io.mavlink_pilot import MavlinkPilot
+            from perchpose.io.mavlink.pilot import MavlinkPilot
 
             autopilot = MavlinkPilot(
                 o.mavlink_url,
@@ -72,7 +72,7 @@ def vehicle_links(
             hooks.append(autopilot)
             autopilot.wait_until_ready(MAVLINK_READY_WAIT_S)
         elif o.mavlink_url is not None:
-            from perchpose.io.mavlink import LandingTargetSink
+            from perchpose.io.mavlink.landing_target_sink import LandingTargetSink
 
             sink = LandingTargetSink(
                 o.mavlink_url,

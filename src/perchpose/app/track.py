@@ -16,9 +16,10 @@ from tqdm import tqdm
 
 from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
+from perchpose.io.frames import Frame
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
 from perchpose.io.sinks import estimate_row, open_track_writer
-from perchpose.io.sources import Frame, open_source
+from perchpose.io.sources import open_source
 from perchpose.values import Estimate
 
 
@@ -136,7 +137,7 @@ def track(
     """Run ``estimator`` (its camera and target) over every frame of ``source`` and write one
     row per frame to ``out``; each estimate carries its latency from the frame's grab.
 
-    ``image_topic``: the images' topic when ``source`` is a ROS bag (``perchpose.io.rosbag``).
+    ``image_topic``: the images' topic when ``source`` is a ROS bag (``perchpose.io.ros.rosbag``).
     ``view``: a live view (``perchpose.io.view.LiveView``) that gets every frame with its
     overlay.
     A live camera is grabbed on a thread of its own and the estimator always takes the newest

@@ -44,7 +44,7 @@ def _live_view(
 
 def _camera(source: str, camera_file: str | None, camera_info_topic: str | None) -> CameraModel:
     """The camera of ``--camera``, or of a bag's CameraInfo topic."""
-    from perchpose.io.rosbag import camera_from_bag, is_bag
+    from perchpose.io.ros.rosbag import camera_from_bag, is_bag
 
     if camera_file is not None:
         return load_camera(camera_file)
@@ -220,7 +220,7 @@ def track(
     from perchpose.app.links import LinkOptions, vehicle_links
     from perchpose.app.track import track as run_track
     from perchpose.estimator import PerchingEstimator
-    from perchpose.fusion import FusionSigmas
+    from perchpose.fusion.paper import FusionSigmas
     from perchpose.io.overlay import check_overlay_path
 
     cam = _camera(source, camera_file, camera_info_topic)

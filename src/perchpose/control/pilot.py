@@ -20,7 +20,7 @@ run it.
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
   Crazyflie's own commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s
   and 2 s without setpoints); ``released`` is an autopilot taking control back (it left the
-  mode that takes our setpoints, or its heartbeat stopped: ``perchpose.io.mavlink_pilot``).
+  mode that takes our setpoints, or its heartbeat stopped: ``perchpose.io.mavlink.pilot``).
 
 Every setpoint passes ``safe_setpoint`` last: nothing non-finite is sent, and speeds and yaw
 rate are clamped to ``PilotSettings.limits``.

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perchpose.detection import MarkerDetector
+from perchpose.detection.detector import MarkerDetector
 from perchpose.geometry import facing_pose, yaw_rad
 from perchpose.pose.joint import pose_covariance, solve_joint_pose, uncertainty
 from perchpose.pose.marker import solve_marker_pose

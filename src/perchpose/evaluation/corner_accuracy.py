@@ -3,8 +3,8 @@
 Frames are rendered (3 x 3 rays per pixel, 34 per ninth of a pixel at edges) at random poses
 (1.8 m to 8 cm, tilted up to 17 deg), so that each marker's true corners are known exactly;
 every detected marker is scored with OpenCV's ``cornerSubPix`` corners, with the edge fit of
-``perchpose.corners`` alone, and with the detector's default (the edge fit, and the pattern fit
-of ``perchpose.pattern_fit`` for small blurred markers).
+``corners.edge_fit`` alone, and with the detector's default (the edge fit, and the pattern fit
+of ``corners.pattern_fit`` for small blurred markers).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perchpose.detection import MarkerDetector
+from perchpose.detection.detector import MarkerDetector
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.target import TargetSpec

@@ -11,9 +11,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.detection import CornerMethod, MarkerDetector
+from perchpose.detection.detector import CornerMethod, MarkerDetector
 from perchpose.estimator import PerchingEstimator
-from perchpose.fusion import FusionSigmas, fit_sigma_least_squares, fit_sigma_lms
+from perchpose.evaluation.fusion_fit import fit_sigma_least_squares, fit_sigma_lms
+from perchpose.fusion.paper import FusionSigmas
 from perchpose.geometry import facing_pose, wrap_angle_deg, yaw_rad
 from perchpose.pose.marker import rotation_angle_rad
 from perchpose.sim.render import ImageQuality, Renderer

@@ -20,7 +20,7 @@ from perchpose.values import POSE_COLUMNS, Estimate
 
 class TrackWriter(Protocol):
     """Where a track's frames go: a pose file (``PoseWriter``) or a ROS 2 bag
-    (``perchpose.io.bag_writer.BagWriter``), which also takes each frame's overlay
+    (``perchpose.io.ros.bag_writer.BagWriter``), which also takes each frame's overlay
     (``wants_overlay``)."""
 
     rows: int
@@ -39,16 +39,11 @@ class TrackWriter(Protocol):
 
 def open_track_writer(out: str | Path, target: TargetSpec) -> TrackWriter:
     """A ``.csv`` or ``.jsonl`` pose file, or a ROS 2 bag for ``.mcap`` or a folder name."""
-    from perchpose.io.bag_writer import BagWriter, is_bag_output
+    from perchpose.io.ros.bag_writer import BagWriter, is_bag_output
 
     if is_bag_output(out):
         return BagWriter(out)
     return PoseWriter(out, target)
-
-
-def stamp_ns(t_s: float) -> int:
-    """A frame time as a message stamp: integer nanoseconds, never negative."""
-    return max(0, round(t_s * 1e9))
 
 
 def raw_columns(target: TargetSpec) -> tuple[str, ...]:

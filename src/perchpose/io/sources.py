@@ -10,7 +10,6 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import SourceError
+from perchpose.io.frames import Frame, FrameSource
 from perchpose.io.native import native_stderr_silenced
 
 IMAGE_SUFFIXES = frozenset(
@@ -29,47 +29,6 @@ STREAM_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "udp://", "tcp://", "http://
 STREAM_TIMEOUT_MS = 5000  # opening, and each read, of a network stream
 RECONNECT_FOR_S = 10.0  # a dropped stream is reopened for this long before the source ends
 RECONNECT_PERIOD_S = 0.5
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One input frame.
-
-    index : position in the source, from 0. t_s : capture time, seconds.
-    image : (H, W) or (H, W, 3) uint8, or None when it could not be read (``error`` says why).
-    name : file name, or ``frame N`` for videos and cameras.
-    file : where the frame came from: the image file's path, or ``VIDEO#N`` / ``camera K#N``.
-    grabbed_s : ``time.monotonic()`` when the frame was grabbed (a live camera: before it was
-        decoded) or read (files); the start of its latency.
-    stale : a live camera's frame that was dropped unprocessed because a newer one was ready
-        (``image`` is None).
-    """
-
-    index: int
-    t_s: float
-    image: NDArray[np.uint8] | None
-    name: str
-    error: str = ""
-    file: str = ""
-    grabbed_s: float = math.nan
-    stale: bool = False
-
-
-class FrameSource:
-    """Iterable of ``Frame``; ``count`` is the number of frames when known in advance.
-    ``lost`` counts the frames that could not be decoded (each still yields a ``Frame`` with
-    ``image`` None and the reason in ``error``); ``stale`` a live camera's frames dropped for
-    a newer one (each yields a ``Frame`` with ``stale`` set)."""
-
-    def __init__(self, description: str, count: int | None, fps: float) -> None:
-        self.description = description
-        self.count = count
-        self.fps = fps
-        self.lost = 0
-        self.stale = 0
-
-    def __iter__(self) -> Iterator[Frame]:
-        raise NotImplementedError
 
 
 class ImageFilesSource(FrameSource):
@@ -388,9 +347,9 @@ def open_source(
         a video file's own rate when not given).
     size : (width, height) to ask a live camera for (the calibration's); a driver that gives
         another size is caught at the first frame (``CameraModel.check_image``).
-    image_topic : for a ROS bag (``perchpose.io.rosbag``), the topic of its images.
+    image_topic : for a ROS bag (``perchpose.io.ros.rosbag``), the topic of its images.
     """
-    from perchpose.io import rosbag
+    from perchpose.io.ros import rosbag
 
     if rosbag.is_bag(source):
         if image_topic is None:

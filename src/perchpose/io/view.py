@@ -25,8 +25,8 @@ from numpy.typing import NDArray
 
 from perchpose.errors import PerchposeError
 from perchpose.geometry import quaternion_xyzw
+from perchpose.io.frames import stamp_ns
 from perchpose.io.overlay import encode_jpeg
-from perchpose.io.sinks import stamp_ns
 from perchpose.io.view_gate import OriginGate
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.camera import CameraModel, lens_project_rigid_with_jacobian
+from perchpose.camera import CameraModel
+from perchpose.camera.lens import lens_project_rigid_with_jacobian
 from perchpose.geometry import make_transform
 from perchpose.numeric.jit import compiled
 from perchpose.numeric.linalg import (

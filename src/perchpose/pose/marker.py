@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.camera import CameraModel, lens_project
+from perchpose.camera import CameraModel
+from perchpose.camera.lens import lens_project
 from perchpose.numeric.jit import compiled
 from perchpose.pose.refine import refine_pose, rotation_of
 from perchpose.target import MarkerSpec

@@ -31,7 +31,7 @@ from perchpose.control import (
 )
 from perchpose.errors import VehicleConfigError
 from perchpose.estimator import PerchingEstimator
-from perchpose.fusion import stage_of
+from perchpose.fusion.base import stage_of
 from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad, yaw_rad
 from perchpose.sim.contact import Contact, ContactRules, PlateContact, tilt_deg
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw

@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
-from perchpose.fusion import stage_of
+from perchpose.fusion.base import stage_of
 from perchpose.geometry import yaw_rad
 from perchpose.sim.render import Occluder, Renderer
 from perchpose.sim.scenarios import Scenario, markers_in_view

@@ -1,0 +1,58 @@
+"""The bottom of ``io/``: a frame as every source yields it (``Frame``), the source's interface
+(``FrameSource``), and a frame's time as a message stamp (``stamp_ns``). Sources, sinks, bags and
+the live view import these; nothing here imports them."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One input frame.
+
+    index : position in the source, from 0. t_s : capture time, seconds.
+    image : (H, W) or (H, W, 3) uint8, or None when it could not be read (``error`` says why).
+    name : file name, or ``frame N`` for videos and cameras.
+    file : where the frame came from: the image file's path, or ``VIDEO#N`` / ``camera K#N``.
+    grabbed_s : ``time.monotonic()`` when the frame was grabbed (a live camera: before it was
+        decoded) or read (files); the start of its latency.
+    stale : a live camera's frame that was dropped unprocessed because a newer one was ready
+        (``image`` is None).
+    """
+
+    index: int
+    t_s: float
+    image: NDArray[np.uint8] | None
+    name: str
+    error: str = ""
+    file: str = ""
+    grabbed_s: float = math.nan
+    stale: bool = False
+
+
+class FrameSource:
+    """Iterable of ``Frame``; ``count`` is the number of frames when known in advance.
+    ``lost`` counts the frames that could not be decoded (each still yields a ``Frame`` with
+    ``image`` None and the reason in ``error``); ``stale`` a live camera's frames dropped for
+    a newer one (each yields a ``Frame`` with ``stale`` set)."""
+
+    def __init__(self, description: str, count: int | None, fps: float) -> None:
+        self.description = description
+        self.count = count
+        self.fps = fps
+        self.lost = 0
+        self.stale = 0
+
+    def __iter__(self) -> Iterator[Frame]:
+        raise NotImplementedError
+
+
+def stamp_ns(t_s: float) -> int:
+    """A frame time as a message stamp: integer nanoseconds, never negative."""
+    return max(0, round(t_s * 1e9))
