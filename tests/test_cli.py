@@ -231,6 +231,10 @@ def test_usage_error_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert code == 2
     assert "--camera" in err
     assert "Traceback" not in err
+    argv = ["track", str(tmp_path), "--out", "p.csv", "--realtime", "--rate", "2"]
+    code, _, err = _run(argv, capsys)
+    assert code == 2
+    assert "--realtime is --rate 1" in err
 
 
 def test_console_entry_point_reports_without_traceback(tmp_path: Path) -> None:

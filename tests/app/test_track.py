@@ -6,6 +6,7 @@ import pytest
 
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.app.track import track
+from perchpose.errors import PerchposeError
 from perchpose.evaluation.metrics import frame_errors
 from perchpose.io.sinks import read_track_csv
 
@@ -149,3 +150,55 @@ def test_a_live_camera_drops_stale_frames_and_says_so(
     assert len(seen) == len(processed)
     assert all(r["latency_ms"] != "" for r in processed)
     assert sum(r["valid"] == "1" for r in processed) >= len(processed) - 2
+
+
+class _Clock:
+    """time.monotonic and time.sleep of a clock that moves only when slept on, or by ``work``."""
+
+    def __init__(self) -> None:
+        self.now_s = 100.0  # s
+        self.slept: list[float] = []
+
+    def monotonic(self) -> float:
+        return self.now_s
+
+    def sleep(self, seconds: float) -> None:
+        self.slept.append(seconds)
+        self.now_s += seconds
+
+
+def test_a_recording_replays_at_the_rate_of_its_stamps(monkeypatch: pytest.MonkeyPatch) -> None:
+    from perchpose.app import track as track_module
+
+    clock = _Clock()
+    monkeypatch.setattr(track_module.time, "monotonic", clock.monotonic)
+    monkeypatch.setattr(track_module.time, "sleep", clock.sleep)
+    pacer = track_module.Pacer(2.0)  # twice as fast as recorded
+    for t_s, work_s in ((5.0, 0.01), (5.1, 0.01), (5.3, 0.2), (5.4, 0.0)):
+        pacer.wait(t_s)
+        clock.now_s += work_s  # the frame's own work
+    # due 0.05, 0.15 and 0.2 s after the first: waits 0.04 and 0.09 s; the last frame comes
+    # 0.35 s after the first (its predecessor's work) and is not waited for
+    assert clock.slept == pytest.approx([0.04, 0.09])
+    with pytest.raises(PerchposeError, match="--rate must be a positive number"):
+        track_module.Pacer(0.0)
+
+
+def test_a_live_camera_is_not_paced(
+    approach_webcam_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import cv2
+
+    from perchpose.app import track as track_module
+    from perchpose.io.sources import VideoSource
+
+    def live(
+        source: str, fps: float | None, size: tuple[int, int], image_topic: str | None = None
+    ) -> VideoSource:
+        return VideoSource(cv2.VideoCapture(source), 30.0, "camera 0", live=True)
+
+    monkeypatch.setattr(track_module, "open_source", live)
+    camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
+    estimator = PerchingEstimator(camera, TargetSpec.paper())
+    with pytest.raises(PerchposeError, match="camera 0: --realtime and --rate replay recordings"):
+        track("0", estimator, tmp_path / "live.csv", progress=False, rate=1.0)

@@ -19,6 +19,7 @@ from websockets.sync.client import connect
 
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.geometry import facing_pose
+from perchpose.io.frames import Stamp, stamp_ns
 from perchpose.io.overlay import draw_overlay
 from perchpose.io.view import LiveView
 from perchpose.sim.render import Renderer
@@ -70,7 +71,7 @@ def test_a_client_subscribes_and_decodes_the_frames() -> None:
             )
             received: dict[int, list[bytes]] = {}
             for k in range(20):
-                view.publish(k / 30, estimate, overlay)
+                view.publish(Stamp(k / 30, stamp_ns(k / 30)), estimate, overlay)
                 try:
                     while True:
                         frame = ws.recv(timeout=0.05)
@@ -89,6 +90,9 @@ def test_a_client_subscribes_and_decodes_the_frames() -> None:
     assert decoded["stage"] == estimate.stage
     assert decoded["z_cm"] == pytest.approx(estimate.z_cm)
     assert decoded["yaw_deg"] == pytest.approx(estimate.yaw_deg)
+    assert decoded["predicted"] is False
+    assert decoded["age_s"] == 0.0
+    assert decoded["measured"] == estimate.measured_label
     assert b"\xff\xd8\xff" in received[1][-1]  # the overlay's JPEG inside its message
     # the pose message carries the position as doubles
     assert struct.pack("<d", estimate.t_camera_target_m[2]) in received[2][-1]

@@ -16,9 +16,10 @@ from tqdm import tqdm
 
 from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
-from perchpose.io.frames import Frame
+from perchpose.io.frames import TARGET_FRAME, Frame, Stamp
+from perchpose.io.outputs import open_track_writer
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
-from perchpose.io.sinks import estimate_row, open_track_writer
+from perchpose.io.sinks import estimate_row
 from perchpose.io.sources import open_source
 from perchpose.values import Estimate
 
@@ -109,8 +110,30 @@ class FrameView(Protocol):
     """Something that shows each frame as it is tracked (``perchpose.io.view.LiveView``)."""
 
     def publish(
-        self, t_s: float, estimate: Estimate | None, overlay: NDArray[np.uint8] | None
+        self, stamp: Stamp, estimate: Estimate | None, overlay: NDArray[np.uint8] | None
     ) -> None: ...
+
+
+class Pacer:
+    """Replays a recording at ``rate`` times the speed its time stamps say (1: as recorded):
+    ``wait(t_s)`` returns once the frame at ``t_s`` is due, counted from the first frame.
+    A frame already late is not waited for, and the replay does not hurry to catch up."""
+
+    def __init__(self, rate: float) -> None:
+        if not (math.isfinite(rate) and rate > 0):
+            raise PerchposeError(f"--rate must be a positive number, got {rate:g}")
+        self.rate = rate
+        self._start: tuple[float, float] | None = None  # (t_s, monotonic) of the first frame
+
+    def wait(self, t_s: float) -> None:
+        now = time.monotonic()
+        if self._start is None:
+            self._start = (t_s, now)
+            return
+        t0_s, wall0_s = self._start
+        due = wall0_s + (t_s - t0_s) / self.rate
+        if due > now:
+            time.sleep(due - now)
 
 
 def _with_latency(estimate: Estimate, frame: Frame) -> Estimate:
@@ -120,6 +143,25 @@ def _with_latency(estimate: Estimate, frame: Frame) -> Estimate:
     return replace(
         estimate, latency_s=time.monotonic() - frame.grabbed_s, grabbed_s=frame.grabbed_s
     )
+
+
+def _measured(
+    estimator: PerchingEstimator, frame: Frame, description: str, first: bool
+) -> tuple[Estimate | None, str]:
+    """The estimate of ``frame`` (None without one) and what went wrong with it. A frame of
+    the wrong size is an error for the ``first`` frame with an image (every frame would be)
+    and a flagged row after it."""
+    if frame.stale:
+        return None, STALE
+    if frame.image is None:
+        return None, frame.error
+    try:
+        grey = estimator.camera.check_image(frame.image, f"{description}: {frame.name}")
+        return _with_latency(estimator.update(grey, frame.t_s), frame), frame.error
+    except ImageError as exc:
+        if first:
+            raise
+        return None, str(exc)
 
 
 def track(
@@ -133,13 +175,19 @@ def track(
     on_frame: Sequence[Callable[[Estimate | None, float], None]] = (),
     image_topic: str | None = None,
     view: FrameView | None = None,
+    rate: float | None = None,
+    camera_frame: str | None = None,
+    target_frame: str = TARGET_FRAME,
 ) -> TrackSummary:
     """Run ``estimator`` (its camera and target) over every frame of ``source`` and write one
     row per frame to ``out``; each estimate carries its latency from the frame's grab.
 
     ``image_topic``: the images' topic when ``source`` is a ROS bag (``perchpose.io.ros.rosbag``).
     ``view``: a live view (``perchpose.io.view.LiveView``) that gets every frame with its
-    overlay.
+    overlay. ``rate``: replay a recording at this many times the speed of its time stamps
+    (``Pacer``; None: as fast as it decodes). ``camera_frame``: the camera's frame id in bags
+    and the live view (default: the image's own, else ``camera``); ``target_frame``: the
+    target's.
     A live camera is grabbed on a thread of its own and the estimator always takes the newest
     frame: a frame overtaken before it was taken gets an invalid row saying it was stale (no
     warning each; the summary counts them).
@@ -153,8 +201,14 @@ def track(
         check_overlay_path(overlay)
     camera, target = estimator.camera, estimator.target
     frames = open_source(source, fps, camera.size, image_topic=image_topic)
+    if rate is not None and frames.live:
+        raise PerchposeError(
+            f"{frames.description}: --realtime and --rate replay recordings; a live source "
+            "already runs in real time"
+        )
+    pacer = None if rate is None else Pacer(rate)
     video = _Overlay(overlay, frames.fps)
-    writer = open_track_writer(out, target)
+    writer = open_track_writer(out, target, target_frame)
     # the overlay is drawn once a frame, for whichever of its users there are
     draw = overlay is not None or writer.wants_overlay or view is not None
     tally = _Tally()
@@ -169,20 +223,14 @@ def track(
             file=sys.stderr,
             leave=False,
         )
-        for frame in bar:
-            estimate: Estimate | None = None
-            error = frame.error
-            if frame.stale:
-                error = STALE
-            elif frame.image is not None:
-                try:
-                    grey = camera.check_image(frame.image, f"{frames.description}: {frame.name}")
-                    estimate = _with_latency(estimator.update(grey, frame.t_s), frame)
-                except ImageError as exc:
-                    if first_good:
-                        raise
-                    error = str(exc)
-                first_good = False
+        for read in bar:
+            frame = read
+            if pacer is not None:
+                pacer.wait(frame.t_s)
+                frame = replace(frame, grabbed_s=time.monotonic())
+            stamp = Stamp.of(frame, camera_frame)
+            estimate, error = _measured(estimator, frame, frames.description, first_good)
+            first_good = first_good and frame.image is None
             if error and not frame.stale:
                 print(f"warning: {error}", file=sys.stderr)
             picture = None
@@ -190,12 +238,12 @@ def track(
                 note = f"t {frame.t_s:.2f} s"
                 picture = draw_overlay(frame.image, estimate, camera, note=note)
             row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)
-            writer.write_frame(row, estimate, frame.t_s, picture)
+            writer.write_frame(row, estimate, stamp, picture)
             tally.add(estimate, error, frame.stale)
             for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
                 hook(estimate, frame.t_s)
             if view is not None and not frame.stale:
-                view.publish(frame.t_s, estimate, picture)
+                view.publish(stamp, estimate, picture)
             video.write(picture)
     finally:
         writer.close()

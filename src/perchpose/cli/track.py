@@ -26,7 +26,11 @@ from perchpose.target import TargetSpec
 
 @contextmanager
 def _live_view(
-    wanted: bool, port: int, target: TargetSpec, origins: tuple[str, ...] = ()
+    wanted: bool,
+    port: int,
+    target: TargetSpec,
+    origins: tuple[str, ...] = (),
+    target_frame: str = "target",
 ) -> Iterator[Any]:
     """The live view when asked for (imported only then), closed at the end."""
     if not wanted:
@@ -34,7 +38,9 @@ def _live_view(
         return
     from perchpose.io.view import LiveView
 
-    view = LiveView(target, port=port, allowed_origins=origins, report=warn)
+    view = LiveView(
+        target, port=port, allowed_origins=origins, report=warn, target_frame=target_frame
+    )
     warn(f"live view for Foxglove at ws://127.0.0.1:{view.port}")
     try:
         yield view
@@ -173,6 +179,30 @@ def _camera(source: str, camera_file: str | None, camera_info_topic: str | None)
     help="Also let web pages of this Origin connect to the live view (repeatable; pages of "
     "other origins are refused, so that no web page opened on this machine can read it).",
 )
+@click.option(
+    "--realtime",
+    is_flag=True,
+    help="Replay a recording (folder, video, bag) at the rate its time stamps say, for the "
+    "live view and the vehicle links (same as --rate 1).",
+)
+@click.option(
+    "--rate",
+    type=float,
+    default=None,
+    help="Replay a recording at this many times its recorded speed (0.5: half speed).",
+)
+@click.option(
+    "--camera-frame",
+    default=None,
+    help="The camera's frame id in bags and the live view (default: the image's own frame "
+    "id, else 'camera').",
+)
+@click.option(
+    "--target-frame",
+    default="target",
+    show_default=True,
+    help="The target's frame id in /tf (bags, live view).",
+)
 @budget_option(
     "Time budget per frame: past it the detection leaves out what it can (a pattern fit, "
     "a whole-frame search) and the track file's 'skipped' column says what."
@@ -200,6 +230,10 @@ def track(
     view: bool,
     view_port: int,
     view_origins: tuple[str, ...],
+    realtime: bool,
+    rate: float | None,
+    camera_frame: str | None,
+    target_frame: str,
 ) -> None:
     """Track the target in SOURCE: a folder of images, a glob, a video file, a camera index,
     a network stream (rtsp://, udp://, http://...; reopened when it drops), or a ROS bag
@@ -217,6 +251,10 @@ def track(
     if asked and mavlink_url is None:
         flag = asked[0]
         raise click.UsageError(f"{flag} needs --mavlink URL (the autopilot's link).")
+    if realtime and rate is not None and rate != 1.0:
+        raise click.UsageError("--realtime is --rate 1: give one of them.")
+    if realtime:
+        rate = 1.0
     from perchpose.app.links import LinkOptions, vehicle_links
     from perchpose.app.track import track as run_track
     from perchpose.estimator import PerchingEstimator
@@ -233,7 +271,7 @@ def track(
     if overlay is not None:
         check_overlay_path(overlay)  # before any vehicle link takes over
     with (
-        _live_view(view, view_port, spec, view_origins) as live,
+        _live_view(view, view_port, spec, view_origins, target_frame) as live,
         vehicle_links(
             spec,
             LinkOptions(
@@ -259,6 +297,9 @@ def track(
             on_frame=hooks,
             image_topic=image_topic,
             view=live,
+            rate=rate,
+            camera_frame=camera_frame,
+            target_frame=target_frame,
         )
     stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
     extra = ""

@@ -24,6 +24,10 @@ class Frame:
         decoded) or read (files); the start of its latency.
     stale : a live camera's frame that was dropped unprocessed because a newer one was ready
         (``image`` is None).
+    stamp_ns : the source's own stamp in integer nanoseconds (a bag's or a ROS message's
+        header), which outputs carry exactly; None where the source has none (``t_s`` then
+        gives it, ``stamp_ns``).
+    frame_id : the camera's frame id as the source names it (a ROS header's), or "".
     """
 
     index: int
@@ -34,13 +38,18 @@ class Frame:
     file: str = ""
     grabbed_s: float = math.nan
     stale: bool = False
+    stamp_ns: int | None = None
+    frame_id: str = ""
 
 
 class FrameSource:
     """Iterable of ``Frame``; ``count`` is the number of frames when known in advance.
     ``lost`` counts the frames that could not be decoded (each still yields a ``Frame`` with
     ``image`` None and the reason in ``error``); ``stale`` a live camera's frames dropped for
-    a newer one (each yields a ``Frame`` with ``stale`` set)."""
+    a newer one (each yields a ``Frame`` with ``stale`` set). ``live``: a camera or stream,
+    which runs in real time (a recording does not)."""
+
+    live = False
 
     def __init__(self, description: str, count: int | None, fps: float) -> None:
         self.description = description
@@ -56,3 +65,31 @@ class FrameSource:
 def stamp_ns(t_s: float) -> int:
     """A frame time as a message stamp: integer nanoseconds, never negative."""
     return max(0, round(t_s * 1e9))
+
+
+CAMERA_FRAME = "camera"
+TARGET_FRAME = "target"
+
+
+@dataclass(frozen=True)
+class Stamp:
+    """A frame's time and frame as its outputs (bags, the live view, ROS messages) carry them:
+    ``t_s`` seconds (CSV rows), ``t_ns`` the source's integer nanoseconds, never rebuilt from
+    ``t_s`` where the source gave its own, and the camera's ``frame_id``."""
+
+    t_s: float
+    t_ns: int
+    frame_id: str = CAMERA_FRAME
+
+    @staticmethod
+    def of(frame: Frame, camera_frame: str | None = None) -> Stamp:
+        """``frame``'s stamp, in ``camera_frame`` if given, else the frame id the source gave,
+        else ``camera``."""
+        t_ns = stamp_ns(frame.t_s) if frame.stamp_ns is None else frame.stamp_ns
+        return Stamp(frame.t_s, t_ns, camera_frame or frame.frame_id or CAMERA_FRAME)
+
+    @property
+    def sec_nanosec(self) -> tuple[int, int]:
+        """(sec, nanosec) of a ROS or Foxglove time stamp."""
+        sec, nanosec = divmod(self.t_ns, 1_000_000_000)
+        return sec, nanosec

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import PerchposeError
+from perchpose.io.frames import Stamp
 from perchpose.target import TargetSpec
 from perchpose.values import POSE_COLUMNS, Estimate
 
@@ -30,20 +31,11 @@ class TrackWriter(Protocol):
         self,
         row: dict[str, Any],
         estimate: Estimate | None,
-        t_s: float,
+        stamp: Stamp,
         overlay: NDArray[np.uint8] | None = None,
     ) -> None: ...
 
     def close(self) -> None: ...
-
-
-def open_track_writer(out: str | Path, target: TargetSpec) -> TrackWriter:
-    """A ``.csv`` or ``.jsonl`` pose file, or a ROS 2 bag for ``.mcap`` or a folder name."""
-    from perchpose.io.ros.bag_writer import BagWriter, is_bag_output
-
-    if is_bag_output(out):
-        return BagWriter(out)
-    return PoseWriter(out, target)
 
 
 def raw_columns(target: TargetSpec) -> tuple[str, ...]:
@@ -196,7 +188,7 @@ class PoseWriter:
         if self._csv is not None:
             self._csv.writerow(row)
         else:
-            self._buffer.write(json.dumps({k: _json_value(v) for k, v in row.items()}) + "\n")
+            self._buffer.write(json.dumps(track_json(row)) + "\n")
         self._commit()
         self.rows += 1
 
@@ -206,7 +198,7 @@ class PoseWriter:
         self,
         row: dict[str, Any],
         estimate: Estimate | None,
-        t_s: float,
+        stamp: Stamp,
         overlay: NDArray[np.uint8] | None = None,
     ) -> None:
         """Append one frame's row (what else a frame brings goes into bags only)."""
@@ -227,14 +219,20 @@ class PoseWriter:
         self.close()
 
 
+def track_json(row: dict[str, Any]) -> dict[str, Any]:
+    """A track row as JSON takes it: numbers as numbers, an empty cell as null."""
+    return {key: _json_value(value) for key, value in row.items()}
+
+
 def _json_value(value: Any) -> Any:
     if value == "":
         return None
     if isinstance(value, str):
-        try:
-            return float(value)
-        except ValueError:
-            return value
+        for kind in (int, float):
+            try:
+                return kind(value)
+            except ValueError:
+                pass
     return value
 
 

@@ -1,15 +1,22 @@
 """A live view in Foxglove (``perchpose track ... --view``; the ``[view]`` extra): a Foxglove
 WebSocket server (``foxglove-sdk``) that Foxglove connects to at ``ws://HOST:PORT``.
 
-Channels, per frame, stamped with the frame's capture time:
+Channels, per frame, stamped with the frame's own stamp (``io.frames.Stamp``: a bag's or ROS
+message's integer nanoseconds, exactly; else its capture time), in the camera's frame
+(``--camera-frame``, else the image's frame id, else ``camera``):
 - ``/perchpose/overlay``: ``foxglove.CompressedImage`` (JPEG), the overlay the ``--overlay``
-  video shows, in the frame ``camera``;
-- ``/perchpose/pose``: ``foxglove.PoseInFrame``, the target in ``camera`` (valid frames);
-- ``/tf``: ``foxglove.FrameTransforms``, ``camera`` -> ``target`` (valid frames);
+  video shows;
+- ``/perchpose/pose``: ``foxglove.PoseInFrame``, the target in the camera's frame (valid
+  frames);
+- ``/tf``: ``foxglove.FrameTransforms``, the camera's frame -> the target's (``--target-frame``,
+  default ``target``; valid frames);
 - ``/perchpose/scene``: ``foxglove.SceneUpdate``, the target's plate (the printed sheet) and
-  its largest marker in ``target``, for the 3D panel (valid frames);
+  its largest marker in the target's frame, for the 3D panel (valid frames);
 - ``/perchpose/estimate``: JSON ``{t_s, valid, stage, x_cm, y_cm, z_cm, yaw_deg, roll_deg,
-  pitch_deg, latency_ms}`` for the Plot panel (every frame).
+  pitch_deg, latency_ms, predicted, age_s, measured}`` for the Plot panel (every frame):
+  ``predicted`` whether the pose is the filter's prediction with no marker measured in this
+  frame, ``age_s`` the age of the newest measurement behind it, ``measured`` the markers
+  measured (``m0+m1``).
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ from numpy.typing import NDArray
 
 from perchpose.errors import PerchposeError
 from perchpose.geometry import quaternion_xyzw
-from perchpose.io.frames import stamp_ns
+from perchpose.io.frames import TARGET_FRAME, Stamp
 from perchpose.io.overlay import encode_jpeg
 from perchpose.io.view_gate import OriginGate
 from perchpose.target import TargetSpec
@@ -45,9 +52,14 @@ ESTIMATE_SCHEMA = {
             "roll_deg",
             "pitch_deg",
             "latency_ms",
+            "age_s",
         )
     }
-    | {"valid": {"type": "boolean"}},
+    | {
+        "valid": {"type": "boolean"},
+        "predicted": {"type": "boolean"},
+        "measured": {"type": "string"},
+    },
 }
 
 
@@ -77,9 +89,11 @@ class LiveView:
         host: str = "127.0.0.1",
         allowed_origins: tuple[str, ...] = (),
         report: Callable[[str], None] | None = None,
+        target_frame: str = TARGET_FRAME,
     ) -> None:
         fox = _foxglove()
         self.target = target
+        self.target_frame = target_frame
         self.m = importlib.import_module("foxglove.messages")
         channels = importlib.import_module("foxglove.channels")
         try:  # on loopback only: every client comes through the gate
@@ -100,26 +114,29 @@ class LiveView:
             "/perchpose/estimate", schema=ESTIMATE_SCHEMA, message_encoding="json"
         )
 
-    def _stamp(self, t_s: float) -> Any:
-        sec, nsec = divmod(stamp_ns(t_s), 1_000_000_000)
-        return self.m.Timestamp(sec=sec, nsec=nsec)
-
     def publish(
-        self, t_s: float, estimate: Estimate | None, overlay: NDArray[np.uint8] | None
+        self, stamp: Stamp, estimate: Estimate | None, overlay: NDArray[np.uint8] | None
     ) -> None:
         """One frame: its overlay (drawn by the caller), and its pose, transform and scene
         when valid."""
         m = self.m
-        stamp = self._stamp(t_s)
+        sec, nsec = stamp.sec_nanosec
+        time = m.Timestamp(sec=sec, nsec=nsec)
         jpeg = None if overlay is None else encode_jpeg(overlay, 80)
         if jpeg is not None:
             self.image.log(
-                m.CompressedImage(timestamp=stamp, frame_id="camera", data=jpeg, format="jpeg")
+                m.CompressedImage(timestamp=time, frame_id=stamp.frame_id, data=jpeg, format="jpeg")
             )
         valid = estimate is not None and estimate.valid
-        row: dict[str, Any] = {"t_s": t_s, "valid": valid}
+        row: dict[str, Any] = {"t_s": stamp.t_s, "valid": valid}
+        if estimate is not None:
+            row |= {
+                "predicted": bool(estimate.predicted),
+                "age_s": _finite(estimate.age_s),
+                "measured": estimate.measured_label,
+            }
         if estimate is not None and valid:
-            self._pose(estimate, stamp)
+            self._pose(estimate, time, stamp.frame_id)
             row |= {
                 "stage": estimate.stage,
                 "x_cm": _finite(estimate.x_cm),
@@ -132,7 +149,7 @@ class LiveView:
             }
         self.estimate.log(json.dumps(row).encode())
 
-    def _pose(self, estimate: Estimate, stamp: Any) -> None:
+    def _pose(self, estimate: Estimate, stamp: Any, camera_frame: str) -> None:
         m = self.m
         T = estimate.T_camera_target
         qx, qy, qz, qw = quaternion_xyzw(T[:3, :3])
@@ -140,11 +157,11 @@ class LiveView:
         pose = m.Pose(
             position=m.Vector3(x=x, y=y, z=z), orientation=m.Quaternion(x=qx, y=qy, z=qz, w=qw)
         )
-        self.pose.log(m.PoseInFrame(timestamp=stamp, frame_id="camera", pose=pose))
+        self.pose.log(m.PoseInFrame(timestamp=stamp, frame_id=camera_frame, pose=pose))
         transform = m.FrameTransform(
             timestamp=stamp,
-            parent_frame_id="camera",
-            child_frame_id="target",
+            parent_frame_id=camera_frame,
+            child_frame_id=self.target_frame,
             translation=m.Vector3(x=x, y=y, z=z),
             rotation=m.Quaternion(x=qx, y=qy, z=qz, w=qw),
         )
@@ -167,7 +184,9 @@ class LiveView:
                 color=m.Color(r=0.1, g=0.1, b=0.1, a=0.9),
             ),
         ]
-        entity = m.SceneEntity(timestamp=stamp, frame_id="target", id="target", cubes=cubes)
+        entity = m.SceneEntity(
+            timestamp=stamp, frame_id=self.target_frame, id="target", cubes=cubes
+        )
         self.scene.log(m.SceneUpdate(entities=[entity]))
 
     def close(self) -> None:

@@ -12,6 +12,7 @@ pytest.importorskip("rosbags")
 
 from rosbags.highlevel import AnyReader
 
+from perchpose.io.frames import Stamp, stamp_ns
 from perchpose.io.ros.bag_writer import SEGMENT_S, TRACK_TOPIC
 from perchpose.values import Estimate
 
@@ -35,12 +36,13 @@ def test_a_killed_run_keeps_every_part_but_the_last(tmp_path: Path) -> None:
     frames = int(SECONDS * FPS)
     code = f"""
 import os
+from perchpose.io.frames import Stamp, stamp_ns
 from perchpose.io.ros.bag_writer import BagWriter
 from perchpose.values import Estimate
 writer = BagWriter({str(out)!r})
 for k in range({frames}):
     t = k / {FPS}
-    writer.write_frame({{"frame": k}}, Estimate.none(t), t)
+    writer.write_frame({{"frame": k}}, Estimate.none(t), Stamp(t, stamp_ns(t)))
 os._exit(9)  # killed outright: nothing closed, nothing flushed by Python
 """
     result = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True)
@@ -62,7 +64,8 @@ def test_a_run_that_ends_joins_its_parts(tmp_path: Path) -> None:
     writer = BagWriter(out)
     frames = int(SECONDS * FPS)
     for k in range(frames):
-        writer.write_frame({"frame": k}, Estimate.none(k / FPS), k / FPS)
+        t = k / FPS
+        writer.write_frame({"frame": k}, Estimate.none(t), Stamp(t, stamp_ns(t)))
     writer.close()
     assert out.is_file()
     assert not (tmp_path / "run.mcap.parts").exists()

@@ -26,8 +26,9 @@ T0_NS = 1_700_000_000_000_000_000
 class Bag:
     """Writes a bag of one kind: ``ros1``, ``sqlite3`` or ``mcap``."""
 
-    def __init__(self, path: Path, kind: str) -> None:
+    def __init__(self, path: Path, kind: str, frame_id: str = "camera") -> None:
         self.kind = kind
+        self.frame_id = frame_id
         self.ros1 = kind == "ros1"
         self.ts = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
         if self.ros1:
@@ -42,9 +43,9 @@ class Bag:
         types = self.ts.types
         if self.ros1:
             stamp = types["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9)
-            return types["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="camera")
+            return types["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=self.frame_id)
         stamp = types["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9)
-        return types["std_msgs/msg/Header"](stamp=stamp, frame_id="camera")
+        return types["std_msgs/msg/Header"](stamp=stamp, frame_id=self.frame_id)
 
     def write(self, topic: str, msg: Any, t_ns: int) -> None:
         msgtype = msg.__msgtype__
@@ -296,7 +297,10 @@ def test_a_track_written_as_a_bag_reads_back_as_its_csv(
     assert tf.transforms[0].child_frame_id == "target"
     texts = [json.loads(m.data) for _, m in by_topic[TRACK_TOPIC]]
     assert [int(t["frame"]) for t in texts] == [int(r["frame"]) for r in rows]
-    assert [str(t["stage"]) for t in texts] == [r["stage"] for r in rows]
+    assert [t["stage"] for t in texts] == [int(r["stage"]) for r in rows]  # numbers as numbers
+    predicted = [t["predicted"] for t in texts if t["valid"] == 1]
+    assert predicted  # an invalid row leaves it empty
+    assert all(p in (0, 1) for p in predicted)
     (_, overlay), *_ = by_topic[OVERLAY_TOPIC]
     image = cv2.imdecode(np.asarray(overlay.data, np.uint8), cv2.IMREAD_COLOR)
     assert image.shape == (480, 640, 3)
@@ -372,3 +376,53 @@ def test_a_bare_mcap_cut_short_is_read_up_to_the_damage(
     assert all(r["valid"] == "1" for r in rows)
     assert [int(r["frame"]) for r in rows] == list(range(len(rows)))
     assert any("cut.mcap: cut short" in m for m in caplog.messages)
+
+
+@pytest.mark.parametrize(
+    ("frames_args", "camera_frame", "target_frame"),
+    [
+        ((), "camera_optical_frame", "target"),
+        (("--camera-frame", "cam", "--target-frame", "plate"), "cam", "plate"),
+    ],
+)
+def test_every_output_carries_its_image_s_exact_stamp_and_frame(
+    approach_webcam_dir: Path,
+    tmp_path: Path,
+    frames_args: tuple[str, ...],
+    camera_frame: str,
+    target_frame: str,
+) -> None:
+    """Stamps 1700000000.123456789 s + k/30 s (not a float's worth of nanoseconds) and the
+    image's frame id come back exactly on every pose, transform, overlay and row of the bag
+    written; --camera-frame and --target-frame name them instead."""
+    from rosbags.highlevel import AnyReader
+
+    from perchpose.io.ros.bag_writer import OVERLAY_TOPIC, POSE_TOPIC, TF_TOPIC, TRACK_TOPIC
+
+    source = Bag(tmp_path / "in.mcap", "mcap", frame_id="camera_optical_frame")
+    stamps = [T0_NS + 123_456_789 + k * 33_333_333 for k in range(FRAMES)]
+    for t_ns, bgr in zip(stamps, _frames(approach_webcam_dir), strict=True):
+        source.image("/camera/image_raw", bgr, "bgr8", t_ns)
+    source.close()
+    out = tmp_path / "run.mcap"
+    camera = str(approach_webcam_dir / "camera.yaml")
+    args = ["track", str(tmp_path / "in.mcap"), "--image-topic", "/camera/image_raw"]
+    assert main([*args, "--camera", camera, "--out", str(out), "--quiet", *frames_args]) == 0
+    with AnyReader([out]) as reader:
+        by_topic: dict[str, list[Any]] = {}
+        for connection, t_ns, raw in reader.messages():
+            msg = reader.deserialize(raw, connection.msgtype)
+            by_topic.setdefault(connection.topic, []).append((t_ns, msg))
+    assert [t_ns for t_ns, _ in by_topic[TRACK_TOPIC]] == stamps
+    assert len(by_topic[POSE_TOPIC]) > FRAMES // 2
+    for topic in (POSE_TOPIC, OVERLAY_TOPIC):
+        for t_ns, msg in by_topic[topic]:
+            header_ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            assert header_ns == t_ns
+            assert t_ns in stamps
+            assert msg.header.frame_id == camera_frame
+    for t_ns, tf in by_topic[TF_TOPIC]:
+        (transform,) = tf.transforms
+        assert transform.header.frame_id == camera_frame
+        assert transform.child_frame_id == target_frame
+        assert transform.header.stamp.sec * 10**9 + transform.header.stamp.nanosec == t_ns

@@ -2,15 +2,18 @@
 run.mcap`` makes one MCAP file, which Foxglove and ``ros2 bag`` open; any other name a ROS 2
 bag folder with MCAP storage.
 
-Per frame (stamped with the frame's capture time, in the camera's frame ``camera``):
+Per frame, stamped with the frame's own stamp (a bag's or ROS message's integer nanoseconds,
+exactly; else its capture time) in the camera's frame (``--camera-frame``, else the image's
+frame id, else ``camera``):
 - ``/perchpose/pose``: ``geometry_msgs/PoseWithCovarianceStamped``, the target in the camera
   frame with ``Estimate.covariance`` (ROS's order, x y z then rotation about the frame's axes),
   on frames with a valid pose;
-- ``/tf``: ``tf2_msgs/TFMessage``, ``camera`` -> ``target``, on the same frames;
+- ``/tf``: ``tf2_msgs/TFMessage``, the camera's frame -> ``target`` (``--target-frame``), on
+  the same frames;
 - ``/perchpose/overlay/compressed``: ``sensor_msgs/CompressedImage`` (JPEG), the overlay the
   ``--overlay`` video shows, on every frame with an image;
 - ``/perchpose/track``: ``std_msgs/String``, the frame's track row as JSON (stage, markers,
-  timings, errors), on every frame.
+  ``predicted``, ``age_s``, ``measured``, timings, errors; numbers as numbers), on every frame.
 
 A bag's index and metadata are written when it is closed, so a run killed outright (a power
 loss) would leave nothing readable. The writer therefore writes ``SEGMENT_S`` of frames at a
@@ -32,9 +35,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import PerchposeError
-from perchpose.geometry import quaternion_xyzw
-from perchpose.io.frames import stamp_ns
+from perchpose.io.frames import TARGET_FRAME, Stamp
 from perchpose.io.overlay import encode_jpeg
+from perchpose.io.ros.messages import pose_fields
+from perchpose.io.sinks import track_json
 from perchpose.values import Estimate
 
 POSE_TOPIC = "/perchpose/pose"
@@ -42,8 +46,6 @@ TF_TOPIC = "/tf"
 OVERLAY_TOPIC = "/perchpose/overlay/compressed"
 TRACK_TOPIC = "/perchpose/track"
 SEGMENT_S = 10.0  # of frame time per part: what a killed run can lose
-CAMERA_FRAME = "camera"
-TARGET_FRAME = "target"
 
 
 def is_bag_output(path: str | Path) -> bool:
@@ -65,8 +67,9 @@ class BagWriter:
 
     wants_overlay = True
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, target_frame: str = TARGET_FRAME) -> None:
         self.path = Path(path)
+        self.target_frame = target_frame
         rosbag2 = _rosbags("rosbags.rosbag2")
         typesys = _rosbags("rosbags.typesys")
         self.ts = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
@@ -115,65 +118,63 @@ class BagWriter:
             self._connections[topic] = self.writer.add_connection(topic, msgtype, typestore=self.ts)
         self.writer.write(self._connections[topic], t_ns, self.ts.serialize_cdr(msg, msgtype))
 
-    def _header(self, t_s: float, frame_id: str = CAMERA_FRAME) -> Any:
-        sec, nanosec = divmod(stamp_ns(t_s), 1_000_000_000)
-        stamp = self.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
-        return self.types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+    def _header(self, stamp: Stamp, frame_id: str) -> Any:
+        sec, nanosec = stamp.sec_nanosec
+        time = self.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+        return self.types["std_msgs/msg/Header"](stamp=time, frame_id=frame_id)
 
     def write_frame(
         self,
         row: dict[str, Any],
         estimate: Estimate | None,
-        t_s: float,
+        stamp: Stamp,
         overlay: NDArray[np.uint8] | None = None,
     ) -> None:
         """One frame: its row, its pose and transform when valid, its overlay (drawn by the
-        caller) when it has one."""
-        t_ns = stamp_ns(t_s)
+        caller) when it has one; each message stamped with the frame's own stamp."""
         types = self.types
         try:
-            self._next_part_if_due(t_s)
+            self._next_part_if_due(stamp.t_s)
             if estimate is not None and estimate.valid:
-                self._pose(estimate, t_s, t_ns)
+                self._pose(estimate, stamp)
             jpeg = None if overlay is None else encode_jpeg(overlay, 90)
             if jpeg is not None:
                 msg = types["sensor_msgs/msg/CompressedImage"](
-                    header=self._header(t_s), format="jpeg", data=np.frombuffer(jpeg, np.uint8)
+                    header=self._header(stamp, stamp.frame_id),
+                    format="jpeg",
+                    data=np.frombuffer(jpeg, np.uint8),
                 )
-                self._write(OVERLAY_TOPIC, msg, t_ns)
-            text = json.dumps(dict(row), default=str)
-            self._write(TRACK_TOPIC, types["std_msgs/msg/String"](data=text), t_ns)
+                self._write(OVERLAY_TOPIC, msg, stamp.t_ns)
+            text = json.dumps(track_json(row))
+            self._write(TRACK_TOPIC, types["std_msgs/msg/String"](data=text), stamp.t_ns)
         except OSError as exc:
             raise PerchposeError(f"{self.path}: cannot write ({exc.strerror})") from exc
         self.rows += 1
 
-    def _pose(self, estimate: Estimate, t_s: float, t_ns: int) -> None:
+    def _pose(self, estimate: Estimate, stamp: Stamp) -> None:
         types = self.types
-        T = estimate.T_camera_target
-        qx, qy, qz, qw = quaternion_xyzw(T[:3, :3])
-        x, y, z = (float(v) for v in T[:3, 3])
+        fields = pose_fields(estimate)
+        x, y, z = fields.position
+        qx, qy, qz, qw = fields.orientation
         point = types["geometry_msgs/msg/Point"](x=x, y=y, z=z)
         quaternion = types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)
-        covariance = estimate.covariance
-        if not np.all(np.isfinite(covariance)):
-            covariance = np.zeros((6, 6))  # unknown: ROS's convention for "not given"
         pose = types["geometry_msgs/msg/PoseWithCovariance"](
             pose=types["geometry_msgs/msg/Pose"](position=point, orientation=quaternion),
-            covariance=np.asarray(covariance, np.float64).reshape(-1),
+            covariance=fields.covariance,
         )
         stamped = types["geometry_msgs/msg/PoseWithCovarianceStamped"](
-            header=self._header(t_s), pose=pose
+            header=self._header(stamp, stamp.frame_id), pose=pose
         )
-        self._write(POSE_TOPIC, stamped, t_ns)
+        self._write(POSE_TOPIC, stamped, stamp.t_ns)
         transform = types["geometry_msgs/msg/TransformStamped"](
-            header=self._header(t_s),
-            child_frame_id=TARGET_FRAME,
+            header=self._header(stamp, stamp.frame_id),
+            child_frame_id=self.target_frame,
             transform=types["geometry_msgs/msg/Transform"](
                 translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
                 rotation=quaternion,
             ),
         )
-        self._write(TF_TOPIC, types["tf2_msgs/msg/TFMessage"](transforms=[transform]), t_ns)
+        self._write(TF_TOPIC, types["tf2_msgs/msg/TFMessage"](transforms=[transform]), stamp.t_ns)
 
     def close(self) -> None:
         """Finish the bag: the parts joined into one (for ``.mcap``, its one file moved into

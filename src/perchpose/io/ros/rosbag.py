@@ -20,19 +20,15 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
-from numpy.typing import NDArray
-
 from perchpose.camera import CameraModel
 from perchpose.errors import SourceError
 from perchpose.io.frames import Frame, FrameSource
+from perchpose.io.ros.messages import camera_info_fields, header_stamp_ns, image_of, supported
 
 log = logging.getLogger(__name__)
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-ENCODINGS = ("mono8", "mono16", "bgr8", "rgb8", "bgra8", "rgba8")
 BAG_SUFFIXES = (".bag", ".mcap")
 
 
@@ -104,52 +100,9 @@ def _connection(reader: Any, path: Path, topic: str, kinds: tuple[str, ...], wha
     return found[0]
 
 
-def _stamp_s(msg: Any, bag_time_ns: int) -> float:
-    stamp = msg.header.stamp
-    seconds = int(getattr(stamp, "sec", getattr(stamp, "secs", 0)))
-    nanoseconds = int(getattr(stamp, "nanosec", getattr(stamp, "nsecs", 0)))
-    if seconds == 0 and nanoseconds == 0:
-        return bag_time_ns * 1e-9
-    return seconds + nanoseconds * 1e-9
-
-
-def supported(msg: Any) -> bool:
-    """A ``CompressedImage``, or an ``Image`` whose encoding perchpose reads."""
-    return hasattr(msg, "format") or str(msg.encoding).lower() in ENCODINGS
-
-
-def image_of(msg: Any, where: str) -> NDArray[np.uint8]:
-    """The grey or BGR uint8 image of an ``Image`` or ``CompressedImage`` message."""
-    if hasattr(msg, "format"):  # CompressedImage
-        data = np.frombuffer(bytes(msg.data), np.uint8)
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise SourceError(f"{where}: the compressed image ({msg.format}) cannot be decoded")
-        if image.dtype == np.uint16:
-            image = (image // 256).astype(np.uint8)
-        return np.asarray(image, np.uint8)
-    encoding = str(msg.encoding).lower()
-    if encoding not in ENCODINGS:
-        raise SourceError(
-            f"{where}: image encoding {msg.encoding!r} is not supported ({', '.join(ENCODINGS)})"
-        )
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    channels = {"mono8": 1, "mono16": 1, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}[encoding]
-    depth = 2 if encoding == "mono16" else 1
-    raw = np.frombuffer(bytes(msg.data), np.uint8)
-    if step < w * channels * depth or raw.size < h * step:
-        raise SourceError(f"{where}: the image's data is shorter than {h} rows of {step} bytes")
-    rows = raw[: h * step].reshape(h, step)[:, : w * channels * depth]
-    if depth == 2:
-        dtype = ">u2" if int(msg.is_bigendian) else "<u2"
-        grey16 = rows.copy().view(dtype).reshape(h, w)
-        return (grey16 // 256).astype(np.uint8)
-    image = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
-    if encoding == "rgb8":
-        image = image[:, :, ::-1]
-    elif encoding in ("bgra8", "rgba8"):
-        image = image[:, :, [2, 1, 0]] if encoding == "rgba8" else image[:, :, :3]
-    return np.ascontiguousarray(image, np.uint8)
+def _stamp_ns(msg: Any, bag_time_ns: int) -> int:
+    """The message's header stamp, or the bag's receive time where the stamp is zero."""
+    return header_stamp_ns(msg.header) or bag_time_ns
 
 
 class BagSource(FrameSource):
@@ -201,7 +154,8 @@ class BagSource(FrameSource):
         except Exception as exc:  # bytes that are not the message they claim to be
             why = f"{where}: cannot be deserialized ({_first_line(exc)}); skipped"
             return Frame(index, fallback_t_s, None, name, why, file)
-        t_s = _stamp_s(msg, bag_time_ns)
+        t_ns = _stamp_ns(msg, bag_time_ns)
+        t_s = t_ns / 1_000_000_000
         if t_s < last_t_s:
             why = (
                 f"{where}: its stamp goes back {1000 * (last_t_s - t_s):.1f} ms from the frame "
@@ -214,7 +168,17 @@ class BagSource(FrameSource):
             if not supported(msg):
                 raise  # the topic's encoding, not this message: no frame of it can be read
             return Frame(index, t_s, None, name, f"{exc}; skipped", file)  # cut data
-        return Frame(index, t_s, image, name, file=file, grabbed_s=time.monotonic())
+        frame_id = str(getattr(msg.header, "frame_id", ""))
+        return Frame(
+            index,
+            t_s,
+            image,
+            name,
+            file=file,
+            grabbed_s=time.monotonic(),
+            stamp_ns=t_ns,
+            frame_id=frame_id,
+        )
 
 
 def camera_from_bag(path: str | Path, topic: str | None = None) -> CameraModel:
@@ -235,15 +199,7 @@ def camera_from_bag(path: str | Path, topic: str | None = None) -> CameraModel:
         connection = _connection(reader, where, topic, (CAMERA_INFO_TYPE,), "CameraInfo")
         for conn, _, raw in reader.messages(connections=[connection]):
             msg = reader.deserialize(raw, conn.msgtype)
-            # ROS 2 names its fields k and d; ROS 1, K and D
-            data = {
-                "k": [float(v) for v in getattr(msg, "k", getattr(msg, "K", []))],
-                "d": [float(v) for v in getattr(msg, "d", getattr(msg, "D", []))],
-                "distortion_model": str(msg.distortion_model) or "plumb_bob",
-                "width": int(msg.width),
-                "height": int(msg.height),
-                "camera_name": topic,
-            }
+            data = camera_info_fields(msg, topic)
             return CameraModel.from_camera_info(data, f"{where} {topic}")
         raise SourceError(f"{where}: topic {topic!r} holds no message")
     finally:
