@@ -11,6 +11,7 @@ from perchpose.cli import (  # noqa: F401  (each module registers its command on
     evaluate,
     fit_fusion,
     perch,
+    ros2,
     simulate,
     target,
     track,

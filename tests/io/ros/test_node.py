@@ -1,0 +1,151 @@
+"""The ROS 2 node (``perchpose ros2``) against a real rclpy camera in another process."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perchpose.errors import PerchposeError
+from perchpose.io.ros.node import LatestImage, NodeSettings, NodeStats, _typed
+from perchpose.io.sinks import read_track_csv
+from perchpose.values import Estimate
+
+CAMERA = Path(__file__).with_name("ros2_camera.py")
+FRAMES = 16
+
+
+def test_the_newest_image_replaces_one_that_waits() -> None:
+    slot = LatestImage()
+    assert slot.put("a", 0.0) is False
+    assert slot.put("b", 1.0) is True  # "a" was never taken: dropped
+    assert slot.take(0.0) == ("b", 1.0)
+    assert slot.take(0.0) is None
+    slot.close()
+    assert slot.take(10.0) is None  # closed: no wait
+
+
+def test_diagnostics_say_what_happened_and_start_a_new_period() -> None:
+    stats = NodeStats()
+    for _ in range(3):
+        stats.count("received")
+    stats.count("dropped")
+    stats.took(Estimate.none(0.0), 0.020)
+    level, message, values = stats.report("")
+    assert (level, message) == (1, "no target in view")
+    assert values["dropped"] == "1"
+    assert values["stage_0"] == "1"
+    assert float(values["latency_p95_ms"]) == pytest.approx(20.0)
+    assert stats.report("camera_info")[:2] == (1, "waiting for camera_info")
+    assert stats.report("")[2]["dropped"] == "0"
+
+
+def test_parameters_are_checked_by_name() -> None:
+    assert _typed("budget_ms", 20, 0.0) == 20.0
+    with pytest.raises(PerchposeError, match="parameter budget_ms: a number"):
+        _typed("budget_ms", "fast", 0.0)
+    with pytest.raises(PerchposeError, match="parameter publish_overlay: true or false"):
+        _typed("publish_overlay", 1, False)
+    with pytest.raises(PerchposeError, match="image_transport"):
+        NodeSettings(image_transport="theora")
+    assert set(NodeSettings.defaults()) == set(NodeSettings.__dataclass_fields__)
+
+
+def _ros_env() -> dict[str, str]:
+    return os.environ | {
+        "ROS_DOMAIN_ID": str(random.Random().randint(1, 100)),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+    }
+
+
+def _fly(
+    frames: Path, tmp_path: Path, node_args: list[str], camera_args: list[str]
+) -> tuple[dict, str]:
+    """Run the node and the camera; what the camera heard, and the node's log."""
+    env = _ros_env()
+    remaps = ["-r", "camera_info:=/cam/camera_info"]
+    for topic in ("image_raw", "image_raw/compressed"):
+        # the whole images, as the camera sends them (sensor-data QoS drops their fragments
+        # here)
+        remaps += ["-r", f"{topic}:=/cam/{topic}"]
+        remaps += ["-p", f"qos_overrides./cam/{topic}.subscription.reliability:=reliable"]
+    node = subprocess.Popen(
+        [sys.executable, "-m", "perchpose", "ros2", "--ros-args", *remaps, *node_args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    out = tmp_path / "heard.json"
+    try:
+        subprocess.run(
+            [sys.executable, str(CAMERA), str(frames), str(FRAMES), str(out), *camera_args],
+            env=env,
+            check=True,
+            timeout=400,
+        )
+    finally:
+        node.terminate()
+        log, _ = node.communicate(timeout=30)
+    return json.loads(out.read_text()), log
+
+
+def test_every_pose_has_its_image_s_exact_stamp_and_frame_and_matches_the_truth(
+    approach_webcam_dir: Path, tmp_path: Path
+) -> None:
+    pytest.importorskip("rclpy")
+    heard, log = _fly(approach_webcam_dir, tmp_path, ["-p", "target_frame:=plate"], [])
+    sent, poses, tracks = heard["sent"], heard["poses"], heard["tracks"]
+    assert sent[0] % 10**9 == 123_456_789  # not a float's worth of nanoseconds
+    assert {t["stamp_ns"] for t in tracks} == set(sent), log
+    assert all(t["frame_id"] == "camera_optical_frame" for t in tracks)
+    assert len(poses) >= FRAMES - 1  # the first frames at 1.5 m: every one has a pose
+    truth = {
+        sent[k]: row
+        for k, row in enumerate(read_track_csv(approach_webcam_dir / "truth.csv")[:FRAMES])
+    }
+    for pose in poses:
+        assert pose["frame_id"] == "camera_optical_frame"
+        row = truth[pose["stamp_ns"]]
+        xyz_cm = np.array(pose["xyz"]) * 100
+        assert xyz_cm == pytest.approx([float(row[k]) for k in ("x_cm", "y_cm", "z_cm")], abs=2.0)
+        x, y, z, w = pose["q"]
+        yaw = math.degrees(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+        assert (yaw - float(row["yaw_deg"]) + 180) % 360 - 180 == pytest.approx(0, abs=2.0)
+        covariance = np.array(pose["covariance"]).reshape(6, 6)
+        assert np.all(np.linalg.eigvalsh(covariance) > 0)
+    reports = [d for d in heard["diagnostics"] if d["name"] == "perchpose: target pose"]
+    assert reports
+    assert sum(int(d["values"]["stage_1"]) + int(d["values"]["stage_2"]) for d in reports) > 0
+    assert all(d["level"] == 0 for d in reports if d["values"]["rate_hz"] != "0.00")
+
+
+def test_a_compressed_image_of_another_size_is_refused_with_a_log_and_the_rest_tracked(
+    approach_webcam_dir: Path, tmp_path: Path
+) -> None:
+    pytest.importorskip("rclpy")
+    heard, log = _fly(
+        approach_webcam_dir,
+        tmp_path,
+        ["-p", "camera_frame:=cam", "-p", "image_transport:=compressed"],
+        ["--odd-size", "3", "--compressed"],
+    )
+    stamps = {t["stamp_ns"] for t in heard["tracks"]}
+    assert heard["sent"][3] not in stamps
+    assert set(heard["sent"]) - stamps == {heard["sent"][3]}
+    assert all(p["frame_id"] == "cam" for p in heard["poses"])
+    assert len(heard["poses"]) >= FRAMES - 2
+    refusals = [line for line in log.splitlines() if "refused" in line]
+    assert len(refusals) == 1
+    assert "320x240" in refusals[0]
+    reports = heard["diagnostics"]
+    assert sum(int(d["values"]["refused"]) for d in reports) == 1  # sent once
+    assert [d["message"] for d in reports if d["level"] == 2] == ["1 image refused (see the log)"]
