@@ -182,13 +182,13 @@ class PerchingEstimator:
             None if self.budget_ms is None else t0 + self.budget_ms / 1e3 - self._after_detect_s
         )
         hint = extrapolated(self._hint, self._hint_t_s, self._earlier, self._earlier_t_s, t)
-        detections = self.detector.detect(grey, hint, deadline)
+        detected = self.detector.detect(grey, hint, deadline)
         self._earlier, self._earlier_t_s = self._hint, self._hint_t_s
-        self._hint, self._hint_t_s = detections, t
-        estimate = self._estimate(t, detections, t0, self.detector.corners_s)
+        self._hint, self._hint_t_s = detected.markers, t
+        estimate = self._estimate(t, detected.markers, t0, detected.corners_s)
         timings = estimate.timings
         self._after_detect_s = (timings.pose_ms + timings.filter_ms + timings.fuse_ms) / 1e3
-        skipped = tuple(self.detector.skipped)
+        skipped = detected.skipped
         return replace(estimate, skipped=skipped) if skipped else estimate
 
     def update_detections(self, detections: tuple[MarkerDetection, ...], t_s: float) -> Estimate:

@@ -30,7 +30,7 @@ def corner_errors(
         T = facing_pose(x, y, z, rng.uniform(-3, 3), rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3))
         image = renderer.render(T, quality, rng)
         truth = renderer.corners_px(T)
-        for det in detector.detect(image):
+        for det in detector.detect(image).markers:
             true = truth[det.marker_index]
             assert true is not None
             edges = detector.fit_corners(image, det)
@@ -157,7 +157,7 @@ def test_the_sheet_edge_near_the_border_enters_the_model(renderers: dict[str, Re
         T = facing_pose(rng.uniform(-0.05, 0.05) * z, 0.0, z, rng.uniform(-3, 3), 0.1, -0.1)
         image = r.render(T, quality)
         true = r.corners_px(T)[0]
-        (det,) = [d for d in detector.detect(image) if d.marker_index == 0]
+        (det,) = [d for d in detector.detect(image).markers if d.marker_index == 0]
         assert true is not None
         cells = r.target.markers[0].cells
         for out, m in ((with_margin, margins), (without, None)):
@@ -219,7 +219,7 @@ def test_the_corner_covariance_follows_the_corners_spread(renderers: dict[str, R
     errors, covariances = [], []
     for seed in range(60):
         image = renderer.render(T, ImageQuality(), np.random.default_rng(seed))
-        outer = next(d for d in detector.detect(image) if d.marker_index == 0)
+        outer = next(d for d in detector.detect(image).markers if d.marker_index == 0)
         fitted = detector.fit_corners(image, outer)
         assert fitted is not None
         assert fitted.corner_covariance_px2 is not None

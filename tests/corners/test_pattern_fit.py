@@ -36,7 +36,7 @@ def _outer_marker_edges(
     true = r.corners_px(T)[0]
     assert true is not None
     detector = MarkerDetector(r.camera, r.target, "subpix")
-    (det,) = [d for d in detector.detect(image) if d.marker_index == 0]
+    (det,) = [d for d in detector.detect(image).markers if d.marker_index == 0]
     cells = r.target.markers[0].cells
     margins = r.target.white_margin_cells(0)
     edges = fit_marker_edges(image, det.corners_px, r.camera, cells, margin_cells=margins)
@@ -138,7 +138,7 @@ def test_analog_markers_of_15_to_25_px_within_a_tenth_of_a_pixel(
             T = facing_pose(x, y, z, yaw, rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3))
             image = r.render(T, quality, rng)
             true = r.corners_px(T)[index]
-            dets = [d for d in subpix.detect(image) if d.marker_index == index]
+            dets = [d for d in subpix.detect(image).markers if d.marker_index == index]
             if true is None or not dets or not 15.0 <= dets[0].side_px < 25.0:
                 continue
             found += 1

@@ -21,7 +21,9 @@ def test_a_fit_that_requires_edges_runs_no_pattern_fit_without_them(
     T = facing_pose(0.01, 0.0, r.camera.focal_px * 0.15 / 22.0, 0.4)
     image = r.render(T, ImageQuality(blur_sigma_px=1.1, noise_sigma=2.0), np.random.default_rng(5))
     (det,) = [
-        d for d in MarkerDetector(r.camera, r.target, "subpix").detect(image) if d.marker_index == 0
+        d
+        for d in MarkerDetector(r.camera, r.target, "subpix").detect(image).markers
+        if d.marker_index == 0
     ]
     fitter = CornerFitter(r.camera, r.target)
     assert fitter.fit_corners(image, det) is not None

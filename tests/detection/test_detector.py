@@ -5,7 +5,14 @@ import numpy as np
 import pytest
 
 from perchpose import CameraModel, MarkerSpec, TargetSpec
-from perchpose.detection.detector import CHECK_SCALE, MarkerDetector, target_dictionaries
+from perchpose.detection.detector import (
+    CHECK_SCALE,
+    DIRECT_SIDE_PX,
+    MarkerDetector,
+    target_dictionaries,
+)
+from perchpose.detection.finding import QuadSearch
+from perchpose.detection.fitting import UNFITTED_SD_CELLS, Fitting
 from perchpose.geometry import facing_pose
 from perchpose.sim.render import Renderer
 from perchpose.target import aruco_dictionary
@@ -20,7 +27,7 @@ def test_finds_the_visible_markers_with_subpixel_corners(
 ) -> None:
     r = renderers[camera_name]
     T = facing_pose(0.01, -0.01, z_m, math.radians(20))
-    detections = MarkerDetector(r.camera, r.target).detect(r.render(T))
+    detections = MarkerDetector(r.camera, r.target).detect(r.render(T)).markers
     assert {d.marker_index for d in detections} == expected
     truth = r.corners_px(T)
     for d in detections:
@@ -37,7 +44,7 @@ def test_large_marker_on_a_fisheye_comes_from_the_rectified_pass(
     detector = MarkerDetector(r.camera, r.target)
     assert detector.rectify
     image = r.render(T)
-    by_index = {d.marker_index: d for d in detector.detect(image)}
+    by_index = {d.marker_index: d for d in detector.detect(image).markers}
     outer = by_index[0]
     assert outer.image_pass == "rectified"
     truth = r.corners_px(T)[0]
@@ -73,7 +80,7 @@ def test_a_large_marker_the_frame_shows_is_fitted_from_its_own_quad_on_a_fisheye
         return real(*args, **kwargs)  # type: ignore[call-overload]
 
     monkeypatch.setattr(detection.cv2, "remap", remap)
-    found = {d.marker_index: d for d in MarkerDetector(r.camera, r.target).detect(image)}
+    found = {d.marker_index: d for d in MarkerDetector(r.camera, r.target).detect(image).markers}
     assert set(found) == {0, 1}
     assert found[0].image_pass == "raw"
     assert found[0].side_px > 100
@@ -90,9 +97,9 @@ def test_markers_not_in_the_target_are_ignored(webcam: CameraModel) -> None:
     stranger = MarkerSpec("DICT_4X4_1000", 42, 60.0, centre_mm=(-160.0, 0.0))
     scene = TargetSpec((*TargetSpec.paper().markers, stranger), quiet_zone_mm=200.0)
     image = Renderer(webcam, scene).render(facing_pose(0.05, 0.0, 0.9))
-    ids = {d.marker_index for d in MarkerDetector(webcam, TargetSpec.paper()).detect(image)}
+    ids = {d.marker_index for d in MarkerDetector(webcam, TargetSpec.paper()).detect(image).markers}
     assert ids == {0, 1}
-    everything = MarkerDetector(webcam, scene).detect(image)
+    everything = MarkerDetector(webcam, scene).detect(image).markers
     assert len(everything) == 3
 
 
@@ -105,8 +112,8 @@ def test_grey_and_bgr_give_the_same_corners(renderers: dict[str, Renderer]) -> N
     grey = r.render(facing_pose(0.0, 0.0, 0.6))
     det = MarkerDetector(r.camera, r.target)
     bgr = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
-    a = det.detect(grey)
-    b = det.detect(r.camera.check_image(bgr))
+    a = det.detect(grey).markers
+    b = det.detect(r.camera.check_image(bgr)).markers
     assert len(a) == len(b) == 2
     for da, db in zip(a, b, strict=True):
         np.testing.assert_allclose(da.corners_px, db.corners_px)
@@ -145,8 +152,8 @@ def test_tracking_finds_what_the_full_search_finds(
     for k, z in enumerate(np.linspace(1.0, 0.12, 16)):
         T = facing_pose(0.05 * z * math.sin(k / 3), 0.04 * z, float(z), 0.2 * k)
         image = r.render(T, rng=rng)
-        with_hint = {d.marker_index: d for d in detector.detect(image, hint)}
-        fresh = {d.marker_index: d for d in detector.detect(image)}
+        with_hint = {d.marker_index: d for d in detector.detect(image, hint).markers}
+        fresh = {d.marker_index: d for d in detector.detect(image).markers}
         assert set(fresh) <= set(with_hint)
         for i, d in with_hint.items():
             if i in fresh:
@@ -178,7 +185,7 @@ def test_a_marker_running_out_of_a_fisheye_image_gives_no_false_quad(
     truth = r.corners_px(T)
     for seed in range(3):
         detector = MarkerDetector(r.camera, r.target)
-        found = detector.detect(r.render(T, rng=np.random.default_rng(seed)))
+        found = detector.detect(r.render(T, rng=np.random.default_rng(seed))).markers
         assert 1 in {d.marker_index for d in found}
         for d in found:
             true = truth[d.marker_index]
@@ -217,14 +224,14 @@ def test_two_copies_in_view_are_never_fused(webcam: CameraModel, paper_target: T
     turned = np.array([[470, 200], [600, 230], [570, 360], [440, 330]])
     _paste(canvas, sheet, turned)
     detector = MarkerDetector(webcam, paper_target)
-    found = detector.detect(canvas)
+    found = detector.detect(canvas).markers
     by_index = {d.marker_index: d for d in found}
     assert set(by_index) == {0}
     assert by_index[0].corners_px[:, 0].max() < 400  # the large copy's outer marker
     # each copy alone is found whole
     alone = np.full((480, 640), 90, np.uint8)
     _paste(alone, sheet, turned)
-    assert {d.marker_index for d in detector.detect(alone)} == {0, 1}
+    assert {d.marker_index for d in detector.detect(alone).markers} == {0, 1}
 
 
 def test_a_small_marker_beside_a_large_one_skips_the_pattern_fit(
@@ -246,12 +253,12 @@ def test_a_small_marker_beside_a_large_one_skips_the_pattern_fit(
     r = renderers["webcam"]
     T = facing_pose(0.01, -0.02, 0.9, 0.4)
     image = r.render(T, rng=np.random.default_rng(2))
-    full = {d.marker_index: d for d in MarkerDetector(r.camera, r.target).detect(image)}
+    full = {d.marker_index: d for d in MarkerDetector(r.camera, r.target).detect(image).markers}
     assert len(calls) == 1
     assert full[1].side_px < 20
     assert full[0].side_px > 80
     skipping = MarkerDetector(r.camera, r.target, pattern_beside_ratio=4.0)
-    skipped = {d.marker_index: d for d in skipping.detect(image)}
+    skipped = {d.marker_index: d for d in skipping.detect(image).markers}
     assert len(calls) == 1
     assert np.array_equal(skipped[0].corners_px, full[0].corners_px)
     assert not np.array_equal(skipped[1].corners_px, full[1].corners_px)
@@ -274,12 +281,12 @@ def test_glare_around_a_target_in_shadow_is_clipped_away(
     truth = r.corners_px(T)[0]
     assert truth is not None
     detector = MarkerDetector(r.camera, r.target)
-    found = {d.marker_index: d for d in detector.detect(image)}
+    found = {d.marker_index: d for d in detector.detect(image).markers}
     assert 0 in found
     assert np.max(np.abs(found[0].corners_px - truth)) < 0.5
     # the same frame without the clipped search: nothing
     monkeypatch.setattr(detection, "has_glare", lambda grey: False)
-    assert MarkerDetector(r.camera, r.target).detect(image) == ()
+    assert MarkerDetector(r.camera, r.target).detect(image).markers == ()
 
 
 def test_without_glare_the_frame_is_searched_as_it_is(renderers: dict[str, Renderer]) -> None:
@@ -334,23 +341,22 @@ def test_tracking_searches_the_whole_frame_at_an_interval_for_what_it_lacks(
         return find(self, grey, image_pass, offset, detector, scale)
 
     monkeypatch.setattr(QuadFinder, "find", counted)
-    detector = MarkerDetector(r.camera, r.target)
-    detector.full_search_every = 5
-    first = detector.detect(image)
+    detector = MarkerDetector(r.camera, r.target, full_search_every=5)
+    first = detector.detect(image).markers
     assert {d.marker_index for d in first} == {0, 1}
     assert whole == [1.0]
     # both tracked: the interval finds nothing to look for
     hint = first
     for _ in range(10):
-        hint = detector.detect(image, hint)
+        hint = detector.detect(image, hint).markers
         assert {d.marker_index for d in hint} == {0, 1}
     assert whole == [1.0]
     # the inner marker dropped, and the windows kept from it: the interval's search finds it
-    monkeypatch.setattr(MarkerDetector, "_may_be_found", lambda *args: False)
+    monkeypatch.setattr(QuadSearch, "may_be_found", lambda *args: False)
     hint = tuple(d for d in hint if d.marker_index == 0)
     seen: list[set[int]] = []
     for _ in range(5):
-        hint = detector.detect(image, hint)
+        hint = detector.detect(image, hint).markers
         seen.append({d.marker_index for d in hint})
     assert seen == [{0}, {0}, {0}, {0}, {0, 1}]
     assert whole == [1.0, CHECK_SCALE]
@@ -359,24 +365,22 @@ def test_tracking_searches_the_whole_frame_at_an_interval_for_what_it_lacks(
     truth = r.corners_px(facing_pose(0.0, 0.01, 0.4, 0.2))[1]
     assert truth is not None
     assert np.max(np.abs(inner.corners_px - truth)) < 0.2
-    late = MarkerDetector(r.camera, r.target)
-    late.full_search_every = 2
-    hint = tuple(d for d in late.detect(image) if d.marker_index == 0)
-    hint = late.detect(image, hint)
+    late = MarkerDetector(r.camera, r.target, full_search_every=2)
+    hint = tuple(d for d in late.detect(image).markers if d.marker_index == 0)
+    hint = late.detect(image, hint).markers
     whole.clear()
-    hint = late.detect(image, hint, deadline_s=0.0)
-    assert "interval search" in late.skipped
+    detected = late.detect(image, hint, deadline_s=0.0)
+    hint = detected.markers
+    assert "interval search" in detected.skipped
     assert whole == []
     # put off, not dropped: the next frame with room for it searches
     late.detect(image, hint)
     assert whole == [CHECK_SCALE]
     # with both markers tracked there is nothing to put off
-    full = MarkerDetector(r.camera, r.target)
-    full.full_search_every = 2
-    hint = full.detect(image)
-    hint = full.detect(image, hint)
-    full.detect(image, hint, deadline_s=0.0)
-    assert "interval search" not in full.skipped
+    full = MarkerDetector(r.camera, r.target, full_search_every=2)
+    hint = full.detect(image).markers
+    hint = full.detect(image, hint).markers
+    assert "interval search" not in full.detect(image, hint, deadline_s=0.0).skipped
 
 
 def test_a_marker_the_tracking_pass_misses_is_fitted_from_its_prediction(
@@ -395,8 +399,8 @@ def test_a_marker_the_tracking_pass_misses_is_fitted_from_its_prediction(
     rng = np.random.default_rng(8)
     first, second = r.render(T0, rng=rng), r.render(T1, rng=rng)
     detector = MarkerDetector(r.camera, r.target)
-    hint = detector.detect(first)
-    found = {d.marker_index: d for d in detector.detect(second, hint)}
+    hint = detector.detect(first).markers
+    found = {d.marker_index: d for d in detector.detect(second, hint).markers}
     find = QuadFinder.find
 
     def blind(self, grey, image_pass, offset=(0, 0), detector=None, scale=1.0):  # type: ignore[no-untyped-def]
@@ -405,7 +409,7 @@ def test_a_marker_the_tracking_pass_misses_is_fitted_from_its_prediction(
         return find(self, grey, image_pass, offset, None, scale)
 
     monkeypatch.setattr(QuadFinder, "find", blind)
-    tracked = {d.marker_index: d for d in detector.detect(second, hint)}
+    tracked = {d.marker_index: d for d in detector.detect(second, hint).markers}
     true = r.corners_px(T1)
     assert set(tracked) == set(found) == {0, 1}
     for i, d in tracked.items():
@@ -420,7 +424,7 @@ def test_a_marker_the_tracking_pass_misses_is_fitted_from_its_prediction(
     turned = tuple(
         type(d)(d.marker_index, np.roll(d.corners_px, 1, axis=0), d.image_pass) for d in hint
     )
-    assert detector._fit_direct(second, list(turned)) == {}
+    assert detector.fitting.fit_direct(second, list(turned), DIRECT_SIDE_PX) == {}
 
 
 def test_hinted_markers_are_fitted_from_their_prediction_without_a_quad_search(
@@ -444,11 +448,11 @@ def test_hinted_markers_are_fitted_from_their_prediction_without_a_quad_search(
     detector = MarkerDetector(r.camera, r.target)
     first = r.render(facing_pose(0.01, 0.0, 0.3, 0.2), rng=rng)
     second = r.render(facing_pose(0.0102, 0.0001, 0.2995, 0.202), rng=rng)
-    hint = detector.detect(first)
+    hint = detector.detect(first).markers
     assert {d.side_px >= 20 for d in hint} == {True}
-    fresh = {d.marker_index: d for d in detector.detect(second)}
+    fresh = {d.marker_index: d for d in detector.detect(second).markers}
     monkeypatch.setattr(QuadFinder, "find", counted)
-    tracked = {d.marker_index: d for d in detector.detect(second, hint)}
+    tracked = {d.marker_index: d for d in detector.detect(second, hint).markers}
     assert searched == []
     assert set(tracked) == set(fresh) == {0, 1}
     for i, d in tracked.items():
@@ -458,10 +462,10 @@ def test_hinted_markers_are_fitted_from_their_prediction_without_a_quad_search(
     # window
     far = MarkerDetector(r.camera, r.target)
     image = r.render(facing_pose(0.01, 0.0, 0.4, 0.2), rng=rng)
-    hint = far.detect(image)
+    hint = far.detect(image).markers
     assert sorted(d.side_px < 20 for d in hint) == [False, True]
     searched.clear()
-    tracked = {d.marker_index: d for d in far.detect(image, hint)}
+    tracked = {d.marker_index: d for d in far.detect(image, hint).markers}
     assert set(tracked) == {0, 1}
     assert len(searched) == 1
     assert searched[0][0] * searched[0][1] < 0.05 * image.shape[0] * image.shape[1]
@@ -501,7 +505,7 @@ def test_a_lost_target_is_looked_for_every_way_in_turn(
     per_frame = []
     for _ in range(2 * (len(ladder) - 2)):
         searched.clear()
-        assert detector.detect(frame) == ()
+        assert detector.detect(frame).markers == ()
         per_frame.append(list(searched))
     ways = [(view, 255 if level is None else level) for level, view in ladder]
     n_levels = len(detection.GLARE_CLIP_LEVELS)
@@ -514,14 +518,14 @@ def test_a_lost_target_is_looked_for_every_way_in_turn(
             expected.append((*ways[thorough % n_levels], "rest"))
             thorough += 1
         assert tried == expected
-    rectified_shape = detector._rectification.coarse_maps[0].shape
+    rectified_shape = detector.search.rectification.coarse_maps[0].shape
     for frame_searches in per_frame:
         for view, _, shape, _ in frame_searches:
             expected_shape = rectified_shape if view == "rectified" else frame.shape
             assert shape == expected_shape
     detector.restart()
     searched.clear()
-    assert detector.detect(frame) == ()
+    assert detector.detect(frame).markers == ()
     assert [which for *_, which in searched] == ["quick", "quick", "rest"]
 
 
@@ -536,8 +540,8 @@ def test_a_target_gone_from_its_window_is_looked_for_quickly(
     image = r.render(facing_pose(0.0, 0.01, 0.5, 0.2), rng=np.random.default_rng(0))
     blank = np.full_like(image, 128)
     detector = MarkerDetector(r.camera, r.target, thorough_every=3)
-    hint = detector.detect(image)
-    hint = detector.detect(image, hint)
+    hint = detector.detect(image).markers
+    hint = detector.detect(image, hint).markers
     assert {d.marker_index for d in hint} == {0, 1}
     passes = {
         id(detector.quads.quick): "quick",
@@ -557,7 +561,7 @@ def test_a_target_gone_from_its_window_is_looked_for_quickly(
     per_frame = []
     for _ in range(3):
         used.clear()
-        assert detector.detect(blank, hint) == ()
+        assert detector.detect(blank, hint).markers == ()
         hint = ()
         per_frame.append(list(used))
     assert per_frame == [["tracking", "quick"], ["quick"], ["quick", "rest"]]
@@ -589,12 +593,13 @@ def test_a_quick_look_finds_what_the_thorough_search_finds(
         return real(grey, image_pass, *args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(detector.quads, "find", find)
-    looked = detector.detect(image)
+    looked = detector.detect(image).markers
     assert shapes
     assert all(s[0] * s[1] < 0.2 * image.size for s in shapes)
     monkeypatch.undo()
     thorough = MarkerDetector(r.camera, r.target)
-    whole = thorough._fit_found(image, image, thorough._find(image, refind_curved=False))
+    found = thorough.search.find(image, refind_curved=False)
+    whole = thorough.fitting.fit_found(image, image, found)
     assert [d.marker_index for d in looked] == [d.marker_index for d in whole] == [0, 1]
     for a, b in zip(looked, whole, strict=True):
         assert np.max(np.abs(a.corners_px - b.corners_px)) < 0.02
@@ -606,20 +611,19 @@ def test_a_tracked_marker_whose_prediction_cannot_be_fitted_is_fitted_from_its_q
     """While tracking, a marker whose fit from its prediction fails is searched in its
     window and fitted from the quad found there; where that fit fails too, it keeps the
     quad's own corners, with a covariance of a fair part of a cell."""
-    from perchpose.detection import detector as detection
 
     r = renderers["fpv"]
     rng = np.random.default_rng(6)
     detector = MarkerDetector(r.camera, r.target)
     T = facing_pose(0.01, 0.0, 1.3, 0.2)  # the outer marker about 35 px
-    hint = tuple(d for d in detector.detect(r.render(T, rng=rng)) if d.marker_index == 0)
+    hint = tuple(d for d in detector.detect(r.render(T, rng=rng)).markers if d.marker_index == 0)
     assert len(hint) == 1
     assert hint[0].side_px < 40  # under CURVED_SIDE_PX: no pinhole view
     T1 = facing_pose(0.0102, 0.0001, 1.299, 0.201)
     image = r.render(T1, rng=rng)
     truth = r.corners_px(T1)[0]
     assert truth is not None
-    fit_corners = MarkerDetector.fit_corners
+    fit_corners = Fitting.fit_corners
     predictions: list[bool] = []
 
     def predictions_refused(self, grey, det, **kwargs):  # type: ignore[no-untyped-def]
@@ -628,22 +632,22 @@ def test_a_tracked_marker_whose_prediction_cannot_be_fitted_is_fitted_from_its_q
             return None
         return fit_corners(self, grey, det, **kwargs)
 
-    monkeypatch.setattr(MarkerDetector, "fit_corners", predictions_refused)
-    (tracked,) = [d for d in detector.detect(image, hint) if d.marker_index == 0]
+    monkeypatch.setattr(Fitting, "fit_corners", predictions_refused)
+    (tracked,) = [d for d in detector.detect(image, hint).markers if d.marker_index == 0]
     assert predictions == [True, False]
     assert tracked.image_pass == "raw"
     assert tracked.corner_covariance_px2 is not None  # edge-fitted
     assert np.max(np.abs(tracked.corners_px - truth)) < 0.1
     # nor the quad: its cornerSubPix corners
-    monkeypatch.setattr(MarkerDetector, "fit_corners", lambda self, grey, det, **kwargs: None)
-    (kept,) = [d for d in detector.detect(image, hint) if d.marker_index == 0]
+    monkeypatch.setattr(Fitting, "fit_corners", lambda self, grey, det, **kwargs: None)
+    (kept,) = [d for d in detector.detect(image, hint).markers if d.marker_index == 0]
     assert kept.image_pass == "raw"
     assert np.max(np.abs(kept.corners_px - truth)) < 1.0
     # with the covariance that says so: independent, UNFITTED_SD_CELLS of a cell
     cell_px = kept.side_px / r.target.markers[0].cells.shape[0]
     assert kept.corner_covariance_px2 is not None
     np.testing.assert_allclose(
-        kept.corner_covariance_px2, (detection.UNFITTED_SD_CELLS * cell_px) ** 2 * np.eye(8)
+        kept.corner_covariance_px2, (UNFITTED_SD_CELLS * cell_px) ** 2 * np.eye(8)
     )
 
 
@@ -676,13 +680,15 @@ def test_a_marker_near_its_margin_is_fitted_from_its_prediction(
     ):
         rng = np.random.default_rng(8)
         detector = MarkerDetector(r.camera, r.target)
-        hint = tuple(d for d in detector.detect(r.render(T0, quality, rng)) if d.marker_index == 0)
+        hint = tuple(
+            d for d in detector.detect(r.render(T0, quality, rng)).markers if d.marker_index == 0
+        )
         assert len(hint) == 1
         assert 60 < hint[0].side_px < 80
         searched.clear()
         monkeypatch.setattr(QuadFinder, "find", counted)
         image = r.render(T1, quality, rng)
-        tracked = {d.marker_index: d for d in detector.detect(image, hint)}
+        tracked = {d.marker_index: d for d in detector.detect(image, hint).markers}
         monkeypatch.setattr(QuadFinder, "find", find)
         assert tracked[0].image_pass == "tracked"
         assert np.sqrt(np.mean((tracked[0].corners_px - truth) ** 2)) < tolerance_px
@@ -706,7 +712,7 @@ def test_a_marker_predicted_across_the_border_is_let_go_without_a_search(
     r = renderers["fpv"]
     image = r.render(facing_pose(-0.18, 0.0, 0.2, 0.0), rng=np.random.default_rng(9))
     detector = MarkerDetector(r.camera, r.target)
-    hint = {d.marker_index: d for d in detector.detect(image)}
+    hint = {d.marker_index: d for d in detector.detect(image).markers}
     assert set(hint) == {0, 1}
     assert hint[1].side_px >= 20  # fitted from its prediction
     leaving = replace(hint[0], corners_px=hint[0].corners_px - np.array([60.0, 0.0]))
@@ -719,6 +725,6 @@ def test_a_marker_predicted_across_the_border_is_let_go_without_a_search(
         return find(self, grey, image_pass, offset, detector, scale)
 
     monkeypatch.setattr(QuadFinder, "find", counted)
-    tracked = detector.detect(image, (leaving, hint[1]))
+    tracked = detector.detect(image, (leaving, hint[1])).markers
     assert [(d.marker_index, d.image_pass) for d in tracked] == [(1, "tracked")]
     assert searched == []

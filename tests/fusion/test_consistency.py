@@ -96,7 +96,7 @@ def test_a_marker_whose_corners_say_they_are_noisy_is_judged_by_their_noise(
     r = renderers["fpv"]
     pose = facing_pose(0.02, -0.01, 0.3, 0.5)
     est = PerchingEstimator(r.camera, r.target)
-    detections = est.detector.detect(r.render(pose, rng=np.random.default_rng(5)))
+    detections = est.detector.detect(r.render(pose, rng=np.random.default_rng(5))).markers
     assert {d.marker_index for d in detections} == {0, 1}
     shake = np.random.default_rng(6).normal(0.0, 1.0, (4, 2))
 

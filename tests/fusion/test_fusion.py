@@ -60,7 +60,7 @@ def test_sigma_range_is_checked() -> None:
 def _measured(renderer: Renderer, T: np.ndarray) -> tuple[tuple, dict[int, MarkerPose]]:
     """The markers of one rendered frame: detections and their per-marker poses."""
     grey = renderer.render(T, rng=np.random.default_rng(0))
-    detections = MarkerDetector(renderer.camera, renderer.target).detect(grey)
+    detections = MarkerDetector(renderer.camera, renderer.target).detect(grey).markers
     poses = {
         d.marker_index: solve_marker_pose(
             renderer.camera, renderer.target.markers[d.marker_index], d.marker_index, d.corners_px

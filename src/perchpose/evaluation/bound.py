@@ -92,7 +92,7 @@ def _one_pose(
     for _ in range(frames):
         image = renderer.render(T, quality, rng)
         tick(1)
-        dets = detector.detect(image)
+        dets = detector.detect(image).markers
         if not dets:
             continue
         seen.add(tuple(d.marker_index for d in dets))

@@ -75,7 +75,7 @@ def corner_accuracy(
             image = renderer.render(T, quality, rng)
             truth = renderer.corners_px(T)
             tick(1)
-            for det in detector.detect(image):
+            for det in detector.detect(image).markers:
                 true = truth[det.marker_index]
                 if true is None:
                     continue

@@ -286,7 +286,7 @@ def detect_all(
 ) -> list[tuple[MarkerDetection, ...]]:
     """One detection pass over every frame, to share between estimator variants."""
     detector = MarkerDetector(renderer.camera, renderer.target, corners)
-    return [detector.detect(f) for f in frames]
+    return [detector.detect(f).markers for f in frames]
 
 
 def run_sequence(
