@@ -6,6 +6,7 @@ gives it."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -135,6 +136,16 @@ def _equidistant_normalized(uv: Array, K: Array, dist: Array) -> Array:
 EQUIDISTANT, PLUMB_BOB = 0, 1
 
 
+class Lens(NamedTuple):
+    """A lens as compiled code takes it (``CameraModel.compiled_lens``): its ``kind``
+    (``EQUIDISTANT`` or ``PLUMB_BOB``), the intrinsics ``K`` (3, 3) and the ``coefficients``
+    (the equidistant model's 4, or plumb_bob's padded to 14, ``plumb_bob.padded``)."""
+
+    kind: int
+    K: Array
+    coefficients: Array
+
+
 @compiled
 def lens_project(kind: int, p: Array, K: Array, d: Array) -> tuple[Array, NDArray[np.bool_]]:
     """``CameraModel.project`` in compiled code, for the lens of ``compiled_lens``: pixels
@@ -147,7 +158,7 @@ def lens_project(kind: int, p: Array, K: Array, d: Array) -> tuple[Array, NDArra
 
 @compiled
 def lens_project_rigid_with_jacobian(
-    lens: tuple[int, Array, Array], p: Array, R: Array, t: Array
+    lens: Lens, p: Array, R: Array, t: Array
 ) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
     """``CameraModel.project_rigid_with_jacobian`` in compiled code, for the lens of
     ``compiled_lens``."""

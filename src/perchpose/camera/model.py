@@ -25,6 +25,7 @@ from perchpose.camera import plumb_bob
 from perchpose.camera.lens import (
     EQUIDISTANT,
     PLUMB_BOB,
+    Lens,
     all_within,
     equidistant_project_with_jacobian,
     equidistant_rays,
@@ -157,17 +158,15 @@ class CameraModel:
         return lens_normalize(kind, uv, K, coefficients)
 
     @property
-    def compiled_lens(self) -> tuple[int, Array, Array]:
+    def compiled_lens(self) -> Lens:
         """The lens model as compiled code takes it (``lens_project``, ``lens_normalize``,
-        ``lens_project_rigid_with_jacobian``): (``EQUIDISTANT`` or ``PLUMB_BOB``, K, and the
-        coefficients: the equidistant model's 4, or plumb_bob's padded to 14,
-        ``plumb_bob.padded``)."""
+        ``lens_project_rigid_with_jacobian``)."""
         if self.model == "equidistant":
-            return EQUIDISTANT, self.K, self.dist
+            return Lens(EQUIDISTANT, self.K, self.dist)
         cached = self._cache.get("plumb_bob")
         if cached is None:
             cached = self._cache["plumb_bob"] = plumb_bob.padded(self.dist)
-        return PLUMB_BOB, self.K, np.asarray(cached, np.float64)
+        return Lens(PLUMB_BOB, self.K, np.asarray(cached, np.float64))
 
     def pixel_rays(self, uv_px: Array) -> Array:
         """Unit viewing rays (N, 3) in the camera frame for pixels (N, 2).

@@ -27,12 +27,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.camera.lens import lens_normalize, lens_project
+from perchpose.camera.lens import Lens, lens_normalize, lens_project
 from perchpose.corners.edge_geometry import (
     corner_covariance,
     corner_probes,
@@ -91,23 +92,52 @@ class EdgeFitSettings:
     iterations: int = 4
     own_levels_from_px: float = 80.0
 
-    def row(self) -> Array:
+    def kernel(self) -> EdgeFitKernel:
         """The settings as compiled code takes them (``_plan``, ``_edges``)."""
-        return np.array(
-            [
-                self.inside_cells,
-                self.outside_cells,
-                self.min_window_px,
-                self.max_window_px,
-                self.step_px,
-                self.max_samples,
-                self.max_profiles,
-                self.trim,
-                self.iterations,
-                self.own_levels_from_px,
-            ],
-            np.float64,
+        return EdgeFitKernel(
+            float(self.inside_cells),
+            float(self.outside_cells),
+            float(self.min_window_px),
+            float(self.max_window_px),
+            float(self.step_px),
+            float(self.max_samples),
+            float(self.max_profiles),
+            float(self.trim),
+            float(self.iterations),
+            float(self.own_levels_from_px),
         )
+
+
+class EdgeFitKernel(NamedTuple):
+    """``EdgeFitSettings`` as the compiled fit reads them: every one a float (the counts
+    too, as the fit's arithmetic takes them)."""
+
+    inside_cells: float
+    outside_cells: float
+    min_window_px: float
+    max_window_px: float
+    step_px: float
+    max_samples: float
+    max_profiles: float
+    trim: float
+    iterations: float
+    own_levels_from_px: float
+
+
+class SideFit(NamedTuple):
+    """The four sides fitted (``_edges``): whether they were (``ok``), the corners in the
+    normalised plane (4, 2), ``intersect_sides``' inverses (4, 2, 2), the lines' normals
+    (4, 2) and centres (4, 2), their angle and shift variances (4,) each, and the blur sigma
+    (px, with the pixel's own square in it)."""
+
+    ok: bool
+    corners_n: Array
+    A_inv: Array
+    normals: Array
+    centres: Array
+    angle_var: Array
+    shift_var: Array
+    blur_px: float
 
 
 # a step further beyond the end of the profiles than this many blur sigmas (first guess) is
@@ -266,13 +296,21 @@ def outside_reach_px(cell_px: float, settings: EdgeFitSettings | None = None) ->
 
 
 @compiled
-def _plan(corners: Array, n_cells: int, cfg: Array) -> tuple[Array, Array, Array, float, float]:
+def _plan(
+    corners: Array, n_cells: int, cfg: EdgeFitKernel
+) -> tuple[Array, Array, Array, float, float]:
     """Where a marker's profiles go, from its start ``corners`` (4, 2) and the settings
-    ``cfg`` (``EdgeFitSettings.row``): the sides' lengths (4,), the offsets (M,) along each
-    profile (px, from ``-reach_in`` towards ``reach_out``), the fractions (K,) of each side
-    the profiles cross, the width of a cell and ``reach_out`` (px)."""
-    inside, outside, min_window, max_window = cfg[0], cfg[1], cfg[2], cfg[3]
-    step_px, max_samples, max_profiles, trim = cfg[4], cfg[5], cfg[6], cfg[7]
+    ``cfg``: the sides' lengths (4,), the offsets (M,) along each profile (px, from
+    ``-reach_in`` towards ``reach_out``), the fractions (K,) of each side the profiles cross,
+    the width of a cell and ``reach_out`` (px)."""
+    inside, outside = cfg.inside_cells, cfg.outside_cells
+    min_window, max_window = cfg.min_window_px, cfg.max_window_px
+    step_px, max_samples, max_profiles, trim = (
+        cfg.step_px,
+        cfg.max_samples,
+        cfg.max_profiles,
+        cfg.trim,
+    )
     sides_px = side_lengths(corners)
     cell_px = 0.25 * (sides_px[0] + sides_px[1] + sides_px[2] + sides_px[3]) / n_cells
     reach_in = min(max_window, max(min_window, inside * cell_px))
@@ -295,24 +333,21 @@ def _edges(
     plan: tuple[Array, Array, Array, float, float],
     probed: tuple[Array, Array, Array, Array],
     printed: tuple[Array, Array, int],
-    cfg: Array,
-) -> tuple[bool, Array, Array, Array, Array, Array, Array, float]:
+    cfg: EdgeFitKernel,
+) -> SideFit:
     """The four sides of the marker whose start is ``corners`` fitted through the profiles
     across them: ``plan`` from ``_plan``; ``probed``, the side points in the normalised
     plane, their steps along and across, and the pixels (12K, 2) the lens puts them at
     (``side_probes``, projected); ``printed``: where the cell inside the border is white
     (4K,: 1 there), how far the white around the marker reaches (4,: in cells, per side)
-    and the cells across. Returns (whether the sides were fitted, the corners in the
-    normalised plane (4, 2), ``intersect_sides``' inverses (4, 2, 2), the lines' normals
-    (4, 2), centres (4, 2), angle and shift variances (4,) each, the blur sigma (px, with the
-    pixel's own square in it))."""
+    and the cells across."""
     sides_px, offsets, t, _, reach_out = plan
     white, margins, n_cells = printed
     p_n, step_n, perp_n, projected = probed
     K = t.shape[0]
     n = 4 * K
     empty2, empty3 = np.zeros((4, 2)), np.zeros((4, 2, 2))
-    nothing = (False, empty2, empty3, empty2, empty2, np.zeros(4), np.zeros(4), 0.0)
+    nothing = SideFit(False, empty2, empty3, empty2, empty2, np.zeros(4), np.zeros(4), 0.0)
     centre_x = 0.25 * (corners[0, 0] + corners[1, 0] + corners[2, 0] + corners[3, 0])
     centre_y = 0.25 * (corners[0, 1] + corners[1, 1] + corners[2, 1] + corners[3, 1])
     normal = outward_normals(projected, centre_x, centre_y)
@@ -322,7 +357,7 @@ def _edges(
     kept = np.nonzero(rows)[0]
     if kept.shape[0] < 12:
         return nothing
-    own_levels = sides_px.min() >= cfg[9]
+    own_levels = sides_px.min() >= cfg.own_levels_from_px
     surround = np.empty((3, kept.shape[0]))
     sides = np.empty(kept.shape[0], np.intp)
     along = np.empty(kept.shape[0])
@@ -338,7 +373,7 @@ def _edges(
         along[j] = 2.0 * t[i % K] - 1.0
     W = _level_design(sides, along, own_levels)
     fitted, d_kept, optical_blur_px = _fit_profiles(
-        values[kept], offsets, pixels[:, kept], W, surround, int(cfg[8])
+        values[kept], offsets, pixels[:, kept], W, surround, int(cfg.iterations)
     )
     if not fitted:
         return nothing
@@ -359,22 +394,29 @@ def _edges(
     if not met:
         return nothing
     blur_px = math.sqrt(optical_blur_px**2 + 1.0 / 12.0)
-    return True, corners_n, A_inv, normals, centres, angle_var, shift_var, blur_px
+    return SideFit(True, corners_n, A_inv, normals, centres, angle_var, shift_var, blur_px)
 
 
 @compiled
 def _covariance_and_move(
     projected: Array,
-    fitted: tuple[bool, Array, Array, Array, Array, Array, Array, float],
+    fitted: SideFit,
     corners: Array,
 ) -> tuple[Array, Array, float]:
     """From the pixels (12, 2) of the fitted corners' ``corner_probes`` and the sides'
     fit (``_edges``): the corners (4, 2) and their covariance (8, 8; px^2), from the lines'
     own (the lens's Jacobian at each corner by forward differences), and how far the
     farthest corner moved from ``corners`` (px)."""
-    _, corners_n, A_inv, normals, centres, angle_var, shift_var, _ = fitted
     corners_px, lens = lens_jacobians(projected, _STEP_N)
-    covariance = corner_covariance(lens, A_inv, corners_n, normals, centres, angle_var, shift_var)
+    covariance = corner_covariance(
+        lens,
+        fitted.A_inv,
+        fitted.corners_n,
+        fitted.normals,
+        fitted.centres,
+        fitted.angle_var,
+        fitted.shift_var,
+    )
     return corners_px, covariance, largest_move(corners_px, corners)
 
 
@@ -382,11 +424,11 @@ def _covariance_and_move(
 def _edge_fit_compiled(
     grey: NDArray[np.uint8],
     corners: Array,
-    lens: tuple[int, Array, Array],
+    lens: Lens,
     cells: NDArray[np.uint8],
     n_cells: int,
     margins: Array,
-    cfg: Array,
+    cfg: EdgeFitKernel,
 ) -> tuple[bool, Array, Array, float, float]:
     """``fit_marker_edges`` through the lens of ``CameraModel.compiled_lens``: (whether the
     sides were fitted, the corners (4, 2) and their covariance (8, 8), the blur sigma, how
@@ -407,13 +449,15 @@ def _edge_fit_compiled(
     white = _inner_cells_white(cells, t) if cells.shape[0] > 0 else np.zeros(4 * t.shape[0])
     probed = (p_n, step_n, perp_n, projected)
     fitted = _edges(grey, corners, plan, probed, (white, margins, n_cells), cfg)
-    if not fitted[0]:
+    if not fitted.ok:
         return failed
-    at_corners, ok = lens_project(kind, corner_probes(fitted[1], _STEP_N), K_px, coefficients)
+    at_corners, ok = lens_project(
+        kind, corner_probes(fitted.corners_n, _STEP_N), K_px, coefficients
+    )
     if not ok.all():
         return failed
     corners_px, covariance, moved = _covariance_and_move(at_corners, fitted, corners)
-    return True, corners_px, covariance, fitted[7], moved
+    return True, corners_px, covariance, fitted.blur_px, moved
 
 
 _NO_CELLS = np.zeros((0, 0), np.uint8)
@@ -443,7 +487,7 @@ def fit_marker_edges(
         printed, n_cells = np.ascontiguousarray(cells, np.uint8), int(cells.shape[0])
     margins = np.full(4, np.inf) if margin_cells is None else np.asarray(margin_cells, float)
     lens = camera.compiled_lens
-    fitted = _edge_fit_compiled(grey, corners, lens, printed, n_cells, margins, cfg.row())
+    fitted = _edge_fit_compiled(grey, corners, lens, printed, n_cells, margins, cfg.kernel())
     ok, refined, covariance, blur_px, moved = fitted
     cell_px = 0.25 * float(side_lengths(corners).sum()) / n_cells
     if not ok or moved > cfg.max_shift_cells * cell_px:

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.camera.lens import lens_normalize, lens_project
+from perchpose.camera.lens import Lens, lens_normalize, lens_project
 from perchpose.corners.edge_geometry import bilinear_points
 from perchpose.numeric.jit import compiled
 from perchpose.numeric.linalg import homography_of_4, through_homography
@@ -120,7 +120,7 @@ def read_cells(
 
 @compiled
 def _read_compiled(
-    lens: tuple[int, Array, Array],
+    lens: Lens,
     grey: NDArray[np.uint8],
     corners_px: Array,
     n: float,

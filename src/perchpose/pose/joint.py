@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.camera.lens import lens_project_rigid_with_jacobian
+from perchpose.camera.lens import Lens, lens_project_rigid_with_jacobian
 from perchpose.geometry import make_transform
 from perchpose.numeric.jit import compiled
 from perchpose.numeric.linalg import (
@@ -97,9 +97,7 @@ def _project_with_jacobian(
 
 
 @compiled
-def _rows_compiled(
-    lens: tuple[int, Array, Array], points_m: Array, R: Array, t: Array
-) -> tuple[bool, Array, Array]:
+def _rows_compiled(lens: Lens, points_m: Array, R: Array, t: Array) -> tuple[bool, Array, Array]:
     """``_project_with_jacobian`` through the lens of ``CameraModel.compiled_lens``: (whether
     every point projects, pixels (2N,), Jacobian (2N, 6))."""
     uv, duv_dq, s, in_front = lens_project_rigid_with_jacobian(lens, points_m, R, t)
@@ -271,7 +269,7 @@ def solve_joint_pose(
 
 @compiled
 def _gauss_newton(
-    lens: tuple[int, Array, Array],
+    lens: Lens,
     R: Array,
     t: Array,
     points_m: Array,

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.camera.lens import lens_project
+from perchpose.camera.lens import Lens, lens_project
 from perchpose.numeric.jit import compiled
 from perchpose.pose.refine import refine_pose, rotation_of
 from perchpose.target import MarkerSpec
@@ -54,9 +54,7 @@ def reprojection_rms_px(
 
 
 @compiled
-def _reprojection_rms_compiled(
-    lens: tuple[int, Array, Array], T: Array, points_m: Array, uv_px: Array
-) -> float:
+def _reprojection_rms_compiled(lens: Lens, T: Array, points_m: Array, uv_px: Array) -> float:
     """``reprojection_rms_px`` through the lens of ``CameraModel.compiled_lens``."""
     n = points_m.shape[0]
     p = np.empty((n, 3))
