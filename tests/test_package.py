@@ -38,6 +38,7 @@ def test_public_names_resolve_to_their_modules() -> None:
         "perchpose.control",
         "perchpose.io.mavlink.link",
         "perchpose.io.mavlink.pilot",
+        "perchpose.io.mavlink.landing_target_sink",
         "perchpose.io.crazyflie",
     ],
 )

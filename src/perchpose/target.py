@@ -11,9 +11,8 @@ import math
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 import yaml
 from numpy.typing import NDArray
@@ -22,11 +21,17 @@ from perchpose import safe_yaml
 from perchpose.errors import TargetSpecError
 from perchpose.geometry import invert_transform, make_transform, rot_z
 
+if TYPE_CHECKING:
+    import cv2
+
 Array = NDArray[np.float64]
 
 
 def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
-    """OpenCV's predefined dictionary called ``name`` (e.g. ``DICT_4X4_1000``)."""
+    """OpenCV's predefined dictionary called ``name`` (e.g. ``DICT_4X4_1000``); OpenCV is
+    imported here, so that a vehicle link can hold a target without loading it."""
+    import cv2
+
     code = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
     if not isinstance(code, int):
         raise TargetSpecError(f"unknown ArUco dictionary {name!r}")

@@ -202,3 +202,23 @@ def test_a_live_camera_is_not_paced(
     estimator = PerchingEstimator(camera, TargetSpec.paper())
     with pytest.raises(PerchposeError, match="camera 0: --realtime and --rate replay recordings"):
         track("0", estimator, tmp_path / "live.csv", progress=False, rate=1.0)
+
+
+def test_the_command_runs_as_a_library_call(approach_webcam_dir: Path, tmp_path: Path) -> None:
+    """``perchpose track``'s work without the command line: the options in, the summary
+    out, the lines a user should read through ``report``."""
+    from perchpose.app.track import TrackOptions, run
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for path in sorted(approach_webcam_dir.glob("frame_*.png"))[:10]:
+        (frames / path.name).write_bytes(path.read_bytes())
+    said: list[str] = []
+    camera = str(approach_webcam_dir / "camera.yaml")
+    options = TrackOptions(str(frames), str(tmp_path / "p.csv"), camera, progress=False)
+    summary = run(options, said.append)
+    assert (summary.frames, summary.valid) == (10, 10)
+    assert len(read_track_csv(tmp_path / "p.csv")) == 10
+    assert said == []
+    with pytest.raises(PerchposeError, match="give --camera"):
+        run(TrackOptions(str(frames), str(tmp_path / "q.csv"), progress=False), said.append)

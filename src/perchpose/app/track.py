@@ -1,12 +1,15 @@
-"""Tracking a frame source into a pose file (the ``perchpose track`` command)."""
+"""Tracking a frame source into a pose file (the ``perchpose track`` command): ``run`` takes
+what the command is asked for (``TrackOptions``) and returns what it did (``TrackSummary``);
+``track`` is the loop over the frames, for an estimator built elsewhere."""
 
 from __future__ import annotations
 
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -14,13 +17,18 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from perchpose.app.inputs import load_camera, load_target
+from perchpose.app.links import LinkOptions, vehicle_links
+from perchpose.camera import CameraModel
 from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
-from perchpose.io.frames import TARGET_FRAME, Frame, Stamp
+from perchpose.fusion.paper import FusionSigmas
+from perchpose.io.frames import TARGET_FRAME, Frame, FrameSource, Stamp
 from perchpose.io.outputs import open_track_writer
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
 from perchpose.io.sinks import estimate_row
 from perchpose.io.sources import open_source
+from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
 
@@ -145,6 +153,20 @@ def _with_latency(estimate: Estimate, frame: Frame) -> Estimate:
     )
 
 
+def _with_bar(frames: FrameSource, progress: bool) -> Iterator[Frame]:
+    """``frames`` behind a progress bar on stderr (none without ``progress``)."""
+    bar = tqdm(
+        frames,
+        total=frames.count,
+        desc="track",
+        unit="frame",
+        disable=not progress,
+        file=sys.stderr,
+        leave=False,
+    )
+    yield from bar
+
+
 def _measured(
     estimator: PerchingEstimator, frame: Frame, description: str, first: bool
 ) -> tuple[Estimate | None, str]:
@@ -214,16 +236,7 @@ def track(
     tally = _Tally()
     first_good = True
     try:
-        bar = tqdm(
-            frames,
-            total=frames.count,
-            desc="track",
-            unit="frame",
-            disable=not progress,
-            file=sys.stderr,
-            leave=False,
-        )
-        for read in bar:
+        for read in _with_bar(frames, progress):
             frame = read
             if pacer is not None:
                 pacer.wait(frame.t_s)
@@ -251,3 +264,101 @@ def track(
     if tally.frames == 0:
         raise PerchposeError(f"{frames.description}: the source gave no frames")
     return tally.summary(Path(out))
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """What ``perchpose track`` is asked for. ``camera_file``: a calibration file or
+    ``preset:NAME``; None only for a ROS bag, whose ``camera_info_topic`` (or only CameraInfo
+    topic) gives the camera. ``sigmas_file``: the paper's fusion with these weights instead of
+    the joint pose. ``view``: serve the live view on ``view_port`` (``view_origins`` also let
+    in). ``links``: the vehicle links to fly on. The rest as ``track`` takes them."""
+
+    source: str
+    out: str
+    camera_file: str | None = None
+    camera_info_topic: str | None = None
+    image_topic: str | None = None
+    target_file: str | None = None
+    fps: float | None = None
+    overlay: str | None = None
+    sigmas_file: str | None = None
+    budget_ms: float | None = None
+    view: bool = False
+    view_port: int = 8765
+    view_origins: tuple[str, ...] = ()
+    rate: float | None = None
+    camera_frame: str | None = None
+    target_frame: str = TARGET_FRAME
+    links: LinkOptions = field(default_factory=LinkOptions)
+    progress: bool = True
+
+
+def _camera(options: TrackOptions) -> CameraModel:
+    """The camera of ``camera_file``, or of a bag's CameraInfo topic."""
+    from perchpose.io.ros.rosbag import camera_from_bag, is_bag
+
+    if options.camera_file is not None:
+        return load_camera(options.camera_file)
+    if is_bag(options.source):
+        return camera_from_bag(options.source, options.camera_info_topic)
+    raise PerchposeError(f"{options.source}: give --camera (only a ROS bag brings its own)")
+
+
+@contextmanager
+def _live_view(
+    options: TrackOptions, target: TargetSpec, report: Callable[[str], None]
+) -> Iterator[FrameView | None]:
+    """The live view when asked for (imported only then), closed at the end."""
+    if not options.view:
+        yield None
+        return
+    from perchpose.io.view import LiveView
+
+    view = LiveView(
+        target,
+        port=options.view_port,
+        allowed_origins=options.view_origins,
+        report=report,
+        target_frame=options.target_frame,
+    )
+    report(f"live view for Foxglove at ws://127.0.0.1:{view.port}")
+    try:
+        yield view
+    finally:
+        view.close()
+
+
+def run(options: TrackOptions, report: Callable[[str], None]) -> TrackSummary:
+    """Track ``options.source`` as ``perchpose track`` does: the camera, target and estimator
+    it names, the live view and vehicle links it asks for (opened around the frames, closed
+    after them); ``report`` gets the lines a user should read."""
+    camera = _camera(options)
+    target = load_target(options.target_file)
+    if options.sigmas_file is None:
+        estimator = PerchingEstimator(camera, target, budget_ms=options.budget_ms)
+    else:
+        sigmas = FusionSigmas.load(options.sigmas_file)
+        estimator = PerchingEstimator(
+            camera, target, fusion="paper", sigmas=sigmas, budget_ms=options.budget_ms
+        )
+    if options.overlay is not None:
+        check_overlay_path(options.overlay)  # before any vehicle link takes over
+    with (
+        _live_view(options, target, report) as live,
+        vehicle_links(target, options.links, report) as hooks,
+    ):
+        return track(
+            options.source,
+            estimator,
+            options.out,
+            fps=options.fps,
+            overlay=options.overlay,
+            progress=options.progress,
+            on_frame=hooks,
+            image_topic=options.image_topic,
+            view=live,
+            rate=options.rate,
+            camera_frame=options.camera_frame,
+            target_frame=options.target_frame,
+        )

@@ -8,11 +8,10 @@ from pathlib import Path
 
 import click
 
+from perchpose.app.inputs import load_camera, load_target
 from perchpose.cli.common import (
     CAMERA_HELP,
     budget_option,
-    load_camera,
-    load_target,
     quiet_option,
     show_progress,
     target_option,

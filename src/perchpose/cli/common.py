@@ -1,5 +1,5 @@
-"""What the commands share: loading a camera or target from an option, the options themselves,
-and a warning line on stderr."""
+"""What the commands share: their options, whether to show a progress bar, and a warning line
+on stderr (``app.inputs`` loads the camera and target they name)."""
 
 from __future__ import annotations
 
@@ -9,23 +9,8 @@ from typing import TYPE_CHECKING
 
 import click
 
-from perchpose.camera import CameraModel
-from perchpose.target import TargetSpec
-
 if TYPE_CHECKING:
     from perchpose.calibration import CharucoBoardSpec
-
-
-def load_camera(value: str) -> CameraModel:
-    """A camera file, or ``preset:NAME``."""
-    if value.startswith("preset:"):
-        return CameraModel.preset(value.split(":", 1)[1])
-    return CameraModel.load(value)
-
-
-def load_target(value: str | None) -> TargetSpec:
-    """A target file, or the paper's target."""
-    return TargetSpec.paper() if value is None else TargetSpec.load(value)
 
 
 def warn(message: str) -> None:

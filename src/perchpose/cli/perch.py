@@ -7,7 +7,8 @@ from pathlib import Path
 
 import click
 
-from perchpose.cli.common import camera_option_fpv, load_camera, quiet_option, show_progress
+from perchpose.app.inputs import load_camera
+from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress
 from perchpose.cli.group import group
 
 

@@ -4,14 +4,8 @@ from __future__ import annotations
 
 import click
 
-from perchpose.cli.common import (
-    camera_option_fpv,
-    load_camera,
-    load_target,
-    quiet_option,
-    show_progress,
-    target_option,
-)
+from perchpose.app.inputs import load_camera, load_target
+from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress, target_option
 from perchpose.cli.group import group
 
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import click
 
-from perchpose.cli.common import dpi_option, load_target, sheet_out_option, target_option
+from perchpose.app.inputs import load_target
+from perchpose.cli.common import dpi_option, sheet_out_option, target_option
 from perchpose.cli.group import group
 
 

@@ -3,60 +3,25 @@ fly on it."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
-from typing import Any
-
 import click
 
-from perchpose.camera import CameraModel
 from perchpose.cli.common import (
     CAMERA_HELP,
     budget_option,
-    load_camera,
-    load_target,
     quiet_option,
     show_progress,
     target_option,
     warn,
 )
 from perchpose.cli.group import group
-from perchpose.target import TargetSpec
 
 
-@contextmanager
-def _live_view(
-    wanted: bool,
-    port: int,
-    target: TargetSpec,
-    origins: tuple[str, ...] = (),
-    target_frame: str = "target",
-) -> Iterator[Any]:
-    """The live view when asked for (imported only then), closed at the end."""
-    if not wanted:
-        yield None
-        return
-    from perchpose.io.view import LiveView
+def _require_camera(source: str, camera_file: str | None) -> None:
+    """--camera may be left out only for a ROS bag, whose CameraInfo gives the camera."""
+    from perchpose.io.ros.rosbag import is_bag
 
-    view = LiveView(
-        target, port=port, allowed_origins=origins, report=warn, target_frame=target_frame
-    )
-    warn(f"live view for Foxglove at ws://127.0.0.1:{view.port}")
-    try:
-        yield view
-    finally:
-        view.close()
-
-
-def _camera(source: str, camera_file: str | None, camera_info_topic: str | None) -> CameraModel:
-    """The camera of ``--camera``, or of a bag's CameraInfo topic."""
-    from perchpose.io.ros.rosbag import camera_from_bag, is_bag
-
-    if camera_file is not None:
-        return load_camera(camera_file)
-    if is_bag(source):
-        return camera_from_bag(source, camera_info_topic)
-    raise click.UsageError("Missing option '--camera'.")
+    if camera_file is None and not is_bag(source):
+        raise click.UsageError("Missing option '--camera'.")
 
 
 @group.command()
@@ -255,52 +220,41 @@ def track(
         raise click.UsageError("--realtime is --rate 1: give one of them.")
     if realtime:
         rate = 1.0
-    from perchpose.app.links import LinkOptions, vehicle_links
-    from perchpose.app.track import track as run_track
-    from perchpose.estimator import PerchingEstimator
-    from perchpose.fusion.paper import FusionSigmas
-    from perchpose.io.overlay import check_overlay_path
+    _require_camera(source, camera_file)
+    from perchpose.app.links import LinkOptions
+    from perchpose.app.track import TrackOptions, run
 
-    cam = _camera(source, camera_file, camera_info_topic)
-    spec = load_target(target_file)
-    if sigmas_file is None:
-        estimator = PerchingEstimator(cam, spec, budget_ms=budget_ms)
-    else:
-        sigmas = FusionSigmas.load(sigmas_file)
-        estimator = PerchingEstimator(cam, spec, fusion="paper", sigmas=sigmas, budget_ms=budget_ms)
-    if overlay is not None:
-        check_overlay_path(overlay)  # before any vehicle link takes over
-    with (
-        _live_view(view, view_port, spec, view_origins, target_frame) as live,
-        vehicle_links(
-            spec,
-            LinkOptions(
-                mavlink_url=mavlink_url,
-                mavlink_frame=mavlink_frame,
-                mavlink_pilot=mavlink_pilot,
-                target_relative=mavlink_target_relative,
-                distance_sensor=mavlink_distance,
-                target_system=target_system,
-                crazyflie_uri=crazyflie_uri,
-                mount=mount_file,
-            ),
-            warn,
-        ) as hooks,
-    ):
-        summary = run_track(
-            source,
-            estimator,
-            out,
-            fps=fps,
-            overlay=overlay,
-            progress=show_progress(quiet),
-            on_frame=hooks,
-            image_topic=image_topic,
-            view=live,
-            rate=rate,
-            camera_frame=camera_frame,
-            target_frame=target_frame,
-        )
+    links = LinkOptions(
+        mavlink_url=mavlink_url,
+        mavlink_frame=mavlink_frame,
+        mavlink_pilot=mavlink_pilot,
+        target_relative=mavlink_target_relative,
+        distance_sensor=mavlink_distance,
+        target_system=target_system,
+        crazyflie_uri=crazyflie_uri,
+        mount=mount_file,
+    )
+    options = TrackOptions(
+        source,
+        out,
+        camera_file=camera_file,
+        camera_info_topic=camera_info_topic,
+        image_topic=image_topic,
+        target_file=target_file,
+        fps=fps,
+        overlay=overlay,
+        sigmas_file=sigmas_file,
+        budget_ms=budget_ms,
+        view=view,
+        view_port=view_port,
+        view_origins=view_origins,
+        rate=rate,
+        camera_frame=camera_frame,
+        target_frame=target_frame,
+        links=links,
+        progress=show_progress(quiet),
+    )
+    summary = run(options, warn)
     stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
     extra = ""
     if summary.stale_frames:
