@@ -125,6 +125,22 @@ class PerchingEstimator:
         )
         self.reset()
 
+    @staticmethod
+    def configured(
+        camera: CameraModel,
+        target: TargetSpec,
+        *,
+        sigmas_file: str | None = None,
+        budget_ms: float | None = None,
+    ) -> PerchingEstimator:
+        """The estimator a user configures by files and a budget (``perchpose track``, the
+        ROS 2 node): with ``sigmas_file`` (``fit-fusion --json``) the paper's fusion and those
+        weights, else the joint pose; ``budget_ms`` per frame (None: none)."""
+        if sigmas_file is None:
+            return PerchingEstimator(camera, target, budget_ms=budget_ms)
+        sigmas = FusionSigmas.load(sigmas_file)
+        return PerchingEstimator(camera, target, fusion="paper", sigmas=sigmas, budget_ms=budget_ms)
+
     def _new_fusion(self) -> Fusion:
         if self.fusion == "covariance":
             return CovarianceFusion(

@@ -22,7 +22,6 @@ from perchpose.app.links import LinkOptions, vehicle_links
 from perchpose.camera import CameraModel
 from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
-from perchpose.fusion.paper import FusionSigmas
 from perchpose.io.frames import TARGET_FRAME, Frame, FrameSource, Stamp
 from perchpose.io.outputs import open_track_writer
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
@@ -335,13 +334,9 @@ def run(options: TrackOptions, report: Callable[[str], None]) -> TrackSummary:
     after them); ``report`` gets the lines a user should read."""
     camera = _camera(options)
     target = load_target(options.target_file)
-    if options.sigmas_file is None:
-        estimator = PerchingEstimator(camera, target, budget_ms=options.budget_ms)
-    else:
-        sigmas = FusionSigmas.load(options.sigmas_file)
-        estimator = PerchingEstimator(
-            camera, target, fusion="paper", sigmas=sigmas, budget_ms=options.budget_ms
-        )
+    estimator = PerchingEstimator.configured(
+        camera, target, sigmas_file=options.sigmas_file, budget_ms=options.budget_ms
+    )
     if options.overlay is not None:
         check_overlay_path(options.overlay)  # before any vehicle link takes over
     with (

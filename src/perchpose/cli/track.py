@@ -16,14 +16,6 @@ from perchpose.cli.common import (
 from perchpose.cli.group import group
 
 
-def _require_camera(source: str, camera_file: str | None) -> None:
-    """--camera may be left out only for a ROS bag, whose CameraInfo gives the camera."""
-    from perchpose.io.ros.rosbag import is_bag
-
-    if camera_file is None and not is_bag(source):
-        raise click.UsageError("Missing option '--camera'.")
-
-
 @group.command()
 @click.argument("source")
 @click.option(
@@ -220,7 +212,6 @@ def track(
         raise click.UsageError("--realtime is --rate 1: give one of them.")
     if realtime:
         rate = 1.0
-    _require_camera(source, camera_file)
     from perchpose.app.links import LinkOptions
     from perchpose.app.track import TrackOptions, run
 

@@ -88,6 +88,12 @@ class Stamp:
         t_ns = stamp_ns(frame.t_s) if frame.stamp_ns is None else frame.stamp_ns
         return Stamp(frame.t_s, t_ns, camera_frame or frame.frame_id or CAMERA_FRAME)
 
+    @staticmethod
+    def of_message(t_ns: int, frame_id: str, camera_frame: str | None = None) -> Stamp:
+        """A ROS message's own stamp (integer nanoseconds) and frame id, as ``of`` takes a
+        bag frame's (``t_s`` from ``t_ns`` as the bag reader gives it)."""
+        return Stamp(t_ns / 1_000_000_000, t_ns, camera_frame or frame_id or CAMERA_FRAME)
+
     @property
     def sec_nanosec(self) -> tuple[int, int]:
         """(sec, nanosec) of a ROS or Foxglove time stamp."""

@@ -35,8 +35,7 @@ import numpy as np
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError, SourceError
 from perchpose.estimator import PerchingEstimator
-from perchpose.fusion.paper import FusionSigmas
-from perchpose.io.frames import CAMERA_FRAME, Frame, Stamp
+from perchpose.io.frames import CAMERA_FRAME, Stamp
 from perchpose.io.overlay import draw_overlay, encode_jpeg
 from perchpose.io.ros.messages import camera_info_fields, header_stamp_ns, image_of, pose_fields
 from perchpose.io.sinks import estimate_row, track_json
@@ -54,6 +53,7 @@ _MODULES = {
     "sensor": "sensor_msgs.msg",
     "geometry": "geometry_msgs.msg",
     "std": "std_msgs.msg",
+    "builtin": "builtin_interfaces.msg",
 }
 _OPTIONAL = {"tf": "tf2_msgs.msg", "diagnostic": "diagnostic_msgs.msg"}
 
@@ -115,12 +115,10 @@ class NodeSettings:
         return dict(values)
 
     def estimator(self, camera: CameraModel, target: TargetSpec) -> PerchingEstimator:
-        """The estimator these settings ask for."""
-        budget = self.budget_ms or None
-        if not self.sigmas_file:
-            return PerchingEstimator(camera, target, budget_ms=budget)
-        sigmas = FusionSigmas.load(self.sigmas_file)
-        return PerchingEstimator(camera, target, fusion="paper", sigmas=sigmas, budget_ms=budget)
+        """The estimator these settings ask for (empty and 0 mean none)."""
+        return PerchingEstimator.configured(
+            camera, target, sigmas_file=self.sigmas_file or None, budget_ms=self.budget_ms or None
+        )
 
 
 class LatestImage:
@@ -275,8 +273,7 @@ class PoseNode:
     def _on_camera_info(self, msg: Any) -> None:
         if self.camera is not None:
             size = (int(msg.width), int(msg.height))
-            if size != self.camera.size:
-                self.stats.count("refused")
+            if size != self.camera.size:  # its images are counted as each is refused
                 self._say_once(
                     f"info{size}",
                     f"camera_info changed size to {size[0]}x{size[1]} from the camera's "
@@ -324,16 +321,8 @@ class PoseNode:
         if camera is None or estimator is None:  # /diagnostics says so while it lasts
             self._say_once("no-camera", "waiting for camera_info (or set camera_file)", False)
             return
-        t_ns = header_stamp_ns(msg.header)
-        frame = Frame(
-            self.stats.total_taken,
-            t_ns / 1_000_000_000,
-            None,
-            "image_raw",
-            stamp_ns=t_ns,
-            frame_id=str(msg.header.frame_id),
-        )
-        stamp = Stamp.of(frame, self.settings.camera_frame or None)
+        frame_id = str(msg.header.frame_id)
+        stamp = Stamp.of_message(header_stamp_ns(msg.header), frame_id, self.settings.camera_frame)
         try:
             image = image_of(msg, "image_raw")
             grey = camera.check_image(image, "image_raw")
@@ -341,7 +330,7 @@ class PoseNode:
             self.stats.count("refused")
             self._say_once(f"image {exc}", f"{exc}; refused")
             return
-        estimate = estimator.update(grey, frame.t_s)
+        estimate = estimator.update(grey, stamp.t_s)
         latency_s = time.monotonic() - received_s
         estimate = replace(estimate, latency_s=latency_s, grabbed_s=received_s)
         self._publish(stamp, estimate, image)
@@ -349,9 +338,9 @@ class PoseNode:
 
     def _header(self, stamp: Stamp) -> Any:
         std = self.ros["std"]
-        time_msg = importlib.import_module("builtin_interfaces.msg").Time
         sec, nanosec = stamp.sec_nanosec
-        return std.Header(stamp=time_msg(sec=sec, nanosec=nanosec), frame_id=stamp.frame_id)
+        time = self.ros["builtin"].Time(sec=sec, nanosec=nanosec)
+        return std.Header(stamp=time, frame_id=stamp.frame_id)
 
     def _publish(self, stamp: Stamp, estimate: Estimate, image: Any) -> None:
         geometry, std = self.ros["geometry"], self.ros["std"]
