@@ -12,12 +12,14 @@ frame.
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -25,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from perchpose.app.inputs import load_camera, load_target
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError, SourceError
 from perchpose.estimator import PerchingEstimator
@@ -440,3 +443,59 @@ def write_figure(report: BenchReport, path: str) -> Figure:
     out_of_view = ~np.asarray(report.frames.in_view, dtype=bool)
     ms = {name: result.ms for name, result in report.methods.items()}
     return bench_figure(path, ms, BASELINE, report.stages_ms, out_of_view, errors)
+
+
+@dataclass(frozen=True)
+class BenchOptions:
+    """The frames (``source``: a folder, glob, video or camera, with its calibration in
+    ``camera_file``; None: an approach rendered at ``quality`` with ``seed``), the target, how
+    many frames and repeats, where to write the JSON and the figure (None: nowhere), and a
+    time budget for perchpose (``perchpose-budget``; None: not timed)."""
+
+    source: str | None = None
+    camera_file: str = "preset:fpv"
+    target_file: str | None = None
+    frames: int = 240
+    quality: str = "default"
+    repeat: int = 3
+    seed: int = 0
+    json_out: str | None = None
+    plot_out: str | None = None
+    budget_ms: float | None = None
+    progress: bool = False
+
+
+def run(options: BenchOptions) -> BenchReport:
+    """Time the methods on the frames asked for; write the JSON and the figure where asked."""
+    if options.source is not None and options.camera_file.startswith("preset:"):
+        raise PerchposeError("a SOURCE needs its calibration: --camera camera.yaml")
+    if options.plot_out is not None:
+        from perchpose.printable import check_output_format
+
+        check_output_format(Path(options.plot_out))  # before the run, not after it
+    camera = load_camera(options.camera_file)
+    target = load_target(options.target_file)
+    if options.source is None:
+        quality = ImageQuality.preset(options.quality)
+        data = rendered_frames(
+            camera, target, options.frames, quality, options.seed, options.progress
+        )
+    else:
+        data = source_frames(options.source, camera, options.frames)
+    budget = options.budget_ms
+    report = bench(
+        data,
+        camera,
+        target,
+        options.repeat,
+        options.progress,
+        lambda cam, spec: default_methods(cam, spec, budget),
+    )
+    if options.json_out is not None:
+        path = Path(options.json_out)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+    if options.plot_out is not None:
+        Path(options.plot_out).parent.mkdir(parents=True, exist_ok=True)
+        write_figure(report, options.plot_out)
+    return report

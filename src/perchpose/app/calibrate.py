@@ -30,16 +30,24 @@ class CalibrationRun:
     searched_frames: int
 
 
-def run_calibration(
-    source: str,
-    out: str | Path,
-    board: CharucoBoardSpec,
-    model: DistortionModel = "plumb_bob",
-    max_video_views: int = 30,
-) -> CalibrationRun:
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """The images (a folder, a glob or a video), the camera file to write (.yaml), the board
+    they show, the lens model, and how many views to pick out of a video."""
+
+    source: str
+    out: str
+    board: CharucoBoardSpec
+    model: DistortionModel = "plumb_bob"
+    max_views: int = 30
+
+
+def run(options: CalibrateOptions) -> CalibrationRun:
     """Calibrate from every image of a folder or glob, or from views picked out of a video;
     write ROS camera_info YAML to ``out``, ``<out>_report.md`` and ``<out>_coverage.png``."""
-    out_path = Path(out)
+    source, board, model = options.source, options.board, options.model
+    max_video_views = options.max_views
+    out_path = Path(options.out)
     if out_path.suffix.lower() not in (".yaml", ".yml"):
         raise CalibrationError(f"{out_path}: the camera file must end in .yaml or .yml")
     frames = open_source(source)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from perchpose.app.inputs import load_camera
 from perchpose.app.track import TrackSummary, track
 from perchpose.camera import CameraModel
 from perchpose.estimator import PerchingEstimator
@@ -24,6 +25,18 @@ from perchpose.io.sinks import read_track_csv
 from perchpose.sim.scenarios import approach
 from perchpose.sim.sequence import write_sequence
 from perchpose.target import TargetSpec
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    """The output folder, the camera as the commands name it, the approach's length and the
+    noise seed."""
+
+    out: str
+    camera_file: str = "preset:fpv"
+    seconds: float = 8.0
+    seed: int = 0
+    progress: bool = False
 
 
 @dataclass(frozen=True)
@@ -98,3 +111,15 @@ def run_demo(
         f"Raw per-marker poses and the filtered estimate ({cam.name} camera)",
     )
     return DemoResult(out, summary, errors, table, coasted, figure, overlay)
+
+
+def run(options: DemoOptions, say: Callable[[str], None] = print) -> DemoResult:
+    """The demo as ``perchpose demo`` runs it (``run_demo``)."""
+    return run_demo(
+        options.out,
+        load_camera(options.camera_file),
+        duration_s=options.seconds,
+        seed=options.seed,
+        progress=options.progress,
+        say=say,
+    )

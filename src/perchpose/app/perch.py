@@ -3,10 +3,13 @@ written run by run and resumable."""
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 
+from perchpose.app.inputs import load_camera
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
 from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write_reports
@@ -123,6 +126,62 @@ class PerchCampaign:
 
 
 SWEEP_LATENCIES_MS = (0.0, 50.0, 100.0, 150.0, 200.0)  # --sweep latency
+
+
+@dataclass(frozen=True)
+class PerchOptions:
+    """A campaign as ``perchpose perch`` takes it: the cells (``PerchCampaign.from_options``'
+    arguments, the camera as the commands name it), where to write (``out``, and the summary
+    JSON also to ``json_out``), and how to fly (``workers``, a Dask ``scheduler``, ``resume``)."""
+
+    out: str = "perch"
+    estimators: str = "covariance,paper,truth"
+    runs: int = 200
+    seed: int = 0
+    wind: str = "none"
+    wind_mps: float | None = None
+    gust_mps: float | None = None
+    sweep: str | None = None
+    disturbances: bool = True
+    sensing: str = "realistic"
+    fps: float = 30.0
+    latency_ms: float | None = None
+    camera_file: str = "preset:fpv"
+    json_out: str | None = None
+    workers: int = 2
+    scheduler: str | None = None
+    resume: bool = False
+    progress: bool = False
+
+
+def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
+    """Plan the campaign, fly it and write its reports; the summary JSON."""
+    campaign = PerchCampaign.from_options(
+        load_camera(options.camera_file),
+        estimators=options.estimators,
+        runs=options.runs,
+        seed=options.seed,
+        wind=options.wind,
+        wind_mps=options.wind_mps,
+        gust_mps=options.gust_mps,
+        sweep=options.sweep,
+        disturbances=options.disturbances,
+        fps=options.fps,
+        latency_ms=options.latency_ms,
+        sensing=options.sensing,
+    )
+    content = campaign.fly(
+        options.out,
+        workers=max(1, options.workers),
+        scheduler=options.scheduler,
+        resume=options.resume,
+        progress=options.progress,
+        say=say,
+    )
+    if options.json_out:
+        text = json.dumps(content, indent=2, default=str)
+        Path(options.json_out).write_text(text, encoding="utf-8")
+    return content
 
 
 def timed_setup(base: PerchSetup, sensing: str, fps: float, latency_ms: float | None) -> PerchSetup:

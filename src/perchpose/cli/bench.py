@@ -3,12 +3,8 @@ pipeline on the same frames."""
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import click
 
-from perchpose.app.inputs import load_camera, load_target
 from perchpose.cli.common import (
     CAMERA_HELP,
     budget_option,
@@ -83,44 +79,23 @@ def bench(
     """Time perchpose per frame and per stage against OpenCV's detectMarkers and the paper's
     pipeline, on one thread, on SOURCE (a folder, glob, video or camera) or a rendered
     approach."""
-    from perchpose.app.bench import bench as run_bench
-    from perchpose.app.bench import (
-        default_methods,
-        format_report,
-        rendered_frames,
-        source_frames,
-        write_figure,
-    )
-    from perchpose.errors import PerchposeError
-    from perchpose.printable import check_output_format
-    from perchpose.sim.render import ImageQuality
+    from perchpose.app.bench import BenchOptions, format_report, run
 
-    if source is not None and camera_file.startswith("preset:"):
-        raise PerchposeError("a SOURCE needs its calibration: --camera camera.yaml")
-    if plot_out is not None:
-        check_output_format(Path(plot_out))  # before the run, not after it
-    camera = load_camera(camera_file)
-    target = load_target(target_file)
-    progress = show_progress(quiet)
-    if source is None:
-        data = rendered_frames(camera, target, frames, ImageQuality.preset(quality), seed, progress)
-    else:
-        data = source_frames(source, camera, frames)
-    report = run_bench(
-        data,
-        camera,
-        target,
+    options = BenchOptions(
+        source,
+        camera_file,
+        target_file,
+        frames,
+        quality,
         repeat,
-        progress,
-        lambda cam, spec: default_methods(cam, spec, budget_ms),
+        seed,
+        json_out,
+        plot_out,
+        budget_ms,
+        progress=show_progress(quiet),
     )
+    report = run(options)
     click.echo(format_report(report))
-    if json_out is not None:
-        path = Path(json_out)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(report.to_json(), indent=2) + "\n")
-        click.echo(f"wrote {path}")
-    if plot_out is not None:
-        Path(plot_out).parent.mkdir(parents=True, exist_ok=True)
-        write_figure(report, plot_out)
-        click.echo(f"wrote {plot_out}")
+    for written in (json_out, plot_out):
+        if written is not None:
+            click.echo(f"wrote {written}")

@@ -16,8 +16,8 @@ def board(
     out: str, squares: str, square_mm: float, marker_mm: float, dictionary: str, dpi: int
 ) -> None:
     """Write a printable ChArUco calibration board at true scale."""
-    from perchpose.printable import write_board_sheet
+    from perchpose.app.board import BoardOptions, run
 
     spec = board_spec(squares, square_mm, marker_mm, dictionary)
-    path = write_board_sheet(spec, out, dpi=dpi)
+    path = run(BoardOptions(out, spec, dpi))
     click.echo(f"wrote {path} ({spec.describe()}): print at 100 % and glue it flat")

@@ -37,15 +37,17 @@ def calibrate(
     max_views: int,
 ) -> None:
     """Calibrate a camera from ChArUco board images: a folder, a glob or a video."""
-    from perchpose.app.calibrate import format_report, run_calibration
+    from perchpose.app.calibrate import CalibrateOptions, format_report, run
 
     spec = board_spec(squares, square_mm, marker_mm, dictionary)
-    run = run_calibration(
-        source,
-        out,
-        spec,
-        "equidistant" if model == "equidistant" else "plumb_bob",
-        max_video_views=max_views,
+    done = run(
+        CalibrateOptions(
+            source,
+            out,
+            spec,
+            "equidistant" if model == "equidistant" else "plumb_bob",
+            max_views,
+        )
     )
-    click.echo(format_report(run.result, spec, source, run.searched_frames), nl=False)
-    click.echo(f"wrote {run.camera_file}, {run.report} and {run.coverage_png}")
+    click.echo(format_report(done.result, spec, source, done.searched_frames), nl=False)
+    click.echo(f"wrote {done.camera_file}, {done.report} and {done.coverage_png}")

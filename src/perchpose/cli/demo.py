@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import click
 
-from perchpose.app.inputs import load_camera
 from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress
 from perchpose.cli.group import group
 
@@ -24,17 +23,11 @@ from perchpose.cli.group import group
 @quiet_option
 def demo(out: str, camera_file: str, seconds: float, seed: int, quiet: bool) -> None:
     """Render an approach with dropouts, track it and compare with the truth."""
-    from perchpose.app.demo import run_demo
+    from perchpose.app.demo import DemoOptions, run
     from perchpose.evaluation.metrics import format_stage_table
 
-    result = run_demo(
-        out,
-        load_camera(camera_file),
-        duration_s=seconds,
-        seed=seed,
-        progress=show_progress(quiet),
-        say=click.echo,
-    )
+    options = DemoOptions(out, camera_file, seconds, seed, progress=show_progress(quiet))
+    result = run(options, say=click.echo)
     click.echo("")
     click.echo(format_stage_table(result.table))
     click.echo("")

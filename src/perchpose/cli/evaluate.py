@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import click
 
-from perchpose.app.inputs import load_camera
 from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress
 from perchpose.cli.group import group
 
@@ -33,18 +32,12 @@ def evaluate(
     experiment: str, out: str, camera_file: str, quality: str, quick: bool, seed: int, quiet: bool
 ) -> None:
     """Reproduce the paper's experiments (EXPERIMENT: paper) on rendered frames."""
-    from perchpose.evaluation.report import run_paper_evaluation
+    from perchpose.app.evaluate import EvaluateOptions, run
 
-    del experiment  # one experiment set so far
-    result = run_paper_evaluation(
-        out,
-        load_camera(camera_file),
-        quick=quick,
-        seed=seed,
-        quality_name=quality,
-        progress=show_progress(quiet),
-        say=lambda msg: click.echo(msg, err=True),
+    options = EvaluateOptions(
+        out, experiment, camera_file, quality, quick, seed, progress=show_progress(quiet)
     )
+    result = run(options, say=lambda msg: click.echo(msg, err=True))
     r = result.results
     ranges = r["ranges"]
     click.echo(

@@ -6,7 +6,6 @@ import click
 
 from perchpose.cli.common import warn
 from perchpose.cli.group import group
-from perchpose.errors import PerchposeError
 
 
 @group.command(name="fit-fusion")
@@ -31,15 +30,11 @@ def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
     DATA has columns true_x_cm, true_y_cm, true_z_cm, true_yaw_deg and each marker's raw
     measurement m0_* (outer) and m1_* (inner); or it is a track file and --truth gives the
     truth.csv of the same frames."""
+    from perchpose.app.fit_fusion import FitFusionOptions, run
     from perchpose.evaluation.experiments import COMPONENT_NAMES, PAPER_SIGMAS
-    from perchpose.evaluation.experiments import fit_fusion as fit
-    from perchpose.evaluation.fusion_data import load_fusion_samples, write_fusion_fit
 
-    samples = load_fusion_samples(data, truth_file)
-    try:
-        result = fit(samples)
-    except ValueError as exc:
-        raise PerchposeError(f"{data}: {exc}") from exc
+    fitted = run(FitFusionOptions(data, truth_file, json_out))
+    result = fitted.fit
     click.echo(f"{result.samples} frames with truth and both markers (weights held to [0, 1])")
     click.echo(f"{'':10} {'least sq.':>10} {'LMS':>10} {'paper':>10}")
     for name in COMPONENT_NAMES:
@@ -47,7 +42,7 @@ def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
             f"{name:10} {result.least_squares[name]:10.3f} {result.lms[name]:10.3f} "
             f"{PAPER_SIGMAS[name]:10.3f}"
         )
-    rms = samples.rms_errors()
+    rms = fitted.samples.rms_errors()
     for name in result.at_bounds:
         unit = "deg" if name == "sigma_yaw" else "cm"
         outer, inner = rms[name]
@@ -60,5 +55,4 @@ def fit_fusion(data: str, truth_file: str | None, json_out: str | None) -> None:
             "weighs the markers frame by frame by their covariance and needs no fit"
         )
     if json_out:
-        write_fusion_fit(json_out, result)
         click.echo(f"wrote {json_out}: use it with 'perchpose track ... --sigmas {json_out}'")

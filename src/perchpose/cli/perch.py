@@ -2,12 +2,8 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import click
 
-from perchpose.app.inputs import load_camera
 from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress
 from perchpose.cli.group import group
 
@@ -117,31 +113,28 @@ def perch(
     quiet: bool,
 ) -> None:
     """Closed-loop perching in simulation from random starts 60-150 cm below the target."""
-    from perchpose.app.perch import PerchCampaign, summary_table
+    from perchpose.app.perch import PerchOptions, run, summary_table
 
-    campaign = PerchCampaign.from_options(
-        load_camera(camera_file),
-        estimators=estimators,
-        runs=runs,
-        seed=seed,
-        wind=wind,
-        wind_mps=wind_mps,
-        gust_mps=gust_mps,
-        sweep=sweep,
-        disturbances=disturbances,
-        fps=fps,
-        latency_ms=latency_ms,
-        sensing=sensing,
-    )
-    content = campaign.fly(
+    options = PerchOptions(
         out,
-        workers=max(1, workers),
-        scheduler=scheduler,
-        resume=resume,
+        estimators,
+        runs,
+        seed,
+        wind,
+        wind_mps,
+        gust_mps,
+        sweep,
+        disturbances,
+        sensing,
+        fps,
+        latency_ms,
+        camera_file,
+        json_out,
+        workers,
+        scheduler,
+        resume,
         progress=show_progress(quiet),
-        say=lambda m: click.echo(m, err=True),
     )
+    content = run(options, say=lambda m: click.echo(m, err=True))
     click.echo(summary_table(content), nl=False)
-    if json_out:
-        Path(json_out).write_text(json.dumps(content, indent=2, default=str), encoding="utf-8")
     click.echo(f"wrote {out}/runs.csv, perch.json, perch.md and figures")

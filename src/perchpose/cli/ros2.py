@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
-
 import click
 
 from perchpose.cli.group import group
@@ -28,12 +26,8 @@ def ros2(params_out: str | None, ros_args: tuple[str, ...]) -> None:
     frame id), the track row on /perchpose/track, /tf and /diagnostics. ROS arguments follow
     --ros-args, e.g. -r image_raw:=/cam/image_raw -p target_frame:=plate. Needs rclpy (a ROS 2
     install, or the ros2 extra)."""
-    if params_out is not None:
-        from perchpose.io.ros.node import PARAMS_FILE
+    from perchpose.app.ros2 import Ros2Options, run
 
-        shutil.copyfile(PARAMS_FILE, params_out)
-        click.echo(f"wrote {params_out}")
-        return
-    from perchpose.io.ros.node import run
-
-    run(list(ros_args))
+    written = run(Ros2Options(ros_args, params_out))
+    if written is not None:
+        click.echo(f"wrote {written}")

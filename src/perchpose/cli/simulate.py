@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import click
 
-from perchpose.app.inputs import load_camera, load_target
 from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress, target_option
 from perchpose.cli.group import group
 
@@ -39,14 +38,17 @@ def simulate(
     quiet: bool,
 ) -> None:
     """Render SCENARIO (approach or static) to frames, camera.yaml and truth.csv."""
-    from perchpose.sim.render import ImageQuality
-    from perchpose.sim.scenarios import scenario_by_name, truncated
-    from perchpose.sim.sequence import write_sequence
+    from perchpose.app.simulate import SimulateOptions, run
 
-    cam = load_camera(camera_file)
-    spec = load_target(target_file)
-    scen = scenario_by_name(scenario, ImageQuality.preset(quality))
-    if max_frames is not None:
-        scen = truncated(scen, max_frames)
-    path = write_sequence(scen, cam, spec, out, seed=seed, progress=show_progress(quiet))
-    click.echo(f"wrote {len(scen)} frames, camera.yaml and truth.csv to {path}")
+    options = SimulateOptions(
+        scenario,
+        out,
+        camera_file,
+        target_file,
+        quality,
+        seed,
+        max_frames,
+        progress=show_progress(quiet),
+    )
+    written = run(options)
+    click.echo(f"wrote {written.frames} frames, camera.yaml and truth.csv to {written.path}")

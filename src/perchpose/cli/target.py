@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import click
 
-from perchpose.app.inputs import load_target
 from perchpose.cli.common import dpi_option, sheet_out_option, target_option
 from perchpose.cli.group import group
 
@@ -21,10 +20,7 @@ from perchpose.cli.group import group
 )
 def target(out: str, target_file: str | None, dpi: int, save_spec: str | None) -> None:
     """Write the printable target at true scale, with a 100 mm scale bar."""
-    from perchpose.printable import write_target_sheet
+    from perchpose.app.target import TargetOptions, run
 
-    spec = load_target(target_file)
-    path = write_target_sheet(spec, out, dpi=dpi)
-    if save_spec:
-        spec.save(save_spec)
-    click.echo(f"wrote {path}: print at 100 % and check that the scale bar measures 100 mm")
+    sheet = run(TargetOptions(out, target_file, dpi, save_spec))
+    click.echo(f"wrote {sheet.path}: print at 100 % and check that the scale bar measures 100 mm")
