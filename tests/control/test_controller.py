@@ -308,19 +308,17 @@ def test_a_camera_dropout_mid_approach_holds_height_on_odometry() -> None:
 
 
 class Recorder:
-    """A commander that keeps what it is sent: velocities as 4-tuples, a stop as ()."""
+    """A commander that keeps what it is sent: velocities (and the yaw rate) as 4-tuples, a
+    stop as ()."""
 
     def __init__(self) -> None:
         self.sent: list[tuple[float, ...]] = []
 
-    def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yr: float) -> None:
-        self.sent.append((vx, vy, vz, yr))
+    def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
+        self.sent.append((*v_world_mps, yaw_rate_rad_s))
 
-    def send_stop_setpoint(self) -> None:
+    def send_stop(self) -> None:
         self.sent.append(())
-
-    def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
-        pass
 
 
 def test_pilot_lands_when_the_controller_gives_up() -> None:

@@ -23,7 +23,7 @@ from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.cli import main
 from perchpose.control import PerchingController, PerchingPilot, PilotSettings
 from perchpose.errors import ControllerConfigError, LinkError
-from perchpose.io.crazyflie import connect
+from perchpose.io.crazyflie import CflibCommander, connect
 from perchpose.values import Estimate
 
 PROTOCOL_VERSION = 10
@@ -107,7 +107,9 @@ def level() -> np.ndarray:
 def fly(
     cf: Crazyflie, estimates: list[Estimate], settings: PilotSettings | None = None
 ) -> tuple[PerchingPilot, list[Any]]:
-    pilot = PerchingPilot(cf.commander, level, settings=settings, report=lambda _m: None)
+    pilot = PerchingPilot(
+        CflibCommander(cf.commander), level, settings=settings, report=lambda _m: None
+    )
     pilot.watch_link(cf)
     steps = [pilot.update(e, e.t_s) for e in estimates]
     return pilot, steps
@@ -167,7 +169,7 @@ def test_link_loss_stops_all_setpoints(
     crazyflie: tuple[Crazyflie, FakeRadioLink], estimates: list[Estimate]
 ) -> None:
     cf, link = crazyflie
-    pilot = PerchingPilot(cf.commander, level, report=lambda _m: None)
+    pilot = PerchingPilot(CflibCommander(cf.commander), level, report=lambda _m: None)
     pilot.watch_link(cf)
     half = len(estimates) // 2
     for e in estimates[:half]:
@@ -187,7 +189,7 @@ def test_abort_lands_in_real_time(
     cf, link = crazyflie
     heights = iter([0.5, 0.4, 0.3, 0.2, 0.1, 0.05])
     pilot = PerchingPilot(
-        cf.commander, level, height_m=lambda: next(heights), report=lambda _m: None
+        CflibCommander(cf.commander), level, height_m=lambda: next(heights), report=lambda _m: None
     )
     for e in estimates[:30]:
         pilot.update(e, e.t_s)
@@ -224,7 +226,9 @@ def test_commit_ends_perched_only_on_contact(crazyflie: tuple[Crazyflie, FakeRad
         height[0] = min(1.95, height[0] + 0.15 / 30.0)
         return height[0]
 
-    pilot = PerchingPilot(cf.commander, level, height_m=height_m, report=lambda _m: None)
+    pilot = PerchingPilot(
+        CflibCommander(cf.commander), level, height_m=height_m, report=lambda _m: None
+    )
     _near_then_blind(pilot)
     packets = [decode(p) for p in link.sent]
     climbs = [p for p in packets if p[0] == "velocity"]
@@ -242,7 +246,9 @@ def test_time_alone_never_stops_the_motors(crazyflie: tuple[Crazyflie, FakeRadio
     cf, link = crazyflie
     for height_m in (None, iter(np.arange(0.0, 5.0, 0.01)).__next__):
         link.sent.clear()
-        pilot = PerchingPilot(cf.commander, level, height_m=height_m, report=lambda _m: None)
+        pilot = PerchingPilot(
+            CflibCommander(cf.commander), level, height_m=height_m, report=lambda _m: None
+        )
         near = Estimate.of_pose(0.0, (-0.015, 0.0, 0.01), 0.0, stage=3)
         for i in range(3):
             pilot.update(replace(near, t_s=i / 30.0), i / 30.0)
@@ -260,7 +266,9 @@ def test_one_outlier_frame_neither_commits_nor_stops(
     """30 frames with the target 60 cm above, one frame at (-1.5, 0, 3) cm, then 60 frames at
     60 cm again: the pilot keeps flying on the later frames and never stops the motors."""
     cf, link = crazyflie
-    pilot = PerchingPilot(cf.commander, level, height_m=lambda: 1.0, report=lambda _m: None)
+    pilot = PerchingPilot(
+        CflibCommander(cf.commander), level, height_m=lambda: 1.0, report=lambda _m: None
+    )
     far = (0.0, 0.0, 0.60)
     frames = [far] * 30 + [(-0.015, 0.0, 0.03)] + [far] * 60
     steps = [
@@ -279,7 +287,9 @@ def test_stale_or_non_finite_estimates_are_not_flown(
     crazyflie: tuple[Crazyflie, FakeRadioLink],
 ) -> None:
     cf, link = crazyflie
-    pilot = PerchingPilot(cf.commander, level, height_m=lambda: 1.0, report=lambda _m: None)
+    pilot = PerchingPilot(
+        CflibCommander(cf.commander), level, height_m=lambda: 1.0, report=lambda _m: None
+    )
     old = Estimate.of_pose(0.0, (0.1, 0.0, 0.6), 0.0, age_s=5.0)
     assert pilot.update(old, 0.0).v_mps is None  # never takes over on a stale pose
     assert pilot.update(Estimate.of_pose(0.0, (0.1, 0.0, 0.6), 0.0), 0.0).v_mps is not None
@@ -471,7 +481,10 @@ def test_a_live_frame_is_placed_at_its_capture(crazyflie: tuple[Crazyflie, FakeR
     now = [100.0]
     attitude = [np.eye(3)]
     pilot = PerchingPilot(
-        cf.commander, lambda: attitude[0], report=lambda _m: None, clock=lambda: now[0]
+        CflibCommander(cf.commander),
+        lambda: attitude[0],
+        report=lambda _m: None,
+        clock=lambda: now[0],
     )
     seen = Estimate.of_pose(5.0, (0.05, 0.0, 0.5), 0.0)
     pilot.update(seen, 5.0)  # level at 5.0

@@ -17,12 +17,12 @@ from perchpose.control.mount import (
     mount_T_body_camera,
 )
 from perchpose.control.pilot import (
-    CommanderLike,
     PerchingPilot,
     PilotSettings,
     PilotState,
     PilotStep,
     SenseAges,
+    VehicleCommander,
 )
 from perchpose.control.setpoint import Setpoint, SetpointLimits, safe_setpoint
 from perchpose.errors import ControllerConfigError
@@ -30,7 +30,6 @@ from perchpose.errors import ControllerConfigError
 __all__ = [
     "MOUNT_PRESETS",
     "Command",
-    "CommanderLike",
     "ControllerConfigError",
     "ControllerSettings",
     "Odometry",
@@ -43,6 +42,7 @@ __all__ = [
     "SenseAges",
     "Setpoint",
     "SetpointLimits",
+    "VehicleCommander",
     "default_T_body_camera",
     "downward_T_body_camera",
     "load_T_body_camera",

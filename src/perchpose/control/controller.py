@@ -3,8 +3,8 @@
 It is the same controller the simulation and the vehicle links use. Inputs: an ``Estimate`` (the
 target in the camera frame), the mounting (``T_body_camera`` and the magnet's position on the
 body) and the vehicle's own attitude ``R_world_body`` (world z up). Output: a world-frame
-velocity setpoint and a yaw rate, as cflib's ``send_velocity_world_setpoint`` and MAVLink's
-velocity setpoints take them.
+velocity setpoint (m/s) and a yaw rate (rad/s), which each vehicle's adapter converts
+(``perchpose.control.pilot.VehicleCommander``).
 
 Phases: ``search`` (no target yet: hold), ``align`` (centre the magnet under the target and turn
 to its heading at constant height), ``climb`` (rise while keeping alignment, slowing near the

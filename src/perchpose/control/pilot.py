@@ -1,10 +1,11 @@
 """The perching phase machine: the controller wrapped in the safety states that fly a vehicle.
 
 ``PerchingPilot`` turns each frame's estimate into a world-frame velocity setpoint with the
-controller of ``perchpose.control.controller`` and sends it through any object with cflib's
-``Commander`` methods (``send_velocity_world_setpoint``: m/s and deg/s, world z up). The
-Crazyflie link (``perchpose.io.crazyflie``) and the simulation (``perchpose.sim.perch``) both
-run it.
+controller of ``perchpose.control.controller`` and sends it through a ``VehicleCommander`` in
+SI units (m/s and rad/s, world z up); each vehicle's adapter converts to its own units and
+frames: the Crazyflie link's (``perchpose.io.crazyflie.CflibCommander``: cflib's deg/s), the
+MAVLink pilot's (``perchpose.io.mavlink.pilot.SetpointCommander``: NED) and the simulation's
+(``perchpose.sim.perch.HeldSetpoint``).
 
 - ``waiting``: nothing is sent until the first usable estimate (the pilot takes over then);
 - ``perching``: the controller's setpoints (align, climb, commit);
@@ -84,16 +85,16 @@ class SenseAges(NamedTuple):
     height_s: float
 
 
-class CommanderLike(Protocol):
-    """The part of ``cflib.crazyflie.commander.Commander`` the pilot uses."""
+class VehicleCommander(Protocol):
+    """What the pilot sends a vehicle, in SI units: a velocity in the world frame (z up, m/s)
+    with a yaw rate about up (rad/s), or a stop (the motors off: the vehicle is perched or
+    landed, and the vehicle's own setpoint priority is handed back)."""
 
-    def send_velocity_world_setpoint(
-        self, vx: float, vy: float, vz: float, yawrate: float
+    def send_velocity(
+        self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float
     ) -> None: ...
 
-    def send_stop_setpoint(self) -> None: ...
-
-    def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None: ...
+    def send_stop(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -165,7 +166,7 @@ class PilotStep:
     t_s: float
     state: PilotState
     v_mps: tuple[float, float, float] | None
-    yaw_rate_deg_s: float | None
+    yaw_rate_rad_s: float | None
     phase: str | None
 
 
@@ -210,7 +211,7 @@ class PerchingPilot:
 
     def __init__(
         self,
-        commander: CommanderLike,
+        commander: VehicleCommander,
         attitude: Callable[[], Array],
         *,
         controller: PerchingController | None = None,
@@ -296,15 +297,12 @@ class PerchingPilot:
                     f"pilot: a non-finite setpoint at t = {t_s:.2f} s was replaced by a hover "
                     "(reported once)"
                 )
-        vx, vy, vz = sp.v_mps
-        yaw_rate_deg_s = math.degrees(sp.yaw_rate_rad_s)
-        self.commander.send_velocity_world_setpoint(vx, vy, vz, yaw_rate_deg_s)
-        return PilotStep(t_s, self.state, sp.v_mps, yaw_rate_deg_s, phase)
+        self.commander.send_velocity(sp.v_mps, sp.yaw_rate_rad_s)
+        return PilotStep(t_s, self.state, sp.v_mps, sp.yaw_rate_rad_s, phase)
 
     def _stop(self, t_s: float, state: PilotState, why: str) -> PilotStep:
         self._enter(state, t_s, why)  # first: a commander may ask which stop this is
-        self.commander.send_stop_setpoint()
-        self.commander.send_notify_setpoint_stop(0)
+        self.commander.send_stop()
         return PilotStep(t_s, self.state, None, None, None)
 
     def _start_landing(self, t_s: float, why: str) -> None:

@@ -1,8 +1,9 @@
 """The Crazyflie link: a cflib connection that streams the vehicle's attitude and height from
 its state estimate, and hands out the perching pilot (``perchpose.control.pilot``) wired to it.
 
-Only ``connect`` imports cflib; the pilot works with any object that has cflib's
-``commander`` (tests use a real ``cflib.crazyflie.Crazyflie`` over a fake link).
+Only ``connect`` imports cflib; ``CflibCommander`` turns the pilot's SI setpoints into calls
+on any object with cflib's ``Commander`` methods (tests use a real
+``cflib.crazyflie.Crazyflie`` over a fake link).
 """
 
 from __future__ import annotations
@@ -22,6 +23,24 @@ from perchpose.geometry import rotation_from_quaternion
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
+
+
+class CflibCommander:
+    """The pilot's ``VehicleCommander`` on cflib's ``Commander``: a velocity in the world
+    frame of the Crazyflie's state estimator (z up, m/s) with the yaw rate in deg/s
+    (``send_velocity_world_setpoint``); a stop cuts the motors and hands the setpoint priority
+    back to the high-level commander (``send_stop_setpoint``, ``send_notify_setpoint_stop``)."""
+
+    def __init__(self, commander: Any) -> None:
+        self.commander = commander
+
+    def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
+        vx, vy, vz = v_world_mps
+        self.commander.send_velocity_world_setpoint(vx, vy, vz, math.degrees(yaw_rate_rad_s))
+
+    def send_stop(self) -> None:
+        self.commander.send_stop_setpoint()
+        self.commander.send_notify_setpoint_stop(0)
 
 
 class CrazyflieConnection:
@@ -142,7 +161,7 @@ class CrazyflieConnection:
     def pilot(self, **kwargs: Any) -> PerchingPilot:
         """A pilot on this link, told about a link loss."""
         pilot = PerchingPilot(
-            self.cf.commander,
+            CflibCommander(self.cf.commander),
             self.attitude,
             height_m=self.height_m,
             odometry=self.odometry,

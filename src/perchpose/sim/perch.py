@@ -225,23 +225,20 @@ class PerchResult:
 
 
 class HeldSetpoint:
-    """The commander the simulated vehicle flies: it holds the last setpoint the pilot sent
-    (cflib's units: m/s and deg/s), and a stop or no setpoint at all is a hover."""
+    """The commander the simulated vehicle flies: it holds the last setpoint the pilot sent,
+    and a stop or no setpoint at all is a hover."""
 
     def __init__(self) -> None:
         self.v_mps = np.zeros(3)
         self.yaw_rate_rad_s = 0.0
 
-    def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yawrate: float) -> None:
-        self.v_mps = np.array([vx, vy, vz])
-        self.yaw_rate_rad_s = math.radians(yawrate)
+    def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
+        self.v_mps = np.array(v_world_mps)
+        self.yaw_rate_rad_s = yaw_rate_rad_s
 
-    def send_stop_setpoint(self) -> None:
+    def send_stop(self) -> None:
         self.v_mps = np.zeros(3)
         self.yaw_rate_rad_s = 0.0
-
-    def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
-        """Nothing to hand back in a simulation."""
 
 
 def truth_estimate(
@@ -471,6 +468,48 @@ def event_steps(
     return [(i, frames.get(i)) for i in steps]
 
 
+class _Trace:
+    """A run's rows, one per camera frame (and one at a contact between frames): time, the
+    magnet's position, the estimate's stage and the pilot's phase or state."""
+
+    def __init__(self) -> None:
+        self.ts: list[float] = []
+        self.magnets: list[Array] = []
+        self.stages: list[int] = []
+        self.phases: list[str] = []
+
+    def frame(self, t_s: float, stage: int, phase: str) -> None:
+        self.ts.append(t_s)
+        self.stages.append(stage)
+        self.phases.append(phase)
+
+    def result(
+        self,
+        flight: _Flight,
+        outcome: tuple[bool, str, float, float, float],
+        contact: Contact | None,
+    ) -> PerchResult:
+        """The run's result: ``outcome`` is (success, reason, offset, speed, time)."""
+        success, reason, offset, speed, t = outcome
+        return PerchResult(
+            flight.seed,
+            flight.setup.estimator,
+            success,
+            reason,
+            offset,
+            speed,
+            t,
+            np.array(self.ts),
+            np.array(self.magnets).reshape(-1, 3),
+            np.array(self.stages, np.int64),
+            tuple(self.phases),
+            flight.controller.tries,
+            flight.wind_direction_rad,
+            contact,
+            flight.senses,
+        )
+
+
 def run_perch(
     setup: PerchSetup,
     seed: int,
@@ -482,10 +521,7 @@ def run_perch(
     ``perchpose.sim.rotorpy_plant`` for RotorPy's."""
     flight = _Flight(setup, seed, renderer or setup.renderer(), plant)
     p_magnet_body = np.asarray(setup.controller.p_body_magnet_m, np.float64)
-    ts: list[float] = []
-    magnets: list[Array] = []
-    stages: list[int] = []
-    phases: list[str] = []
+    trace = _Trace()
 
     def result(
         success: bool,
@@ -495,23 +531,7 @@ def run_perch(
         t: float,
         contact: Contact | None = None,
     ) -> PerchResult:
-        return PerchResult(
-            seed,
-            setup.estimator,
-            success,
-            reason,
-            offset,
-            speed,
-            t,
-            np.array(ts),
-            np.array(magnets).reshape(-1, 3),
-            np.array(stages, np.int64),
-            tuple(phases),
-            flight.controller.tries,
-            flight.wind_direction_rad,
-            contact,
-            flight.senses,
-        )
+        return trace.result(flight, (success, reason, offset, speed, t), contact)
 
     senses = flight.senses
     events = event_steps(setup, senses.odometry_hz if senses is not None else None)
@@ -526,19 +546,15 @@ def run_perch(
             flight.capture(k, t)
             estimate = flight.arrived(k)
             step = flight.pilot.update(estimate, t)
-            ts.append(t)
-            stages.append(estimate.stage if estimate is not None else 0)
-            phases.append(step.phase or step.state)
+            trace.frame(t, estimate.stage if estimate is not None else 0, step.phase or step.state)
         steps = (events[n + 1][0] if n + 1 < len(events) else setup.physics_steps) - i
         contact = flight.fly(t, steps)
         flight.sense((i + steps) * dt_s)
         if k is not None or contact is not None:
             magnet = np.array(flight.vehicle.point_in_world(tuple(p_magnet_body)))
             if k is None:  # contact between frames: its row
-                ts.append(t)
-                stages.append(0)
-                phases.append(flight.controller.phase)
-            magnets.append(magnet)
+                trace.frame(t, 0, flight.controller.phase)
+            trace.magnets.append(magnet)
         if contact is not None:
             touch = flight.plate.contact
             assert touch is not None

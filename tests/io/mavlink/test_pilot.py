@@ -232,13 +232,13 @@ def test_setpoints_and_stops_in_the_autopilots_frames(udp_port: int) -> None:
     commander = SetpointCommander(link, lambda: allowed[0], lambda: force[0])
     try:
         wait_for(lambda: link.vehicle.autopilot == ARDUPILOT)
-        commander.send_velocity_world_setpoint(0.1, 0.2, 0.3, 10.0)
-        commander.send_stop_setpoint()
+        commander.send_velocity((0.1, 0.2, 0.3), math.radians(10.0))
+        commander.send_stop()
         force[0] = True
-        commander.send_stop_setpoint()
+        commander.send_stop()
         allowed[0] = False
-        commander.send_velocity_world_setpoint(0.1, 0.2, 0.3, 10.0)
-        commander.send_stop_setpoint()
+        commander.send_velocity((0.1, 0.2, 0.3), math.radians(10.0))
+        commander.send_stop()
         wait_for(
             lambda: len([m for _, m in vehicle.received if m.get_type() == "COMMAND_LONG"]) >= 2
         )

@@ -33,7 +33,6 @@ The autopilot stays in charge:
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from functools import partial
@@ -121,8 +120,9 @@ def _disarm_send(mav: Any, *, system: int, force: bool) -> None:
 
 
 class SetpointCommander:
-    """cflib's ``Commander`` methods (world z up, deg/s) as MAVLink velocity setpoints, sent
-    only while ``allowed()``; ``force_stop()`` says whether a stop is a forced disarm."""
+    """The pilot's ``VehicleCommander`` (world z up, rad/s) as MAVLink velocity setpoints in
+    NED, sent only while ``allowed()``; ``force_stop()`` says whether a stop is a forced
+    disarm."""
 
     def __init__(
         self,
@@ -152,23 +152,21 @@ class SetpointCommander:
         if self.link.post(send, "SET_POSITION_TARGET_LOCAL_NED"):
             self.setpoints += 1
 
-    def send_velocity_world_setpoint(self, vx: float, vy: float, vz: float, yawrate: float) -> None:
+    def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
         if not self.allowed():
             self.withheld += 1
             return
         # world z up (NWU) to NED; a yaw rate about up is minus the rate about down
-        self.velocity((vx, -vy, -vz), -math.radians(yawrate))
+        vx, vy, vz = v_world_mps
+        self.velocity((vx, -vy, -vz), -yaw_rate_rad_s)
 
-    def send_stop_setpoint(self) -> None:
+    def send_stop(self) -> None:
         system = self.link.vehicle.system_id
         if not self.allowed() or system is None:
             self.withheld += 1
             return
         send = partial(_disarm_send, system=system, force=self.force_stop())
         self.link.post(send, "COMMAND_LONG")
-
-    def send_notify_setpoint_stop(self, remain_valid_milliseconds: int = 0) -> None:
-        """Nothing to do: MAVLink setpoints have no priority to hand back."""
 
 
 class MavlinkPilot:
