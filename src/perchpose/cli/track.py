@@ -3,6 +3,8 @@ fly on it."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import click
 
 from perchpose.cli.common import (
@@ -14,6 +16,10 @@ from perchpose.cli.common import (
     warn,
 )
 from perchpose.cli.group import group
+
+if TYPE_CHECKING:
+    from perchpose.app.links import LinkOptions
+    from perchpose.app.track import TrackSummary
 
 
 @group.command()
@@ -198,32 +204,19 @@ def track(
 
     With --mavlink or --crazyflie, each frame's estimate also goes to the vehicle.
     """
-    extras = {
-        "--mavlink-pilot": mavlink_pilot,
-        "--mavlink-target-relative": mavlink_target_relative,
-        "--mavlink-distance-sensor": mavlink_distance,
-        "--target-system": target_system is not None,
-    }
-    asked = [flag for flag, on in extras.items() if on]
-    if asked and mavlink_url is None:
-        flag = asked[0]
-        raise click.UsageError(f"{flag} needs --mavlink URL (the autopilot's link).")
-    if realtime and rate is not None and rate != 1.0:
-        raise click.UsageError("--realtime is --rate 1: give one of them.")
-    if realtime:
-        rate = 1.0
-    from perchpose.app.links import LinkOptions
     from perchpose.app.track import TrackOptions, run
 
-    links = LinkOptions(
-        mavlink_url=mavlink_url,
-        mavlink_frame=mavlink_frame,
-        mavlink_pilot=mavlink_pilot,
-        target_relative=mavlink_target_relative,
-        distance_sensor=mavlink_distance,
-        target_system=target_system,
-        crazyflie_uri=crazyflie_uri,
-        mount=mount_file,
+    if realtime and rate is not None and rate != 1.0:
+        raise click.UsageError("--realtime is --rate 1: give one of them.")
+    links = _link_options(
+        mavlink_url,
+        mavlink_frame,
+        mavlink_pilot,
+        mavlink_target_relative,
+        mavlink_distance,
+        target_system,
+        crazyflie_uri,
+        mount_file,
     )
     options = TrackOptions(
         source,
@@ -239,13 +232,50 @@ def track(
         view=view,
         view_port=view_port,
         view_origins=view_origins,
-        rate=rate,
+        rate=1.0 if realtime else rate,
         camera_frame=camera_frame,
         target_frame=target_frame,
         links=links,
         progress=show_progress(quiet),
     )
-    summary = run(options, warn)
+    _print_summary(run(options, warn))
+
+
+def _link_options(
+    mavlink_url: str | None,
+    mavlink_frame: str,
+    mavlink_pilot: bool,
+    target_relative: bool,
+    distance_sensor: bool,
+    target_system: int | None,
+    crazyflie_uri: str | None,
+    mount_file: str | None,
+) -> LinkOptions:
+    """The vehicle links asked for; a MAVLink flag without ``--mavlink`` is a usage error."""
+    from perchpose.app.links import LinkOptions
+
+    extras = {
+        "--mavlink-pilot": mavlink_pilot,
+        "--mavlink-target-relative": target_relative,
+        "--mavlink-distance-sensor": distance_sensor,
+        "--target-system": target_system is not None,
+    }
+    asked = [flag for flag, on in extras.items() if on]
+    if asked and mavlink_url is None:
+        raise click.UsageError(f"{asked[0]} needs --mavlink URL (the autopilot's link).")
+    return LinkOptions(
+        mavlink_url=mavlink_url,
+        mavlink_frame=mavlink_frame,
+        mavlink_pilot=mavlink_pilot,
+        target_relative=target_relative,
+        distance_sensor=distance_sensor,
+        target_system=target_system,
+        crazyflie_uri=crazyflie_uri,
+        mount=mount_file,
+    )
+
+
+def _print_summary(summary: TrackSummary) -> None:
     stages = ", ".join(f"stage {k}: {v}" for k, v in summary.stage_counts.items() if v)
     extra = ""
     if summary.stale_frames:

@@ -166,6 +166,21 @@ def _print_breaks(basis: Array) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
 
 
 @compiled
+def _blur_widths(g: Array, blur_q: Array, u: float, v: float, w: float) -> tuple[float, float]:
+    """The blur's width along u and along v at cell point (u, v) (homography denominator w):
+    d(u, v)/dq, then along pixel x and y."""
+    a_ux, a_uy = (g[0] - u * g[6]) / w, (g[1] - u * g[7]) / w
+    a_vx, a_vy = (g[3] - v * g[6]) / w, (g[4] - v * g[7]) / w
+    s_u = np.hypot(
+        a_ux * blur_q[0, 0] + a_uy * blur_q[0, 1], a_ux * blur_q[1, 0] + a_uy * blur_q[1, 1]
+    )
+    s_v = np.hypot(
+        a_vx * blur_q[0, 0] + a_vy * blur_q[0, 1], a_vx * blur_q[1, 0] + a_vy * blur_q[1, 1]
+    )
+    return s_u, s_v
+
+
+@compiled
 def normal_equations(
     q: Array,
     values: Array,
@@ -218,15 +233,7 @@ def normal_equations(
         w = g[6] * qx + g[7] * qy + 1.0
         u = (g[0] * qx + g[1] * qy + g[2]) / w
         v = (g[3] * qx + g[4] * qy + g[5]) / w
-        # d(u, v)/dq, then along pixel x and y: the blur's width along u and along v
-        a_ux, a_uy = (g[0] - u * g[6]) / w, (g[1] - u * g[7]) / w
-        a_vx, a_vy = (g[3] - v * g[6]) / w, (g[4] - v * g[7]) / w
-        s_u = np.hypot(
-            a_ux * blur_q[0, 0] + a_uy * blur_q[0, 1], a_ux * blur_q[1, 0] + a_uy * blur_q[1, 1]
-        )
-        s_v = np.hypot(
-            a_vx * blur_q[0, 0] + a_vy * blur_q[0, 1], a_vx * blur_q[1, 0] + a_vy * blur_q[1, 1]
-        )
+        s_u, s_v = _blur_widths(g, blur_q, u, v, w)
         lo_u, hi_u = _window(u, lines_u, REACH_SIGMAS * s_u, lo_u)
         lo_v, hi_v = _window(v, lines_v, REACH_SIGMAS * s_v, lo_v)
         n_u = _merged_bands(

@@ -217,20 +217,7 @@ def _run_experiments(
         for name, opts in ex.ABLATIONS.items()
     ]
     say("the physical limit")
-    bound_cameras = [cam] + ([] if cam.name == "webcam" else [CameraModel.preset("webcam")])
-    bounds = [
-        row
-        for k, c in enumerate(bound_cameras)
-        for row in bound_rows(
-            Renderer(c, target, supersample=3),
-            ImageQuality.preset("default"),
-            plan.bound_distances_m,
-            plan.bound_frames,
-            np.random.default_rng(seeds["bound"] + k),
-            tick,
-            plan.bound_poses,
-        )
-    ]
+    bounds = _bound_rows(cam, target, plan, seeds["bound"], tick)
     say("corner accuracy")
     corner_rows = corner_accuracy(
         Renderer(cam, target, supersample=3),
@@ -242,6 +229,26 @@ def _run_experiments(
     return _Outcomes(
         curves, t1, t2, moves_run, drop, samples, fit, appr, ablations, bounds, corner_rows
     )
+
+
+def _bound_rows(
+    cam: CameraModel, target: TargetSpec, plan: EvalPlan, seed: int, tick: Callable[[int], None]
+) -> list[BoundRow]:
+    """The physical limit's rows for ``cam`` and the webcam (seeds from ``seed`` on)."""
+    bound_cameras = [cam] + ([] if cam.name == "webcam" else [CameraModel.preset("webcam")])
+    return [
+        row
+        for k, c in enumerate(bound_cameras)
+        for row in bound_rows(
+            Renderer(c, target, supersample=3),
+            ImageQuality.preset("default"),
+            plan.bound_distances_m,
+            plan.bound_frames,
+            np.random.default_rng(seed + k),
+            tick,
+            plan.bound_poses,
+        )
+    ]
 
 
 def _write_figures(
