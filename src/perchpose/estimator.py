@@ -144,10 +144,15 @@ class PerchingEstimator:
     def _new_fusion(self) -> Fusion:
         if self.fusion == "covariance":
             return CovarianceFusion(
-                self.camera, self.target, self.covariance_filter, use_filter=self.use_filter
+                self.camera,
+                self.target,
+                self.covariance_filter,
+                use_filter=self.use_filter,
+                marker_rule=self.kalman,
             )
         return PaperFusion(
             self.sigmas,
+            self._markers,
             use_filter=self.use_filter,
             camera=self.camera,
             target=self.target,
@@ -341,7 +346,7 @@ class PerchingEstimator:
             elif not track.alive:
                 self._last_R[i] = None
         self._last_t_s = t
-        fused = self._fusion.fuse(t, detections, measurements, self._markers)
+        fused = self._fusion.fuse(t, detections, measurements)
         t3 = time.perf_counter()
         by_index = {d.marker_index: d for d in detections}
         states = tuple(

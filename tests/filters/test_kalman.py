@@ -10,6 +10,7 @@ from perchpose.filters.kalman import (
     H,
     KalmanSettings,
     MarkerFilters,
+    MarkerPresence,
     MarkerTrack,
     PaperKalmanFilter,
     transition,
@@ -242,3 +243,25 @@ def test_marker_filters_fuse_the_measured_markers_or_every_live_one() -> None:
     assert predicted is not None
     np.testing.assert_allclose(predicted[1:], z0[1:], atol=0.02)
     assert MarkerFilters(2, KalmanSettings()).predicted_pose(0, 0.0) is None
+
+
+def test_marker_presence_follows_the_filters_rule_for_missed_frames() -> None:
+    """Which markers a frame counts (measured ones, else those still tracked) is the same from
+    ``MarkerPresence`` as from the per-marker filters, over random measurement patterns with
+    gaps past ``n_max`` frames and past ``max_coast_s``."""
+    rng = np.random.default_rng(3)
+    settings = KalmanSettings(n_max=4, max_coast_s=0.2)
+    filters = MarkerFilters(3, settings)
+    presence = MarkerPresence(3, settings.n_max, settings.max_coast_s)
+    t_s = 0.0
+    counted: set[int] = set()
+    for _ in range(600):
+        t_s += float(rng.choice([1 / 30, 1 / 30, 0.09]))  # sometimes a late frame
+        measured = {i for i in range(3) if rng.random() < 0.25}
+        z = np.array([0.1, 0.0, 0.0, 0.5])
+        filters.advance(dict.fromkeys(measured, z), t_s)
+        presence.advance(measured, t_s)
+        tracked = presence.tracked(measured)
+        assert tracked == set(filters.contributing(measured))
+        counted.add(len(tracked))
+    assert counted == {0, 1, 2, 3}  # every case came up

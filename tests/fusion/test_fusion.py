@@ -82,16 +82,16 @@ def test_paper_fusion_fuses_the_filtered_markers_and_coasts_on_them(
     detections, measurements = _measured(r, facing_pose(0.02, -0.01, 0.5, 0.3))
     assert set(measurements) == {0, 1}
     markers = MarkerFilters(2, KalmanSettings())
-    fusion = PaperFusion(FusionSigmas())
+    fusion = PaperFusion(FusionSigmas(), markers)
     _advance(markers, measurements, 0.0)
-    seen = fusion.fuse(0.0, detections, measurements, markers)
+    seen = fusion.fuse(0.0, detections, measurements)
     expected, _ = fuse_paper(markers.contributing({0, 1}), FusionSigmas())
     assert seen.stage == STAGE_BOTH
     assert seen.contributing == {0, 1}
     assert seen.age_s == 0.0
     np.testing.assert_allclose(seen.pose, expected)
     _advance(markers, {}, 1 / 30)
-    coasting = fusion.fuse(1 / 30, (), {}, markers)
+    coasting = fusion.fuse(1 / 30, (), {})
     assert coasting.stage == STAGE_BOTH
     assert coasting.age_s == pytest.approx(1 / 30)
     assert fusion.predicted_pose(1 / 30) is None  # no filter of its own
@@ -103,17 +103,14 @@ def test_covariance_fusion_owns_one_filter_of_the_joint_pose(
     r = renderers["fpv"]
     T = facing_pose(0.02, -0.01, 0.5, 0.3)
     detections, measurements = _measured(r, T)
-    markers = MarkerFilters(2, KalmanSettings())
     fusion = CovarianceFusion(r.camera, r.target, CovarianceFilterSettings())
     assert fusion.predicted_pose(0.0) is None
-    _advance(markers, measurements, 0.0)
-    seen = fusion.fuse(0.0, detections, measurements, markers)
+    seen = fusion.fuse(0.0, detections, measurements)
     assert seen.stage == STAGE_BOTH
     assert seen.age_s == 0.0
     np.testing.assert_allclose(seen.pose[1:], T[:3, 3], atol=1e-3)
     # a frame without markers: its own filter coasts and predicts
-    _advance(markers, {}, 1 / 30)
-    coasting = fusion.fuse(1 / 30, (), {}, markers)
+    coasting = fusion.fuse(1 / 30, (), {})
     assert coasting.stage == STAGE_BOTH
     assert coasting.age_s == pytest.approx(1 / 30)
     predicted = fusion.predicted_pose(2 / 30)
@@ -121,7 +118,7 @@ def test_covariance_fusion_owns_one_filter_of_the_joint_pose(
     np.testing.assert_allclose(predicted[1:], T[:3, 3], atol=1e-3)
     # without the filter, a frame without markers has no pose
     raw = CovarianceFusion(r.camera, r.target, CovarianceFilterSettings(), use_filter=False)
-    nothing = raw.fuse(1 / 30, (), {}, markers)
+    nothing = raw.fuse(1 / 30, (), {})
     assert nothing.stage == STAGE_NONE
     assert np.isnan(nothing.pose).all()
 
@@ -140,18 +137,15 @@ def test_corners_noisier_than_assumed_move_the_filter_less(
     outer = tuple(d for d in detections if d.marker_index == 0)
     moved: dict[bool, float] = {}
     for noisy in (False, True):
-        markers = MarkerFilters(2, KalmanSettings())
         fusion = CovarianceFusion(r.camera, r.target, CovarianceFilterSettings())
         for k in range(11):
-            _advance(markers, {0: measurements[0]}, k / 30)
-            before = fusion.fuse(k / 30, outer, {0: measurements[0]}, markers).pose
+            before = fusion.fuse(k / 30, outer, {0: measurements[0]}).pose
         shifted = outer[0].corners_px + np.array([2.0, 0.0])
         cov = 1.5**2 * np.eye(8) if noisy else None
         off = replace(outer[0], corners_px=shifted, corner_covariance_px2=cov)
         pose = solve_marker_pose(r.camera, r.target.markers[0], 0, shifted)
         assert isinstance(pose, MarkerPose)
-        _advance(markers, {0: pose}, 11 / 30)
-        after = fusion.fuse(11 / 30, (off,), {0: pose}, markers).pose
+        after = fusion.fuse(11 / 30, (off,), {0: pose}).pose
         moved[noisy] = float(np.linalg.norm(after[1:] - before[1:]))
     # 2 px at 0.5 m is 3.4 mm: the filter, tuned to follow a drone's accelerations, takes
     # nearly all of it on 0.1 px corners, and under a third (0.29 of it) on 1.5 px ones

@@ -201,6 +201,11 @@ class PaperKalmanFilter(ConstantVelocityFilter):
         self.update_with(z, self.R)
 
 
+def too_old(age_s: float, max_coast_s: float) -> bool:
+    """A newest measurement ``age_s`` old is past the coasting limit ``max_coast_s``."""
+    return age_s > max_coast_s + _TIME_SLACK_S
+
+
 class Track(ABC):
     """A filter plus the rule for frames without a measurement, written once for both filters.
 
@@ -244,7 +249,7 @@ class Track(ABC):
         return math.inf if self.filter is None else t_s - self.t_measured_s
 
     def _too_old(self, t_s: float) -> bool:
-        return t_s - self.t_measured_s > self.max_coast_s + _TIME_SLACK_S
+        return too_old(t_s - self.t_measured_s, self.max_coast_s)
 
     @abstractmethod
     def _start(
@@ -454,3 +459,33 @@ class MarkerFilters:
         tracks = [self.tracks[marker_index], *self.tracks]
         track = next((tr for tr in tracks if tr.alive), None)
         return None if track is None else track.predicted_pose(t_s)
+
+
+class MarkerPresence:
+    """Which of a target's markers are still tracked, under the per-marker filters' rule for
+    frames without a measurement (``Track``) but without their filters: a marker measured in
+    a frame is tracked; it stays so for ``n_max`` frames in a row without a measurement, and
+    while its newest measurement is at most ``max_coast_s`` old."""
+
+    def __init__(self, n_markers: int, n_max: int, max_coast_s: float) -> None:
+        self.n_max = n_max
+        self.max_coast_s = max_coast_s
+        self._measured_s = [math.nan] * n_markers
+        self._missed = [0] * n_markers
+        self._tracked = [False] * n_markers
+
+    def advance(self, measured: set[int] | frozenset[int], t_s: float) -> None:
+        """A frame at ``t_s`` in which the markers ``measured`` were measured."""
+        for i in range(len(self._tracked)):
+            if i in measured:
+                self._measured_s[i], self._missed[i], self._tracked[i] = t_s, 0, True
+            elif self._tracked[i]:
+                self._missed[i] += 1
+                age = t_s - self._measured_s[i]
+                if self._missed[i] > self.n_max or too_old(age, self.max_coast_s):
+                    self._tracked[i] = False
+
+    def tracked(self, measured: set[int] | frozenset[int]) -> set[int]:
+        """The markers that fuse in this frame: those ``measured`` in it, or, in a frame
+        without measurements, every marker still tracked (coasting)."""
+        return set(measured) or {i for i, on in enumerate(self._tracked) if on}

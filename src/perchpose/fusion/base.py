@@ -1,5 +1,5 @@
-"""What every fusion shares: the paper's stages, ``Fused`` (a frame's fused pose), the ``Fusion``
-interface the estimator calls, and the poses that fuse (filtered or measured)."""
+"""What every fusion shares: the paper's stages, ``Fused`` (a frame's fused pose) and the
+``Fusion`` interface the estimator calls."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.filters.kalman import MarkerFilters
 from perchpose.values import MarkerDetection, MarkerPose
 
 Array = NDArray[np.float64]
@@ -46,8 +45,10 @@ class Fused:
 
 
 class Fusion(Protocol):
-    """How a frame's markers become one pose. Each strategy owns the filter state it needs
-    beyond the per-marker filters, which the estimator advances before calling ``fuse``."""
+    """How a frame's markers become one pose. Each strategy keeps the state it needs: the
+    covariance fusion its filter of the fused pose and which markers it still tracks; the
+    paper fusion reads the per-marker filters it was built on, which the estimator advances
+    before calling ``fuse``."""
 
     @property
     def reinitialised(self) -> int:
@@ -59,7 +60,6 @@ class Fusion(Protocol):
         t_s: float,
         detections: tuple[MarkerDetection, ...],
         measurements: dict[int, MarkerPose],
-        markers: MarkerFilters,
     ) -> Fused:
         """The fused pose of the frame at ``t_s``."""
         ...
@@ -67,13 +67,3 @@ class Fusion(Protocol):
     def predicted_pose(self, t_s: float) -> Array | None:
         """[psi, x, y, z] the strategy's own filter expects at ``t_s``; None without one."""
         ...
-
-
-def marker_poses(
-    measurements: dict[int, MarkerPose], markers: MarkerFilters, use_filter: bool
-) -> dict[int, Array]:
-    """The poses that fuse: the filtered poses (``MarkerFilters.contributing``), or this
-    frame's raw measurements without the filter."""
-    if not use_filter:
-        return {i: m.filter_z for i, m in measurements.items()}
-    return markers.contributing(set(measurements))

@@ -1,7 +1,8 @@
 """The covariance fusion: one PnP over every corner of every marker measured in the frame, its
 covariance from the Jacobian and the corners' noise, and one filter of the fused pose that owns
-its own state. Its stage is the paper's, from the markers that contribute, so that both fusions
-report the same stages."""
+its own state. Its stage is the paper's, from the markers that contribute (those measured in the
+frame; in a frame without measurements, those still tracked under the per-marker filters' rule,
+``MarkerPresence``, which it keeps itself), so that both fusions report the same stages."""
 
 from __future__ import annotations
 
@@ -11,8 +12,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.filters.kalman import CovarianceFilterSettings, CovarianceTrack, MarkerFilters
-from perchpose.fusion.base import STAGE_NONE, Fused, marker_poses, stage_of
+from perchpose.filters.kalman import (
+    CovarianceFilterSettings,
+    CovarianceTrack,
+    KalmanSettings,
+    MarkerPresence,
+)
+from perchpose.fusion.base import STAGE_NONE, Fused, stage_of
 from perchpose.fusion.transport import angles_covariance, camera_covariance
 from perchpose.geometry import tilt_rad, yaw_rad
 from perchpose.numeric.linalg import sandwiched
@@ -89,7 +95,9 @@ class VarianceFactor(_FadingSums):
 
 class CovarianceFusion:
     """One PnP over every measured marker's corners, through one filter of the fused pose
-    corrected with each measurement's own covariance (``CovarianceTrack``)."""
+    corrected with each measurement's own covariance (``CovarianceTrack``). ``marker_rule``:
+    the per-marker filters' settings whose rule for frames without a measurement (``n_max``,
+    ``max_coast_s``) says which markers a coasting frame still counts (default: the paper's)."""
 
     def __init__(
         self,
@@ -98,7 +106,10 @@ class CovarianceFusion:
         settings: CovarianceFilterSettings,
         *,
         use_filter: bool = True,
+        marker_rule: KalmanSettings | None = None,
     ) -> None:
+        rule = marker_rule or KalmanSettings()
+        self.presence = MarkerPresence(len(target.markers), rule.n_max, rule.max_coast_s)
         self.camera = camera
         self.target = target
         self.settings = settings
@@ -175,10 +186,10 @@ class CovarianceFusion:
         t_s: float,
         detections: tuple[MarkerDetection, ...],
         measurements: dict[int, MarkerPose],
-        markers: MarkerFilters,
     ) -> Fused:
-        poses = marker_poses(measurements, markers, self.use_filter)
-        stage = stage_of(set(poses))
+        self.presence.advance(set(measurements), t_s)
+        poses = self.presence.tracked(set(measurements)) if self.use_filter else set(measurements)
+        stage = stage_of(poses)
         joint = self._joint(detections, measurements)
         measured: Array | None = None
         if joint is None:

@@ -22,7 +22,6 @@ from perchpose.fusion.base import (
     STAGE_NONE,
     STAGE_OUTER,
     Fused,
-    marker_poses,
     stage_of,
 )
 from perchpose.fusion.transport import angles_covariance, camera_covariance
@@ -90,6 +89,16 @@ class FusionSigmas:
             raise FusionFileError(f"{path}: {exc}") from exc
 
 
+def marker_poses(
+    measurements: dict[int, MarkerPose], markers: MarkerFilters, use_filter: bool
+) -> dict[int, Array]:
+    """The poses that fuse: the filtered poses (``MarkerFilters.contributing``), or this
+    frame's raw measurements without the filter."""
+    if not use_filter:
+        return {i: m.filter_z for i, m in measurements.items()}
+    return markers.contributing(set(measurements))
+
+
 def _mean_pose(poses: list[Array]) -> Array:
     stacked = np.stack(poses)
     out = stacked.mean(axis=0)
@@ -121,7 +130,9 @@ def fuse_paper(poses: dict[int, Array], sigmas: FusionSigmas) -> tuple[Array, in
 
 
 class PaperFusion:
-    """The paper's fusion of the per-marker filters with fixed sigmas, by stage.
+    """The paper's fusion of the per-marker filters (``markers``, which the estimator advances
+    each frame before it fuses: they are also each marker's record in every estimate) with
+    fixed sigmas, by stage.
 
     With ``camera``, ``target`` and ``corner_sigma_px`` it also gives the target's tilt and a
     covariance: those of the frame's fused measurement (each measured marker's pose
@@ -134,6 +145,7 @@ class PaperFusion:
     def __init__(
         self,
         sigmas: FusionSigmas,
+        markers: MarkerFilters,
         *,
         use_filter: bool = True,
         camera: CameraModel | None = None,
@@ -141,6 +153,7 @@ class PaperFusion:
         corner_sigma_px: float = 0.0,
     ) -> None:
         self.sigmas = sigmas
+        self.markers = markers
         self.use_filter = use_filter
         self.camera = camera
         self.target = target
@@ -190,8 +203,8 @@ class PaperFusion:
         t_s: float,
         detections: tuple[MarkerDetection, ...],
         measurements: dict[int, MarkerPose],
-        markers: MarkerFilters,
     ) -> Fused:
+        markers = self.markers
         poses = marker_poses(measurements, markers, self.use_filter)
         pose, stage = fuse_paper(poses, self.sigmas)
         age = 0.0 if measurements or not self.use_filter else markers.age_s(poses, t_s)
