@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
+from perchpose.detection.borders import BorderProfiles, border_problem, moved_in
 from perchpose.detection.detector import (
     PATTERN_BESIDE_RATIO,
     THOROUGH_EVERY,
@@ -75,6 +76,12 @@ class PerchingEstimator:
     budget_ms : a time budget per frame: past it the detection leaves out what it can (a
         pattern fit, the whole-frame search after tracking lost a marker, another glare level;
         ``MarkerDetector.detect``) and the estimate's ``skipped`` says what. None: no budget.
+    check_borders : where a marker's black border reads clearly wider on one side than on the
+        others (something dark flush with its edge, which the fitted corners follow: the marker
+        then looks larger and nearer than it is), that side is moved in by the difference and
+        its corners' covariance grows by the move; the marker's ``border`` says so
+        (``perchpose.detection.borders``). Only ``update`` checks: ``update_detections`` has
+        no image.
     """
 
     def __init__(
@@ -92,6 +99,7 @@ class PerchingEstimator:
         covariance_filter: CovarianceFilterSettings | None = None,
         disagree_chi2: float = DISAGREE_CHI2,
         budget_ms: float | None = None,
+        check_borders: bool = True,
     ) -> None:
         if fusion not in FUSION_METHODS:
             raise ValueError(f"fusion must be one of {', '.join(FUSION_METHODS)}, got {fusion!r}")
@@ -108,6 +116,9 @@ class PerchingEstimator:
         self._after_detect_s = 0.0
         n = len(target.markers)
         self.markers = tuple(range(n)) if markers is None else tuple(sorted(set(markers)))
+        self.borders = (
+            tuple(BorderProfiles.of(target, i) for i in range(n)) if check_borders else None
+        )
         if not self.markers or not all(0 <= i < n for i in self.markers):
             raise ValueError(f"markers must be indices 0-{n - 1} of the target, got {markers}")
         self.use_filter = use_filter
@@ -206,7 +217,8 @@ class PerchingEstimator:
         detected = self.detector.detect(grey, hint, deadline)
         self._earlier, self._earlier_t_s = self._hint, self._hint_t_s
         self._hint, self._hint_t_s = detected.markers, t
-        estimate = self._estimate(t, detected.markers, t0, detected.corners_s)
+        measured, notes = self._checked_borders(grey, detected.markers)
+        estimate = self._estimate(t, measured, t0, detected.corners_s, notes)
         timings = estimate.timings
         self._after_detect_s = (timings.pose_ms + timings.filter_ms + timings.fuse_ms) / 1e3
         skipped = detected.skipped
@@ -220,14 +232,43 @@ class PerchingEstimator:
         t0 = time.perf_counter()
         return self._estimate(t, detections, t0, 0.0)
 
+    def _checked_borders(
+        self, grey: NDArray[np.uint8], detections: tuple[MarkerDetection, ...]
+    ) -> tuple[tuple[MarkerDetection, ...], dict[int, str]]:
+        """The detections to measure, a side moved in where its border reads wider than the
+        others (``check_borders``), and what was moved, by marker."""
+        if self.borders is None:
+            return detections, {}
+        checked: list[MarkerDetection] = []
+        notes: dict[int, str] = {}
+        for det in detections:
+            profiles = self.borders[det.marker_index]
+            odd = border_problem(grey, det, self.camera, profiles)
+            moved = None if odd is None else moved_in(det, self.camera, profiles.n_cells, odd)
+            if odd is not None and moved is not None:
+                notes[det.marker_index] = odd.describe()
+            checked.append(det if moved is None else moved)
+        return tuple(checked), notes
+
     def _estimate(
-        self, t: float, detections: tuple[MarkerDetection, ...], t0: float, corners_s: float
+        self,
+        t: float,
+        detections: tuple[MarkerDetection, ...],
+        t0: float,
+        corners_s: float,
+        notes: dict[int, str] | None = None,
     ) -> Estimate:
         t1 = time.perf_counter()
         measurements, rejected = self._measure(detections, t)
         self._drop_disagreeing(detections, measurements, rejected, t)
         t2 = time.perf_counter()
-        return self._filter_and_fuse(t, detections, measurements, rejected, (t0, t1, t2), corners_s)
+        fused = self._filter_and_fuse(
+            t, detections, measurements, rejected, (t0, t1, t2), corners_s
+        )
+        if not notes:
+            return fused
+        states = tuple(replace(m, border=notes.get(i, "")) for i, m in enumerate(fused.markers))
+        return replace(fused, markers=states)
 
     def _measure(
         self, detections: tuple[MarkerDetection, ...], t: float

@@ -120,6 +120,8 @@ class MarkerState:
     filtered_pose : (4,) [yaw_rad, x_m, y_m, z_m] of the marker's filter after this frame, or None.
     missed_frames : consecutive frames without a measurement.
     contributing : the marker's filtered pose went into the fused estimate.
+    border : how the corners were corrected where one side's border read wider than the
+        others ('' where none was; ``perchpose.detection.borders``).
     """
 
     label: str
@@ -129,6 +131,7 @@ class MarkerState:
     filtered_pose: Array | None
     missed_frames: int
     contributing: bool
+    border: str = ""
 
 
 @dataclass(frozen=True)
