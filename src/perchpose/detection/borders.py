@@ -27,11 +27,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
-from perchpose.camera.lens import Lens, lens_normalize, lens_project
+from perchpose.camera.lens import Lens
 from perchpose.corners.edge_geometry import bilinear_points
-from perchpose.detection.verification import CellPattern
+from perchpose.detection.verification import CellPattern, cell_points_px
 from perchpose.numeric.jit import compiled
-from perchpose.numeric.linalg import homography_of_4, through_homography
 from perchpose.target import TargetSpec
 from perchpose.values import MarkerDetection
 
@@ -149,19 +148,8 @@ def _widths_compiled(
 ) -> tuple[Array, Array]:
     """``border_widths`` through the lens of ``CameraModel.compiled_lens``."""
     cells, error = np.full(4, np.nan), np.full(4, np.nan)
-    kind, K, d = lens
-    corners_n = lens_normalize(kind, corners_px, K, d)
-    if not np.isfinite(corners_n).all():
-        return cells, error
-    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
-    found, H = homography_of_4(square, corners_n)
-    if not found:
-        return cells, error
-    on_plane = through_homography(H, points_uv)
-    rays = np.ones((on_plane.shape[0], 3))
-    rays[:, :2] = on_plane
-    px, in_front = lens_project(kind, rays, K, d)
-    if not in_front.all():
+    placed, px = cell_points_px(lens, corners_px, n, points_uv)
+    if not placed:
         return cells, error
     values = bilinear_points(grey, px)
     S = offsets.shape[0]
@@ -287,22 +275,14 @@ def moved_in(
     quad's own homography and the lens, so the side stays a straight line on the marker's
     plane), the two corners it moves given that move's length as further standard deviation
     (px) in their covariance; None where the quad makes no homography."""
-    kind, K, d = camera.compiled_lens
     corners = np.ascontiguousarray(np.asarray(detection.corners_px, np.float64).reshape(4, 2))
-    corners_n = lens_normalize(kind, corners, K, d)
     n = float(n_cells)
-    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
-    found, H = homography_of_4(square, corners_n)
-    if not (found and np.isfinite(corners_n).all()):
-        return None
-    moved = square.copy()
+    moved = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
     step = odd.excess_cells * np.array(_SIDE_INWARD[odd.side])
     for c in _SIDE_CORNERS[odd.side]:
         moved[c] += step
-    rays = np.ones((4, 3))
-    rays[:, :2] = through_homography(H, moved)
-    px, in_front = lens_project(kind, rays, K, d)
-    if not (in_front.all() and np.isfinite(px).all()):
+    placed, px = cell_points_px(camera.compiled_lens, corners, n, moved)
+    if not (placed and np.isfinite(px).all()):
         return None
     covariance = detection.corner_covariance_px2
     if covariance is not None:

@@ -129,24 +129,34 @@ def _read_compiled(
 ) -> tuple[bool, int, float, float]:
     """``read_cells`` through the lens of ``CameraModel.compiled_lens``: (whether the cells
     could be read, then ``_cell_levels``' answer)."""
-    kind, K, d = lens
-    corners_n = lens_normalize(kind, corners_px, K, d)
-    if not np.isfinite(corners_n).all():
-        return False, 0, 0.0, 0.0
-    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
-    found, H = homography_of_4(square, corners_n)
-    if not found:
-        return False, 0, 0.0, 0.0
-    on_plane = through_homography(H, samples_uv)
-    rays = np.ones((on_plane.shape[0], 3))
-    rays[:, :2] = on_plane
-    px, in_front = lens_project(kind, rays, K, d)
-    if not in_front.all():
+    read, px = cell_points_px(lens, corners_px, n, samples_uv)
+    if not read:
         return False, 0, 0.0, 0.0
     wrong, black, bright = _cell_levels(bilinear_points(grey, px), white)
     if not (math.isfinite(black) and math.isfinite(bright)):
         return False, 0, 0.0, 0.0
     return True, wrong, black, bright
+
+
+@compiled
+def cell_points_px(lens: Lens, corners_px: Array, n: float, points_uv: Array) -> tuple[bool, Array]:
+    """(whether they could be placed, the pixels (P, 2) of ``points_uv`` (P, 2) in the cell
+    coordinates of a marker of ``n`` cells whose corners are ``corners_px`` (4, 2; ArUco
+    order)): through the homography of the corners on the lens's normalised plane, then the
+    lens."""
+    kind, K, d = lens
+    corners_n = lens_normalize(kind, corners_px, K, d)
+    if not np.isfinite(corners_n).all():
+        return False, np.empty((0, 2))
+    square = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
+    found, H = homography_of_4(square, corners_n)
+    if not found:
+        return False, np.empty((0, 2))
+    on_plane = through_homography(H, points_uv)
+    rays = np.ones((on_plane.shape[0], 3))
+    rays[:, :2] = on_plane
+    px, in_front = lens_project(kind, rays, K, d)
+    return bool(in_front.all()), px
 
 
 @compiled
