@@ -78,10 +78,10 @@ class PerchingEstimator:
         ``MarkerDetector.detect``) and the estimate's ``skipped`` says what. None: no budget.
     check_borders : where a marker's black border reads clearly wider on one side than on the
         others (something dark flush with its edge, which the fitted corners follow: the marker
-        then looks larger and nearer than it is), that side is moved in by the difference and
-        its corners' covariance grows by the move; the marker's ``border`` says so
-        (``perchpose.detection.borders``). Only ``update`` checks: ``update_detections`` has
-        no image.
+        then looks larger and nearer than it is) in two frames running, that side is moved in
+        by the difference and its corners' covariance grows by the move; the marker's
+        ``border`` says so (``perchpose.detection.borders``). Only ``update`` checks:
+        ``update_detections`` has no image.
     """
 
     def __init__(
@@ -185,6 +185,8 @@ class PerchingEstimator:
         self._settled: list[bool] = [True] * len(self.target.markers)
         self._settled_now: dict[int, bool] = {}
         self._last_t_s: float | None = None
+        # the side of each marker whose border read wider than the others in the last frame
+        self._odd_sides: dict[int, int] = {}
         # the last two frames' detections and their times (tracking's hint: where the markers
         # should be now, at the pace they moved between those frames)
         self._hint: tuple[MarkerDetection, ...] = ()
@@ -236,18 +238,26 @@ class PerchingEstimator:
         self, grey: NDArray[np.uint8], detections: tuple[MarkerDetection, ...]
     ) -> tuple[tuple[MarkerDetection, ...], dict[int, str]]:
         """The detections to measure, a side moved in where its border reads wider than the
-        others (``check_borders``), and what was moved, by marker."""
+        others in this frame and the one before (``check_borders``: something lying along the
+        edge stays there; a misreading of one frame does not), and what was moved, by
+        marker."""
         if self.borders is None:
             return detections, {}
         checked: list[MarkerDetection] = []
         notes: dict[int, str] = {}
+        odd_now: dict[int, int] = {}
         for det in detections:
             profiles = self.borders[det.marker_index]
             odd = border_problem(grey, det, self.camera, profiles)
-            moved = None if odd is None else moved_in(det, self.camera, profiles.n_cells, odd)
+            moved = None
+            if odd is not None:
+                odd_now[det.marker_index] = odd.side
+                if self._odd_sides.get(det.marker_index) == odd.side:
+                    moved = moved_in(det, self.camera, profiles.n_cells, odd)
             if odd is not None and moved is not None:
                 notes[det.marker_index] = odd.describe()
             checked.append(det if moved is None else moved)
+        self._odd_sides = odd_now
         return tuple(checked), notes
 
     def _estimate(
