@@ -247,16 +247,17 @@ class PerchingEstimator:
         notes: dict[int, str] = {}
         odd_now: dict[int, int] = {}
         for det in detections:
-            profiles = self.borders[det.marker_index]
-            odd = border_problem(grey, det, self.camera, profiles)
-            moved = None
+            i = det.marker_index
+            profiles = self.borders[i]
+            odd = border_problem(grey, det, self.camera, profiles) if i in self.markers else None
             if odd is not None:
-                odd_now[det.marker_index] = odd.side
-                if self._odd_sides.get(det.marker_index) == odd.side:
-                    moved = moved_in(det, self.camera, profiles.n_cells, odd)
-            if odd is not None and moved is not None:
-                notes[det.marker_index] = odd.describe()
-            checked.append(det if moved is None else moved)
+                odd_now[i] = odd.side
+                again = self._odd_sides.get(i) == odd.side  # read so in the frame before too
+                moved = moved_in(det, self.camera, profiles.n_cells, odd) if again else None
+                if moved is not None:
+                    notes[i] = odd.describe()
+                    det = moved  # noqa: PLW2901  (the detection measured in its place)
+            checked.append(det)
         self._odd_sides = odd_now
         return tuple(checked), notes
 

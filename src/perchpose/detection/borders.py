@@ -302,6 +302,6 @@ def border_problem(
 ) -> OddBorder | None:
     """``odd_border`` of ``detection`` in ``grey``; None where its cells are under
     ``MIN_CELL_PX`` (too small to measure a border on)."""
-    if profiles.n_cells == 0 or detection.side_px / profiles.n_cells < MIN_CELL_PX:
+    if detection.side_px / profiles.n_cells < MIN_CELL_PX:
         return None
     return odd_border(border_widths(grey, detection.corners_px, camera, profiles))
