@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import os
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
+import av
+import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -118,3 +121,60 @@ def silent_scheduler(monkeypatch: pytest.MonkeyPatch, tcp_port: int) -> str:
 
     monkeypatch.setattr(campaign, "SCHEDULER_TIMEOUT_S", 1)
     return f"tcp://127.0.0.1:{tcp_port}"
+
+
+class H264:
+    """H.264 videos as a camera's encoder makes them, and as a lossy link delivers them."""
+
+    rate = 30
+
+    def encode(self, images: Iterable[NDArray[np.uint8]], path: Path, gop: int) -> Path:
+        """``images`` (BGR) as an MP4 at ``rate`` fps: libx264, a key frame every ``gop``
+        frames, no B-frames."""
+        out = av.open(str(path), "w")
+        stream = out.add_stream("libx264", rate=self.rate)
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"g": str(gop), "keyint_min": str(gop), "bf": "0", "sc_threshold": "0"}
+        stream.options["crf"] = "18"  # a camera's good link: the damage is what the test sees
+        for k, image in enumerate(images):
+            if k == 0:
+                stream.height, stream.width = image.shape[:2]
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+        out.close()
+        return path
+
+    def damage(self, clean: Path, damaged: Path, drop: set[int], zero_half: set[int]) -> Path:
+        """``clean`` copied packet by packet to ``damaged`` without the packets of the frames
+        in ``drop`` and with the second half of those in ``zero_half`` zeroed."""
+        source = av.open(str(clean))
+        video = source.streams.video[0]
+        out = av.open(str(damaged), "w")
+        stream = out.add_stream_from_template(video)
+        start = video.start_time or 0
+        for packet in source.demux(video):
+            if packet.size == 0 or packet.pts is None:
+                continue
+            index = round(float((packet.pts - start) * video.time_base) * self.rate)
+            if index in drop:
+                continue
+            sent = packet
+            if index in zero_half:
+                data = bytearray(bytes(packet))
+                half = len(data) // 2
+                data[half:] = bytes(len(data) - half)
+                sent = av.Packet(bytes(data))
+                sent.pts, sent.dts, sent.time_base = packet.pts, packet.dts, packet.time_base
+            sent.stream = stream
+            out.mux(sent)
+        out.close()
+        source.close()
+        return damaged
+
+
+@pytest.fixture(scope="session")
+def h264() -> H264:
+    """Encode images as H.264 and damage the result as a lossy link would."""
+    return H264()

@@ -5,6 +5,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -129,6 +130,32 @@ def test_corrupt_frame_does_not_stop_the_run(
     rows = read_track_csv(tmp_path / "p.csv")
     assert [r["valid"] for r in rows] == ["1", "1", "0", "1", "1", "1"]
     assert rows[2]["frame"] == "2"
+
+
+def test_a_lossy_video_says_which_frames_it_did_not_measure(
+    short_sequence: Path, h264: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Six frames as H.264 with frame 2's packet lost: frames 3-5 are predicted from it; the
+    run says so once, goes on, and its closing line counts them."""
+    import cv2
+
+    images = (cv2.imread(str(p)) for p in sorted(short_sequence.glob("frame_*.png")))
+    clean = h264.encode(images, tmp_path / "clean.mp4", gop=6)
+    lossy = h264.damage(clean, tmp_path / "lossy.mp4", drop={2}, zero_half=set())
+    camera = str(short_sequence / "camera.yaml")
+    code, out, err = _run(
+        ["track", str(lossy), "--camera", camera, "--out", str(tmp_path / "p.csv")], capsys
+    )
+    assert code == 0
+    warnings = err.strip().splitlines()
+    assert len(warnings) == 2
+    assert "frame 2 cannot be decoded" in warnings[0]
+    assert "frame 3 is predicted from damaged or missing frames" in warnings[1]
+    assert "6 frames, 2 valid" in out
+    assert "1 unreadable, 3 damaged (decoded from damaged data, not measured)" in out
+    rows = read_track_csv(tmp_path / "p.csv")
+    assert [r["valid"] for r in rows] == ["1", "1", "0", "0", "0", "0"]
+    assert all("not measured" in r["error"] for r in rows[3:])
 
 
 def _bad_camera(tmp_path: Path, kind: str) -> Path:

@@ -1,5 +1,6 @@
 import csv
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -104,6 +105,46 @@ def test_each_row_says_its_latency(tracked: dict[str, tuple[Path, Path]], camera
     for r in rows:
         assert float(r["latency_ms"]) >= float(r["total_ms"])
         assert r["skipped"] == ""
+
+
+def test_frames_decoded_from_damaged_data_are_shown_not_measured(
+    approach_webcam_dir: Path, h264: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The rendered approach as a camera's H.264 (a key frame every 15 frames) after a lossy
+    link: frame 20's packet lost, frame 50's cut in half, frame 67's lost. The frames predicted
+    from them decode without complaint but wrong; each gets an invalid row that says why, one
+    warning where each run starts, none reaches the vehicle links, and every pose measured is
+    as good as on the clean images."""
+    import cv2
+
+    frames = sorted(approach_webcam_dir.glob("frame_*.png"))
+    clean = h264.encode((cv2.imread(str(p)) for p in frames), tmp_path / "clean.mp4", gop=15)
+    lossy = h264.damage(clean, tmp_path / "lossy.mp4", drop={20, 67}, zero_half={50})
+    camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
+    heard: list[float] = []
+    summary = track(
+        str(lossy),
+        PerchingEstimator(camera, TargetSpec.paper()),
+        tmp_path / "poses.csv",
+        progress=False,
+        on_frame=[lambda estimate, t_s: heard.append(t_s) if estimate else None],
+    )
+    warnings = capsys.readouterr().err.splitlines()
+    rows = read_track_csv(tmp_path / "poses.csv")
+    assert [int(r["frame"]) for r in rows] == list(range(len(frames)))
+    damaged = [int(r["frame"]) for r in rows if "not measured" in r["error"]]
+    assert set(damaged) - {50} == {*range(21, 30), *range(51, 60), *range(68, 75)}
+    assert all(rows[i]["valid"] == "0" for i in damaged)
+    assert summary.damaged_frames == len(damaged)
+    assert summary.bad_frames == 2 + (50 not in damaged)  # the frames lost whole
+    assert sum("not measured" in line for line in warnings) == 3
+    assert not any(round(t_s * 30) in damaged for t_s in heard)
+    errors = frame_errors(rows, read_track_csv(approach_webcam_dir / "truth.csv"))
+    measured = errors.valid & ~errors.dropout & (errors.truth_stage > 0)
+    assert np.count_nonzero(measured) >= 40
+    abs_err = np.abs(errors.error_cm[measured])
+    assert np.max(abs_err[:, :2]) <= 0.6
+    assert not (abs_err[:, 2] > np.maximum(0.015 * errors.z_true_cm[measured], 0.1)).any()
 
 
 def test_a_live_camera_drops_stale_frames_and_says_so(

@@ -1,5 +1,6 @@
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -214,7 +215,7 @@ def test_a_slow_consumer_does_not_queue_frames(tmp_path: Path) -> None:
     grabber.close()
     *stale, first = taken
     assert first[2] is not None
-    assert all(image is None and index < first[0] for index, _, image in stale)
+    assert all(image is None and index < first[0] for index, _, image, _ in stale)
     assert not grabber.running
 
 
@@ -293,3 +294,57 @@ def test_a_stream_that_never_answers_is_one_clear_error(tcp_port: int) -> None:
     # nothing listens on tcp_port
     with pytest.raises(SourceError, match=rf"http://127.0.0.1:{tcp_port}/x.avi: cannot open"):
         open_source(f"http://127.0.0.1:{tcp_port}/x.avi")
+
+
+def test_a_udp_stream_that_loses_datagrams_flags_what_it_spoils(
+    h264: Any, tmp_path: Path, udp_port: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An H.264 camera's MPEG-TS over udp:// on loopback (a key frame every 10 frames), with
+    three datagrams of 7 TS packets lost on the way: the frames they spoil come flagged, and
+    every frame that is not flagged is exactly a frame the camera sent."""
+    import socket
+    import threading
+
+    from perchpose.io import sources
+
+    images = []
+    for k in range(60):
+        image = np.zeros((120, 160, 3), np.uint8)
+        image[:, :, 1] = np.linspace(0, 200, 160, dtype=np.uint8)[None, :]
+        image[40:80, 10 + 2 * k : 50 + 2 * k] = 255
+        images.append(image)
+    ts = h264.encode(images, tmp_path / "camera.ts", gop=10)
+    sent = {f.index: f.image for f in open_source(str(ts))}
+    assert len(sent) == 60
+    data = ts.read_bytes()
+    datagrams = [data[i : i + 1316] for i in range(0, len(data), 1316)]
+    lost = {len(datagrams) * k // 4 for k in (1, 2, 3)}
+
+    def send() -> None:
+        time.sleep(0.3)  # the reader binds the port first
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as out:
+            for k, datagram in enumerate(datagrams):
+                if k not in lost:
+                    out.sendto(datagram, ("127.0.0.1", udp_port))
+                time.sleep(0.002)
+
+    monkeypatch.setattr(sources, "STREAM_TIMEOUT_MS", 1000)
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    source = open_source(f"udp://127.0.0.1:{udp_port}")
+    source.reconnect_for_s = 0.5
+    frames = []
+    with pytest.raises(SourceError, match="did not come back"):
+        frames.extend(source)
+    sender.join()
+    shown = [f for f in frames if f.image is not None]
+    assert len(shown) >= 30
+    flagged = [f for f in shown if f.damaged]
+    assert flagged
+    assert all("not measured" in f.error for f in flagged)
+    for f in shown:
+        assert f.image is not None
+        nearest = min(np.abs(f.image.astype(int) - s.astype(int)).max() for s in sent.values())
+        assert f.damaged or nearest == 0, f.index
+    # the stream mends at the next key frame: whole frames come after each flagged run
+    assert not shown[-1].damaged

@@ -51,7 +51,7 @@ def run(options: CalibrateOptions) -> CalibrationRun:
     if out_path.suffix.lower() not in (".yaml", ".yml"):
         raise CalibrationError(f"{out_path}: the camera file must end in .yaml or .yml")
     frames = open_source(source)
-    named = ((f.name, f.image) for f in frames if f.image is not None)
+    named = ((f.name, f.image) for f in frames if f.image is not None and not f.damaged)
     if isinstance(frames, ImageFilesSource):
         images = list(named)
         searched = len(images)

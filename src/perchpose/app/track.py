@@ -44,21 +44,23 @@ class TrackSummary:
     stale_frames: int = 0
     budget_frames: int = 0
     p95_latency_ms: float = math.nan
+    damaged_frames: int = 0
 
 
 class _Tally:
     """Counts of a tracking run as its frames come."""
 
     def __init__(self) -> None:
-        self.frames = self.valid = self.bad = self.stale = self.budget = 0
+        self.frames = self.valid = self.bad = self.stale = self.budget = self.damaged = 0
         self.stage_counts = {0: 0, 1: 0, 2: 0, 3: 0}
         self.total_ms = 0.0
         self.latencies_ms: list[float] = []
 
-    def add(self, estimate: Estimate | None, error: str, stale: bool) -> None:
+    def add(self, estimate: Estimate | None, error: str, frame: Frame) -> None:
         self.frames += 1
-        self.stale += int(stale)
-        self.bad += int(bool(error) and not stale)
+        self.stale += int(frame.stale)
+        self.damaged += int(frame.damaged)
+        self.bad += int(bool(error) and not frame.stale and not frame.damaged)
         if estimate is not None:
             self.valid += int(estimate.valid)
             self.stage_counts[estimate.stage] += 1
@@ -70,7 +72,7 @@ class _Tally:
             self.stage_counts[0] += 1
 
     def summary(self, out: Path) -> TrackSummary:
-        processed = max(1, self.frames - self.bad - self.stale)
+        processed = max(1, self.frames - self.bad - self.stale - self.damaged)
         latencies = sorted(self.latencies_ms)
         p95 = (
             latencies[min(len(latencies) - 1, int(0.95 * len(latencies)))]
@@ -87,6 +89,7 @@ class _Tally:
             self.stale,
             self.budget,
             p95,
+            self.damaged,
         )
 
 
@@ -174,7 +177,7 @@ def _measured(
     and a flagged row after it."""
     if frame.stale:
         return None, STALE
-    if frame.image is None:
+    if frame.image is None or frame.damaged:
         return None, frame.error
     try:
         grey = estimator.camera.check_image(frame.image, f"{description}: {frame.name}")
@@ -214,7 +217,10 @@ def track(
     warning each; the summary counts them).
 
     A frame that cannot be read or has the wrong size gets an invalid row and a warning on
-    stderr; the run goes on. The first frame having a size other than the calibration's is an
+    stderr; the run goes on. A video frame that decoded but rests on damaged data
+    (``Frame.damaged``: it decoded with errors, or is predicted from such a frame or a missing
+    one) is drawn but not measured: an invalid row that says why, and one warning where a run
+    of them starts. The first frame having a size other than the calibration's is an
     error, since then every frame would be. Each of ``on_frame`` (vehicle links) is called once
     per frame with the estimate (None for an unreadable frame) and the frame's time.
     """
@@ -234,6 +240,7 @@ def track(
     draw = overlay is not None or writer.wants_overlay or view is not None
     tally = _Tally()
     first_good = True
+    damaged_before = False
     try:
         for read in _with_bar(frames, progress):
             frame = read
@@ -243,15 +250,17 @@ def track(
             stamp = Stamp.of(frame, camera_frame)
             estimate, error = _measured(estimator, frame, frames.description, first_good)
             first_good = first_good and frame.image is None
-            if error and not frame.stale:
-                print(f"warning: {error}", file=sys.stderr)
+            if error and not frame.stale and not (frame.damaged and damaged_before):
+                more = " (and the frames after it until one decodes whole)" * frame.damaged
+                print(f"warning: {error}{more}", file=sys.stderr)
+            damaged_before = frame.damaged
             picture = None
             if draw and frame.image is not None:
                 note = f"t {frame.t_s:.2f} s"
                 picture = draw_overlay(frame.image, estimate, camera, note=note)
             row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)
             writer.write_frame(row, estimate, stamp, picture)
-            tally.add(estimate, error, frame.stale)
+            tally.add(estimate, error, frame)
             for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
                 hook(estimate, frame.t_s)
             if view is not None and not frame.stale:

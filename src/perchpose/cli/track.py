@@ -280,6 +280,8 @@ def _print_summary(summary: TrackSummary) -> None:
     extra = ""
     if summary.stale_frames:
         extra += f", {summary.stale_frames} stale (dropped for a newer frame)"
+    if summary.damaged_frames:
+        extra += f", {summary.damaged_frames} damaged (decoded from damaged data, not measured)"
     if summary.budget_frames:
         extra += f", {summary.budget_frames} over budget (see 'skipped')"
     click.echo(

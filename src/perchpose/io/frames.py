@@ -28,6 +28,11 @@ class Frame:
         header), which outputs carry exactly; None where the source has none (``t_s`` then
         gives it, ``stamp_ns``).
     frame_id : the camera's frame id as the source names it (a ROS header's), or "".
+    damaged : the image decoded but rests on damaged data: a video frame that decoded with
+        errors, or one predicted from such a frame or from a missing one (``error`` says
+        which). Its pixels are wrong wherever the damage moved, in ways that look like a
+        picture, so it is shown but not measured. (A truncated JPEG is not ``damaged``: the
+        part that decoded is exact, and the decoder greys out the rest.)
     """
 
     index: int
@@ -40,13 +45,15 @@ class Frame:
     stale: bool = False
     stamp_ns: int | None = None
     frame_id: str = ""
+    damaged: bool = False
 
 
 class FrameSource:
     """Iterable of ``Frame``; ``count`` is the number of frames when known in advance.
     ``lost`` counts the frames that could not be decoded (each still yields a ``Frame`` with
     ``image`` None and the reason in ``error``); ``stale`` a live camera's frames dropped for
-    a newer one (each yields a ``Frame`` with ``stale`` set). ``live``: a camera or stream,
+    a newer one (each yields a ``Frame`` with ``stale`` set); ``damaged`` the frames that
+    decoded but rest on damaged data (``Frame.damaged``). ``live``: a camera or stream,
     which runs in real time (a recording does not)."""
 
     live = False
@@ -57,6 +64,7 @@ class FrameSource:
         self.fps = fps
         self.lost = 0
         self.stale = 0
+        self.damaged = 0
 
     def __iter__(self) -> Iterator[Frame]:
         raise NotImplementedError

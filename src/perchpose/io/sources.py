@@ -1,6 +1,7 @@
 """Frame sources: a folder of images, a glob, a video file, a single image, a camera index, or a
-network stream (``rtsp://``, ``udp://``, ``http://`` and the other schemes of OpenCV's FFmpeg
-backend), reopened when it drops."""
+network stream (``rtsp://``, ``udp://``, ``http://`` and FFmpeg's other schemes), reopened when
+it drops. Video files and streams are decoded by PyAV (``perchpose.io.decoding``), which says
+which frames rest on damaged data; cameras are read through OpenCV."""
 
 from __future__ import annotations
 
@@ -18,13 +19,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import SourceError
+from perchpose.io.decoding import AvCapture
 from perchpose.io.frames import Frame, FrameSource
 from perchpose.io.native import native_stderr_silenced
 
 IMAGE_SUFFIXES = frozenset(
     {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
 )
-VIDEO_SUFFIXES = frozenset({".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg"})
+VIDEO_SUFFIXES = frozenset(
+    {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".ts", ".m2ts", ".flv"}
+)
 STREAM_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "udp://", "tcp://", "http://", "https://")
 STREAM_TIMEOUT_MS = 5000  # opening, and each read, of a network stream
 RECONNECT_FOR_S = 10.0  # a dropped stream is reopened for this long before the source ends
@@ -50,23 +54,27 @@ class ImageFilesSource(FrameSource):
             yield Frame(i, t_s, _to_uint8(image), path.name, _damage(path), str(path), grabbed)
 
 
-class VideoSource(FrameSource):
-    """A video file or a camera.
+Capture = cv2.VideoCapture | AvCapture
 
-    Files: t_s = index / fps; cameras: seconds since the first frame.
+
+class VideoSource(FrameSource):
+    """A video file, a network stream or a camera.
+
+    Files: t_s = index / fps; cameras and streams: seconds since the first frame. A frame that
+    decoded but rests on damaged data (``AvCapture.damage``) comes with its image, ``damaged``
+    set and the reason in ``error``.
     """
 
     def __init__(
         self,
-        capture: cv2.VideoCapture,
+        capture: Capture,
         fps: float,
         description: str,
         live: bool,
-        reopen: Callable[[], cv2.VideoCapture | None] | None = None,
+        reopen: Callable[[], Capture | None] | None = None,
         reconnect_for_s: float = RECONNECT_FOR_S,
     ) -> None:
-        count = None if live else int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
-        super().__init__(description, count, fps)
+        super().__init__(description, None if live else _frame_count(capture), fps)
         self.capture = capture
         self.live = live
         self.reopen = reopen
@@ -98,13 +106,17 @@ class VideoSource(FrameSource):
                     self.lost += 1
                     yield self._lost_frame(i)
                     i += 1
+                damage = self._damage()
+                self.damaged += bool(damage)
                 yield Frame(
                     i,
                     i / self.fps,
                     _to_uint8(image),
                     f"frame {i}",
+                    damage,
                     file=f"{self.description}#{i}",
                     grabbed_s=grabbed,
+                    damaged=bool(damage),
                 )
                 i += 1
         finally:
@@ -117,7 +129,7 @@ class VideoSource(FrameSource):
         grabber = LatestFrame(self.capture, self._reconnect if self.reopen else None)
         t0: float | None = None
         try:
-            for index, grabbed, image in grabber:
+            for index, grabbed, image, damage in grabber:
                 t0 = grabbed if t0 is None else t0
                 name, file = f"frame {index}", f"{self.description}#{index}"
                 if image is None:
@@ -126,8 +138,17 @@ class VideoSource(FrameSource):
                         index, grabbed - t0, None, name, file=file, grabbed_s=grabbed, stale=True
                     )
                     continue
+                why = self._damage_note(damage)
+                self.damaged += bool(damage)
                 yield Frame(
-                    index, grabbed - t0, _to_uint8(image), name, file=file, grabbed_s=grabbed
+                    index,
+                    grabbed - t0,
+                    _to_uint8(image),
+                    name,
+                    why,
+                    file=file,
+                    grabbed_s=grabbed,
+                    damaged=bool(damage),
                 )
         finally:
             grabber.close()
@@ -138,7 +159,7 @@ class VideoSource(FrameSource):
                 f"{self.reconnect_for_s:g} s; tracking stopped there"
             )
 
-    def _reconnect(self) -> cv2.VideoCapture | None:
+    def _reconnect(self) -> Capture | None:
         """A dropped stream, opened again (None: it stayed down ``reconnect_for_s``, and the
         source ends with a ``SourceError`` after its last frame)."""
         assert self.reopen is not None
@@ -152,9 +173,21 @@ class VideoSource(FrameSource):
         self.gave_up = True
         return None
 
+    def _damage(self) -> str:
+        """Why the frame just read rests on damaged data, or ''."""
+        if not isinstance(self.capture, AvCapture):
+            return ""
+        return self._damage_note(self.capture.damage)
+
+    def _damage_note(self, damage: str) -> str:
+        """A damaged frame's ``error`` ('' for a whole one)."""
+        return f"{self.description}: {damage}; not measured" if damage else ""
+
     def _index_of_last_read(self, expected: int) -> int:
         """The index of the frame just read, from its presentation time and the file's own
         frame rate (``expected`` when the container gives no usable time)."""
+        if isinstance(self.capture, AvCapture):
+            return max(expected, self.capture.index)
         msec = float(self.capture.get(cv2.CAP_PROP_POS_MSEC))
         rate = float(self.capture.get(cv2.CAP_PROP_FPS))
         if not (math.isfinite(msec) and msec >= 0 and math.isfinite(rate) and rate > 0):
@@ -172,21 +205,22 @@ class VideoSource(FrameSource):
 class LatestFrame:
     """A live capture read on a thread of its own, so that grabbing never waits for the
     estimator and the estimator never works on an old frame: iterating gives (index, grab
-    time, image) for the newest frame, and (index, grab time, None) first for each frame a
-    newer one overtook before it was taken (stale: dropped, not queued). Grab times are
+    time, image, damage) for the newest frame, and (index, grab time, None, '') first for each
+    frame a newer one overtook before it was taken (stale: dropped, not queued). ``damage``:
+    why the frame rests on damaged data (``AvCapture.damage``; '' when whole). Grab times are
     ``time.monotonic()`` just after ``grab()``, before the frame is decoded. Ends when the
     capture stops delivering (and ``reconnect``, when given, cannot open it again) or ``close``
     is called."""
 
     def __init__(
         self,
-        capture: cv2.VideoCapture,
-        reconnect: Callable[[], cv2.VideoCapture | None] | None = None,
+        capture: Capture,
+        reconnect: Callable[[], Capture | None] | None = None,
     ) -> None:
         self.capture = capture
         self.reconnect = reconnect
         self._ready = threading.Condition()
-        self._newest: tuple[int, float, NDArray[Any]] | None = None
+        self._newest: tuple[int, float, NDArray[Any], str] | None = None
         self._overtaken: list[tuple[int, float]] = []
         self._ended = False
         self._closing = threading.Event()
@@ -209,10 +243,11 @@ class LatestFrame:
                         break
                     self.capture = capture
                     continue
+                damage = self.capture.damage if isinstance(self.capture, AvCapture) else ""
                 with self._ready:
                     if self._newest is not None:
                         self._overtaken.append(self._newest[:2])
-                    self._newest = (index, grabbed, image)
+                    self._newest = (index, grabbed, image, damage)
                     self._ready.notify()
                 index += 1
         finally:
@@ -220,7 +255,7 @@ class LatestFrame:
                 self._ended = True
                 self._ready.notify()
 
-    def __iter__(self) -> Iterator[tuple[int, float, NDArray[Any] | None]]:
+    def __iter__(self) -> Iterator[tuple[int, float, NDArray[Any] | None, str]]:
         while True:
             with self._ready:
                 while self._newest is None and not self._ended:
@@ -228,7 +263,7 @@ class LatestFrame:
                 overtaken, self._overtaken = self._overtaken, []
                 newest, self._newest = self._newest, None
             for index, grabbed in overtaken:
-                yield index, grabbed, None
+                yield index, grabbed, None, ""
             if newest is None:
                 return
             yield newest
@@ -267,6 +302,13 @@ def natural_key(path: Path) -> tuple[tuple[int, int | str], ...]:
     return tuple((0, int(p)) if p.isdigit() else (1, p.lower()) for p in parts if p)
 
 
+def _frame_count(capture: Capture) -> int | None:
+    """The frames a recording's container promises (None where it does not say)."""
+    if isinstance(capture, AvCapture):
+        return capture.count
+    return int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+
+
 def _to_uint8(image: NDArray[Any]) -> NDArray[np.uint8]:
     if image.dtype == np.uint16:
         image = (image // 256).astype(np.uint8)
@@ -287,17 +329,10 @@ def _camera(index: str, rate: float, size: tuple[int, int] | None) -> VideoSourc
     return VideoSource(capture, rate, f"camera {index}", live=True)
 
 
-def _open_stream(url: str) -> cv2.VideoCapture | None:
-    """``url`` through OpenCV's FFmpeg backend, with open and read timeouts; None if it
-    cannot be opened now."""
-    timeouts = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, STREAM_TIMEOUT_MS]
-    timeouts += [cv2.CAP_PROP_READ_TIMEOUT_MSEC, STREAM_TIMEOUT_MS]
-    with native_stderr_silenced():
-        capture = cv2.VideoCapture(url, cv2.CAP_FFMPEG, timeouts)
-    if capture.isOpened():
-        return capture
-    capture.release()
-    return None
+def _open_stream(url: str) -> AvCapture | None:
+    """``url`` decoded by PyAV, with open and read timeouts; None if it cannot be opened
+    now."""
+    return AvCapture.open(url, live=True, timeout_s=STREAM_TIMEOUT_MS / 1000)
 
 
 def _stream(url: str, rate: float) -> VideoSource:
@@ -306,8 +341,8 @@ def _stream(url: str, rate: float) -> VideoSource:
     capture = _open_stream(url)
     if capture is None:
         raise SourceError(
-            f"{url}: cannot open the stream (nothing answers, or OpenCV's FFmpeg cannot read "
-            f"it) within {STREAM_TIMEOUT_MS / 1000:g} s"
+            f"{url}: cannot open the stream (nothing answers, or FFmpeg cannot read it) "
+            f"within {STREAM_TIMEOUT_MS / 1000:g} s"
         )
     return VideoSource(capture, rate, url, live=True, reopen=lambda: _open_stream(url))
 
@@ -371,11 +406,10 @@ def open_source(
         raise SourceError(f"{path}: no such file or folder")
     if path.suffix.lower() in IMAGE_SUFFIXES:
         return ImageFilesSource([path], rate, str(path))
-    with native_stderr_silenced():
-        capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
+    capture = AvCapture.open(str(path), live=False)
+    if capture is None:
         raise SourceError(f"{path}: not a readable video or image file")
     if fps is None:
-        video_fps = float(capture.get(cv2.CAP_PROP_FPS))
+        video_fps = capture.fps or math.nan
         rate = video_fps if math.isfinite(video_fps) and video_fps > 0 else 30.0
     return VideoSource(capture, rate, str(path), live=False)

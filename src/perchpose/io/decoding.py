@@ -1,0 +1,194 @@
+"""Video files and network streams decoded by PyAV (FFmpeg's own libraries), with what FFmpeg
+knows of each frame: its presentation time, whether it is a key frame, and whether its own data
+decoded with errors.
+
+FFmpeg flags only the frame whose data was damaged. The frames predicted from it until the next
+key frame decode without complaint, and so does the frame after a packet lost whole (the decoder
+predicts it from the wrong reference): ``ReferenceChain`` carries the damage forward itself.
+OpenCV's FFmpeg backend reports neither, which is why videos and streams are read here."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Generator
+from fractions import Fraction
+from typing import Any
+
+import av
+import av.error
+import numpy as np
+from numpy.typing import NDArray
+
+# a stream's frames are decoded by slices on a live stream (no frame of delay) and by whole
+# frames in parallel from a file (faster, a few frames of delay that nothing waits for)
+LIVE_THREADS = "SLICE"
+FILE_THREADS = "AUTO"
+
+
+class ReferenceChain:
+    """Which decoded frames rest on damaged data, in the order they come out of the decoder.
+
+    ``frame`` takes each frame's index (from its presentation time), whether FFmpeg marks it a
+    key frame, whether it decoded with errors, and how many frames are missing just before it;
+    it answers why the frame is damaged ('' when whole). A frame with errors, a packet the
+    demuxer marked corrupt (``packet_damaged``), or a missing frame (a packet lost whole, or one
+    that did not decode) break the chain: every frame after it is damaged until a key frame
+    decodes whole. A frame's damage names the frame where the chain broke.
+
+    Where the demuxer marked a packet corrupt (MPEG-TS: a continuity counter skipped, data
+    lost), the lost data may have held the start of the next frame, whose rest the demuxer then
+    hands over as part of the corrupt one or as a frame of its own: the first frame after a
+    corrupt packet is damaged too, even a key frame that decodes without complaint."""
+
+    def __init__(self) -> None:
+        self._broken_at: int | None = None  # the first damaged or missing frame
+        self._pending: int | None = None  # a damaged packet's frame, not yet decoded
+        self._after_corrupt: int | None = None  # the frame the next one may be the rest of
+
+    def packet_damaged(self, index: int) -> None:
+        """The packet of frame ``index`` came marked corrupt from the demuxer: that frame is
+        damaged when it comes (and missing when it does not), and so what follows it."""
+        self._pending = index if self._pending is None else min(self._pending, index)
+
+    def frame(self, index: int, *, key: bool, corrupt: bool, missing_before: int = 0) -> str:
+        """Why frame ``index`` rests on damaged data, or ''."""
+        cut_at, self._after_corrupt = self._after_corrupt, None
+        if self._pending is not None and index >= self._pending:
+            if index == self._pending:
+                corrupt, self._after_corrupt = True, index
+            else:  # the corrupt packet's frame never came out of the decoder
+                cut_at = self._pending
+                missing_before = max(missing_before, index - self._pending)
+            self._pending = None
+        if corrupt:
+            self._broken_at = index if self._broken_at is None else self._broken_at
+            return f"frame {index} decoded with errors (its own data is damaged)"
+        if cut_at is not None:
+            self._broken_at = cut_at if self._broken_at is None else self._broken_at
+            return f"frame {index} follows data lost at frame {cut_at} and may hold its rest"
+        if key:
+            self._broken_at = None
+            return ""
+        if missing_before > 0 and self._broken_at is None:
+            self._broken_at = index - missing_before
+        if self._broken_at is None:
+            return ""
+        return (
+            f"frame {index} is predicted from damaged or missing frames (since frame "
+            f"{self._broken_at}, until the next key frame)"
+        )
+
+    @property
+    def broken(self) -> bool:
+        """Frames decoded now rest on damaged data."""
+        return self._broken_at is not None
+
+
+class AvCapture:
+    """A video file or network stream decoded by PyAV, read one frame at a time (``read``, or
+    ``grab`` then ``retrieve`` as ``LatestFrame`` reads a live source).
+
+    After each frame: ``index`` is its place in the stream (from its presentation time and the
+    stream's frame rate, counted from the first frame), ``damage`` why it rests on damaged data
+    ('' when whole: ``ReferenceChain``). Packets that do not decode are skipped: the frames they
+    held are missing from the indices. ``count``: the frames the container promises (None where
+    it does not say); ``fps``: the stream's nominal frame rate (None where unknown)."""
+
+    def __init__(self, container: Any, live: bool) -> None:
+        self._container = container
+        self._stream = container.streams.video[0]
+        self._stream.codec_context.thread_type = LIVE_THREADS if live else FILE_THREADS
+        # FFmpeg's guess of the nominal rate (the container's frame rate unless the time stamps
+        # say otherwise): the average rate falls short by the frames a damaged file lacks
+        rate = self._stream.guessed_rate or self._stream.average_rate
+        self.fps: float | None = float(rate) if rate else None
+        self.count: int | None = int(self._stream.frames) or None
+        self._time_base: Fraction | None = self._stream.time_base
+        self._start_pts: int | None = self._stream.start_time
+        self._chain = ReferenceChain()
+        self._frames = self._decoded()
+        self._frame: Any = None
+        self.index = -1
+        self.damage = ""
+
+    @staticmethod
+    def open(source: str, live: bool, timeout_s: float | None = None) -> AvCapture | None:
+        """``source`` (a path or URL) opened, or None when FFmpeg cannot open it or it holds
+        no video stream. ``timeout_s`` bounds the opening and each read of a network stream."""
+        timeout = None if timeout_s is None else (timeout_s, timeout_s)
+        try:
+            container = av.open(source, mode="r", timeout=timeout)
+        except (av.error.FFmpegError, OSError, ValueError):
+            return None
+        if not container.streams.video:
+            container.close()
+            return None
+        return AvCapture(container, live)
+
+    def _index_of(self, pts: int | None, previous: int) -> int:
+        """A frame's index from its presentation time (the next index without one)."""
+        if pts is None or self._time_base is None or self.fps is None:
+            return previous + 1
+        if self._start_pts is None:
+            self._start_pts = pts
+        seconds = float((pts - self._start_pts) * self._time_base)
+        index = round(seconds * self.fps)
+        return index if math.isfinite(seconds) else previous + 1
+
+    def _decoded(self) -> Generator[tuple[int, Any, str], None, None]:
+        """(index, frame, damage) of each frame, in presentation order; ends at the stream's
+        end, or where the demuxer cannot go on (a truncated file, a dropped connection)."""
+        previous = -1
+        try:
+            for packet in self._container.demux(self._stream):
+                if packet.is_corrupt and packet.pts is not None:
+                    self._chain.packet_damaged(self._index_of(packet.pts, previous))
+                try:
+                    frames = packet.decode()
+                except av.error.FFmpegError:
+                    continue  # its frame is missing from the indices, which says so
+                for frame in frames:
+                    index = self._index_of(frame.pts, previous)
+                    if index <= previous:  # a time stamp that does not move on
+                        index = previous + 1
+                    damage = self._chain.frame(
+                        index,
+                        key=bool(frame.key_frame),
+                        corrupt=bool(frame.is_corrupt),
+                        missing_before=index - previous - 1 if previous >= 0 else 0,
+                    )
+                    previous = index
+                    yield index, frame, damage
+        except (av.error.FFmpegError, OSError):
+            return
+
+    def grab(self) -> bool:
+        """Decode the next frame; False at the end of the stream."""
+        item = next(self._frames, None)
+        if item is None:
+            self._frame = None
+            return False
+        self.index, self._frame, self.damage = item
+        return True
+
+    def retrieve(self) -> tuple[bool, NDArray[np.uint8] | None]:
+        """The frame just grabbed as a BGR image."""
+        if self._frame is None:
+            return False, None
+        image: NDArray[np.uint8] = self._frame.to_ndarray(format="bgr24")
+        return True, image
+
+    def read(self) -> tuple[bool, NDArray[np.uint8] | None]:
+        """``grab`` and ``retrieve`` in one."""
+        if not self.grab():
+            return False, None
+        return self.retrieve()
+
+    def isOpened(self) -> bool:
+        """Always true: a capture that cannot be opened is never made (``open`` gives None)."""
+        return True
+
+    def release(self) -> None:
+        """Close the container (what is being decoded ends)."""
+        self._frames.close()
+        self._container.close()

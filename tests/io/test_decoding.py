@@ -1,0 +1,121 @@
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pytest
+
+from perchpose.io.decoding import AvCapture, ReferenceChain
+from perchpose.io.sources import open_source
+
+if TYPE_CHECKING:
+    from conftest import H264
+
+W, H = 160, 120
+
+
+def test_a_frame_with_errors_damages_the_frames_after_it_until_a_whole_key_frame() -> None:
+    chain = ReferenceChain()
+    assert chain.frame(0, key=True, corrupt=False) == ""
+    assert chain.frame(1, key=False, corrupt=False) == ""
+    assert "frame 2 decoded with errors" in chain.frame(2, key=False, corrupt=True)
+    assert "since frame 2" in chain.frame(3, key=False, corrupt=False)
+    assert chain.broken
+    # a key frame that itself decoded with errors mends nothing
+    assert "decoded with errors" in chain.frame(4, key=True, corrupt=True)
+    assert "since frame 2" in chain.frame(5, key=False, corrupt=False)
+    assert chain.frame(6, key=True, corrupt=False) == ""
+    assert chain.frame(7, key=False, corrupt=False) == ""
+    assert not chain.broken
+
+
+def test_a_missing_frame_damages_what_is_predicted_after_it() -> None:
+    chain = ReferenceChain()
+    chain.frame(0, key=True, corrupt=False)
+    assert "since frame 1" in chain.frame(3, key=False, corrupt=False, missing_before=2)
+    # the chain stays broken from the first missing frame, whatever goes missing after it
+    assert "since frame 1" in chain.frame(5, key=False, corrupt=False, missing_before=1)
+    # a key frame after a gap needs nothing before it
+    assert chain.frame(8, key=True, corrupt=False, missing_before=2) == ""
+
+
+def test_a_packet_the_demuxer_marked_corrupt() -> None:
+    chain = ReferenceChain()
+    chain.frame(0, key=True, corrupt=False)
+    chain.packet_damaged(2)
+    assert chain.frame(1, key=False, corrupt=False) == ""
+    assert "frame 2 decoded with errors" in chain.frame(2, key=False, corrupt=False)
+    # the lost data may have held the start of the next frame: a key frame there mends nothing
+    assert "may hold its rest" in chain.frame(3, key=True, corrupt=False)
+    assert "since frame 2" in chain.frame(4, key=False, corrupt=False)
+    assert chain.frame(10, key=True, corrupt=False) == ""
+    # its frame never came out of the decoder: the next frame may be its rest, and what
+    # follows rests on a missing frame
+    chain.packet_damaged(12)
+    assert "data lost at frame 12" in chain.frame(13, key=True, corrupt=False)
+    assert "since frame 12" in chain.frame(14, key=False, corrupt=False)
+    assert chain.frame(20, key=True, corrupt=False) == ""
+
+
+def _moving_square(frames: int) -> list[np.ndarray]:
+    """A bright square moving 2 px a frame over a gradient."""
+    images = []
+    for k in range(frames):
+        image = np.zeros((H, W, 3), np.uint8)
+        image[:, :, 1] = np.linspace(0, 200, W, dtype=np.uint8)[None, :]
+        image[40:80, 10 + 2 * k : 50 + 2 * k] = 255
+        images.append(image)
+    return images
+
+
+@pytest.fixture(scope="module")
+def videos(h264: "H264", tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """clean.mp4 (a key frame every 10 frames) and lossy.mp4: frame 13's packet lost whole,
+    frame 25's cut in half."""
+    folder = tmp_path_factory.mktemp("h264")
+    h264.encode(_moving_square(40), folder / "clean.mp4", gop=10)
+    h264.damage(folder / "clean.mp4", folder / "lossy.mp4", drop={13}, zero_half={25})
+    return folder
+
+
+def test_a_clean_stream_has_no_damaged_frame(videos: Path) -> None:
+    source = open_source(str(videos / "clean.mp4"))
+    frames = list(source)
+    assert [f.index for f in frames] == list(range(40))
+    assert not any(f.damaged or f.error for f in frames)
+    assert source.damaged == source.lost == 0
+
+
+def test_frames_after_a_lost_packet_are_damaged_until_the_next_key_frame(videos: Path) -> None:
+    """Frame 13's packet lost whole and frame 25's cut in half: FFmpeg decodes frames 14-19
+    and 26-29 without complaint, from the wrong references; each is flagged, and the key frames
+    20 and 30 mend the stream."""
+    source = open_source(str(videos / "lossy.mp4"))
+    frames = {f.index: f for f in source}
+    assert sorted(frames) == list(range(40))
+    assert frames[13].image is None
+    assert "cannot be decoded" in frames[13].error
+    damaged = sorted(i for i, f in frames.items() if f.damaged)
+    # frame 25 decodes with errors or not at all, depending on where the cut falls
+    assert set(damaged) - {25} == {*range(14, 20), *range(26, 30)}
+    for i in damaged:
+        assert frames[i].image is not None
+        assert "not measured" in frames[i].error
+        assert frames[i].file == f"{videos / 'lossy.mp4'}#{i}"
+    assert source.damaged == len(damaged)
+    # the damage is real: every flagged frame differs from the clean decode (the first after
+    # each loss by the square's whole contrast), every other one is the clean decode exactly
+    clean = {f.index: f.image for f in open_source(str(videos / "clean.mp4"))}
+    for i, f in frames.items():
+        if f.image is None:
+            continue
+        assert clean[i] is not None
+        difference = np.abs(f.image.astype(int) - clean[i].astype(int)).max()
+        assert (difference > 0) == f.damaged, i
+        if i in (14, 26):
+            assert difference > 200
+
+
+def test_a_capture_that_cannot_be_opened(tmp_path: Path) -> None:
+    (tmp_path / "text.mp4").write_text("not a video")
+    assert AvCapture.open(str(tmp_path / "text.mp4"), live=False) is None
+    assert AvCapture.open(str(tmp_path / "absent.mp4"), live=False) is None
