@@ -173,7 +173,7 @@ def _measured(
     estimator: PerchingEstimator, frame: Frame, description: str, first: bool
 ) -> tuple[Estimate | None, str]:
     """The estimate of ``frame`` (None without one) and what went wrong with it. A frame of
-    the wrong size is an error for the ``first`` frame with an image (every frame would be)
+    the wrong size is an error for the ``first`` frame measured (every frame would be)
     and a flagged row after it."""
     if frame.stale:
         return None, STALE
@@ -249,7 +249,7 @@ def track(
                 frame = replace(frame, grabbed_s=time.monotonic())
             stamp = Stamp.of(frame, camera_frame)
             estimate, error = _measured(estimator, frame, frames.description, first_good)
-            first_good = first_good and frame.image is None
+            first_good = first_good and (frame.image is None or frame.damaged)
             if error and not frame.stale and not (frame.damaged and damaged_before):
                 more = " (and the frames after it until one decodes whole)" * frame.damaged
                 print(f"warning: {error}{more}", file=sys.stderr)
