@@ -41,14 +41,25 @@ def test_overlay_video_round_trip(tmp_path: Path) -> None:
         OverlayWriter(tmp_path / "o.gif", 30.0, (64, 48))
 
 
-def test_an_mp4_overlay_says_its_codec_and_prints_nothing(
+def test_an_mp4_overlay_is_h264_and_prints_nothing(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    """H.264 where OpenCV's FFmpeg can encode it, else MPEG-4 Part 2; trying H.264 where it
-    cannot leaves no FFmpeg lines on the terminal."""
-    writer = OverlayWriter(tmp_path / "run.mp4", 30.0, (64, 48))
-    writer.write(np.zeros((48, 64, 3), np.uint8))
+    """H.264 in yuv420p (what browsers play) at the camera's rate, an odd size written one
+    pixel smaller, and no FFmpeg lines on the terminal."""
+    import av
+
+    writer = OverlayWriter(tmp_path / "run.mp4", 29.97, (65, 49))
+    for k in range(4):
+        writer.write(np.full((49, 65, 3), 50 * k, np.uint8))
     writer.close()
-    assert writer.codec in ("avc1", "mp4v")
-    assert (tmp_path / "run.mp4").stat().st_size > 0
+    assert writer.codec == "avc1"
+    with av.open(str(tmp_path / "run.mp4")) as video:
+        stream = video.streams.video[0]
+        assert stream.codec_context.name == "h264"
+        assert (stream.width, stream.height) == (64, 48)
+        assert stream.codec_context.pix_fmt == "yuv420p"
+        assert float(stream.average_rate) == pytest.approx(29.97, abs=0.01)
+        levels = [float(f.to_ndarray(format="gray").mean()) for f in video.decode(stream)]
+    assert len(levels) == 4
+    assert np.all(np.abs(np.diff(levels) - 50) < 5)
     assert capfd.readouterr().err == ""
