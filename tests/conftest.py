@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import socket
 from collections.abc import Callable, Iterable
+from fractions import Fraction
 from pathlib import Path
 
 import av
@@ -128,18 +129,29 @@ class H264:
 
     rate = 30
 
-    def encode(self, images: Iterable[NDArray[np.uint8]], path: Path, gop: int) -> Path:
-        """``images`` (BGR) as an MP4 at ``rate`` fps: libx264, a key frame every ``gop``
-        frames, no B-frames."""
+    def encode(
+        self,
+        images: Iterable[NDArray[np.uint8]],
+        path: Path,
+        gop: int,
+        times_ms: list[int] | None = None,
+    ) -> Path:
+        """``images`` (BGR) as an MP4 at ``rate`` fps (or stamped ``times_ms``): libx264, a
+        key frame every ``gop`` frames, no B-frames."""
         out = av.open(str(path), "w")
         stream = out.add_stream("libx264", rate=self.rate)
+        if times_ms is not None:
+            stream.codec_context.time_base = Fraction(1, 1000)
         stream.pix_fmt = "yuv420p"
         stream.options = {"g": str(gop), "keyint_min": str(gop), "bf": "0", "sc_threshold": "0"}
         stream.options["crf"] = "18"  # a camera's good link: the damage is what the test sees
         for k, image in enumerate(images):
             if k == 0:
                 stream.height, stream.width = image.shape[:2]
-            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):
+            frame = av.VideoFrame.from_ndarray(image, format="bgr24")
+            if times_ms is not None:
+                frame.pts, frame.time_base = times_ms[k], Fraction(1, 1000)
+            for packet in stream.encode(frame):
                 out.mux(packet)
         for packet in stream.encode():
             out.mux(packet)
@@ -148,16 +160,14 @@ class H264:
 
     def damage(self, clean: Path, damaged: Path, drop: set[int], zero_half: set[int]) -> Path:
         """``clean`` copied packet by packet to ``damaged`` without the packets of the frames
-        in ``drop`` and with the second half of those in ``zero_half`` zeroed."""
+        in ``drop`` and with the second half of those in ``zero_half`` zeroed (frames counted
+        from 0 in the order they were sent: there are no B-frames)."""
         source = av.open(str(clean))
         video = source.streams.video[0]
         out = av.open(str(damaged), "w")
         stream = out.add_stream_from_template(video)
-        start = video.start_time or 0
-        for packet in source.demux(video):
-            if packet.size == 0 or packet.pts is None:
-                continue
-            index = round(float((packet.pts - start) * video.time_base) * self.rate)
+        packets = (p for p in source.demux(video) if p.size > 0)
+        for index, packet in enumerate(packets):
             if index in drop:
                 continue
             sent = packet

@@ -115,6 +115,33 @@ def test_frames_after_a_lost_packet_are_damaged_until_the_next_key_frame(videos:
             assert difference > 200
 
 
+@pytest.mark.parametrize("kind", ["jitter", "heavy jitter", "drift"])
+def test_a_camera_whose_frame_times_wander_is_not_taken_for_a_lossy_one(
+    h264: "H264", tmp_path: Path, kind: str
+) -> None:
+    """Frame times that jitter (33 ms apart give or take 6 ms, software stamps; or 7 ms, a
+    fifth of a frame) or drift (the interval growing from 33 to 50 ms, a camera slowing in
+    low light): no frame is missing and none flagged; a packet lost from the same stream is
+    still found (with 6 ms of jitter: with 7 and more, a gap of two intervals can shrink to
+    the 1.5 intervals that say a frame is missing)."""
+    if kind.endswith("jitter"):
+        rng = np.random.default_rng(4)
+        jitter_ms = 6 if kind == "jitter" else 7
+        times_ms = [
+            round(1000 * k / 30 + 10 + rng.uniform(-jitter_ms, jitter_ms)) for k in range(40)
+        ]
+    else:
+        times_ms = np.cumsum([0] + [round(33.3 + 16.7 * k / 39) for k in range(39)]).tolist()
+    video = h264.encode(_moving_square(40), tmp_path / "camera.mp4", gop=40, times_ms=times_ms)
+    assert not any(f.damaged for f in open_source(str(video)))
+    if kind == "heavy jitter":
+        return
+    lossy = h264.damage(video, tmp_path / "lossy.mp4", drop={20}, zero_half=set())
+    # the 20 frames before the loss are whole, the 19 after it (no key frame follows) damaged
+    decoded = [f for f in open_source(str(lossy)) if f.image is not None]
+    assert [f.damaged for f in decoded] == [False] * 20 + [True] * 19
+
+
 def test_a_capture_that_cannot_be_opened(tmp_path: Path) -> None:
     (tmp_path / "text.mp4").write_text("not a video")
     assert AvCapture.open(str(tmp_path / "text.mp4"), live=False) is None

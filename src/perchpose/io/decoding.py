@@ -10,6 +10,8 @@ OpenCV's FFmpeg backend reports neither, which is why videos and streams are rea
 from __future__ import annotations
 
 import math
+import statistics
+from collections import deque
 from collections.abc import Generator
 from fractions import Fraction
 from typing import Any
@@ -23,6 +25,11 @@ from numpy.typing import NDArray
 # frames in parallel from a file (faster, a few frames of delay that nothing waits for)
 LIVE_THREADS = "SLICE"
 FILE_THREADS = "AUTO"
+# a gap between presentation times over this many typical frame intervals has frames missing
+GAP_INTERVALS = 1.5
+INTERVALS_KEPT = 15  # the typical interval: the median of the last this many
+NOMINAL_TOLERANCE = 0.15  # a stream within this of its nominal interval runs at its rate
+TYPICAL_AFTER = INTERVALS_KEPT  # intervals known before the typical one can replace the nominal
 
 
 class ReferenceChain:
@@ -91,8 +98,12 @@ class AvCapture:
     After each frame: ``index`` is its place in the stream (from its presentation time and the
     stream's frame rate, counted from the first frame), ``damage`` why it rests on damaged data
     ('' when whole: ``ReferenceChain``). Packets that do not decode are skipped: the frames they
-    held are missing from the indices. ``count``: the frames the container promises (None where
-    it does not say); ``fps``: the stream's nominal frame rate (None where unknown)."""
+    held are missing from the indices. Frames count as missing before a frame whose time from
+    the frame before is over 1.5 intervals: the nominal interval while the stream keeps to it
+    (the median of the last 15 within 15 % of it), else that median. A camera whose frame
+    times jitter by up to a fifth of a frame (7 ms at 30 fps), or whose rate drifts, is not
+    taken for a lossy stream. ``count``: the frames the container promises (None where it does
+    not say); ``fps``: the stream's nominal frame rate (None where unknown)."""
 
     def __init__(self, container: Any, live: bool) -> None:
         self._container = container
@@ -106,6 +117,8 @@ class AvCapture:
         self._time_base: Fraction | None = self._stream.time_base
         self._start_pts: int | None = self._stream.start_time
         self._chain = ReferenceChain()
+        self._intervals_s: deque[float] = deque(maxlen=INTERVALS_KEPT)
+        self._last_s: float | None = None
         self._frames = self._decoded()
         self._frame: Any = None
         self.index = -1
@@ -135,6 +148,34 @@ class AvCapture:
         index = round(seconds * self.fps)
         return index if math.isfinite(seconds) else previous + 1
 
+    def _missing_before(self, pts: int | None) -> int:
+        """How many frames are missing between the frame before and this one, from the time
+        between them (``_reference_interval_s``)."""
+        if pts is None or self._time_base is None:
+            return 0
+        t_s = float(pts * self._time_base)
+        last_s, self._last_s = self._last_s, t_s
+        if last_s is None or not t_s > last_s:
+            return 0
+        interval_s = t_s - last_s
+        reference_s = self._reference_interval_s()
+        self._intervals_s.append(interval_s)
+        if reference_s is None or interval_s <= GAP_INTERVALS * reference_s:
+            return 0
+        return max(1, round(interval_s / reference_s) - 1)
+
+    def _reference_interval_s(self) -> float | None:
+        """A frame's interval as this stream runs: the nominal one while the typical interval
+        (the median of the last ``INTERVALS_KEPT``) is within ``NOMINAL_TOLERANCE`` of it or
+        fewer than ``TYPICAL_AFTER`` are known, else the typical one (a rate that drifted)."""
+        nominal_s = None if self.fps is None else 1.0 / self.fps
+        if len(self._intervals_s) < TYPICAL_AFTER:
+            return nominal_s
+        typical_s = statistics.median(self._intervals_s)
+        if nominal_s is not None and abs(typical_s / nominal_s - 1.0) < NOMINAL_TOLERANCE:
+            return nominal_s
+        return typical_s
+
     def _decoded(self) -> Generator[tuple[int, Any, str], None, None]:
         """(index, frame, damage) of each frame, in presentation order; ends at the stream's
         end, or where the demuxer cannot go on (a truncated file, a dropped connection)."""
@@ -155,7 +196,7 @@ class AvCapture:
                         index,
                         key=bool(frame.key_frame),
                         corrupt=bool(frame.is_corrupt),
-                        missing_before=index - previous - 1 if previous >= 0 else 0,
+                        missing_before=self._missing_before(frame.pts),
                     )
                     previous = index
                     yield index, frame, damage
@@ -183,10 +224,6 @@ class AvCapture:
         if not self.grab():
             return False, None
         return self.retrieve()
-
-    def isOpened(self) -> bool:
-        """Always true: a capture that cannot be opened is never made (``open`` gives None)."""
-        return True
 
     def release(self) -> None:
         """Close the container (what is being decoded ends)."""
