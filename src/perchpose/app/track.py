@@ -256,7 +256,7 @@ def track(
             damaged_before = frame.damaged
             picture = None
             if draw and frame.image is not None:
-                note = f"t {frame.t_s:.2f} s"
+                note = f"t {frame.t_s:.2f} s" + "  damaged: not measured" * frame.damaged
                 picture = draw_overlay(frame.image, estimate, camera, note=note)
             row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)
             writer.write_frame(row, estimate, stamp, picture)
