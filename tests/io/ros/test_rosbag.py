@@ -378,6 +378,77 @@ def test_a_bare_mcap_cut_short_is_read_up_to_the_damage(
     assert any("cut.mcap: cut short" in m for m in caplog.messages)
 
 
+@pytest.mark.parametrize("metadata", [False, True])
+def test_a_ros2_bag_folder_cut_short_is_read_up_to_the_damage(
+    approach_webcam_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture, metadata: bool
+) -> None:
+    """``ros2 bag record`` killed outright: its MCAP stops in the middle of its messages, and
+    its folder has no metadata.yaml (written when the recorder closes), or has it from a
+    recorder that wrote it before (the file still cut). The whole messages are tracked, the
+    CameraInfo included, with a warning saying where it stops."""
+    folder = _write(tmp_path / "run", "mcap", approach_webcam_dir, "bgr8")
+    (whole,) = folder.glob("*.mcap")
+    data = whole.read_bytes()
+    whole.write_bytes(data[: int(len(data) * 0.6)])
+    if not metadata:
+        (folder / "metadata.yaml").unlink()
+    out = tmp_path / "poses.csv"
+    with caplog.at_level("WARNING", logger="perchpose.io.ros.rosbag"):
+        code = main(["track", str(folder), "--image-topic", "/camera/image_raw", "--out",
+                     str(out), "--quiet"])  # fmt: skip
+    assert code == 0
+    rows = read_track_csv(out)
+    assert 3 <= len(rows) < FRAMES
+    assert all(r["valid"] == "1" for r in rows)
+    assert [r["file"] for r in rows] == [
+        f"{folder}#/camera/image_raw#{k}" for k in range(len(rows))
+    ]
+    warned = [m for m in caplog.messages if "cut short" in m]
+    assert len(warned) >= 1
+    assert ("no metadata.yaml" in warned[0]) is not metadata
+
+
+def test_a_split_bag_left_unclosed_is_read_file_after_file(
+    approach_webcam_dir: Path, tmp_path: Path
+) -> None:
+    """Two MCAP files of one recording (``run_0``, ``run_1``: a recorder splitting its bag),
+    the second cut, no metadata.yaml: the first file's frames then the second's, in order."""
+    first = _write(tmp_path / "a", "mcap", approach_webcam_dir, "bgr8")
+    second = _write(tmp_path / "b", "mcap", approach_webcam_dir, "bgr8", camera_info=False)
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (part0,) = first.glob("*.mcap")
+    (part1,) = second.glob("*.mcap")
+    data = part1.read_bytes()
+    (folder / "run_0.mcap").write_bytes(part0.read_bytes())
+    (folder / "run_1.mcap").write_bytes(data[: int(len(data) * 0.6)])
+    out = tmp_path / "poses.csv"
+    code = main(["track", str(folder), "--image-topic", "/camera/image_raw", "--out", str(out),
+                 "--quiet"])  # fmt: skip
+    assert code == 0
+    rows = read_track_csv(out)
+    assert FRAMES + 3 <= len(rows) < 2 * FRAMES
+    assert all(r["valid"] == "1" for r in rows[1:FRAMES])
+
+
+def test_a_folder_of_images_beside_an_mcap_is_read_as_images(
+    approach_webcam_dir: Path, tmp_path: Path
+) -> None:
+    """A track written as run.mcap into the folder of the frames it read: the folder is still
+    read as images."""
+    from perchpose.io.ros.rosbag import is_bag
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    (folder / "frame_000000.png").write_bytes(
+        (approach_webcam_dir / "frame_000000.png").read_bytes()
+    )
+    (folder / "run.mcap").write_bytes(b"")
+    assert not is_bag(str(folder))
+    (folder / "frame_000000.png").unlink()
+    assert is_bag(str(folder))
+
+
 @pytest.mark.parametrize(
     ("frames_args", "camera_frame", "target_frame"),
     [

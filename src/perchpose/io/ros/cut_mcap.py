@@ -1,18 +1,18 @@
-"""A bare MCAP file cut short, read as far as it goes (the ``mcap`` library, in the ``ros``
-extra).
+"""MCAP files cut short, read as far as they go (the ``mcap`` library, in the ``ros`` extra).
 
 A recorder killed outright leaves an MCAP without its summary and footer, and rosbags (which
-reads the summary first) cannot open it. ``CutMcap`` reads the records in order with the
-``mcap`` library's stream reader, as far as they are whole, and offers the small part of
-rosbags' reader interface that ``perchpose.io.ros.rosbag`` uses (``connections``, ``messages``,
-``deserialize``), deserializing with rosbags' ROS 2 type store. ``damage`` says where the file
-stops making sense.
+reads the summary first) cannot open it; ``ros2 bag record`` killed so also leaves its bag folder
+without ``metadata.yaml``, which rosbags needs too. ``CutMcap`` reads the records of one file, or
+of a bag folder's files in order, with the ``mcap`` library's stream reader, as far as they are
+whole, and offers the small part of rosbags' reader interface that ``perchpose.io.ros.rosbag``
+uses (``connections``, ``messages``, ``deserialize``), deserializing with rosbags' ROS 2 type
+store. ``damage`` says where the first file that stops making sense stops.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -21,7 +21,7 @@ from mcap.stream_reader import StreamReader
 
 
 class McapConnection(NamedTuple):
-    """A channel of the file, named as rosbags names its connections."""
+    """A topic of the files (one per topic and type), named as rosbags names its connections."""
 
     id: int
     topic: str
@@ -30,45 +30,57 @@ class McapConnection(NamedTuple):
 
 
 class CutMcap:
-    """The whole records of ``path``, in order."""
+    """The whole records of ``paths`` (one file, or a bag folder's files in order)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, paths: Sequence[Path]) -> None:
         from rosbags.typesys import Stores, get_typestore
 
-        self.path = path
+        self.paths = list(paths)
         self.typestore = get_typestore(Stores.ROS2_HUMBLE)
         self.damage = "it ends cleanly"
+        self._ids: dict[tuple[str, str], int] = {}
         counts: Counter[int] = Counter()
-        channels: dict[int, tuple[str, int]] = {}
-        schemas: dict[int, str] = {}
-        for record in self._records():
-            if isinstance(record, Schema):
-                schemas[record.id] = record.name
-            elif isinstance(record, Channel):
-                channels[record.id] = (record.topic, record.schema_id)
-            elif isinstance(record, Message):
-                counts[record.channel_id] += 1
+        for connection_id, _, _ in self._messages():
+            counts[connection_id] += 1
         self.connections = [
-            McapConnection(cid, topic, schemas.get(schema_id, ""), counts[cid])
-            for cid, (topic, schema_id) in channels.items()
+            McapConnection(cid, topic, msgtype, counts[cid])
+            for (topic, msgtype), cid in self._ids.items()
         ]
 
-    def _records(self) -> Iterator[Any]:
-        """Every whole record; where the file is cut, ``damage`` says so and the records end."""
-        with self.path.open("rb") as stream:
+    def _records(self, path: Path) -> Iterator[Any]:
+        """Every whole record of ``path``; where it is cut, ``damage`` says so (for the first
+        such file) and its records end."""
+        with path.open("rb") as stream:
             try:
                 yield from StreamReader(stream).records
             except Exception as exc:  # a cut record, a cut chunk: the mcap library's errors
                 why = str(exc).strip() or type(exc).__name__
-                self.damage = f"its records stop at byte {stream.tell()}: {why}"
+                if self.damage == "it ends cleanly":
+                    where = f"{path.name}: " if len(self.paths) > 1 else ""
+                    self.damage = f"{where}its records stop at byte {stream.tell()}: {why}"
+
+    def _messages(self) -> Iterator[tuple[int, int, bytes]]:
+        """(connection id, log time, data) of every whole message, file after file; a topic
+        and type seen first makes a new connection."""
+        for path in self.paths:
+            schemas: dict[int, str] = {}
+            channels: dict[int, int] = {}  # this file's channel id -> connection id
+            for record in self._records(path):
+                if isinstance(record, Schema):
+                    schemas[record.id] = record.name
+                elif isinstance(record, Channel):
+                    key = (record.topic, schemas.get(record.schema_id, ""))
+                    channels[record.id] = self._ids.setdefault(key, len(self._ids))
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    yield channels[record.channel_id], record.log_time, record.data
 
     def messages(
         self, connections: list[McapConnection] | None = None
     ) -> Iterator[tuple[McapConnection, int, bytes]]:
         wanted = {c.id: c for c in connections or self.connections}
-        for record in self._records():
-            if isinstance(record, Message) and record.channel_id in wanted:
-                yield wanted[record.channel_id], record.log_time, record.data
+        for connection_id, log_time, data in self._messages():
+            if connection_id in wanted:
+                yield wanted[connection_id], log_time, data
 
     def deserialize(self, raw: bytes, msgtype: str) -> Any:
         return self.typestore.deserialize_cdr(raw, msgtype)
@@ -77,4 +89,4 @@ class CutMcap:
         """Nothing to open (read on each pass)."""
 
     def close(self) -> None:
-        """Nothing to close (each pass closes its file)."""
+        """Nothing to close (each pass closes its files)."""

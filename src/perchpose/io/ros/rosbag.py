@@ -24,6 +24,7 @@ from perchpose.camera import CameraModel
 from perchpose.errors import SourceError
 from perchpose.io.frames import Frame, FrameSource
 from perchpose.io.ros.messages import camera_info_fields, header_stamp_ns, image_of, supported
+from perchpose.io.sources import IMAGE_SUFFIXES, natural_key
 
 log = logging.getLogger(__name__)
 
@@ -33,11 +34,23 @@ BAG_SUFFIXES = (".bag", ".mcap")
 
 
 def is_bag(source: str) -> bool:
-    """A ROS 1 ``.bag``, a bare ``.mcap`` or a ROS 2 bag folder (one with ``metadata.yaml``)."""
+    """A ROS 1 ``.bag``, a bare ``.mcap`` or a ROS 2 bag folder: one with ``metadata.yaml``,
+    or (a recorder that never closed it) with ``.mcap`` files and no images."""
     path = Path(source)
     if path.suffix.lower() in BAG_SUFFIXES:
         return True
-    return path.is_dir() and (path / "metadata.yaml").is_file()
+    if not path.is_dir():
+        return False
+    return (path / "metadata.yaml").is_file() or (
+        bool(_mcap_files(path))
+        and not any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir())
+    )
+
+
+def _mcap_files(folder: Path) -> list[Path]:
+    """A bag folder's MCAP files in the order they were written (``run_0``, ``run_1``, ...,
+    ``run_10``)."""
+    return sorted((p for p in folder.glob("*.mcap") if p.is_file()), key=natural_key)
 
 
 def _rosbags() -> Any:
@@ -50,8 +63,9 @@ def _rosbags() -> Any:
 def _open(path: Path) -> Any:
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder")
-    reader = _rosbags().AnyReader([path])
+    highlevel = _rosbags()
     try:
+        reader = highlevel.AnyReader([path])
         reader.open()
     except Exception as exc:  # rosbags raises its own error kinds per format
         salvaged = _salvage(path)
@@ -62,20 +76,27 @@ def _open(path: Path) -> Any:
 
 
 def _salvage(path: Path) -> Any:
-    """A bare ``.mcap`` that rosbags cannot open (cut short before its summary: a recorder
-    killed outright), read in order up to the damage (``CutMcap``); None for anything else."""
-    if path.suffix.lower() != ".mcap" or not path.is_file():
+    """A bare ``.mcap``, or a ROS 2 bag folder of MCAP files, that rosbags cannot open (cut
+    short before its summary, or its folder left without ``metadata.yaml``: a recorder killed
+    outright), read in order up to the damage (``CutMcap``); None for anything else."""
+    if path.is_file() and path.suffix.lower() == ".mcap":
+        files = [path]
+    elif path.is_dir():
+        files = _mcap_files(path)
+    else:
         return None
     try:
         from perchpose.io.ros.cut_mcap import CutMcap
     except ImportError:  # the mcap library is not installed
         return None
-    reader = CutMcap(path)
+    if not files:
+        return None
+    reader = CutMcap(files)
     if not reader.connections:
         return None
-    log.warning(
-        "%s: cut short (%s); reading its messages in order up to the damage", path, reader.damage
-    )
+    unclosed = path.is_dir() and not (path / "metadata.yaml").is_file()
+    why = "no metadata.yaml, " * unclosed + reader.damage
+    log.warning("%s: cut short (%s); reading its messages in order up to the damage", path, why)
     return reader
 
 
