@@ -408,6 +408,35 @@ def test_a_ros2_bag_folder_cut_short_is_read_up_to_the_damage(
     assert ("no metadata.yaml" in warned[0]) is not metadata
 
 
+def test_a_sqlite3_bag_its_recorder_never_closed(
+    approach_webcam_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``ros2 bag record`` with sqlite3 storage (Humble's default) killed outright: its .db3
+    whole (SQLite's own journal keeps it so) but no metadata.yaml. Every message is tracked in
+    order, CameraInfo included, with a warning; a .db3 cut short is one line (SQLite refuses
+    the whole file)."""
+    folder = _write(tmp_path / "run", "sqlite3", approach_webcam_dir, "bgr8")
+    (folder / "metadata.yaml").unlink()
+    out = tmp_path / "poses.csv"
+    with caplog.at_level("WARNING", logger="perchpose.io.ros.rosbag"):
+        code = main(["track", str(folder), "--image-topic", "/camera/image_raw", "--out",
+                     str(out), "--quiet"])  # fmt: skip
+    assert code == 0
+    rows = read_track_csv(out)
+    assert len(rows) == FRAMES
+    assert all(r["valid"] == "1" for r in rows)
+    assert [float(r["t_s"]) for r in rows] == pytest.approx(
+        [(T0_NS + k * 33_333_333) * 1e-9 for k in range(FRAMES)], abs=1e-6
+    )
+    assert any("no metadata.yaml" in m for m in caplog.messages)
+    (db3,) = folder.glob("*.db3")
+    data = db3.read_bytes()
+    db3.write_bytes(data[: int(len(data) * 0.6)])
+    code = main(["track", str(folder), "--image-topic", "/camera/image_raw", "--out", str(out),
+                 "--quiet"])  # fmt: skip
+    assert code == 2
+
+
 def test_a_split_bag_left_unclosed_is_read_file_after_file(
     approach_webcam_dir: Path, tmp_path: Path
 ) -> None:

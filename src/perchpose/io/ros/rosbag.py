@@ -35,22 +35,22 @@ BAG_SUFFIXES = (".bag", ".mcap")
 
 def is_bag(source: str) -> bool:
     """A ROS 1 ``.bag``, a bare ``.mcap`` or a ROS 2 bag folder: one with ``metadata.yaml``,
-    or (a recorder that never closed it) with ``.mcap`` files and no images."""
+    or (a recorder that never closed it) with ``.mcap`` or ``.db3`` files and no images."""
     path = Path(source)
     if path.suffix.lower() in BAG_SUFFIXES:
         return True
     if not path.is_dir():
         return False
     return (path / "metadata.yaml").is_file() or (
-        bool(_mcap_files(path))
+        bool(_storage_files(path, ".mcap") or _storage_files(path, ".db3"))
         and not any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir())
     )
 
 
-def _mcap_files(folder: Path) -> list[Path]:
-    """A bag folder's MCAP files in the order they were written (``run_0``, ``run_1``, ...,
-    ``run_10``)."""
-    return sorted((p for p in folder.glob("*.mcap") if p.is_file()), key=natural_key)
+def _storage_files(folder: Path, suffix: str) -> list[Path]:
+    """A bag folder's ``suffix`` files in the order they were written (``run_0``, ``run_1``,
+    ..., ``run_10``)."""
+    return sorted((p for p in folder.glob(f"*{suffix}") if p.is_file()), key=natural_key)
 
 
 def _rosbags() -> Any:
@@ -76,28 +76,38 @@ def _open(path: Path) -> Any:
 
 
 def _salvage(path: Path) -> Any:
-    """A bare ``.mcap``, or a ROS 2 bag folder of MCAP files, that rosbags cannot open (cut
-    short before its summary, or its folder left without ``metadata.yaml``: a recorder killed
-    outright), read in order up to the damage (``CutMcap``); None for anything else."""
-    if path.is_file() and path.suffix.lower() == ".mcap":
-        files = [path]
-    elif path.is_dir():
-        files = _mcap_files(path)
-    else:
-        return None
-    try:
-        from perchpose.io.ros.cut_mcap import CutMcap
-    except ImportError:  # the mcap library is not installed
-        return None
-    if not files:
-        return None
-    reader = CutMcap(files)
-    if not reader.connections:
+    """A bare ``.mcap``, or a ROS 2 bag folder of MCAP or sqlite3 files, that rosbags cannot
+    open (cut short before its summary, or its folder left without ``metadata.yaml``: a
+    recorder killed outright), read in order up to the damage (``CutMcap``,
+    ``UnclosedSqlite``); None for anything else."""
+    reader = _salvaged_reader(path)
+    if reader is None or not reader.connections:
         return None
     unclosed = path.is_dir() and not (path / "metadata.yaml").is_file()
     why = "no metadata.yaml, " * unclosed + reader.damage
     log.warning("%s: cut short (%s); reading its messages in order up to the damage", path, why)
     return reader
+
+
+def _salvaged_reader(path: Path) -> Any:
+    """The reader of what a killed recorder left at ``path`` (None: nothing it could read)."""
+    if path.is_file() and path.suffix.lower() == ".mcap":
+        mcaps, db3s = [path], []
+    elif path.is_dir():
+        mcaps, db3s = _storage_files(path, ".mcap"), _storage_files(path, ".db3")
+    else:
+        return None
+    if db3s and not mcaps:
+        from perchpose.io.ros.unclosed_sqlite import UnclosedSqlite
+
+        return UnclosedSqlite(db3s)
+    if not mcaps:
+        return None
+    try:
+        from perchpose.io.ros.cut_mcap import CutMcap
+    except ImportError:  # the mcap library is not installed
+        return None
+    return CutMcap(mcaps)
 
 
 def _first_line(exc: BaseException) -> str:
