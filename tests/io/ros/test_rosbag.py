@@ -26,13 +26,17 @@ T0_NS = 1_700_000_000_000_000_000
 class Bag:
     """Writes a bag of one kind: ``ros1``, ``sqlite3`` or ``mcap``."""
 
-    def __init__(self, path: Path, kind: str, frame_id: str = "camera") -> None:
+    def __init__(
+        self, path: Path, kind: str, frame_id: str = "camera", compression: str = ""
+    ) -> None:
         self.kind = kind
         self.frame_id = frame_id
         self.ros1 = kind == "ros1"
         self.ts = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
         if self.ros1:
             self.writer: Any = Writer1(path)
+            if compression:
+                self.writer.set_compression(Writer1.CompressionFormat[compression.upper()])
         else:
             plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
             self.writer = Writer2(path, version=9, storage_plugin=plugin)
@@ -116,8 +120,15 @@ def _frames(folder: Path) -> list[np.ndarray]:
     return [cv2.imread(str(p)) for p in sorted(folder.glob("frame_*.png"))[:FRAMES]]
 
 
-def _write(path: Path, kind: str, folder: Path, encoding: str, camera_info: bool = True) -> Path:
-    bag = Bag(path, kind)
+def _write(
+    path: Path,
+    kind: str,
+    folder: Path,
+    encoding: str,
+    camera_info: bool = True,
+    compression: str = "",
+) -> Path:
+    bag = Bag(path, kind, compression=compression)
     camera = CameraModel.load(folder / "camera.yaml")
     if camera_info:
         bag.camera_info("/camera/camera_info", camera, T0_NS)
@@ -435,6 +446,35 @@ def test_a_sqlite3_bag_its_recorder_never_closed(
     code = main(["track", str(folder), "--image-topic", "/camera/image_raw", "--out", str(out),
                  "--quiet"])  # fmt: skip
     assert code == 2
+
+
+@pytest.mark.parametrize("compression", ["", "bz2", "lz4"])
+def test_a_ros1_bag_cut_short_is_read_up_to_the_damage(
+    approach_webcam_dir: Path,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    reference: list[dict],
+    compression: str,
+) -> None:
+    """``rosbag record`` killed outright: the bag stops in its chunks, before the index that
+    rosbags reads first. The messages of its whole chunks (and of a plain chunk the cut went
+    through) are tracked in order, stamped from their headers, CameraInfo included, each the
+    same pose as its frame read from its file."""
+    bag = _write(tmp_path / "run.bag", "ros1", approach_webcam_dir, "rgb8", compression=compression)
+    data = bag.read_bytes()
+    bag.write_bytes(data[: int(len(data) * 0.6)])
+    out = tmp_path / "poses.csv"
+    with caplog.at_level("WARNING", logger="perchpose.io.ros.rosbag"):
+        code = main(["track", str(bag), "--image-topic", "/camera/image_raw", "--out", str(out),
+                     "--quiet"])  # fmt: skip
+    assert code == 0
+    rows = read_track_csv(out)
+    assert 3 <= len(rows) < FRAMES
+    for k, (row, ref) in enumerate(zip(rows, reference[: len(rows)], strict=True)):
+        assert float(row["t_s"]) == pytest.approx((T0_NS + k * 33_333_333) * 1e-9, abs=1e-6)
+        for key in ("valid", "stage", "x_cm", "y_cm", "z_cm", "yaw_deg"):
+            assert row[key] == ref[key], (k, key)
+    assert any("run.bag: cut short" in m for m in caplog.messages)
 
 
 def test_a_split_bag_left_unclosed_is_read_file_after_file(

@@ -76,10 +76,10 @@ def _open(path: Path) -> Any:
 
 
 def _salvage(path: Path) -> Any:
-    """A bare ``.mcap``, or a ROS 2 bag folder of MCAP or sqlite3 files, that rosbags cannot
-    open (cut short before its summary, or its folder left without ``metadata.yaml``: a
-    recorder killed outright), read in order up to the damage (``CutMcap``,
-    ``UnclosedSqlite``); None for anything else."""
+    """A ROS 1 bag, a bare ``.mcap``, or a ROS 2 bag folder of MCAP or sqlite3 files, that
+    rosbags cannot open (cut short before its index or summary, or its folder left without
+    ``metadata.yaml``: a recorder killed outright), read in order up to the damage
+    (``CutRos1``, ``CutMcap``, ``UnclosedSqlite``); None for anything else."""
     reader = _salvaged_reader(path)
     if reader is None or not reader.connections:
         return None
@@ -91,6 +91,10 @@ def _salvage(path: Path) -> Any:
 
 def _salvaged_reader(path: Path) -> Any:
     """The reader of what a killed recorder left at ``path`` (None: nothing it could read)."""
+    if path.is_file() and path.suffix.lower() == ".bag":
+        from perchpose.io.ros.cut_ros1 import CutRos1
+
+        return CutRos1(path)
     if path.is_file() and path.suffix.lower() == ".mcap":
         mcaps, db3s = [path], []
     elif path.is_dir():
