@@ -236,9 +236,11 @@ class _Server:
         import threading
 
         served = self.served = [0]
+        agents = self.agents = []
 
         class Handler(http.server.SimpleHTTPRequestHandler):
             def do_GET(self) -> None:
+                agents.append(self.headers.get("User-Agent", ""))
                 if served[0] >= times:
                     self.send_error(404)
                     return
@@ -288,6 +290,23 @@ def test_a_network_stream_is_read_live_and_reopened_when_it_drops(tmp_path: Path
     shown = [(f.index, round(float(f.image.mean()) / 4)) for f in frames if f.image is not None]
     assert shown
     assert all(value == index % 20 for index, value in shown)
+
+
+def test_a_stream_gets_the_ffmpeg_options_opencv_users_set(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """OPENCV_FFMPEG_CAPTURE_OPTIONS (``key;value|key;value``, as OpenCV reads it) reaches
+    FFmpeg: here the User-Agent an http:// stream is asked with."""
+    _numbered_video(tmp_path / "v.avi", 5)
+    server = _Server(tmp_path, times=1)
+    monkeypatch.setenv("OPENCV_FFMPEG_CAPTURE_OPTIONS", "video_codec;h264|user_agent;perch-7")
+    try:
+        source = open_source(f"http://127.0.0.1:{server.port}/v.avi")
+        assert isinstance(source, VideoSource)
+        source.capture.release()
+    finally:
+        server.close()
+    assert server.agents[0] == "perch-7"
 
 
 def test_a_stream_that_never_answers_is_one_clear_error(tcp_port: int) -> None:

@@ -10,6 +10,7 @@ OpenCV's FFmpeg backend reports neither, which is why videos and streams are rea
 from __future__ import annotations
 
 import math
+import os
 import statistics
 from collections import deque
 from collections.abc import Generator
@@ -21,6 +22,7 @@ import av.error
 import numpy as np
 from numpy.typing import NDArray
 
+OPTIONS_VARIABLE = "OPENCV_FFMPEG_CAPTURE_OPTIONS"  # a stream's FFmpeg options, as OpenCV's
 # a stream's frames are decoded by slices on a live stream (no frame of delay) and by whole
 # frames in parallel from a file (faster, a few frames of delay that nothing waits for)
 LIVE_THREADS = "SLICE"
@@ -91,6 +93,18 @@ class ReferenceChain:
         return self._broken_at is not None
 
 
+def ffmpeg_options(text: str) -> dict[str, str]:
+    """FFmpeg options written as OpenCV reads ``OPENCV_FFMPEG_CAPTURE_OPTIONS``: ``key;value``
+    pairs separated by ``|`` (``rtsp_transport;tcp|stimeout;5000000``). OpenCV's own
+    ``video_codec`` key is not an FFmpeg option and is left out, as are pairs without a key."""
+    options: dict[str, str] = {}
+    for pair in text.split("|"):
+        key, _, value = pair.partition(";")
+        if key.strip() and key.strip() != "video_codec":
+            options[key.strip()] = value.strip()
+    return options
+
+
 class AvCapture:
     """A video file or network stream decoded by PyAV, read one frame at a time (``read``, or
     ``grab`` then ``retrieve`` as ``LatestFrame`` reads a live source).
@@ -127,10 +141,13 @@ class AvCapture:
     @staticmethod
     def open(source: str, live: bool, timeout_s: float | None = None) -> AvCapture | None:
         """``source`` (a path or URL) opened, or None when FFmpeg cannot open it or it holds
-        no video stream. ``timeout_s`` bounds the opening and each read of a network stream."""
+        no video stream. ``timeout_s`` bounds the opening and each read of a network stream,
+        which also gets the FFmpeg options of ``OPENCV_FFMPEG_CAPTURE_OPTIONS``
+        (``ffmpeg_options``)."""
         timeout = None if timeout_s is None else (timeout_s, timeout_s)
+        options = ffmpeg_options(os.environ.get(OPTIONS_VARIABLE, "")) if live else {}
         try:
-            container = av.open(source, mode="r", timeout=timeout)
+            container = av.open(source, mode="r", timeout=timeout, options=options)
         except (av.error.FFmpegError, OSError, ValueError):
             return None
         if not container.streams.video:
