@@ -5,10 +5,8 @@ from __future__ import annotations
 import os
 import socket
 from collections.abc import Callable, Iterable
-from fractions import Fraction
 from pathlib import Path
 
-import av
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -16,6 +14,7 @@ from numpy.typing import NDArray
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 from perchpose import CameraModel, TargetSpec
+from perchpose.sim.lossy_video import encode_h264, lose_packets
 from perchpose.sim.render import Renderer
 from perchpose.sim.scenarios import approach
 from perchpose.sim.sequence import write_sequence
@@ -125,7 +124,8 @@ def silent_scheduler(monkeypatch: pytest.MonkeyPatch, tcp_port: int) -> str:
 
 
 class H264:
-    """H.264 videos as a camera's encoder makes them, and as a lossy link delivers them."""
+    """H.264 videos as a camera's encoder makes them, and as a lossy link delivers them
+    (``perchpose.sim.lossy_video``)."""
 
     rate = 30
 
@@ -136,52 +136,10 @@ class H264:
         gop: int,
         times_ms: list[int] | None = None,
     ) -> Path:
-        """``images`` (BGR) as an MP4 at ``rate`` fps (or stamped ``times_ms``): libx264, a
-        key frame every ``gop`` frames, no B-frames."""
-        out = av.open(str(path), "w")
-        stream = out.add_stream("libx264", rate=self.rate)
-        if times_ms is not None:
-            stream.codec_context.time_base = Fraction(1, 1000)
-        stream.pix_fmt = "yuv420p"
-        stream.options = {"g": str(gop), "keyint_min": str(gop), "bf": "0", "sc_threshold": "0"}
-        stream.options["crf"] = "18"  # a camera's good link: the damage is what the test sees
-        for k, image in enumerate(images):
-            if k == 0:
-                stream.height, stream.width = image.shape[:2]
-            frame = av.VideoFrame.from_ndarray(image, format="bgr24")
-            if times_ms is not None:
-                frame.pts, frame.time_base = times_ms[k], Fraction(1, 1000)
-            for packet in stream.encode(frame):
-                out.mux(packet)
-        for packet in stream.encode():
-            out.mux(packet)
-        out.close()
-        return path
+        return encode_h264(images, path, gop, fps=self.rate, times_ms=times_ms)
 
     def damage(self, clean: Path, damaged: Path, drop: set[int], zero_half: set[int]) -> Path:
-        """``clean`` copied packet by packet to ``damaged`` without the packets of the frames
-        in ``drop`` and with the second half of those in ``zero_half`` zeroed (frames counted
-        from 0 in the order they were sent: there are no B-frames)."""
-        source = av.open(str(clean))
-        video = source.streams.video[0]
-        out = av.open(str(damaged), "w")
-        stream = out.add_stream_from_template(video)
-        packets = (p for p in source.demux(video) if p.size > 0)
-        for index, packet in enumerate(packets):
-            if index in drop:
-                continue
-            sent = packet
-            if index in zero_half:
-                data = bytearray(bytes(packet))
-                half = len(data) // 2
-                data[half:] = bytes(len(data) - half)
-                sent = av.Packet(bytes(data))
-                sent.pts, sent.dts, sent.time_base = packet.pts, packet.dts, packet.time_base
-            sent.stream = stream
-            out.mux(sent)
-        out.close()
-        source.close()
-        return damaged
+        return lose_packets(clean, damaged, drop, zero_half)
 
 
 @pytest.fixture(scope="session")
