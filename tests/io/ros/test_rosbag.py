@@ -366,6 +366,19 @@ def test_one_damaged_message_is_a_flagged_row_and_the_rest_are_tracked(
     assert err.count("warning:") == 3
 
 
+def _track_salvaged(
+    bag: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> list[dict[str, str]]:
+    """The rows of ``perchpose track`` over what a killed recorder left (warnings in
+    ``caplog``); the run must end well."""
+    out = tmp_path / "poses.csv"
+    with caplog.at_level("WARNING", logger="perchpose.io.ros.rosbag"):
+        code = main(["track", str(bag), "--image-topic", "/camera/image_raw", "--out", str(out),
+                     "--quiet"])  # fmt: skip
+    assert code == 0
+    return read_track_csv(out)
+
+
 def test_a_bare_mcap_cut_short_is_read_up_to_the_damage(
     approach_webcam_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -377,12 +390,7 @@ def test_a_bare_mcap_cut_short_is_read_up_to_the_damage(
     data = whole.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: int(len(data) * 0.6)])
-    out = tmp_path / "poses.csv"
-    with caplog.at_level("WARNING", logger="perchpose.io.ros.rosbag"):
-        code = main(["track", str(cut), "--image-topic", "/camera/image_raw", "--out", str(out),
-                     "--quiet"])  # fmt: skip
-    assert code == 0
-    rows = read_track_csv(out)
+    rows = _track_salvaged(cut, tmp_path, caplog)
     assert 3 <= len(rows) < FRAMES
     assert all(r["valid"] == "1" for r in rows)
     assert [int(r["frame"]) for r in rows] == list(range(len(rows)))
@@ -403,12 +411,7 @@ def test_a_ros2_bag_folder_cut_short_is_read_up_to_the_damage(
     whole.write_bytes(data[: int(len(data) * 0.6)])
     if not metadata:
         (folder / "metadata.yaml").unlink()
-    out = tmp_path / "poses.csv"
-    with caplog.at_level("WARNING", logger="perchpose.io.ros.rosbag"):
-        code = main(["track", str(folder), "--image-topic", "/camera/image_raw", "--out",
-                     str(out), "--quiet"])  # fmt: skip
-    assert code == 0
-    rows = read_track_csv(out)
+    rows = _track_salvaged(folder, tmp_path, caplog)
     assert 3 <= len(rows) < FRAMES
     assert all(r["valid"] == "1" for r in rows)
     assert [r["file"] for r in rows] == [
@@ -428,12 +431,7 @@ def test_a_sqlite3_bag_its_recorder_never_closed(
     the whole file)."""
     folder = _write(tmp_path / "run", "sqlite3", approach_webcam_dir, "bgr8")
     (folder / "metadata.yaml").unlink()
-    out = tmp_path / "poses.csv"
-    with caplog.at_level("WARNING", logger="perchpose.io.ros.rosbag"):
-        code = main(["track", str(folder), "--image-topic", "/camera/image_raw", "--out",
-                     str(out), "--quiet"])  # fmt: skip
-    assert code == 0
-    rows = read_track_csv(out)
+    rows = _track_salvaged(folder, tmp_path, caplog)
     assert len(rows) == FRAMES
     assert all(r["valid"] == "1" for r in rows)
     assert [float(r["t_s"]) for r in rows] == pytest.approx(
@@ -443,6 +441,7 @@ def test_a_sqlite3_bag_its_recorder_never_closed(
     (db3,) = folder.glob("*.db3")
     data = db3.read_bytes()
     db3.write_bytes(data[: int(len(data) * 0.6)])
+    out = tmp_path / "poses.csv"
     code = main(["track", str(folder), "--image-topic", "/camera/image_raw", "--out", str(out),
                  "--quiet"])  # fmt: skip
     assert code == 2
@@ -463,12 +462,7 @@ def test_a_ros1_bag_cut_short_is_read_up_to_the_damage(
     bag = _write(tmp_path / "run.bag", "ros1", approach_webcam_dir, "rgb8", compression=compression)
     data = bag.read_bytes()
     bag.write_bytes(data[: int(len(data) * 0.6)])
-    out = tmp_path / "poses.csv"
-    with caplog.at_level("WARNING", logger="perchpose.io.ros.rosbag"):
-        code = main(["track", str(bag), "--image-topic", "/camera/image_raw", "--out", str(out),
-                     "--quiet"])  # fmt: skip
-    assert code == 0
-    rows = read_track_csv(out)
+    rows = _track_salvaged(bag, tmp_path, caplog)
     assert 3 <= len(rows) < FRAMES
     for k, (row, ref) in enumerate(zip(rows, reference[: len(rows)], strict=True)):
         assert float(row["t_s"]) == pytest.approx((T0_NS + k * 33_333_333) * 1e-9, abs=1e-6)

@@ -11,41 +11,24 @@ store. ``damage`` says where the first file that stops making sense stops.
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
-
-class McapConnection(NamedTuple):
-    """A topic of the files (one per topic and type), named as rosbags names its connections."""
-
-    id: int
-    topic: str
-    msgtype: str
-    msgcount: int
+from perchpose.io.ros.salvaged import SalvagedBag
 
 
-class CutMcap:
+class CutMcap(SalvagedBag):
     """The whole records of ``paths`` (one file, or a bag folder's files in order)."""
 
     def __init__(self, paths: Sequence[Path]) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self.paths = list(paths)
-        self.typestore = get_typestore(Stores.ROS2_HUMBLE)
-        self.damage = "it ends cleanly"
-        self._ids: dict[tuple[str, str], int] = {}
-        counts: Counter[int] = Counter()
-        for connection_id, _, _ in self._messages():
-            counts[connection_id] += 1
-        self.connections = [
-            McapConnection(cid, topic, msgtype, counts[cid])
-            for (topic, msgtype), cid in self._ids.items()
-        ]
+        super().__init__(get_typestore(Stores.ROS2_HUMBLE))
 
     def _records(self, path: Path) -> Iterator[Any]:
         """Every whole record of ``path``; where it is cut, ``damage`` says so (for the first
@@ -55,9 +38,8 @@ class CutMcap:
                 yield from StreamReader(stream).records
             except Exception as exc:  # a cut record, a cut chunk: the mcap library's errors
                 why = str(exc).strip() or type(exc).__name__
-                if self.damage == "it ends cleanly":
-                    where = f"{path.name}: " if len(self.paths) > 1 else ""
-                    self.damage = f"{where}its records stop at byte {stream.tell()}: {why}"
+                where = f"{path.name}: " if len(self.paths) > 1 else ""
+                self._damaged(f"{where}its records stop at byte {stream.tell()}: {why}")
 
     def _messages(self) -> Iterator[tuple[int, int, bytes]]:
         """(connection id, log time, data) of every whole message, file after file; a topic
@@ -70,23 +52,6 @@ class CutMcap:
                     schemas[record.id] = record.name
                 elif isinstance(record, Channel):
                     key = (record.topic, schemas.get(record.schema_id, ""))
-                    channels[record.id] = self._ids.setdefault(key, len(self._ids))
+                    channels[record.id] = self._connection_id(*key)
                 elif isinstance(record, Message) and record.channel_id in channels:
                     yield channels[record.channel_id], record.log_time, record.data
-
-    def messages(
-        self, connections: list[McapConnection] | None = None
-    ) -> Iterator[tuple[McapConnection, int, bytes]]:
-        wanted = {c.id: c for c in connections or self.connections}
-        for connection_id, log_time, data in self._messages():
-            if connection_id in wanted:
-                yield wanted[connection_id], log_time, data
-
-    def deserialize(self, raw: bytes, msgtype: str) -> Any:
-        return self.typestore.deserialize_cdr(raw, msgtype)
-
-    def open(self) -> None:
-        """Nothing to open (read on each pass)."""
-
-    def close(self) -> None:
-        """Nothing to close (each pass closes its files)."""

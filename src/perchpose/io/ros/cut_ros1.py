@@ -21,25 +21,17 @@ from __future__ import annotations
 import bz2
 import mmap
 import struct
-from collections import Counter
 from collections.abc import Iterator
 from contextlib import closing
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
+
+from perchpose.io.ros.salvaged import SalvagedBag
 
 Buffer = bytes | mmap.mmap
 
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MESSAGE, OP_CHUNK, OP_CONNECTION = 0x02, 0x05, 0x07
-
-
-class Ros1Connection(NamedTuple):
-    """A topic of the bag (one per topic and type), named as rosbags names its connections."""
-
-    id: int
-    topic: str
-    msgtype: str
-    msgcount: int
 
 
 class CutRecordError(Exception):
@@ -99,36 +91,27 @@ def _unpacked(header: dict[str, bytes], body: bytes) -> bytes:
     raise CutRecordError(f"a chunk compressed as {compression!r}")
 
 
-class CutRos1:
+class CutRos1(SalvagedBag):
     """The whole message records of the ROS 1 bag ``path``, in order."""
 
     def __init__(self, path: Path) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self.path = path
-        self.typestore = get_typestore(Stores.ROS1_NOETIC)
-        self.damage = "it ends cleanly"
-        self._ids: dict[tuple[str, str], int] = {}
-        counts: Counter[int] = Counter()
-        for connection_id, _, _ in self._messages():
-            counts[connection_id] += 1
-        self.connections = [
-            Ros1Connection(cid, topic, msgtype, counts[cid])
-            for (topic, msgtype), cid in self._ids.items()
-        ]
+        super().__init__(get_typestore(Stores.ROS1_NOETIC))
 
     def _messages(self) -> Iterator[tuple[int, int, bytes]]:
         """(connection id, time in ns, data) of every whole message, in the file's order (a
         plain chunk cut short gives the messages it still holds whole)."""
         if self.path.stat().st_size < len(MAGIC):
-            self.damage = "not a ROS 1 bag (format 2.0)"
+            self._damaged("not a ROS 1 bag (format 2.0)")
             return
         with (
             self.path.open("rb") as f,
             closing(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)) as data,
         ):
             if data[: len(MAGIC)] != MAGIC:
-                self.damage = "not a ROS 1 bag (format 2.0)"
+                self._damaged("not a ROS 1 bag (format 2.0)")
                 return
             connections: dict[int, int] = {}  # the bag's conn -> connection id
             try:
@@ -144,7 +127,7 @@ class CutRos1:
                         raise CutRecordError(f"a chunk does not decompress ({exc})") from exc
                     yield from self._chunk(unpacked, connections)
             except CutRecordError as exc:
-                self.damage = str(exc)
+                self._damaged(str(exc))
 
     def _chunk(self, data: bytes, connections: dict[int, int]) -> Iterator[tuple[int, int, bytes]]:
         """The messages of one chunk, as far as they are whole."""
@@ -157,29 +140,15 @@ class CutRos1:
                 topic = header.get("topic", described.get("topic", b"")).decode()
                 msgtype = _ros2_name(described.get("type", b"").decode())
                 (conn,) = struct.unpack("<I", header["conn"])
-                connections[conn] = self._ids.setdefault((topic, msgtype), len(self._ids))
+                connections[conn] = self._connection_id(topic, msgtype)
             elif op == bytes([OP_MESSAGE]) and "conn" in header and "time" in header:
                 (conn,) = struct.unpack("<I", header["conn"])
                 sec, nsec = struct.unpack("<II", header["time"])
                 if conn in connections:
                     yield connections[conn], sec * 1_000_000_000 + nsec, body
 
-    def messages(
-        self, connections: list[Ros1Connection] | None = None
-    ) -> Iterator[tuple[Ros1Connection, int, bytes]]:
-        wanted = {c.id: c for c in connections or self.connections}
-        for connection_id, t_ns, raw in self._messages():
-            if connection_id in wanted:
-                yield wanted[connection_id], t_ns, raw
-
     def deserialize(self, raw: bytes, msgtype: str) -> Any:
         return self.typestore.deserialize_ros1(raw, msgtype)
-
-    def open(self) -> None:
-        """Nothing to open (read on each pass)."""
-
-    def close(self) -> None:
-        """Nothing to close."""
 
 
 def _ros2_name(ros1_type: str) -> str:

@@ -13,20 +13,11 @@ stops making sense stops.
 from __future__ import annotations
 
 import sqlite3
-from collections import Counter
 from collections.abc import Iterator, Sequence
 from contextlib import closing
 from pathlib import Path
-from typing import Any, NamedTuple
 
-
-class SqliteConnection(NamedTuple):
-    """A topic of the files (one per topic and type), named as rosbags names its connections."""
-
-    id: int
-    topic: str
-    msgtype: str
-    msgcount: int
+from perchpose.io.ros.salvaged import SalvagedBag
 
 
 def _connect(path: Path) -> sqlite3.Connection:
@@ -41,23 +32,17 @@ def _connect(path: Path) -> sqlite3.Connection:
     return connection
 
 
-class UnclosedSqlite:
+class UnclosedSqlite(SalvagedBag):
     """The readable messages of ``paths`` (a bag folder's ``.db3`` files in order)."""
 
     def __init__(self, paths: Sequence[Path]) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self.paths = list(paths)
-        self.typestore = get_typestore(Stores.ROS2_HUMBLE)
-        self.damage = "it ends cleanly"
-        self._ids: dict[tuple[str, str], int] = {}
-        counts: Counter[int] = Counter()
-        for connection_id, _, _ in self._messages(with_data=False):
-            counts[connection_id] += 1
-        self.connections = [
-            SqliteConnection(cid, topic, msgtype, counts[cid])
-            for (topic, msgtype), cid in self._ids.items()
-        ]
+        super().__init__(get_typestore(Stores.ROS2_HUMBLE))
+
+    def _counted(self) -> Iterator[tuple[int, int, bytes]]:
+        return self._messages(with_data=False)
 
     def _messages(self, with_data: bool = True) -> Iterator[tuple[int, int, bytes]]:
         """(connection id, time, data) of every readable message, file after file, in the
@@ -67,7 +52,7 @@ class UnclosedSqlite:
             try:
                 with closing(_connect(path)) as db:
                     topics = {
-                        topic_id: self._ids.setdefault((name, msgtype), len(self._ids))
+                        topic_id: self._connection_id(name, msgtype)
                         for topic_id, name, msgtype in db.execute(
                             "SELECT id, name, type FROM topics"
                         )
@@ -79,22 +64,4 @@ class UnclosedSqlite:
                         if topic_id in topics:
                             yield topics[topic_id], int(t_ns), bytes(raw or b"")
             except sqlite3.Error as exc:  # a page cut off, a file that is not a database
-                if self.damage == "it ends cleanly":
-                    self.damage = f"{path.name}: its messages stop there: {exc}"
-
-    def messages(
-        self, connections: list[SqliteConnection] | None = None
-    ) -> Iterator[tuple[SqliteConnection, int, bytes]]:
-        wanted = {c.id: c for c in connections or self.connections}
-        for connection_id, t_ns, raw in self._messages():
-            if connection_id in wanted:
-                yield wanted[connection_id], t_ns, raw
-
-    def deserialize(self, raw: bytes, msgtype: str) -> Any:
-        return self.typestore.deserialize_cdr(raw, msgtype)
-
-    def open(self) -> None:
-        """Nothing to open (read on each pass)."""
-
-    def close(self) -> None:
-        """Nothing to close (each pass closes its files)."""
+                self._damaged(f"{path.name}: its messages stop there: {exc}")
