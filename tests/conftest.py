@@ -135,8 +135,11 @@ class H264:
         path: Path,
         gop: int,
         times_ms: list[int] | None = None,
+        intra_refresh: bool = False,
     ) -> Path:
-        return encode_h264(images, path, gop, fps=self.rate, times_ms=times_ms)
+        return encode_h264(
+            images, path, gop, fps=self.rate, times_ms=times_ms, intra_refresh=intra_refresh
+        )
 
     def damage(self, clean: Path, damaged: Path, drop: set[int], zero_half: set[int]) -> Path:
         return lose_packets(clean, damaged, drop, zero_half)

@@ -56,6 +56,39 @@ def test_a_packet_the_demuxer_marked_corrupt() -> None:
     assert chain.frame(20, key=True, corrupt=False) == ""
 
 
+def test_intra_refresh_mends_a_whole_cycle_after_the_damage() -> None:
+    """No key frame after the first; access points (recovery points) every 10 frames: the
+    picture is whole again at the second access point after the damage, not the first."""
+    chain = ReferenceChain()
+    chain.frame(0, key=True, corrupt=False)
+    assert chain.frame(10, key=False, corrupt=False, access_point=True) == ""
+    assert "since frame 13" in chain.frame(14, key=False, corrupt=False, missing_before=1)
+    assert "since frame 13" in chain.frame(20, key=False, corrupt=False, access_point=True)
+    assert "since frame 13" in chain.frame(29, key=False, corrupt=False)
+    assert chain.frame(30, key=False, corrupt=False, access_point=True) == ""
+    # new damage inside a cycle starts the count again
+    assert "frame 33 decoded with errors" in chain.frame(33, key=False, corrupt=True)
+    assert "since frame 33" in chain.frame(40, key=False, corrupt=False, access_point=True)
+    assert "decoded with errors" in chain.frame(45, key=False, corrupt=True)
+    assert "since frame 33" in chain.frame(50, key=False, corrupt=False, access_point=True)
+    assert chain.frame(60, key=False, corrupt=False, access_point=True) == ""
+
+
+def test_an_intra_refresh_stream_after_a_lost_packet(h264: "H264", tmp_path: Path) -> None:
+    """libx264's intra refresh (one key frame, then a refresh sweep every 10 frames, each
+    start a recovery point): frame 13 lost spoils 14-27 in the pixels; 14-29 are flagged (to
+    the second recovery point), and from 30 on every frame is the clean decode again."""
+    clean = h264.encode(_moving_square(40), tmp_path / "clean.mp4", gop=10, intra_refresh=True)
+    lossy = h264.damage(clean, tmp_path / "lossy.mp4", drop={13}, zero_half=set())
+    sent = {f.index: f.image for f in open_source(str(clean))}
+    frames = [f for f in open_source(str(lossy)) if f.image is not None]
+    assert [f.index for f in frames if f.damaged] == list(range(14, 30))
+    for f in frames:
+        assert f.image is not None
+        difference = np.abs(f.image.astype(int) - sent[f.index].astype(int)).max()
+        assert f.damaged or difference == 0, f.index
+
+
 def _moving_square(frames: int) -> list[np.ndarray]:
     """A bright square moving 2 px a frame over a gradient."""
     images = []

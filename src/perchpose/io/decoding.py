@@ -47,19 +47,33 @@ class ReferenceChain:
     Where the demuxer marked a packet corrupt (MPEG-TS: a continuity counter skipped, data
     lost), the lost data may have held the start of the next frame, whose rest the demuxer then
     hands over as part of the corrupt one or as a frame of its own: the first frame after a
-    corrupt packet is damaged too, even a key frame that decodes without complaint."""
+    corrupt packet is damaged too, even a key frame that decodes without complaint.
+
+    A stream with intra refresh (low-latency encoders) has no key frame after its first: it
+    marks ``access_point`` packets instead (a recovery point, where a refresh cycle starts), and
+    the picture is whole again only once a whole cycle has run after the damage, that is at the
+    second access point after it (one cycle may have begun before the damage)."""
 
     def __init__(self) -> None:
         self._broken_at: int | None = None  # the first damaged or missing frame
         self._pending: int | None = None  # a damaged packet's frame, not yet decoded
         self._after_corrupt: int | None = None  # the frame the next one may be the rest of
+        self._access_points = 0  # access points since the chain last broke
 
     def packet_damaged(self, index: int) -> None:
         """The packet of frame ``index`` came marked corrupt from the demuxer: that frame is
         damaged when it comes (and missing when it does not), and so what follows it."""
         self._pending = index if self._pending is None else min(self._pending, index)
 
-    def frame(self, index: int, *, key: bool, corrupt: bool, missing_before: int = 0) -> str:
+    def frame(
+        self,
+        index: int,
+        *,
+        key: bool,
+        corrupt: bool,
+        missing_before: int = 0,
+        access_point: bool = False,
+    ) -> str:
         """Why frame ``index`` rests on damaged data, or ''."""
         cut_at, self._after_corrupt = self._after_corrupt, None
         if self._pending is not None and index >= self._pending:
@@ -70,22 +84,33 @@ class ReferenceChain:
                 missing_before = max(missing_before, index - self._pending)
             self._pending = None
         if corrupt:
-            self._broken_at = index if self._broken_at is None else self._broken_at
+            self._break(index)
             return f"frame {index} decoded with errors (its own data is damaged)"
         if cut_at is not None:
-            self._broken_at = cut_at if self._broken_at is None else self._broken_at
+            self._break(cut_at)
             return f"frame {index} follows data lost at frame {cut_at} and may hold its rest"
         if key:
             self._broken_at = None
             return ""
-        if missing_before > 0 and self._broken_at is None:
-            self._broken_at = index - missing_before
+        if missing_before > 0:
+            self._break(index - missing_before)
         if self._broken_at is None:
             return ""
+        if access_point:
+            self._access_points += 1
+            if self._access_points >= 2:
+                self._broken_at = None
+                return ""
         return (
             f"frame {index} is predicted from damaged or missing frames (since frame "
             f"{self._broken_at}, until the next key frame)"
         )
+
+    def _break(self, index: int) -> None:
+        """The chain breaks at ``index`` (the first break stays named); a refresh cycle must
+        start afresh after it."""
+        self._broken_at = index if self._broken_at is None else self._broken_at
+        self._access_points = 0
 
     @property
     def broken(self) -> bool:
@@ -197,8 +222,11 @@ class AvCapture:
         """(index, frame, damage) of each frame, in presentation order; ends at the stream's
         end, or where the demuxer cannot go on (a truncated file, a dropped connection)."""
         previous = -1
+        access_points: set[int] = set()  # the times of packets a decoder may start from
         try:
             for packet in self._container.demux(self._stream):
+                if packet.is_keyframe and packet.pts is not None:
+                    access_points.add(packet.pts)
                 if packet.is_corrupt and packet.pts is not None:
                     self._chain.packet_damaged(self._index_of(packet.pts, previous))
                 try:
@@ -214,7 +242,9 @@ class AvCapture:
                         key=bool(frame.key_frame),
                         corrupt=bool(frame.is_corrupt),
                         missing_before=self._missing_before(frame.pts),
+                        access_point=frame.pts in access_points,
                     )
+                    access_points.discard(frame.pts)
                     previous = index
                     yield index, frame, damage
         except (av.error.FFmpegError, OSError):

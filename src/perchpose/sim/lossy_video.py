@@ -25,9 +25,13 @@ def encode_h264(
     fps: int = 30,
     crf: int = 18,
     times_ms: list[int] | None = None,
+    intra_refresh: bool = False,
 ) -> Path:
     """``images`` (BGR, all one size) as H.264 at ``fps`` (or stamped ``times_ms``): libx264,
-    a key frame every ``gop`` frames, no B-frames, constant quality ``crf``."""
+    a key frame every ``gop`` frames, no B-frames, constant quality ``crf``. With
+    ``intra_refresh``, as low-latency links send it: a key frame only first, then a column of
+    intra blocks sweeping the picture every ``gop`` frames, each sweep's start marked as a
+    recovery point."""
     out = av.open(str(path), "w")
     stream = out.add_stream("libx264", rate=fps)
     stream.pix_fmt = "yuv420p"
@@ -38,6 +42,8 @@ def encode_h264(
         "sc_threshold": "0",
         "crf": str(crf),
     }
+    if intra_refresh:
+        stream.options["x264-params"] = "intra-refresh=1"
     if times_ms is not None:
         stream.codec_context.time_base = Fraction(1, 1000)
     for k, image in enumerate(images):
