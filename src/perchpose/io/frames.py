@@ -1,15 +1,22 @@
 """The bottom of ``io/``: a frame as every source yields it (``Frame``), the source's interface
-(``FrameSource``), and a frame's time as a message stamp (``stamp_ns``). Sources, sinks, bags and
+(``FrameSource``), a frame's time as a message stamp (``stamp_ns``), and how files of frames are
+told and ordered (``IMAGE_SUFFIXES``, ``natural_key``). Sources, sinks, bags and
 the live view import these; nothing here imports them."""
 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+
+IMAGE_SUFFIXES = frozenset(
+    {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
+)
 
 
 @dataclass(frozen=True)
@@ -107,3 +114,10 @@ class Stamp:
         """(sec, nanosec) of a ROS or Foxglove time stamp."""
         sec, nanosec = divmod(self.t_ns, 1_000_000_000)
         return sec, nanosec
+
+
+def natural_key(path: Path) -> tuple[tuple[int, int | str], ...]:
+    """Sort key of a file name as a person reads it: runs of digits by value (``img_2`` before
+    ``img_10``), the rest case-insensitively."""
+    parts = re.split(r"(\d+)", path.name)
+    return tuple((0, int(p)) if p.isdigit() else (1, p.lower()) for p in parts if p)

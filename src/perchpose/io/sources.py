@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import glob as globlib
 import math
-import re
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -20,12 +19,9 @@ from numpy.typing import NDArray
 
 from perchpose.errors import SourceError
 from perchpose.io.decoding import AvCapture
-from perchpose.io.frames import Frame, FrameSource
+from perchpose.io.frames import IMAGE_SUFFIXES, Frame, FrameSource, natural_key
 from perchpose.io.native import native_stderr_silenced
 
-IMAGE_SUFFIXES = frozenset(
-    {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
-)
 VIDEO_SUFFIXES = frozenset(
     {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".ts", ".m2ts", ".flv"}
 )
@@ -293,13 +289,6 @@ def _damage(path: Path) -> str:
     if b"\xff\xd9" not in tail:
         return f"{path}: truncated JPEG (no end-of-image marker); the image is incomplete"
     return ""
-
-
-def natural_key(path: Path) -> tuple[tuple[int, int | str], ...]:
-    """Sort key of a file name as a person reads it: runs of digits by value (``img_2`` before
-    ``img_10``), the rest case-insensitively."""
-    parts = re.split(r"(\d+)", path.name)
-    return tuple((0, int(p)) if p.isdigit() else (1, p.lower()) for p in parts if p)
 
 
 def _frame_count(capture: Capture) -> int | None:

@@ -22,9 +22,8 @@ from typing import Any
 
 from perchpose.camera import CameraModel
 from perchpose.errors import SourceError
-from perchpose.io.frames import Frame, FrameSource
+from perchpose.io.frames import IMAGE_SUFFIXES, Frame, FrameSource, natural_key
 from perchpose.io.ros.messages import camera_info_fields, header_stamp_ns, image_of, supported
-from perchpose.io.sources import IMAGE_SUFFIXES, natural_key
 
 log = logging.getLogger(__name__)
 
