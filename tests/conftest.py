@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import os
 import socket
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import pytest
-from numpy.typing import NDArray
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 from perchpose import CameraModel, TargetSpec
-from perchpose.sim.lossy_video import encode_h264, lose_packets
 from perchpose.sim.render import Renderer
 from perchpose.sim.scenarios import approach
 from perchpose.sim.sequence import write_sequence
@@ -121,31 +118,3 @@ def silent_scheduler(monkeypatch: pytest.MonkeyPatch, tcp_port: int) -> str:
 
     monkeypatch.setattr(campaign, "SCHEDULER_TIMEOUT_S", 1)
     return f"tcp://127.0.0.1:{tcp_port}"
-
-
-class H264:
-    """H.264 videos as a camera's encoder makes them, and as a lossy link delivers them
-    (``perchpose.sim.lossy_video``)."""
-
-    rate = 30
-
-    def encode(
-        self,
-        images: Iterable[NDArray[np.uint8]],
-        path: Path,
-        gop: int,
-        times_ms: list[int] | None = None,
-        intra_refresh: bool = False,
-    ) -> Path:
-        return encode_h264(
-            images, path, gop, fps=self.rate, times_ms=times_ms, intra_refresh=intra_refresh
-        )
-
-    def damage(self, clean: Path, damaged: Path, drop: set[int], zero_half: set[int]) -> Path:
-        return lose_packets(clean, damaged, drop, zero_half)
-
-
-@pytest.fixture(scope="session")
-def h264() -> H264:
-    """Encode images as H.264 and damage the result as a lossy link would."""
-    return H264()

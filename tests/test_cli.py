@@ -5,7 +5,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 import yaml
@@ -13,6 +12,7 @@ import yaml
 from perchpose import CameraModel
 from perchpose.cli import main
 from perchpose.io.sinks import read_track_csv
+from perchpose.sim.lossy_video import encode_h264, lose_packets
 
 
 @pytest.fixture(scope="module")
@@ -133,15 +133,15 @@ def test_corrupt_frame_does_not_stop_the_run(
 
 
 def test_a_lossy_video_says_which_frames_it_did_not_measure(
-    short_sequence: Path, h264: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    short_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Six frames as H.264 with frame 2's packet lost: frames 3-5 are predicted from it; the
     run says so once, goes on, and its closing line counts them."""
     import cv2
 
     images = (cv2.imread(str(p)) for p in sorted(short_sequence.glob("frame_*.png")))
-    clean = h264.encode(images, tmp_path / "clean.mp4", gop=6)
-    lossy = h264.damage(clean, tmp_path / "lossy.mp4", drop={2}, zero_half=set())
+    clean = encode_h264(images, tmp_path / "clean.mp4", gop=6)
+    lossy = lose_packets(clean, tmp_path / "lossy.mp4", drop={2}, zero_half=set())
     camera = str(short_sequence / "camera.yaml")
     code, out, err = _run(
         ["track", str(lossy), "--camera", camera, "--out", str(tmp_path / "p.csv")], capsys

@@ -1,6 +1,5 @@
 import csv
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -10,6 +9,7 @@ from perchpose.app.track import track
 from perchpose.errors import PerchposeError
 from perchpose.evaluation.metrics import frame_errors
 from perchpose.io.sinks import read_track_csv
+from perchpose.sim.lossy_video import encode_h264, lose_packets
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +108,7 @@ def test_each_row_says_its_latency(tracked: dict[str, tuple[Path, Path]], camera
 
 
 def test_frames_decoded_from_damaged_data_are_shown_not_measured(
-    approach_webcam_dir: Path, h264: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    approach_webcam_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """The rendered approach as a camera's H.264 (a key frame every 15 frames) after a lossy
     link: frame 20's packet lost, frame 50's cut in half, frame 67's lost. The frames predicted
@@ -118,8 +118,8 @@ def test_frames_decoded_from_damaged_data_are_shown_not_measured(
     import cv2
 
     frames = sorted(approach_webcam_dir.glob("frame_*.png"))
-    clean = h264.encode((cv2.imread(str(p)) for p in frames), tmp_path / "clean.mp4", gop=15)
-    lossy = h264.damage(clean, tmp_path / "lossy.mp4", drop={20, 67}, zero_half={50})
+    clean = encode_h264((cv2.imread(str(p)) for p in frames), tmp_path / "clean.mp4", gop=15)
+    lossy = lose_packets(clean, tmp_path / "lossy.mp4", drop={20, 67}, zero_half={50})
     camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
     heard: list[float] = []
     summary = track(

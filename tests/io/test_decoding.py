@@ -1,14 +1,11 @@
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
 
 from perchpose.io.decoding import AvCapture, ReferenceChain
 from perchpose.io.sources import open_source
-
-if TYPE_CHECKING:
-    from conftest import H264
+from perchpose.sim.lossy_video import encode_h264, lose_packets
 
 W, H = 160, 120
 
@@ -74,12 +71,12 @@ def test_intra_refresh_mends_a_whole_cycle_after_the_damage() -> None:
     assert chain.frame(60, key=False, corrupt=False, access_point=True) == ""
 
 
-def test_an_intra_refresh_stream_after_a_lost_packet(h264: "H264", tmp_path: Path) -> None:
+def test_an_intra_refresh_stream_after_a_lost_packet(tmp_path: Path) -> None:
     """libx264's intra refresh (one key frame, then a refresh sweep every 10 frames, each
     start a recovery point): frame 13 lost spoils 14-27 in the pixels; 14-29 are flagged (to
     the second recovery point), and from 30 on every frame is the clean decode again."""
-    clean = h264.encode(_moving_square(40), tmp_path / "clean.mp4", gop=10, intra_refresh=True)
-    lossy = h264.damage(clean, tmp_path / "lossy.mp4", drop={13}, zero_half=set())
+    clean = encode_h264(_moving_square(40), tmp_path / "clean.mp4", gop=10, intra_refresh=True)
+    lossy = lose_packets(clean, tmp_path / "lossy.mp4", drop={13}, zero_half=set())
     sent = {f.index: f.image for f in open_source(str(clean))}
     frames = [f for f in open_source(str(lossy)) if f.image is not None]
     assert [f.index for f in frames if f.damaged] == list(range(14, 30))
@@ -101,12 +98,12 @@ def _moving_square(frames: int) -> list[np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def videos(h264: "H264", tmp_path_factory: pytest.TempPathFactory) -> Path:
+def videos(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """clean.mp4 (a key frame every 10 frames) and lossy.mp4: frame 13's packet lost whole,
     frame 25's cut in half."""
     folder = tmp_path_factory.mktemp("h264")
-    h264.encode(_moving_square(40), folder / "clean.mp4", gop=10)
-    h264.damage(folder / "clean.mp4", folder / "lossy.mp4", drop={13}, zero_half={25})
+    encode_h264(_moving_square(40), folder / "clean.mp4", gop=10)
+    lose_packets(folder / "clean.mp4", folder / "lossy.mp4", drop={13}, zero_half={25})
     return folder
 
 
@@ -150,7 +147,7 @@ def test_frames_after_a_lost_packet_are_damaged_until_the_next_key_frame(videos:
 
 @pytest.mark.parametrize("kind", ["jitter", "heavy jitter", "drift"])
 def test_a_camera_whose_frame_times_wander_is_not_taken_for_a_lossy_one(
-    h264: "H264", tmp_path: Path, kind: str
+    tmp_path: Path, kind: str
 ) -> None:
     """Frame times that jitter (33 ms apart give or take 6 ms, software stamps; or 7 ms, a
     fifth of a frame) or drift (the interval growing from 33 to 50 ms, a camera slowing in
@@ -165,11 +162,11 @@ def test_a_camera_whose_frame_times_wander_is_not_taken_for_a_lossy_one(
         ]
     else:
         times_ms = np.cumsum([0] + [round(33.3 + 16.7 * k / 39) for k in range(39)]).tolist()
-    video = h264.encode(_moving_square(40), tmp_path / "camera.mp4", gop=40, times_ms=times_ms)
+    video = encode_h264(_moving_square(40), tmp_path / "camera.mp4", gop=40, times_ms=times_ms)
     assert not any(f.damaged for f in open_source(str(video)))
     if kind == "heavy jitter":
         return
-    lossy = h264.damage(video, tmp_path / "lossy.mp4", drop={20}, zero_half=set())
+    lossy = lose_packets(video, tmp_path / "lossy.mp4", drop={20}, zero_half=set())
     # the 20 frames before the loss are whole, the 19 after it (no key frame follows) damaged
     decoded = [f for f in open_source(str(lossy)) if f.image is not None]
     assert [f.damaged for f in decoded] == [False] * 20 + [True] * 19

@@ -1,6 +1,5 @@
 import time
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -8,6 +7,7 @@ import pytest
 
 from perchpose.errors import SourceError
 from perchpose.io.sources import LatestFrame, VideoSource, open_source
+from perchpose.sim.lossy_video import encode_h264
 
 
 def _write_images(folder: Path, names: list[str]) -> None:
@@ -316,7 +316,7 @@ def test_a_stream_that_never_answers_is_one_clear_error(tcp_port: int) -> None:
 
 
 def test_a_udp_stream_that_loses_datagrams_flags_what_it_spoils(
-    h264: Any, tmp_path: Path, udp_port: int, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, udp_port: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """An H.264 camera's MPEG-TS over udp:// on loopback (a key frame every 10 frames), with
     three datagrams of 7 TS packets lost on the way: the frames they spoil come flagged, and
@@ -332,7 +332,7 @@ def test_a_udp_stream_that_loses_datagrams_flags_what_it_spoils(
         image[:, :, 1] = np.linspace(0, 200, 160, dtype=np.uint8)[None, :]
         image[40:80, 10 + 2 * k : 50 + 2 * k] = 255
         images.append(image)
-    ts = h264.encode(images, tmp_path / "camera.ts", gop=10)
+    ts = encode_h264(images, tmp_path / "camera.ts", gop=10)
     sent = {f.index: f.image for f in open_source(str(ts))}
     assert len(sent) == 60
     data = ts.read_bytes()

@@ -9,7 +9,6 @@ OpenCV's FFmpeg backend reports neither, which is why videos and streams are rea
 
 from __future__ import annotations
 
-import math
 import os
 import statistics
 from collections import deque
@@ -31,7 +30,6 @@ FILE_THREADS = "AUTO"
 GAP_INTERVALS = 1.5
 INTERVALS_KEPT = 15  # the typical interval: the median of the last this many
 NOMINAL_TOLERANCE = 0.15  # a stream within this of its nominal interval runs at its rate
-TYPICAL_AFTER = INTERVALS_KEPT  # intervals known before the typical one can replace the nominal
 
 
 class ReferenceChain:
@@ -186,9 +184,7 @@ class AvCapture:
             return previous + 1
         if self._start_pts is None:
             self._start_pts = pts
-        seconds = float((pts - self._start_pts) * self._time_base)
-        index = round(seconds * self.fps)
-        return index if math.isfinite(seconds) else previous + 1
+        return round((pts - self._start_pts) * self._time_base * self.fps)
 
     def _missing_before(self, pts: int | None) -> int:
         """How many frames are missing between the frame before and this one, from the time
@@ -209,9 +205,9 @@ class AvCapture:
     def _reference_interval_s(self) -> float | None:
         """A frame's interval as this stream runs: the nominal one while the typical interval
         (the median of the last ``INTERVALS_KEPT``) is within ``NOMINAL_TOLERANCE`` of it or
-        fewer than ``TYPICAL_AFTER`` are known, else the typical one (a rate that drifted)."""
+        fewer than that many are known, else the typical one (a rate that drifted)."""
         nominal_s = None if self.fps is None else 1.0 / self.fps
-        if len(self._intervals_s) < TYPICAL_AFTER:
+        if len(self._intervals_s) < INTERVALS_KEPT:
             return nominal_s
         typical_s = statistics.median(self._intervals_s)
         if nominal_s is not None and abs(typical_s / nominal_s - 1.0) < NOMINAL_TOLERANCE:

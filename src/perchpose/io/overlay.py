@@ -138,7 +138,8 @@ class _H264File:
         for packet in self._stream.encode(frame):
             self._container.mux(packet)
 
-    def close(self) -> None:
+    def release(self) -> None:
+        """Flush the encoder and finish the file (``cv2.VideoWriter``'s name for it)."""
         for packet in self._stream.encode():
             self._container.mux(packet)
         self._container.close()
@@ -177,10 +178,7 @@ class OverlayWriter:
 
     def close(self) -> None:
         """Finish the file."""
-        if isinstance(self._writer, _H264File):
-            self._writer.close()
-        else:
-            self._writer.release()
+        self._writer.release()
 
 
 def encode_jpeg(image: NDArray[np.uint8], quality: int) -> bytes | None:

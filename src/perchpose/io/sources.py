@@ -180,18 +180,11 @@ class VideoSource(FrameSource):
         return f"{self.description}: {damage}; not measured" if damage else ""
 
     def _index_of_last_read(self, expected: int) -> int:
-        """The index of the frame just read, from its presentation time and the file's own
-        frame rate (``expected`` when the container gives no usable time)."""
+        """The index of the frame just read, from its presentation time (``AvCapture.index``;
+        ``expected`` from a capture that does not say)."""
         if isinstance(self.capture, AvCapture):
             return max(expected, self.capture.index)
-        msec = float(self.capture.get(cv2.CAP_PROP_POS_MSEC))
-        rate = float(self.capture.get(cv2.CAP_PROP_FPS))
-        if not (math.isfinite(msec) and msec >= 0 and math.isfinite(rate) and rate > 0):
-            return expected
-        index = round(msec * rate / 1000.0)
-        if self.count is not None:
-            index = min(index, self.count - 1)
-        return max(expected, index)
+        return expected
 
     def _lost_frame(self, i: int) -> Frame:
         why = f"{self.description}: frame {i} cannot be decoded (damaged or truncated video)"
