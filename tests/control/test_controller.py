@@ -12,7 +12,6 @@ from perchpose.control import (
     ControllerSettings,
     Odometry,
     PerchingController,
-    PerchingPilot,
     default_T_body_camera,
     load_T_body_camera,
 )
@@ -307,41 +306,6 @@ def test_a_camera_dropout_mid_approach_holds_height_on_odometry() -> None:
     assert lost.phase == "lost"
 
 
-class Recorder:
-    """A commander that keeps what it is sent: velocities (and the yaw rate) as 4-tuples, a
-    stop as ()."""
-
-    def __init__(self) -> None:
-        self.sent: list[tuple[float, ...]] = []
-
-    def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
-        self.sent.append((*v_world_mps, yaw_rate_rad_s))
-
-    def send_stop(self) -> None:
-        self.sent.append(())
-
-
-def test_pilot_lands_when_the_controller_gives_up() -> None:
-    s = ControllerSettings(observer_rate=0.0, max_tries=1)
-    commander = Recorder()
-    position = {"x": 0.0}
-    pilot = PerchingPilot(
-        commander,
-        lambda: np.eye(3),
-        controller=PerchingController(s),
-        height_m=lambda: 1.0,
-        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
-        report=lambda _m: None,
-    )
-    for k in range(3):
-        pilot.update(_seen(s, [0.0, 0.0, 0.05], k / 30), k / 30)
-    position["x"] = 0.05
-    step = pilot.update(None, 4 / 30)
-    assert step.state == "landing"
-    assert step.v_mps is not None
-    assert step.v_mps[2] < 0
-
-
 def test_between_frames_the_lateral_loop_steers_on_odometry() -> None:
     s = ControllerSettings(observer_rate=0.0, k_i_xy=0.0)
     c = PerchingController(s)
@@ -366,64 +330,6 @@ def test_between_frames_the_lateral_loop_steers_on_odometry() -> None:
     c.update(None, 2.0, np.eye(3), _odometry(2.0))
     assert c.phase == "lost"
     assert c.between_frames(2.02, np.eye(3), _odometry(2.02)) is None
-
-
-def test_pilot_ticks_between_frames_only_while_perching() -> None:
-    s = ControllerSettings(observer_rate=0.0, k_i_xy=0.0)
-    commander = Recorder()
-    sent = commander.sent
-
-    now = {"t": 100.0}
-    position = {"x": 0.0}
-    pilot = PerchingPilot(
-        commander,
-        lambda: np.eye(3),
-        controller=PerchingController(s),
-        height_m=lambda: 1.0,
-        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
-        report=lambda _m: None,
-        clock=lambda: now["t"],
-    )
-    assert pilot.tick_now() is None  # waiting: nothing sent before the first target
-    assert not sent
-    pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
-    assert len(sent) == 1
-    now["t"] += 0.02
-    position["x"] = -0.004
-    step = pilot.tick_now()
-    assert step is not None
-    assert step.t_s == pytest.approx(0.02)  # on the frames' clock
-    assert sent[-1][0] == pytest.approx(s.k_xy * 0.004, rel=1e-6)
-    assert pilot.tick(0.01) is None  # never back in time
-    pilot.abort(0.03)
-    assert pilot.tick_now() is None  # landing: the landing sends its own setpoints
-
-
-def test_a_released_pilot_sends_nothing_more() -> None:
-    """An autopilot that takes control back (``release``) ends the flight: no frame, tick or
-    abort sends anything after it, and a second release changes nothing."""
-    s = ControllerSettings(observer_rate=0.0)
-    commander = Recorder()
-    reports: list[str] = []
-    pilot = PerchingPilot(
-        commander,
-        lambda: np.eye(3),
-        controller=PerchingController(s),
-        height_m=lambda: 1.0,
-        odometry=lambda: (np.array([0.0, 0.0, 1.0]), np.zeros(3)),
-        report=reports.append,
-    )
-    pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
-    sent = len(commander.sent)
-    pilot.release("the vehicle left GUIDED")
-    pilot.release("again")
-    assert pilot.state == "released"
-    assert pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.1), 0.1).v_mps is None
-    assert pilot.tick(0.12) is None
-    pilot.abort(0.2)
-    assert len(commander.sent) == sent
-    assert pilot.transitions[-1][1:] == ("perching", "released")
-    assert sum("released" in r for r in reports) == 1
 
 
 def test_timing_outside_what_was_verified_is_refused() -> None:

@@ -105,10 +105,17 @@ def level() -> np.ndarray:
 
 
 def fly(
-    cf: Crazyflie, estimates: list[Estimate], settings: PilotSettings | None = None
+    cf: Crazyflie,
+    estimates: list[Estimate],
+    settings: PilotSettings | None = None,
+    height_m: Callable[[], float] | None = None,
 ) -> tuple[PerchingPilot, list[Any]]:
     pilot = PerchingPilot(
-        CflibCommander(cf.commander), level, settings=settings, report=lambda _m: None
+        CflibCommander(cf.commander),
+        level,
+        settings=settings,
+        height_m=height_m,
+        report=lambda _m: None,
     )
     pilot.watch_link(cf)
     steps = [pilot.update(e, e.t_s) for e in estimates]
@@ -150,14 +157,22 @@ def test_a_long_loss_lands_and_then_stays_silent(
     crazyflie: tuple[Crazyflie, FakeRadioLink], estimates: list[Estimate]
 ) -> None:
     cf, link = crazyflie
-    settings = PilotSettings(land_after_lost_s=0.1, land_duration_s=0.1)
-    pilot, steps = fly(cf, estimates, settings)
+    settings = PilotSettings(land_after_lost_s=0.1)
+    height = [0.32]
+
+    def descending() -> float:  # 2 cm a frame down to the floor, 1 cm up
+        height[0] = max(0.01, height[0] - 0.02)
+        return height[0]
+
+    pilot, steps = fly(cf, estimates, settings, descending)
     packets = [decode(p) for p in link.sent]
     states = [t[2] for t in pilot.transitions]
     assert states == ["perching", "lost", "landing", "landed"]
     landing = [s for s in steps if s.state == "landing"]
     assert landing
     assert all(s.v_mps == (0.0, 0.0, -settings.land_speed_mps) for s in landing)
+    # on the floor from the 15th landing frame: touchdown once it has been still for the window
+    assert 15 + 14 <= len(landing) <= 15 + 16
     # a stop setpoint and the priority release end the flight; the target's return is ignored
     assert packets[-2:] == [("stop",), ("notify_stop", 0)]
     landed_at = next(i for i, s in enumerate(steps) if s.state == "landed")
@@ -186,15 +201,20 @@ def test_link_loss_stops_all_setpoints(
 def test_abort_lands_in_real_time(
     crazyflie: tuple[Crazyflie, FakeRadioLink], estimates: list[Estimate]
 ) -> None:
+    """After Ctrl-C the landing runs on the pilot's clock, a setpoint every period, until the
+    height has rested on the floor for the touchdown window: then the stop."""
     cf, link = crazyflie
-    heights = iter([0.5, 0.4, 0.3, 0.2, 0.1, 0.05])
+    now = [100.0]
+
+    def height_m() -> float:  # the vehicle comes down at the landing speed to the floor
+        return max(0.0, 0.5 - 0.2 * (now[0] - 100.0))
+
     pilot = PerchingPilot(
-        CflibCommander(cf.commander), level, height_m=lambda: next(heights), report=lambda _m: None
+        CflibCommander(cf.commander), level, height_m=height_m, report=lambda _m: None
     )
     for e in estimates[:30]:
         pilot.update(e, e.t_s)
     link.sent.clear()
-    now = [100.0]
 
     def sleep(dt: float) -> None:
         now[0] += dt
@@ -202,8 +222,12 @@ def test_abort_lands_in_real_time(
     pilot.abort(estimates[29].t_s, "Ctrl-C")
     pilot.land(clock=lambda: now[0], sleep=sleep)
     packets = [decode(p) for p in link.sent]
-    assert packets[:5] == [("velocity", 0.0, 0.0, pytest.approx(-0.2), 0.0)] * 5
-    assert packets[5:] == [("stop",), ("notify_stop", 0)]
+    assert packets[-2:] == [("stop",), ("notify_stop", 0)]
+    descent = packets[:-2]
+    assert descent == [("velocity", 0.0, 0.0, pytest.approx(-0.2), 0.0)] * len(descent)
+    # on the floor 2.5 s in; the last 2 cm already read as still: 2.4 s + the 0.5 s window
+    period = pilot.settings.setpoint_period_s
+    assert (2.4 + 0.5) / period - 1 <= len(descent) <= (2.5 + 0.5) / period + 1
     assert pilot.state == "landed"
 
 

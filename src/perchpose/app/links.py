@@ -43,6 +43,8 @@ def vehicle_links(
     time); at the end a Crazyflie is landed and every link closed, newest first."""
     from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
     from perchpose.control.mount import require_upward
+    from perchpose.control.pilot import PilotState
+    from perchpose.control.pilot_clock import PilotClock
 
     o = options
     T_body_camera = mount_T_body_camera(o.mount) if o.mount else None
@@ -95,11 +97,18 @@ def vehicle_links(
             closers.append(link.close)
             pilot = link.pilot(controller=PerchingController(settings))
             hooks.append(pilot)
+            clock = PilotClock(pilot).start()  # the pilot's watchdogs tick without frames
+            closers.append(clock.stop)
         try:
             yield hooks
         finally:
             if pilot is not None:  # source ended, an error, or Ctrl-C: land
-                pilot.abort(pilot.last_t_s, "tracking ended")
+                pilot.abort(pilot.now() or pilot.last_t_s, "tracking ended")
+                if pilot.state == PilotState.LANDING:
+                    report(
+                        "landing until touchdown is sensed; Ctrl-C again stops the pilot, and "
+                        "the Crazyflie's watchdog then cuts the motors wherever it is"
+                    )
                 pilot.land()
     finally:
         for close in reversed(closers):

@@ -7,13 +7,24 @@ frames: the Crazyflie link's (``perchpose.io.crazyflie.CflibCommander``: cflib's
 MAVLink pilot's (``perchpose.io.mavlink.pilot.SetpointCommander``: NED) and the simulation's
 (``perchpose.sim.perch.HeldSetpoint``).
 
+The pilot runs on its own clock, not on frames: ``update`` hands it a frame, ``tick`` moves it
+on (at least every ``setpoint_period_s`` from ``perchpose.control.pilot_clock.PilotClock`` on a
+vehicle link, on each odometry sample, and between frames in the simulation). Every tick reads
+the watchdogs, so a camera that stalls, senses that stop and a landing all go on without frames.
+
 - ``waiting``: nothing is sent until the first usable estimate (the pilot takes over then);
-- ``perching``: the controller's setpoints (align, climb, commit);
-- ``lost``: the target is gone; the controller hovers, then descends to re-acquire it;
+- ``perching``: the controller's setpoints (align, climb, commit); between frames, the
+  controller's odometry loop;
+- ``lost``: the target is gone (or no frame came for ``frame_timeout_s``: the camera's
+  watchdog): the controller holds on odometry, hovers, then descends to re-acquire it;
 - ``landing``: lost for longer than ``land_after_lost_s``, the controller gave up after its
-  tries at a final climb, or stopped by the user: descend at
-  ``land_speed_mps`` until the height source says landed (or ``land_duration_s`` elapses), then
-  a stop setpoint;
+  tries at a final climb, the vehicle's senses were lost, or stopped by the user: descend at
+  ``land_speed_mps`` until touchdown is sensed (``perchpose.control.evidence``: a live height
+  near the ground that stopped moving, the vertical speed near zero), then a stop setpoint.
+  Time never ends a landing: a vehicle that does not come down keeps its motors and is said
+  again every ``stuck_report_s``. Without a live height an autopilot is handed its own LAND
+  (``VehicleCommander.send_land``); a vehicle without one (the Crazyflie) keeps descending at
+  the landing speed until a live height senses the touchdown, and the pilot says so;
 - ``perched``: contact: during the final climb the vehicle's height stopped rising (under
   ``contact_rise_m`` over ``contact_window_s`` while climbing): a stop setpoint cuts the motors
   and the magnet holds the vehicle. Time alone never stops the motors; without a height source
@@ -26,13 +37,14 @@ MAVLink pilot's (``perchpose.io.mavlink.pilot.SetpointCommander``: NED) and the 
 Every setpoint passes ``safe_setpoint`` last: nothing non-finite is sent, and speeds and yaw
 rate are clamped to ``PilotSettings.limits``.
 
-The vehicle's own senses are checked too, where the link says how old they are (``ages``):
-a non-finite attitude, position or height is never flown on; a sample older than
-``PilotSettings.stale_after_s`` stops the climb (a hover setpoint, phase ``hold``, said once)
-until it is fresh again; one older than ``senses_lost_after_s`` lands the vehicle (the
-Crazyflie) or hands it back to its autopilot (MAVLink), saying why. Contact and "landed" need a
-live height: a sample younger than ``live_height_s``, so a height that stopped updating never
-reads as "stopped rising".
+The vehicle's own senses are checked on every frame and every tick, in every flying state,
+where the link says how old they are (``ages``): a non-finite attitude, position or height is
+never flown on; a sample older than ``PilotSettings.stale_after_s`` stops the climb (a hover
+setpoint, phase ``hold``, said once) until it is fresh again; one older than
+``senses_lost_after_s`` lands the vehicle (the Crazyflie) or hands it back to its autopilot
+(MAVLink; while landing, to its LAND), saying why. Contact and touchdown need a live height: a
+sample younger than ``live_height_s``, so a height that stopped updating never reads as
+"stopped rising" or "on the ground".
 """
 
 from __future__ import annotations
@@ -41,9 +53,8 @@ import logging
 import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any, NamedTuple, Protocol
 
@@ -51,12 +62,25 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.control.controller import Command, Odometry, PerchingController, Phase, usable
-from perchpose.control.setpoint import SetpointLimits, safe_setpoint
-from perchpose.errors import ControllerConfigError, require_positive
+from perchpose.control.evidence import ContactDetector, TouchdownDetector
+from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
+from perchpose.control.setpoint import safe_setpoint
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
+
+__all__ = [
+    "DONE",
+    "FLYING",
+    "ON_SENSES_LOST",
+    "PerchingPilot",
+    "PilotSettings",
+    "PilotState",
+    "PilotStep",
+    "SenseAges",
+    "VehicleCommander",
+]
 
 
 class PilotState(StrEnum):
@@ -74,7 +98,6 @@ class PilotState(StrEnum):
 
 DONE = (PilotState.LANDED, PilotState.PERCHED, PilotState.LINK_LOST, PilotState.RELEASED)
 FLYING = (PilotState.PERCHING, PilotState.LOST, PilotState.LANDING)
-ON_SENSES_LOST = ("land", "release")
 
 
 class SenseAges(NamedTuple):
@@ -87,8 +110,9 @@ class SenseAges(NamedTuple):
 
 class VehicleCommander(Protocol):
     """What the pilot sends a vehicle, in SI units: a velocity in the world frame (z up, m/s)
-    with a yaw rate about up (rad/s), or a stop (the motors off: the vehicle is perched or
-    landed, and the vehicle's own setpoint priority is handed back)."""
+    with a yaw rate about up (rad/s), a stop (the motors off: the vehicle is perched or
+    landed, and the vehicle's own setpoint priority is handed back), or the vehicle's own
+    landing where it has one."""
 
     def send_velocity(
         self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float
@@ -96,72 +120,15 @@ class VehicleCommander(Protocol):
 
     def send_stop(self) -> None: ...
 
-
-@dataclass(frozen=True)
-class PilotSettings:
-    """Safety limits (SI units).
-
-    land_after_lost_s : a target lost this long lands the vehicle. land_speed_mps : descent
-    speed when landing. land_duration_s : landing ends after this long when no height source
-    says so earlier. landed_height_m : height under which the vehicle counts as landed.
-    contact_window_s, contact_rise_m : contact is a final climb whose height rose less than
-    contact_rise_m over the last contact_window_s. limits : the largest setpoint sent.
-    stale_after_s : a vehicle sample (attitude, position, height) older than this stops the
-    climb: the pilot hovers until it is fresh. senses_lost_after_s : older than this, the
-    pilot lands or releases the vehicle (``on_senses_lost``: ``land`` for the Crazyflie,
-    ``release`` for an autopilot, whose own modes then fly it). live_height_s : contact and
-    "landed" count only height samples younger than this (a stream at 10 Hz or faster stays
-    live between its samples); it must be shorter than the contact window, so that a height
-    that froze never makes a contact on its own.
-    """
-
-    land_after_lost_s: float = 4.0
-    land_speed_mps: float = 0.2
-    land_duration_s: float = 10.0
-    landed_height_m: float = 0.06
-    contact_window_s: float = 0.3
-    contact_rise_m: float = 0.005
-    setpoint_period_s: float = 0.05
-    stale_after_s: float = 0.25
-    senses_lost_after_s: float = 1.0
-    live_height_s: float = 0.2
-    on_senses_lost: str = "land"
-    limits: SetpointLimits = field(default_factory=SetpointLimits)
-
-    def __post_init__(self) -> None:
-        positive = (
-            "land_after_lost_s",
-            "land_speed_mps",
-            "land_duration_s",
-            "contact_window_s",
-            "contact_rise_m",
-            "setpoint_period_s",
-            "stale_after_s",
-            "senses_lost_after_s",
-            "live_height_s",
-        )
-        require_positive(self, positive, ControllerConfigError, "pilot setting ")
-        if self.on_senses_lost not in ON_SENSES_LOST:
-            raise ControllerConfigError(
-                f"pilot setting on_senses_lost {self.on_senses_lost!r}: choose "
-                f"{' or '.join(ON_SENSES_LOST)}"
-            )
-        if not self.live_height_s < self.contact_window_s:
-            raise ControllerConfigError(
-                f"pilot setting live_height_s ({self.live_height_s:g} s) must be below "
-                f"contact_window_s ({self.contact_window_s:g} s): a frozen height would read as "
-                "contact"
-            )
-        if not self.stale_after_s < self.senses_lost_after_s:
-            raise ControllerConfigError(
-                f"pilot setting stale_after_s ({self.stale_after_s:g} s) must be below "
-                f"senses_lost_after_s ({self.senses_lost_after_s:g} s)"
-            )
+    def send_land(self) -> bool:
+        """Hand the landing to the vehicle's own (an autopilot's LAND); False where the
+        vehicle has none (the pilot then lands it itself)."""
+        ...
 
 
 @dataclass(frozen=True)
 class PilotStep:
-    """What the pilot did for one frame: its state and the setpoint sent (None: nothing)."""
+    """What the pilot did for one frame or tick: its state and the setpoint sent (None: nothing)."""
 
     t_s: float
     state: PilotState
@@ -170,43 +137,17 @@ class PilotStep:
     phase: str | None
 
 
-class ContactDetector:
-    """Contact evidence: during the final climb, the height stopped rising."""
-
-    def __init__(self, window_s: float, rise_m: float) -> None:
-        self.window_s = window_s
-        self.rise_m = rise_m
-        self._samples: deque[tuple[float, float]] = deque()
-
-    def reset(self) -> None:
-        self._samples.clear()
-
-    def touched(self, t_s: float, height_m: float | None) -> bool:
-        """Add a height sample of the final climb; True once the height has risen less than
-        ``rise_m`` over a whole window. No live height (None, non-finite) starts the window
-        again: contact is never read across a gap."""
-        if height_m is None or not math.isfinite(height_m):
-            self.reset()
-            return False
-        self._samples.append((t_s, height_m))
-        while len(self._samples) > 1 and t_s - self._samples[1][0] >= self.window_s:
-            self._samples.popleft()
-        t0, h0 = self._samples[0]
-        if t_s - t0 < self.window_s:
-            return False
-        return max(h for _, h in self._samples) - h0 < self.rise_m
-
-
 class PerchingPilot:
-    """Drives ``commander`` from per-frame estimates; call ``update`` once per camera frame.
+    """Drives ``commander`` from per-frame estimates (``update``) and its own clock (``tick``).
 
     attitude : returns the vehicle's ``R_world_body`` (world z up), e.g. from the Crazyflie's
     state estimate. height_m : the vehicle's height above the ground from its own state
-    estimate (None: unknown); it is the contact evidence that ends a perch. odometry : the
+    estimate (None: unknown); it is the contact and touchdown evidence. odometry : the
     vehicle's position and velocity now (world frame, z up, m and m/s) from its own state
     estimate, or None while unknown; with it the controller rejects disturbances and flies the
     last centimetres on odometry. ages : how old the link's latest attitude, position and
-    height samples are (None: always fresh, as in the simulation).
+    height samples are (None: always fresh, as in the simulation). clock : the monotonic clock
+    that ``tick_now`` and live frames' ``grabbed_s`` are on.
     """
 
     def __init__(
@@ -236,20 +177,28 @@ class PerchingPilot:
         self.state = PilotState.WAITING
         self.transitions: list[tuple[float, PilotState, PilotState]] = []
         self.replaced_setpoints = 0
+        self.silences = 0  # times the camera's watchdog fired
         self._last_valid_t: float | None = None
+        self._frame_t: float | None = None  # the pilot's time of the last frame handed over
+        self._camera_silent = False
         self._landing_since: float | None = None
-        self._contact = ContactDetector(
-            self.settings.contact_window_s, self.settings.contact_rise_m
+        self._landing_said: tuple[float, str] | None = None  # (when, what) last said
+        s = self.settings
+        self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
+        self._touchdown = TouchdownDetector(
+            s.touchdown_window_s, s.touchdown_still_m, s.landed_height_m, s.touchdown_speed_mps
         )
         self.last_t_s = 0.0
-        # frames and odometry samples may arrive on different threads (a vehicle link's)
+        self.last_sent_clock_s = -math.inf  # ``clock()`` when the last command went out
+        # frames, odometry samples and the pilot's clock arrive on different threads
         self._lock = threading.RLock()
         self._frame_clock: tuple[float, float] | None = None  # (frame t_s, clock() then)
         if height_m is None:
             self.report(
-                "pilot: no height source, so no contact evidence: the motors are never "
-                "stopped on the plate, and a final climb backs off after "
-                f"{self.controller.settings.commit_timeout_s:g} s"
+                "pilot: no height source, so no contact or touchdown evidence: the motors are "
+                "never stopped on the plate, a final climb backs off after "
+                f"{self.controller.settings.commit_timeout_s:g} s, and a landing is handed to "
+                "the vehicle's own or descends until it is stopped"
             )
 
     # -- state ----------------------------------------------------------------------------
@@ -298,6 +247,7 @@ class PerchingPilot:
                     "(reported once)"
                 )
         self.commander.send_velocity(sp.v_mps, sp.yaw_rate_rad_s)
+        self.last_sent_clock_s = self.clock()
         return PilotStep(t_s, self.state, sp.v_mps, sp.yaw_rate_rad_s, phase)
 
     def _stop(self, t_s: float, state: PilotState, why: str) -> PilotStep:
@@ -307,6 +257,8 @@ class PerchingPilot:
 
     def _start_landing(self, t_s: float, why: str) -> None:
         self._landing_since = t_s
+        self._landing_said = None
+        self._touchdown.reset()
         self._enter(PilotState.LANDING, t_s, why)
 
     # -- the vehicle's senses -------------------------------------------------------------
@@ -358,16 +310,18 @@ class PerchingPilot:
         name, age = max(named, key=lambda item: item[1])
         return None if age < self.settings.stale_after_s else (name, age)
 
+    @staticmethod
+    def _old(name: str, age_s: float) -> str:
+        if math.isinf(age_s):
+            return f"no {name} from the vehicle"
+        return f"the vehicle's {name} is {age_s:.1f} s old"
+
     def _hold(self, t_s: float, name: str, age_s: float) -> PilotStep:
         """A stale sense: hover (no climb) until it is fresh; land or release once lost."""
         s = self.settings
         self._contact.reset()
         if age_s >= s.senses_lost_after_s:
-            old = (
-                f"no {name} from the vehicle"
-                if math.isinf(age_s)
-                else (f"the vehicle's {name} is {age_s:.1f} s old")
-            )
+            old = self._old(name, age_s)
             if s.on_senses_lost == "release":
                 self._enter(PilotState.RELEASED, t_s, f"{old}: its autopilot flies it now")
                 return PilotStep(t_s, self.state, None, None, None)
@@ -382,15 +336,50 @@ class PerchingPilot:
             self._holding = True
         return self._send(t_s, np.zeros(3), 0.0, "hold")
 
+    # -- the landing ----------------------------------------------------------------------
+
+    def _say_landing(self, t_s: float, kind: str, what: str) -> None:
+        """Say how the landing goes (``kind`` of news): at once when that changes, else every
+        ``stuck_report_s``."""
+        said = self._landing_said
+        if said is None or said[1] != kind or t_s - said[0] >= self.settings.stuck_report_s:
+            self.report(f"pilot: landing at t = {t_s:.2f} s: {what}")
+            self._landing_said = (t_s, kind)
+
     def _land_step(self, t_s: float) -> PilotStep:
+        """One step of a landing: a descent until touchdown is sensed, never a timer."""
         s = self.settings
-        since = self._landing_since if self._landing_since is not None else t_s
-        height = self._height()
-        if (height is not None and height < s.landed_height_m) or t_s - since >= (
-            s.land_duration_s
-        ):
-            return self._stop(t_s, PilotState.LANDED, "on the ground")
+        stale = self._stale(t_s)
+        lost = stale is not None and stale[1] >= s.senses_lost_after_s
+        height = None if lost else self._height()
+        if height is None:
+            self._touchdown.reset()
+            if self.commander.send_land():
+                why = self._old(*stale) if stale is not None else "no live height"
+                self._enter(PilotState.RELEASED, t_s, f"{why}: the autopilot's LAND lands it")
+                return PilotStep(t_s, self.state, None, None, None)
+            self._say_landing(
+                t_s,
+                "blind",
+                "no live height to sense the touchdown: descending at "
+                f"{s.land_speed_mps:g} m/s until one does",
+            )
+        else:
+            motion = self._motion()
+            vz = None if motion is None else float(motion[1][2])
+            if self._touchdown.touched(t_s, height, vz):
+                return self._stop(t_s, PilotState.LANDED, f"touchdown sensed at {height:.2f} m")
+            since = self._landing_since if self._landing_since is not None else t_s
+            if t_s - since >= s.stuck_report_s:
+                self._say_landing(
+                    t_s,
+                    "stuck",
+                    f"{t_s - since:.0f} s in, {height:.2f} m up and no touchdown yet: still "
+                    "descending, the motors stay on",
+                )
         return self._send(t_s, np.array([0.0, 0.0, -s.land_speed_mps]), 0.0, None)
+
+    # -- frames and ticks -----------------------------------------------------------------
 
     def update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         """One frame: the estimate (None, not valid or too old: no target) at time ``t_s``.
@@ -400,47 +389,87 @@ class PerchingPilot:
         with self._lock:
             return self._update(estimate, t_s)
 
-    def tick_now(self) -> PilotStep | None:
-        """``tick`` at the present moment on the frames' clock (the last frame's ``t_s`` plus
-        the time since it was handed over): what a vehicle link calls on each state-estimate
-        sample it receives."""
+    def now(self) -> float | None:
+        """The present moment on the frames' clock (the last frame's ``t_s`` plus the time
+        since it was handed over); None before the first frame."""
+        if self._frame_clock is None:
+            return None
+        t_frame, then = self._frame_clock
+        return max(self.last_t_s, t_frame + max(0.0, self.clock() - then))
+
+    def tick_now(self, quiet_s: float = 0.0) -> PilotStep | None:
+        """``tick`` at the present moment (``now``): what a vehicle link calls on each
+        state-estimate sample, and ``PilotClock`` at a fixed rate. ``quiet_s``: skip the tick
+        when a command went out less than this long ago."""
         with self._lock:
-            if self._frame_clock is None:
+            t_s = self.now()
+            if t_s is None or self.clock() - self.last_sent_clock_s < quiet_s:
                 return None
-            t_frame, then = self._frame_clock
-            return self.tick(t_frame + max(0.0, self.clock() - then))
+            return self.tick(t_s)
 
     def tick(self, t_s: float) -> PilotStep | None:
-        """Between camera frames, on a new odometry sample at ``t_s`` (the frames' clock):
-        while perching, a setpoint from the controller's odometry loop
-        (``PerchingController.between_frames``) and the contact check; None when nothing was
-        sent (not perching, no odometry, nothing held to steer on)."""
+        """The pilot's clock at ``t_s`` (the frames' clock), between frames: the watchdogs,
+        the landing, and while perching a setpoint from the controller's odometry loop
+        (``PerchingController.between_frames``) with the contact check. None when nothing
+        was sent (waiting or done, or frames are coming and there is nothing to steer on)."""
         with self._lock:
-            if self.state != PilotState.PERCHING or self.odometry is None or t_s < self.last_t_s:
-                return None
-            motion = self._motion()
-            if motion is None or self._stale(t_s) is not None:
-                return None
-            odometry = Odometry(t_s - self._age("position"), motion[0], motion[1])
-            command = self.controller.between_frames(
-                t_s, self.attitude(), odometry, self._age("attitude")
-            )
-            if command is None:
+            if t_s < self.last_t_s or not self.flying:
                 return None
             self.last_t_s = t_s
-            if command.phase == Phase.COMMIT and self._contact.touched(t_s, self._height()):
-                return self._stop(
-                    t_s, PilotState.PERCHED, "the final climb stopped against the plate"
-                )
-            return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
+            if self.state == PilotState.LANDING:
+                return self._land_step(t_s)
+            stale = self._stale(t_s)
+            if stale is not None:
+                return self._hold(t_s, *stale)
+            if self._frame_t is not None and t_s - self._frame_t > self.settings.frame_timeout_s:
+                return self._silent(t_s)
+            if self.state != PilotState.PERCHING:
+                return None
+            return self._between_frames(t_s)
+
+    def _between_frames(self, t_s: float) -> PilotStep | None:
+        """While perching with frames coming: the controller's odometry loop and the contact
+        check (None: no odometry, or nothing held to steer on)."""
+        motion = self._motion() if self.odometry is not None else None
+        if motion is None:
+            return None
+        odometry = Odometry(t_s - self._age("position"), motion[0], motion[1])
+        command = self.controller.between_frames(
+            t_s, self.attitude(), odometry, self._age("attitude")
+        )
+        if command is None:
+            return None
+        if command.phase == Phase.COMMIT and self._contact.touched(t_s, self._height()):
+            return self._stop(t_s, PilotState.PERCHED, "the final climb stopped against the plate")
+        return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
+
+    def _silent(self, t_s: float) -> PilotStep:
+        """The camera's watchdog: no frame for ``frame_timeout_s``; each tick flies as a frame
+        without the target (hold on odometry, then lost, then land)."""
+        if not self._camera_silent:
+            self._camera_silent = True
+            self.silences += 1
+            last = self._frame_t if self._frame_t is not None else t_s
+            self.report(
+                f"pilot: no frame since t = {last:.2f} s (watchdog "
+                f"{self.settings.frame_timeout_s:g} s): flying on as if the target were lost "
+                f"(hold on odometry, then lost; landing {self.settings.land_after_lost_s:g} s "
+                "after the last sighting)"
+            )
+        return self._fly(None, t_s)
 
     def _update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         if estimate is not None and math.isfinite(estimate.grabbed_s):
             # a live frame: now is its capture time plus the time since it was grabbed (the
             # estimate's latency), not the frame's own time, on the frames' clock
             t_s = max(t_s, estimate.t_s + max(0.0, self.clock() - estimate.grabbed_s))
+        t_s = max(t_s, self.last_t_s)
         self.last_t_s = t_s
         self._frame_clock = (t_s, self.clock())
+        self._frame_t = t_s
+        if self._camera_silent:
+            self._camera_silent = False
+            self.report(f"pilot: frames again at t = {t_s:.2f} s")
         limit_s = self.controller.settings.max_estimate_age_s
         fresh = usable(estimate, t_s, limit_s)
         if self.state == PilotState.WAITING:
@@ -459,6 +488,10 @@ class PerchingPilot:
         if self._holding:
             self.report(f"pilot: the vehicle's samples are fresh again at t = {t_s:.2f} s")
             self._holding = False
+        return self._fly(estimate, t_s)
+
+    def _fly(self, estimate: Estimate | None, t_s: float) -> PilotStep:
+        """The controller's command for ``estimate`` (None: no target) at ``t_s``."""
         motion = self._motion()
         odometry = None if motion is None else Odometry(t_s - self._age("position"), *motion)
         command: Command = self.controller.update(
@@ -497,13 +530,15 @@ class PerchingPilot:
 
     def land(
         self,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] | None = None,
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
-        """Finish a landing in real time (after ``abort`` or a lost target), sending a setpoint
-        every ``setpoint_period_s`` until landed."""
+        """Finish a landing in real time (after ``abort`` or a lost target): a tick every
+        ``setpoint_period_s`` until touchdown is sensed or the vehicle is handed over. It
+        returns only then: a vehicle that never comes down keeps being flown (and said so)
+        until the caller is interrupted."""
+        clock = clock or self.clock
         t0 = clock() - self.last_t_s
         while self.state == PilotState.LANDING:
-            with self._lock:
-                self._land_step(clock() - t0)
+            self.tick(clock() - t0)
             sleep(self.settings.setpoint_period_s)

@@ -42,6 +42,10 @@ class CflibCommander:
         self.commander.send_stop_setpoint()
         self.commander.send_notify_setpoint_stop(0)
 
+    def send_land(self) -> bool:
+        """The Crazyflie's low-level setpoints have no landing of their own to hand over to."""
+        return False
+
 
 class CrazyflieConnection:
     """An open cflib link with the vehicle's attitude, height, position and velocity streamed

@@ -240,6 +240,10 @@ class HeldSetpoint:
         self.v_mps = np.zeros(3)
         self.yaw_rate_rad_s = 0.0
 
+    def send_land(self) -> bool:
+        """The simulated vehicle has no landing of its own: the pilot lands it."""
+        return False
+
 
 def truth_estimate(
     T_camera_target: Array, camera: CameraModel, target: TargetSpec, t_s: float

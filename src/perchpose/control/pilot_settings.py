@@ -1,0 +1,103 @@
+"""The perching pilot's safety settings: its clock, the bound of each input's watchdog, and what
+counts as contact and as touchdown."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from perchpose.control.setpoint import SetpointLimits
+from perchpose.errors import ControllerConfigError, require_positive
+
+ON_SENSES_LOST = ("land", "release")
+
+
+@dataclass(frozen=True)
+class PilotSettings:
+    """Safety limits (SI units).
+
+    The clock: setpoint_period_s : the pilot ticks at least this often on its own clock
+    (``perchpose.control.pilot_clock.PilotClock``), frames or none.
+
+    The watchdogs (each input's bound):
+
+    - camera: frame_timeout_s : no frame handed over this long (a stalled camera, a stalled
+      estimator) and the pilot flies on as if each tick were a frame without the target: the
+      controller holds height on odometry, then ``lost``; land_after_lost_s : a target lost
+      this long (no frames counted) lands the vehicle;
+    - attitude, position, height: stale_after_s : a sample older than this stops the climb
+      (the pilot hovers until it is fresh); senses_lost_after_s : older than this, the pilot
+      lands or releases the vehicle (``on_senses_lost``: ``land`` for the Crazyflie,
+      ``release`` for an autopilot, whose own modes then fly it); while landing, an autopilot
+      is handed its own LAND;
+    - link: the vehicle link's own (cflib's link loss; a MAVLink HEARTBEAT timeout).
+
+    The landing: land_speed_mps : descent speed. Touchdown, the only end of a landing, is a live
+    height under landed_height_m (above the height source's zero) that moved less than
+    touchdown_still_m over touchdown_window_s, with the vertical speed (where known) under
+    touchdown_speed_mps. stuck_report_s : a landing not yet touched down is said again this
+    often (the motors stay on).
+
+    Contact: contact_window_s, contact_rise_m : contact is a final climb whose height rose less
+    than contact_rise_m over the last contact_window_s. live_height_s : contact and touchdown
+    count only height samples younger than this (a stream at 10 Hz or faster stays live between
+    its samples); it must be shorter than the contact window, so that a height that froze never
+    makes a contact on its own. limits : the largest setpoint sent.
+    """
+
+    land_after_lost_s: float = 4.0
+    land_speed_mps: float = 0.2
+    landed_height_m: float = 0.05
+    touchdown_window_s: float = 0.5
+    touchdown_still_m: float = 0.02
+    touchdown_speed_mps: float = 0.05
+    stuck_report_s: float = 5.0
+    contact_window_s: float = 0.3
+    contact_rise_m: float = 0.005
+    setpoint_period_s: float = 0.05
+    frame_timeout_s: float = 0.25
+    stale_after_s: float = 0.25
+    senses_lost_after_s: float = 1.0
+    live_height_s: float = 0.2
+    on_senses_lost: str = "land"
+    limits: SetpointLimits = field(default_factory=SetpointLimits)
+
+    def __post_init__(self) -> None:
+        positive = (
+            "land_after_lost_s",
+            "land_speed_mps",
+            "landed_height_m",
+            "touchdown_window_s",
+            "touchdown_still_m",
+            "touchdown_speed_mps",
+            "stuck_report_s",
+            "contact_window_s",
+            "contact_rise_m",
+            "setpoint_period_s",
+            "frame_timeout_s",
+            "stale_after_s",
+            "senses_lost_after_s",
+            "live_height_s",
+        )
+        require_positive(self, positive, ControllerConfigError, "pilot setting ")
+        if self.on_senses_lost not in ON_SENSES_LOST:
+            raise ControllerConfigError(
+                f"pilot setting on_senses_lost {self.on_senses_lost!r}: choose "
+                f"{' or '.join(ON_SENSES_LOST)}"
+            )
+        if not self.live_height_s < self.contact_window_s:
+            raise ControllerConfigError(
+                f"pilot setting live_height_s ({self.live_height_s:g} s) must be below "
+                f"contact_window_s ({self.contact_window_s:g} s): a frozen height would read as "
+                "contact"
+            )
+        if not self.stale_after_s < self.senses_lost_after_s:
+            raise ControllerConfigError(
+                f"pilot setting stale_after_s ({self.stale_after_s:g} s) must be below "
+                f"senses_lost_after_s ({self.senses_lost_after_s:g} s)"
+            )
+        if not self.setpoint_period_s < self.frame_timeout_s:
+            raise ControllerConfigError(
+                f"pilot setting setpoint_period_s ({self.setpoint_period_s:g} s) must be below "
+                f"frame_timeout_s ({self.frame_timeout_s:g} s): the camera's watchdog is read "
+                "on the pilot's ticks"
+            )

@@ -1,0 +1,362 @@
+"""The perching pilot on its own clock: watchdogs on every input, landings that end on a sensed
+touchdown and never on a timer, and the clock thread that ticks it."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from perchpose.control import (
+    ControllerConfigError,
+    ControllerSettings,
+    PerchingController,
+    PerchingPilot,
+    PilotSettings,
+    SenseAges,
+)
+from perchpose.control.evidence import TouchdownDetector
+from perchpose.control.pilot_clock import PilotClock
+from perchpose.geometry import invert_transform
+from perchpose.values import Estimate
+
+
+def _seen(settings: ControllerSettings, target_body_m: list[float], t_s: float) -> Estimate:
+    """The camera's report, captured at ``t_s``, of a target at a body-frame point."""
+    T_camera_body = invert_transform(settings.T_body_camera)
+    p = T_camera_body[:3, :3] @ np.array(target_body_m) + T_camera_body[:3, 3]
+    return Estimate.of_pose(t_s, (float(p[0]), float(p[1]), float(p[2])), 0.0)
+
+
+class Recorder:
+    """A commander that keeps what it is sent: velocities (and the yaw rate) as 4-tuples, a
+    stop as (), a landing handed over as ("land",); ``has_land``: the vehicle has a landing of
+    its own (an autopilot's)."""
+
+    def __init__(self, has_land: bool = False) -> None:
+        self.sent: list[tuple[float | str, ...]] = []
+        self.has_land = has_land
+
+    def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
+        self.sent.append((*v_world_mps, yaw_rate_rad_s))
+
+    def send_stop(self) -> None:
+        self.sent.append(())
+
+    def send_land(self) -> bool:
+        if self.has_land:
+            self.sent.append(("land",))
+        return self.has_land
+
+
+class Vehicle:
+    """A vehicle that flies the last velocity it was sent (a stop: motors off, it falls to
+    the ground at once) on a clock of its own, over a floor at height 0: ``fly(dt)`` moves it
+    on. ``stuck``: it ignores descent commands (an updraft, a vehicle that will not come down)."""
+
+    def __init__(self, commander: Recorder, height_m: float, stuck: bool = False) -> None:
+        self.commander = commander
+        self.p_m = np.array([0.0, 0.0, height_m])
+        self.v_mps = np.zeros(3)
+        self.t_s = 100.0
+        self.stuck = stuck
+        self.motor_stop_height_m: float | None = None
+
+    def fly(self, dt_s: float) -> None:
+        self.t_s += dt_s
+        last = self.commander.sent[-1] if self.commander.sent else None
+        if last == () and self.motor_stop_height_m is None:
+            self.motor_stop_height_m = float(self.p_m[2])
+        if last is None or len(last) != 4 or self.motor_stop_height_m is not None:
+            self.v_mps = np.zeros(3)
+            return
+        v = np.array(last[:3], np.float64)
+        if self.stuck:
+            v[2] = max(v[2], 0.0)
+        if self.p_m[2] <= 0.0 and v[2] < 0.0:
+            v[2] = 0.0  # on the ground: the floor holds it
+        self.v_mps = v
+        self.p_m = self.p_m + v * dt_s
+        self.p_m[2] = max(self.p_m[2], 0.0)
+
+    def odometry(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.p_m.copy(), self.v_mps.copy()
+
+    def height(self) -> float:
+        return float(self.p_m[2])
+
+
+def _pilot(
+    vehicle: Vehicle,
+    settings: PilotSettings | None = None,
+    controller: ControllerSettings | None = None,
+    reports: list[str] | None = None,
+    height: bool = True,
+) -> PerchingPilot:
+    return PerchingPilot(
+        vehicle.commander,
+        lambda: np.eye(3),
+        controller=PerchingController(controller or ControllerSettings(observer_rate=0.0)),
+        settings=settings,
+        height_m=vehicle.height if height else None,
+        odometry=vehicle.odometry,
+        report=(reports.append if reports is not None else lambda _m: None),
+        clock=lambda: vehicle.t_s,
+    )
+
+
+def _gaps_s(times: list[float]) -> float:
+    return float(np.max(np.diff(times))) if len(times) > 1 else 0.0
+
+
+def test_pilot_lands_when_the_controller_gives_up() -> None:
+    s = ControllerSettings(observer_rate=0.0, max_tries=1)
+    commander = Recorder()
+    position = {"x": 0.0}
+    pilot = PerchingPilot(
+        commander,
+        lambda: np.eye(3),
+        controller=PerchingController(s),
+        height_m=lambda: 1.0,
+        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
+        report=lambda _m: None,
+    )
+    for k in range(3):
+        pilot.update(_seen(s, [0.0, 0.0, 0.05], k / 30), k / 30)
+    position["x"] = 0.05
+    step = pilot.update(None, 4 / 30)
+    assert step.state == "landing"
+    assert step.v_mps is not None
+    assert step.v_mps[2] < 0
+
+
+def test_pilot_ticks_between_frames_and_in_every_flying_state() -> None:
+    s = ControllerSettings(observer_rate=0.0, k_i_xy=0.0)
+    commander = Recorder()
+    sent = commander.sent
+    now = {"t": 100.0}
+    position = {"x": 0.0}
+    pilot = PerchingPilot(
+        commander,
+        lambda: np.eye(3),
+        controller=PerchingController(s),
+        height_m=lambda: 1.0,
+        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
+        report=lambda _m: None,
+        clock=lambda: now["t"],
+    )
+    assert pilot.tick_now() is None  # waiting: nothing sent before the first target
+    assert not sent
+    pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
+    assert len(sent) == 1
+    now["t"] += 0.02
+    position["x"] = -0.004
+    step = pilot.tick_now()
+    assert step is not None
+    assert step.t_s == pytest.approx(0.02)  # on the frames' clock
+    assert sent[-1][0] == pytest.approx(s.k_xy * 0.004, rel=1e-6)
+    assert pilot.tick(0.01) is None  # never back in time
+    assert pilot.tick_now(quiet_s=0.05) is None  # a command went out just now
+    pilot.abort(0.03)
+    now["t"] += 0.02
+    landing = pilot.tick_now()  # the landing runs on the pilot's clock, not on frames
+    assert landing is not None
+    assert landing.state == "landing"
+    assert landing.v_mps == (0.0, 0.0, -pilot.settings.land_speed_mps)
+
+
+def test_a_released_pilot_sends_nothing_more() -> None:
+    """An autopilot that takes control back (``release``) ends the flight: no frame, tick or
+    abort sends anything after it, and a second release changes nothing."""
+    s = ControllerSettings(observer_rate=0.0)
+    commander = Recorder()
+    reports: list[str] = []
+    pilot = PerchingPilot(
+        commander,
+        lambda: np.eye(3),
+        controller=PerchingController(s),
+        height_m=lambda: 1.0,
+        odometry=lambda: (np.array([0.0, 0.0, 1.0]), np.zeros(3)),
+        report=reports.append,
+    )
+    pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
+    sent = len(commander.sent)
+    pilot.release("the vehicle left GUIDED")
+    pilot.release("again")
+    assert pilot.state == "released"
+    assert pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.1), 0.1).v_mps is None
+    assert pilot.tick(0.12) is None
+    pilot.abort(0.2)
+    assert len(commander.sent) == sent
+    assert pilot.transitions[-1][1:] == ("perching", "released")
+    assert sum("released" in r for r in reports) == 1
+
+
+def _tick_for(pilot: PerchingPilot, vehicle: Vehicle, seconds: float, times: list[float]) -> None:
+    """The pilot's clock at 20 Hz for ``seconds`` (the vehicle flying meanwhile); the time of
+    every command sent goes to ``times``."""
+    period = pilot.settings.setpoint_period_s
+    for _ in range(round(seconds / period)):
+        vehicle.fly(period)
+        before = len(vehicle.commander.sent)
+        pilot.tick_now()
+        if len(vehicle.commander.sent) > before:
+            times.append(vehicle.t_s)
+
+
+def test_a_stalled_camera_holds_then_lands_on_a_sensed_touchdown() -> None:
+    """Frames stop mid-approach, the source still open: the pilot's clock goes on without
+    them. It holds height on odometry, hovers once the target counts as lost, lands
+    ``land_after_lost_s`` after the last sighting, and stops the motors only when the vehicle
+    rests on the floor; no gap between commands is longer than the clock's period."""
+    s = ControllerSettings(observer_rate=0.0)
+    vehicle = Vehicle(Recorder(), height_m=0.8)
+    reports: list[str] = []
+    pilot = _pilot(vehicle, controller=s, reports=reports)
+    times: list[float] = []
+    for _ in range(15):  # half a second of frames, the target 60 cm above
+        vehicle.fly(1 / 30)
+        pilot.update(_seen(s, [0.0, 0.0, 0.6], vehicle.t_s - 100.0), vehicle.t_s - 100.0)
+        times.append(vehicle.t_s)
+    climbing = vehicle.commander.sent[-1]
+    assert climbing[2] > 0.05
+    _tick_for(pilot, vehicle, 12.0, times)  # then the camera stalls
+    states = [t[2] for t in pilot.transitions]
+    assert states == ["perching", "lost", "landing", "landed"]
+    assert pilot.silences == 1
+    assert any("no frame since" in r and "watchdog 0.25 s" in r for r in reports)
+    lost_at, landing_at = pilot.transitions[1][0], pilot.transitions[2][0]
+    assert landing_at - 0.5 == pytest.approx(pilot.settings.land_after_lost_s, abs=0.06)
+    assert lost_at < landing_at
+    assert vehicle.motor_stop_height_m is not None
+    assert vehicle.motor_stop_height_m < 0.01  # on the floor, not in the air
+    assert _gaps_s(times) <= pilot.settings.setpoint_period_s + 1e-9
+    # straight after the stall the climb stops: height held on odometry, never climbing blind
+    after = [c for c in vehicle.commander.sent[20:40] if len(c) == 4]  # from the watchdog on
+    assert all(c[2] <= 0.0 for c in after)
+
+
+def test_a_landing_whose_vehicle_does_not_descend_never_stops_the_motors() -> None:
+    """A vehicle held 1 m up whatever the pilot asks: the landing goes on, descent setpoints
+    and all, said again every ``stuck_report_s``, and the motors are never stopped."""
+    vehicle = Vehicle(Recorder(), height_m=1.0, stuck=True)
+    reports: list[str] = []
+    pilot = _pilot(vehicle, reports=reports)
+    pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.6), 0.0), 0.0)
+    pilot.abort(0.0, "stopped by the user")
+    times: list[float] = []
+    _tick_for(pilot, vehicle, 30.0, times)
+    assert pilot.state == "landing"
+    assert () not in vehicle.commander.sent
+    assert vehicle.motor_stop_height_m is None
+    stuck = [r for r in reports if "no touchdown yet" in r]
+    assert 5 <= len(stuck) <= 6  # every 5 s from 5 s in
+    assert "m up and no touchdown yet" in stuck[0]
+    assert _gaps_s(times) <= pilot.settings.setpoint_period_s + 1e-9
+
+
+def test_a_landing_without_a_live_height() -> None:
+    """No live height to sense the touchdown: a vehicle with a landing of its own (an
+    autopilot) is handed it; one without (the Crazyflie) keeps descending, said once, and
+    stops when a live height comes back and senses the touchdown."""
+    vehicle = Vehicle(Recorder(has_land=True), height_m=1.0)
+    pilot = _pilot(vehicle, height=False)
+    pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.6), 0.0), 0.0)
+    pilot.abort(0.0)
+    vehicle.fly(0.05)
+    pilot.tick_now()
+    assert pilot.state == "released"
+    assert vehicle.commander.sent[-1] == ("land",)
+
+    vehicle = Vehicle(Recorder(), height_m=0.3)
+    live = {"height": False}
+    ages = lambda: SenseAges(0.0, 0.0, 0.0 if live["height"] else math.inf)  # noqa: E731
+    reports: list[str] = []
+    pilot = PerchingPilot(
+        vehicle.commander,
+        lambda: np.eye(3),
+        settings=PilotSettings(senses_lost_after_s=1e9, stale_after_s=1e8),
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        ages=ages,
+        report=reports.append,
+        clock=lambda: vehicle.t_s,
+    )
+    pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.6), 0.0), 0.0)
+    pilot.abort(0.0)
+    times: list[float] = []
+    _tick_for(pilot, vehicle, 5.0, times)
+    assert pilot.state == "landing"
+    assert vehicle.height() == 0.0  # it came down, and the pilot cannot tell
+    assert sum("no live height to sense the touchdown" in r for r in reports) == 1
+    live["height"] = True
+    _tick_for(pilot, vehicle, 1.0, times)
+    assert pilot.state == "landed"
+    assert vehicle.motor_stop_height_m == 0.0
+
+
+def test_touchdown_needs_a_low_still_height_over_a_whole_window() -> None:
+    d = TouchdownDetector(window_s=0.5, still_m=0.02, landed_height_m=0.05, speed_mps=0.05)
+    t = np.arange(0.0, 2.0, 0.02)
+    descending = np.maximum(0.01, 0.3 - 0.2 * t)  # reaches the floor (1 cm) at 1.45 s
+    touched = [d.touched(float(ti), float(h), None) for ti, h in zip(t, descending, strict=True)]
+    first = t[touched.index(True)]
+    # the last 2 cm of the descent already read as still: touchdown within the window of it
+    assert 1.45 + 0.5 - 0.1 <= first <= 1.45 + 0.5 + 0.03
+    d.reset()
+    hovering = [d.touched(float(ti), 0.5, 0.0) for ti in t]  # still, but half a metre up
+    assert not any(hovering)
+    d.reset()
+    moving = [d.touched(float(ti), 0.01, 0.2) for ti in t]  # low, but the vehicle still moves
+    assert not any(moving)
+    d.reset()
+    gaps = [d.touched(float(ti), 0.01 if i % 10 else None, None) for i, ti in enumerate(t)]
+    assert not any(gaps)  # 0.2 s of live height at a time never makes a 0.5 s window
+
+
+def test_pilot_clock_keeps_the_vehicle_hearing_the_pilot() -> None:
+    """On a real thread and the real clock: the frames stop after the pilot took over, and
+    the clock's ticks alone carry it through lost, landing and touchdown, with no gap between
+    commands over twice its period."""
+    sent_at: list[float] = []
+
+    class Timed(Recorder):
+        def send_velocity(self, v: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
+            sent_at.append(time.monotonic())
+            super().send_velocity(v, yaw_rate_rad_s)
+
+    commander = Timed()
+    height = {"m": 0.04}
+    pilot = PerchingPilot(
+        commander,
+        lambda: np.eye(3),
+        settings=PilotSettings(land_after_lost_s=0.4, touchdown_window_s=0.2, live_height_s=0.1),
+        height_m=lambda: height["m"],
+        report=lambda _m: None,
+    )
+    with PilotClock(pilot) as clock:
+        t0 = time.monotonic()
+        pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.6), 0.0), 0.0)
+        deadline = t0 + 5.0
+        while pilot.state != "landed" and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert pilot.state == "landed"
+    assert clock.ticks >= 5
+    assert commander.sent[-1] == ()
+    # a loaded machine may delay a thread: the bound is loose, the landing itself is the proof
+    assert _gaps_s(sent_at) < 10 * pilot.settings.setpoint_period_s
+
+
+def test_bad_pilot_settings() -> None:
+    with pytest.raises(ControllerConfigError, match="landed_height_m must be positive"):
+        PilotSettings(landed_height_m=0.0)
+    with pytest.raises(ControllerConfigError, match="camera's watchdog is read on the pilot's"):
+        PilotSettings(frame_timeout_s=0.01)
+
+
+def test_ticks_need_no_frames_but_need_a_first_one() -> None:
+    vehicle = Vehicle(Recorder(), height_m=1.0)
+    pilot = _pilot(vehicle)
+    vehicle.fly(1.0)
+    assert pilot.tick_now() is None  # no frame yet: nothing to take over on
+    assert not vehicle.commander.sent
