@@ -56,9 +56,10 @@ class Receiver:
                 self.conn.mav.heartbeat_send(2, 3, 129, 4, 4)  # an armed ArduCopter
             if self.messages and self.attitude is not None:
                 roll, pitch, yaw = self.attitude
-                self.conn.mav.attitude_send(0, roll, pitch, yaw, 0.0, 0.0, 0.0)
+                boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF  # its clock since boot
+                self.conn.mav.attitude_send(boot_ms, roll, pitch, yaw, 0.0, 0.0, 0.0)
                 if self.p_ned_m is not None:
-                    self.conn.mav.local_position_ned_send(0, *self.p_ned_m, 0.0, 0.0, 0.0)
+                    self.conn.mav.local_position_ned_send(boot_ms, *self.p_ned_m, 0.0, 0.0, 0.0)
 
     def _timesync(self, msg: Any) -> None:
         assert self.clock_offset_ns is not None
@@ -252,7 +253,7 @@ def test_stale_and_non_finite_estimates_are_never_sent(udp_port: int) -> None:
     assert "0.50 s old" in reports[0]
     # each link says it once (the vehicle answers whichever link spoke last, so the body_frd
     # sink's link may or may not have had a NaN attitude too)
-    nan = [r for r in reports if "one ATTITUDE with a non-finite field was dropped" in r]
+    nan = [r for r in reports if "ATTITUDE dropped: non-finite" in r]
     assert 1 <= len(nan) <= 2
     assert all("(reported once; the link goes on)" in r for r in nan)
     held = [r for r in reports if "no ATTITUDE from the vehicle yet; local_ned" in r]
@@ -513,10 +514,10 @@ def test_the_link_uses_only_its_vehicles_messages() -> None:
         return mav.heartbeat_encode(6, 8, 0, 0, 4)
 
     def attitude(mav: Any) -> Any:
-        return mav.attitude_encode(0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0)
+        return mav.attitude_encode(1000, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     def nan_attitude(mav: Any) -> Any:
-        return mav.attitude_encode(0, math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)
+        return mav.attitude_encode(1020, math.nan, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     state = VehicleState()
     assert state.source(received(3, 1, attitude)) == "other"  # not locked yet

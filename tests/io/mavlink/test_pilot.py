@@ -46,6 +46,7 @@ class Vehicle:
         self.silent = False
         self.stranger = stranger
         self.streams = {"ATTITUDE", "LOCAL_POSITION_NED"}
+        self.height_m = 1.0
         self.spoil: set[str] = set()  # the next sample of these kinds carries a NaN
         self.received: list[tuple[int, Any]] = []  # (the mode it arrived in, message)
         self._stop = threading.Event()
@@ -77,19 +78,20 @@ class Vehicle:
 
     def _state(self) -> None:
         nan = float("nan")
+        boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF  # its clock since boot
         if "ATTITUDE" in self.streams:
             roll = nan if "ATTITUDE" in self.spoil else 0.0
             self.spoil.discard("ATTITUDE")
-            self.conn.mav.attitude_send(0, roll, 0.0, 0.0, 0.0, 0.0, 0.0)
+            self.conn.mav.attitude_send(boot_ms, roll, 0.0, 0.0, 0.0, 0.0, 0.0)
         if "LOCAL_POSITION_NED" in self.streams:
             x = nan if "LOCAL_POSITION_NED" in self.spoil else 0.0
             self.spoil.discard("LOCAL_POSITION_NED")
-            self.conn.mav.local_position_ned_send(0, x, 0.0, -1.0, 0.0, 0.0, 0.0)
+            self.conn.mav.local_position_ned_send(boot_ms, x, 0.0, -self.height_m, 0.0, 0.0, 0.0)
         if self.stranger:  # the same socket, another system id
             self.conn.mav.srcSystem = 2
             self.conn.mav.heartbeat_send(2, self.autopilot, 1, LOITER, 4)
-            self.conn.mav.attitude_send(0, math.radians(30.0), 0.0, 0.0, 0.0, 0.0, 0.0)
-            self.conn.mav.local_position_ned_send(0, 5.0, 5.0, -3.0, 1.0, 0.0, 0.0)
+            self.conn.mav.attitude_send(boot_ms, math.radians(30.0), 0.0, 0.0, 0.0, 0.0, 0.0)
+            self.conn.mav.local_position_ned_send(boot_ms, 5.0, 5.0, -3.0, 1.0, 0.0, 0.0)
             self.conn.mav.srcSystem = self.system
 
     def setpoints(self) -> list[tuple[int, Any]]:
@@ -365,7 +367,7 @@ def test_one_nan_sample_is_dropped_and_the_pilot_keeps_steering(udp_port: int) -
     assert len(steering(after)) >= len(after) - 2  # the last: the hover at close
     assert all(math.isfinite(msg.vx) and msg.vx > 0.0 for msg in steering(after))
     assert pilot.vehicle.rejected == 2
-    assert any("one ATTITUDE with a non-finite field was dropped" in r for r in reports)
+    assert any("ATTITUDE dropped: non-finite" in r for r in reports)
     assert pilot.pilot.replaced_setpoints == 0
 
 

@@ -28,7 +28,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from perchpose.errors import LinkError
 from perchpose.io.mavlink.landing_target import R_ned_frd_from_euler
+from perchpose.io.mavlink.samples import SampleGate
 from perchpose.io.mavlink.timesync import TimeSync
 
 Array = NDArray[np.float64]
@@ -116,10 +117,6 @@ def is_autopilot(msg: Any) -> bool:
     )
 
 
-def finite(*values: float) -> bool:
-    return all(math.isfinite(v) for v in values)
-
-
 @dataclass
 class VehicleState:
     """What the link has heard from the one vehicle it serves (times on ``time.monotonic``).
@@ -128,8 +125,10 @@ class VehicleState:
     ``custom_mode``, ``base_mode``; ATTITUDE as ``R_ned_frd``; LOCAL_POSITION_NED as
     ``p_ned_m`` and ``v_ned_mps``. ``system_id`` and ``component_id`` are the autopilot's:
     ``target_system`` if given, else the first autopilot whose HEARTBEAT is heard. Nothing from
-    another system or component reaches this state. A sample with a non-finite field is dropped
-    whole (``rejected`` counts them): the last good one stays, and ages.
+    another system or component reaches this state. An ATTITUDE or LOCAL_POSITION_NED that
+    ``gate`` refuses (non-finite, implausible, out of order, from before a reboot:
+    ``perchpose.io.mavlink.samples``) is dropped whole (``rejected`` counts them, ``gate.refused``
+    by reason): the last good one stays, and ages.
     """
 
     target_system: int | None = None
@@ -145,6 +144,7 @@ class VehicleState:
     component_id: int | None = None
     heartbeat_t_s: float = float("nan")
     rejected: int = 0
+    gate: SampleGate = field(default_factory=SampleGate)
 
     @property
     def armed(self) -> bool:
@@ -188,17 +188,19 @@ class VehicleState:
             self.base_mode = int(msg.base_mode)
             self.heartbeat_t_s = now
         elif kind == "ATTITUDE":
-            if not finite(msg.roll, msg.pitch, msg.yaw):
+            t_ms = int(msg.time_boot_ms)
+            if self.gate.attitude(t_ms, msg.roll, msg.pitch, msg.yaw, now) is not None:
                 self.rejected += 1
                 return False
             self.R_ned_frd = R_ned_frd_from_euler(msg.roll, msg.pitch, msg.yaw)
             self.attitude_t_s = now
         elif kind == "LOCAL_POSITION_NED":
-            if not finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz):
+            p = np.array([msg.x, msg.y, msg.z], dtype=float)
+            v = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+            if self.gate.position(int(msg.time_boot_ms), p, v, now) is not None:
                 self.rejected += 1
                 return False
-            self.p_ned_m = np.array([msg.x, msg.y, msg.z], dtype=float)
-            self.v_ned_mps = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+            self.p_ned_m, self.v_ned_mps = p, v
             self.position_t_s = now
         else:
             return False
@@ -256,7 +258,9 @@ class MavlinkLink:
         self.retry_period_s = retry_period_s
         self.report = report or log.warning
         self.timesync = TimeSync()
-        self.vehicle = VehicleState(target_system=target_system)
+        self.vehicle = VehicleState(
+            target_system=target_system, gate=SampleGate(on_reboot=self._rebooted)
+        )
         self.faults = 0
         self._said: set[str] = set()  # the one-time reports already made
         self.listeners: list[Callable[[Any], None]] = []
@@ -324,6 +328,11 @@ class MavlinkLink:
                 f"MAVLink {why}; retrying every {self.retry_period_s:g} s, tracking goes on"
             )
             self._down_reported = True
+
+    def _rebooted(self, why: str) -> None:
+        """The autopilot rebooted: its clock's offset is measured anew."""
+        self.timesync.reset()
+        self.report(f"MAVLink {self.url}: the autopilot rebooted ({why}); TIMESYNC starts over")
 
     def say_once(self, key: str, line: str) -> None:
         """Report ``line`` the first time ``key`` comes up."""
@@ -492,12 +501,14 @@ class MavlinkLink:
                 self.vehicle.system_id,
                 self.vehicle.component_id,
             )
-        rejected = self.vehicle.rejected
+        refused = dict(self.vehicle.gate.refused)
         if self.vehicle.heard(msg, time.monotonic()):
             for listener in self.listeners:
                 listener(msg)
-        elif self.vehicle.rejected > rejected:
-            self._fault(f"non-finite {kind}", f"one {kind} with a non-finite field was dropped")
+            return
+        for reason, count in self.vehicle.gate.refused.items():
+            if count > refused.get(reason, 0):
+                self._fault(f"{reason} {kind}", f"{kind} dropped: {reason}")
 
     # -- for the senders ------------------------------------------------------------------
 

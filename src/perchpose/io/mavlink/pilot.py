@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from perchpose.control.controller import PerchingController
 from perchpose.control.pilot import PerchingPilot, PilotSettings, PilotState, SenseAges
+from perchpose.control.pilot_clock import PilotClock
 from perchpose.io.mavlink.link import MavlinkLink, VehicleState
 from perchpose.values import Estimate
 
@@ -58,6 +59,10 @@ MAV_FRAME_LOCAL_NED = 1
 # (1024): velocity and yaw rate only
 VELOCITY_YAW_RATE_MASK = 1479
 MAV_CMD_COMPONENT_ARM_DISARM = 400
+MAV_CMD_DO_SET_MODE = 176
+MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
+COPTER_MODE_LAND = 9
+PX4_MAIN_MODE_AUTO, PX4_AUTO_LAND = 4, 6
 FORCE_DISARM = 21196.0
 F = np.diag([1.0, -1.0, -1.0])  # NED <-> NWU and FRD <-> FLU
 
@@ -119,6 +124,31 @@ def _disarm_send(mav: Any, *, system: int, force: bool) -> None:
     )
 
 
+def land_mode(vehicle: VehicleState) -> tuple[float, float] | None:
+    """MAV_CMD_DO_SET_MODE's custom mode and sub mode for the autopilot's own LAND (None: an
+    autopilot this module does not know)."""
+    if vehicle.autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
+        return float(COPTER_MODE_LAND), 0.0
+    if vehicle.autopilot == MAV_AUTOPILOT_PX4:
+        return float(PX4_MAIN_MODE_AUTO), float(PX4_AUTO_LAND)
+    return None
+
+
+def _land_send(mav: Any, *, system: int, mode: tuple[float, float]) -> None:
+    mav.command_long_send(
+        system,
+        1,
+        MAV_CMD_DO_SET_MODE,
+        0,
+        float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
+        *mode,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+    )
+
+
 class SetpointCommander:
     """The pilot's ``VehicleCommander`` (world z up, rad/s) as MAVLink velocity setpoints in
     NED, sent only while ``allowed()``; ``force_stop()`` says whether a stop is a forced
@@ -167,6 +197,16 @@ class SetpointCommander:
             return
         send = partial(_disarm_send, system=system, force=self.force_stop())
         self.link.post(send, "COMMAND_LONG")
+
+    def send_land(self) -> bool:
+        """Switch the vehicle to its autopilot's LAND (MAV_CMD_DO_SET_MODE: ArduCopter LAND,
+        PX4 AUTO.LAND), which lands it on its own land detector; False where it cannot be
+        asked (not ours to command, an unknown autopilot, the link down)."""
+        system = self.link.vehicle.system_id
+        mode = land_mode(self.link.vehicle)
+        if not self.allowed() or system is None or mode is None:
+            return False
+        return self.link.post(partial(_land_send, system=system, mode=mode), "COMMAND_LONG")
 
 
 class MavlinkPilot:
@@ -224,6 +264,7 @@ class MavlinkPilot:
         self._waiting_reported = False
         self.link.listeners.append(self._heard)
         self.link.pollers.append(self._poll)
+        self.clock = PilotClock(self.pilot).start()
 
     # -- the vehicle, in the pilot's frames -------------------------------------------------
 
@@ -361,6 +402,7 @@ class MavlinkPilot:
     def close(self, reason: str = "tracking ended") -> None:
         """Stop: one zero-velocity setpoint if flying in the setpoint mode, then nothing more
         (said once), and close the link."""
+        self.clock.stop()
         if self.pilot.flying:
             if self.engaged():
                 self.commander.velocity((0.0, 0.0, 0.0), 0.0)

@@ -5,7 +5,9 @@ time in ``ts1`` (ns); the answer carries the responder's time in ``tc1`` and the
 ``ts1`` unchanged. Both sides may ask and both answer. From an answer, with ``rtt`` the round
 trip on our clock, the autopilot's clock reads ``tc1 + rtt / 2`` when ours reads ``now``; the
 offset is taken from the fastest round trip of the last few (a slow one carries queueing
-delay, and half of it would bias the offset).
+delay, and half of it would bias the offset). An answer whose offset is more than ``JUMP_NS``
+from the current one (clocks drift by parts per million, not by tenths of a second) means the
+autopilot's clock restarted (a reboot): the answers before it are forgotten.
 
 PX4 stamps a LANDING_TARGET with its own clock only through this offset: without it, a
 message is stamped on arrival and the camera's latency goes uncompensated.
@@ -19,6 +21,7 @@ from collections import deque
 from collections.abc import Callable
 
 WINDOW = 10  # answers the offset is chosen from
+JUMP_NS = 200_000_000  # an offset this far from the last: the autopilot's clock restarted
 PENDING = 16  # requests remembered while their answers are on the way
 INT64_MAX = 2**63 - 1  # TIMESYNC's fields are int64
 
@@ -38,6 +41,13 @@ class TimeSync:
         self._samples: deque[tuple[int, int]] = deque(maxlen=WINDOW)  # (rtt, offset)
         self.answered = 0
         self.ignored = 0
+        self.resets = 0
+
+    def reset(self) -> None:
+        """Forget every answer and pending request (the autopilot rebooted)."""
+        self._pending.clear()
+        self._samples.clear()
+        self.resets += 1
 
     @property
     def offset_ns(self) -> int | None:
@@ -73,7 +83,12 @@ class TimeSync:
             self._pending.remove(ts1)
             rtt = now - ts1
             if 0 <= rtt <= self.max_rtt_ns:
-                self._samples.append((rtt, tc1 + rtt // 2 - now))
+                offset = tc1 + rtt // 2 - now
+                current = self.offset_ns
+                if current is not None and abs(offset - current) > JUMP_NS:
+                    self._samples.clear()
+                    self.resets += 1
+                self._samples.append((rtt, offset))
         return None
 
     def remote_usec(self, local_s: float) -> int | None:
