@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from perchpose.cli import main
+from perchpose.control import PilotSettings
 from perchpose.io.mavlink import link as mavlink_link
 from perchpose.io.mavlink.landing_target_sink import mavutil_module
 from perchpose.io.mavlink.link import MavlinkLink
@@ -47,6 +48,10 @@ class Vehicle:
         self.stranger = stranger
         self.streams = {"ATTITUDE", "LOCAL_POSITION_NED"}
         self.height_m = 1.0
+        self.flies = False  # its height follows the vertical speed it is sent (floor at 0)
+        self.vz_ned_mps = 0.0
+        self.disarmed_at_m: float | None = None
+        self.boot_offset_ms = 0  # a reboot: its clock since boot starts again
         self.spoil: set[str] = set()  # the next sample of these kinds carries a NaN
         self.received: list[tuple[int, Any]] = []  # (the mode it arrived in, message)
         self._stop = threading.Event()
@@ -68,6 +73,7 @@ class Vehicle:
             msg = self.conn.recv_match(blocking=True, timeout=0.005)
             if msg is not None and msg.get_type() != "BAD_DATA":
                 self.received.append((self.mode, msg))
+                self._obey(msg)
             now = time.monotonic()
             if now >= next_beat:
                 next_beat = now + 0.1
@@ -76,9 +82,24 @@ class Vehicle:
                 next_state = now + 0.02
                 self._state()
 
+    def _obey(self, msg: Any) -> None:
+        """Fly a velocity setpoint (when ``flies``), disarm or change mode as told."""
+        kind = msg.get_type()
+        if kind == "SET_POSITION_TARGET_LOCAL_NED" and self.armed:
+            self.vz_ned_mps = msg.vz
+        elif kind == "COMMAND_LONG" and msg.command == 400 and msg.param1 == 0:
+            self.armed = False
+            self.vz_ned_mps = 0.0
+            self.disarmed_at_m = self.height_m
+        elif kind == "COMMAND_LONG" and msg.command == 176:
+            self.set_mode(int(msg.param2))
+
     def _state(self) -> None:
         nan = float("nan")
-        boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF  # its clock since boot
+        if self.flies:
+            self.height_m = max(0.0, self.height_m - self.vz_ned_mps * 0.02)
+        vz = self.vz_ned_mps if self.flies and self.height_m > 0.0 else 0.0
+        boot_ms = int(time.monotonic() * 1000 - self.boot_offset_ms) & 0xFFFFFFFF
         if "ATTITUDE" in self.streams:
             roll = nan if "ATTITUDE" in self.spoil else 0.0
             self.spoil.discard("ATTITUDE")
@@ -86,7 +107,7 @@ class Vehicle:
         if "LOCAL_POSITION_NED" in self.streams:
             x = nan if "LOCAL_POSITION_NED" in self.spoil else 0.0
             self.spoil.discard("LOCAL_POSITION_NED")
-            self.conn.mav.local_position_ned_send(boot_ms, x, 0.0, -self.height_m, 0.0, 0.0, 0.0)
+            self.conn.mav.local_position_ned_send(boot_ms, x, 0.0, -self.height_m, 0.0, 0.0, vz)
         if self.stranger:  # the same socket, another system id
             self.conn.mav.srcSystem = 2
             self.conn.mav.heartbeat_send(2, self.autopilot, 1, LOITER, 4)
@@ -484,3 +505,78 @@ def test_streams_that_arrive_are_not_asked_again(udp_port: int) -> None:
         time.sleep(2.5)  # past the time a missing stream would be asked for again
     asked = [m for _, m in vehicle.received if m.get_type() == "COMMAND_LONG"]
     assert len(asked) <= 2  # at most the first request, before the streams were seen
+
+
+def _command_longs(vehicle: Vehicle, command: int) -> list[Any]:
+    return [
+        m for _, m in vehicle.received if m.get_type() == "COMMAND_LONG" and m.command == command
+    ]
+
+
+QUICK_LANDING = PilotSettings(on_senses_lost="release", land_after_lost_s=1.5, land_speed_mps=0.5)
+
+
+def test_a_stalled_camera_lands_the_vehicle_on_a_sensed_touchdown(udp_port: int) -> None:
+    """Frames stop after half a second (the source stays open): the pilot's own clock keeps
+    the vehicle hearing it, with no gap over 0.2 s, through the hold, lost and landing; it
+    disarms once LOCAL_POSITION_NED says the vehicle rests on the floor, not before."""
+    with guided(udp_port, settings=QUICK_LANDING) as (vehicle, pilot, reports):
+        vehicle.flies = True
+        fly(pilot, 0.5, (0.0, 0.0, 0.6), time.monotonic())
+        wait_for(lambda: pilot.pilot.state == "landed", seconds=10.0)
+        time.sleep(0.1)
+    states = [t[2] for t in pilot.pilot.transitions]
+    assert states == ["perching", "lost", "landing", "landed"]
+    assert any("no frame since" in r for r in reports)
+    (disarm,) = _command_longs(vehicle, 400)
+    assert disarm.param2 == 0  # a normal disarm: the autopilot's land detector may refuse it
+    assert vehicle.disarmed_at_m is not None
+    assert vehicle.disarmed_at_m < 0.01
+    times = [m._timestamp for _, m in vehicle.setpoints()]
+    assert max(np.diff(times)) < 0.2  # the Crazyflie's watchdog bound; 0.05 s by design
+    assert not _command_longs(vehicle, 176)  # the landing was ours, not the autopilot's
+
+
+def test_a_landing_whose_vehicle_does_not_descend_never_disarms_it(udp_port: int) -> None:
+    """The vehicle stays 1 m up whatever it is told: descent setpoints go on, and no disarm."""
+    with guided(udp_port, settings=QUICK_LANDING) as (vehicle, pilot, _reports):
+        fly(pilot, 0.3, (0.0, 0.0, 0.6), time.monotonic())
+        wait_for(lambda: pilot.pilot.state == "landing", seconds=5.0)
+        time.sleep(1.5)
+        assert pilot.pilot.state == "landing"
+        landing = [m for _, m in vehicle.setpoints()][-20:]
+    assert not _command_longs(vehicle, 400)
+    assert all(m.vz == pytest.approx(0.5) for m in landing)  # down, in NED
+
+
+def test_a_landing_that_loses_the_vehicles_height_hands_it_to_the_autopilots_land(
+    udp_port: int,
+) -> None:
+    with guided(udp_port, settings=QUICK_LANDING) as (vehicle, pilot, reports):
+        fly(pilot, 0.3, (0.0, 0.0, 0.6), time.monotonic())
+        wait_for(lambda: pilot.pilot.state == "landing", seconds=5.0)
+        vehicle.streams.discard("LOCAL_POSITION_NED")
+        wait_for(lambda: pilot.pilot.state == "released")
+        wait_for(lambda: vehicle.mode == 9)
+    (land,) = _command_longs(vehicle, 176)
+    assert (land.param1, land.param2) == (1, 9)  # custom mode: ArduCopter LAND
+    assert not _command_longs(vehicle, 400)
+    assert any("the autopilot's LAND lands it" in r for r in reports)
+
+
+def test_a_rebooted_autopilot_is_followed_once_its_old_clock_has_stopped(udp_port: int) -> None:
+    """The autopilot's clock since boot restarts at 1 s: its samples are refused until the
+    old clock has been silent for half a second (the pilot hovers meanwhile), then taken; the
+    link says so once and measures TIMESYNC anew."""
+    with guided(udp_port) as (vehicle, pilot, reports):
+        t0 = time.monotonic()
+        fly(pilot, 0.3, (0.0, 0.0, 0.6), t0)
+        vehicle.boot_offset_ms = int(time.monotonic() * 1000) - 1000
+        fly(pilot, 1.5, (0.0, 0.0, 0.6), t0)
+        assert pilot.pilot.state == "perching"
+    gate = pilot.vehicle.gate
+    assert gate.reboots == 1
+    assert gate.refused["out of order"] >= 20  # half a second of both streams at 50 Hz
+    assert pilot.link.timesync.resets >= 1
+    assert sum("the autopilot rebooted" in r for r in reports) == 1
+    assert any("hovering, no climb" in r for r in reports)

@@ -3,7 +3,8 @@
 A sample is refused, with its reason counted, when it is
 
 - ``non-finite``: a NaN or infinite field;
-- ``implausible``: a tilt beyond what the vehicle flies (``max_tilt_deg``), a position further
+- ``implausible``: an angle outside its range, a tilt beyond what the vehicle flies
+  (``max_tilt_deg``), a position further
   from the local origin than ``max_position_m``, a speed over ``max_speed_mps``, or a position
   that moved further since the last sample taken than that speed allows (plus ``jump_m``);
 - ``out of order``: its ``time_boot_ms`` is not after the last one taken of its kind (a replay,
@@ -76,9 +77,12 @@ class SampleGate:
 
     def _in_order(self, kind: str, time_boot_ms: int, now_s: float) -> str | None:
         line = self._timelines[kind]
-        if line.last_ms is None or time_boot_ms >= line.last_ms:  # a repeat is harmless
-            if line.old_ms is not None and time_boot_ms >= line.old_ms:
+        if line.old_ms is not None and time_boot_ms >= line.old_ms:
+            step_ms = math.inf if line.last_ms is None else time_boot_ms - line.last_ms
+            if step_ms > 1000.0 * self.limits.reboot_confirm_s:
                 return "before reboot"  # the old clock, late: the new one is well behind it
+            line.old_ms = None  # the new clock has caught up with the old one
+        if line.last_ms is None or time_boot_ms >= line.last_ms:  # a repeat is harmless
             line.back_since_s = None
             line.last_ms = time_boot_ms
             return None
@@ -86,11 +90,13 @@ class SampleGate:
             line.back_since_s = now_s
         if now_s - line.back_since_s < self.limits.reboot_confirm_s:
             return "out of order"
-        # only the new clock for a while: the autopilot rebooted
-        line.old_ms, line.last_ms, line.back_since_s = line.last_ms, time_boot_ms, None
+        # only the new clock for a while: the autopilot rebooted, for every kind of sample
+        for other in self._timelines.values():
+            if other.last_ms is not None:
+                other.old_ms, other.last_ms, other.back_since_s = other.last_ms, None, None
+        line.last_ms = time_boot_ms
+        self._p_m = None
         self.reboots += 1
-        if kind == "LOCAL_POSITION_NED":
-            self._p_m = None
         if self.on_reboot is not None:
             self.on_reboot(f"the autopilot's clock went back to {time_boot_ms / 1000:.1f} s")
         return None
@@ -101,6 +107,9 @@ class SampleGate:
         """None to take this ATTITUDE, else why not."""
         if not all(math.isfinite(v) for v in (roll_rad, pitch_rad, yaw_rad)):
             return self._refuse("non-finite")
+        in_range = abs(roll_rad) <= math.pi + 1e-6 and abs(pitch_rad) <= math.pi / 2 + 1e-6
+        if not (in_range and abs(yaw_rad) <= 2 * math.pi):
+            return self._refuse("implausible")  # not an angle ATTITUDE can carry
         limit = math.radians(self.limits.max_tilt_deg)
         tilt = math.acos(max(-1.0, min(1.0, math.cos(roll_rad) * math.cos(pitch_rad))))
         if tilt > limit:
