@@ -355,7 +355,14 @@ def test_cli_without_a_radio_is_one_line(
 ) -> None:
     uri = "radio://0/80/2M/E7E7E7E7E7"
     code = main(
-        track_argv(approach_fpv_dir, tmp_path / "p.csv", "--crazyflie", uri, camera="preset:fpv")
+        track_argv(
+            approach_fpv_dir,
+            tmp_path / "p.csv",
+            "--crazyflie",
+            uri,
+            "--realtime",
+            camera="preset:fpv",
+        )
     )
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()

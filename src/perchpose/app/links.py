@@ -34,6 +34,13 @@ class LinkOptions:
     crazyflie_uri: str | None = None
     mount: str | None = None
 
+    @property
+    def flies(self) -> str | None:
+        """The flag of a link that flies the vehicle (None: the links only inform it)."""
+        if self.mavlink_url is not None and self.mavlink_pilot:
+            return "--mavlink-pilot"
+        return "--crazyflie" if self.crazyflie_uri is not None else None
+
 
 @contextmanager
 def vehicle_links(

@@ -26,9 +26,10 @@ from perchpose.io.frames import TARGET_FRAME, Frame, FrameSource, Stamp
 from perchpose.io.outputs import open_track_writer
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
 from perchpose.io.sinks import estimate_row
-from perchpose.io.sources import open_source
+from perchpose.io.sources import is_live, open_source
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
+from perchpose.warmup import warm_up
 
 
 @dataclass(frozen=True)
@@ -341,6 +342,12 @@ def run(options: TrackOptions, report: Callable[[str], None]) -> TrackSummary:
     """Track ``options.source`` as ``perchpose track`` does: the camera, target and estimator
     it names, the live view and vehicle links it asks for (opened around the frames, closed
     after them); ``report`` gets the lines a user should read."""
+    flies = options.links.flies
+    if flies is not None and options.rate != 1.0 and not is_live(options.source):
+        raise PerchposeError(
+            f"{options.source}: a recording flies a live vehicle ({flies}) only paced as it "
+            "was recorded: add --realtime"
+        )
     camera = _camera(options)
     target = load_target(options.target_file)
     estimator = PerchingEstimator.configured(
@@ -352,6 +359,12 @@ def run(options: TrackOptions, report: Callable[[str], None]) -> TrackSummary:
         _live_view(options, target, report) as live,
         vehicle_links(target, options.links, report) as hooks,
     ):
+        if is_live(options.source) or options.rate is not None or hooks or live is not None:
+            # in real time no frame may wait on a compile: every kernel is built before the
+            # first (after the links opened, so that a wrong link is said at once)
+            done = warm_up(target, [camera])
+            if not done.already:
+                report(done.describe())
         return track(
             options.source,
             estimator,

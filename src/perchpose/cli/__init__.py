@@ -15,6 +15,7 @@ from perchpose.cli import (  # noqa: F401  (each module registers its command on
     simulate,
     target,
     track,
+    warmup,
 )
 from perchpose.cli.group import group
 from perchpose.cli.main import main, run

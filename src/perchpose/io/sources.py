@@ -350,6 +350,11 @@ def _image_files(source: str) -> list[Path] | None:
     return paths
 
 
+def is_live(source: str) -> bool:
+    """``source`` names a live camera (an index) or a network stream, not a recording."""
+    return source.isdigit() or source.lower().startswith(STREAM_SCHEMES)
+
+
 def open_source(
     source: str,
     fps: float | None = None,
@@ -377,7 +382,7 @@ def open_source(
     rate = fps or 30.0
     if source.isdigit():
         return _camera(source, rate, size)
-    if source.lower().startswith(STREAM_SCHEMES):
+    if is_live(source):
         return _stream(source, rate)
     images = _image_files(source)
     if images is not None:

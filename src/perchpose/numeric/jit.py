@@ -5,17 +5,20 @@ The fits' inner loops (the blurred-step edge model, the printed-pattern model) t
 pixel a few times per Gauss-Newton round; written as numpy expressions they spend most of
 their time making small temporary arrays. Compiled, the same loops run over the pixels once.
 ``NUMBA_DISABLE_JIT=1`` in the environment runs them as plain Python (slowly): for a debugger
-or a coverage tool.
+or a coverage tool. ``KERNELS`` lists them all, so that ``perchpose.warmup`` can check that it
+built every one before a live source's first frame.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TypeVar, cast
+from typing import Any, TypeVar, cast
 
 import numba
 
 F = TypeVar("F", bound=Callable[..., object])
+
+KERNELS: list[Any] = []  # every kernel ``compiled`` made, in import order (numba dispatchers)
 
 
 def compiled(function: F) -> F:
@@ -24,4 +27,12 @@ def compiled(function: F) -> F:
     infinity or NaN, as in numpy, rather than raising (Python's rule puts a test of the
     divisor before every division: the edge fit took 7 % longer); the fits check their
     results for finite values."""
-    return cast(F, numba.njit(cache=True, nogil=True, error_model="numpy")(function))
+    kernel = numba.njit(cache=True, nogil=True, error_model="numpy")(function)
+    KERNELS.append(kernel)
+    return cast(F, kernel)
+
+
+def uncompiled() -> list[str]:
+    """The kernels imported so far that have no machine code yet (their qualified names): the
+    ones whose first call would compile, or load from the disk cache, mid-run."""
+    return [f"{k.py_func.__module__}.{k.py_func.__qualname__}" for k in KERNELS if not k.signatures]

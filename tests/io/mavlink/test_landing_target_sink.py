@@ -537,3 +537,26 @@ def test_the_link_uses_only_its_vehicles_messages() -> None:
     chosen = VehicleState(target_system=4)
     assert chosen.source(received(3, 1, beat)) == "stranger"
     assert chosen.source(received(4, 1, beat)) == "vehicle"
+
+
+def test_a_live_frame_that_waited_is_never_sent(udp_port: int) -> None:
+    """A live frame measured 0.6 s after its grab (the estimator stalled on a compile, say)
+    is as old as that when it would reach the vehicle: refused, though its own measurement is
+    fresh (``age_s`` 0); one grabbed 0.1 s ago goes out."""
+    receiver = Receiver(udp_port)
+    reports: list[str] = []
+    sink = LandingTargetSink(
+        f"udpout:127.0.0.1:{udp_port}", T_body_camera=DOWN, report=reports.append
+    )
+    try:
+        fresh = estimate_at(1.0, (2.0, 1.0, 50.0), 10.0)
+        waited = replace(fresh, grabbed_s=time.monotonic() - 0.6)
+        assert waited.age_s == 0.0
+        assert not sink.send(waited)
+        assert sink.send(replace(fresh, t_s=1.1, grabbed_s=time.monotonic() - 0.1))
+    finally:
+        sink.close()
+        receiver.stop()
+    assert sink.refused == 1
+    assert len(receiver.of_type("LANDING_TARGET")) == 1
+    assert "s old (limit 0.5 s); not sent" in reports[0]

@@ -293,6 +293,7 @@ def test_track_flies_the_autopilot_and_hands_it_back_at_the_end(
                 "--mavlink",
                 f"udpout:127.0.0.1:{udp_port}",
                 "--mavlink-pilot",
+                "--realtime",
             )
         )
     finally:
@@ -427,8 +428,8 @@ def test_a_stream_that_stops_holds_the_vehicle_then_hands_it_back(
 @pytest.mark.parametrize(
     "options",
     [
-        ("--mavlink", "udpout:127.0.0.1:9", "--mavlink-pilot", "--mount", "down"),
-        ("--crazyflie", "radio://0/80/2M/E7E7E7E7E7", "--mount", "down"),
+        ("--mavlink", "udpout:127.0.0.1:9", "--mavlink-pilot", "--mount", "down", "--realtime"),
+        ("--crazyflie", "radio://0/80/2M/E7E7E7E7E7", "--mount", "down", "--realtime"),
     ],
 )
 def test_a_pilot_with_a_downward_camera_is_refused(
@@ -580,3 +581,32 @@ def test_a_rebooted_autopilot_is_followed_once_its_old_clock_has_stopped(udp_por
     assert pilot.link.timesync.resets >= 1
     assert sum("the autopilot rebooted" in r for r in reports) == 1
     assert any("hovering, no climb" in r for r in reports)
+
+
+@pytest.mark.parametrize(
+    "link",
+    [
+        ("--mavlink", "udpout:127.0.0.1:9", "--mavlink-pilot"),
+        ("--crazyflie", "radio://0/80/2M/E7E7E7E7E7"),
+    ],
+)
+def test_a_recording_flies_a_vehicle_only_in_real_time(
+    approach_fpv_dir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    track_argv: Callable[..., list[str]],
+    link: tuple[str, ...],
+) -> None:
+    """A recorded folder replayed as fast as it decodes would fly a live vehicle on a clock
+    several times too fast: refused in one line before any link opens, unless --realtime."""
+    for pace in ((), ("--rate", "7")):
+        code = main(track_argv(approach_fpv_dir, tmp_path / "p.csv", *link, *pace))
+        assert code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1
+        assert (
+            f"a recording flies a live vehicle ({link[-1] if link[0] == '--mavlink' else link[0]})"
+            in err[0]
+        )
+        assert "add --realtime" in err[0]
+    assert not (tmp_path / "p.csv").exists()

@@ -105,8 +105,10 @@ class LandingTargetSink:
     same). attitude_max_age_s, position_max_age_s : the vehicle's ATTITUDE and
     LOCAL_POSITION_NED older than this are not used (``local_ned`` estimates wait for a fresh
     attitude). target_system : the vehicle's MAVLink system id (None: the first autopilot
-    heard); nothing from another system is used. max_age_s : an estimate whose
-    newest measurement is older than this (``Estimate.age_s``) is not sent; default 0.5 s, well
+    heard); nothing from another system is used. max_age_s : an estimate older than this is
+    not sent: the age of its newest measurement (``Estimate.age_s``) plus, for a live frame,
+    the time since its frame was grabbed (a frame that waited on the estimator, a compile or
+    the link is as old as that when it would arrive); default 0.5 s, well
     inside the autopilots' own LANDING_TARGET timeouts (ArduPilot 2 s, PX4 ``PLD_BTOUT`` 5 s).
     target_relative : also send TARGET_RELATIVE (PX4's vision target estimator;
     ``perchpose.io.mavlink.target_relative``) with each LANDING_TARGET, in the same frame, with the
@@ -214,9 +216,13 @@ class LandingTargetSink:
         or non-finite estimates are refused and counted in ``refused``."""
         if not estimate.valid:
             return None
-        if not estimate.age_s <= self.max_age_s:
+        since_grab_s = 0.0
+        if math.isfinite(estimate.grabbed_s):
+            since_grab_s = max(0.0, time.monotonic() - estimate.grabbed_s)
+        age_s = estimate.age_s + since_grab_s
+        if not age_s <= self.max_age_s:
             self._refuse(
-                f"estimate at t = {estimate.t_s:.3f} s is {estimate.age_s:.2f} s old "
+                f"estimate at t = {estimate.t_s:.3f} s is {age_s:.2f} s old "
                 f"(limit {self.max_age_s:g} s); not sent"
             )
             return None

@@ -42,6 +42,7 @@ from perchpose.io.sinks import estimate_row, track_json
 from perchpose.safe_yaml import load as load_yaml
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
+from perchpose.warmup import warm_up
 
 NODE_NAME = "perchpose"
 PARAMS_FILE = Path(__file__).with_name("perchpose.params.yaml")
@@ -219,6 +220,8 @@ class PoseNode:
         if settings.camera_file:
             self._use_camera(CameraModel.load(settings.camera_file))
         self.said: set[str] = set()
+        # every compiled kernel before the first image: none is left to build mid-stream
+        self.log.info(warm_up(self.target).describe())
         self.stats = NodeStats()
         self.slot = LatestImage()
         sensor, geometry, std = ros["sensor"], ros["geometry"], ros["std"]
@@ -267,6 +270,7 @@ class PoseNode:
             self.log.info(text)
 
     def _use_camera(self, camera: CameraModel) -> None:
+        warm_up(self.target, [camera])  # at once where its lens model is already built
         self.camera = camera
         self.estimator = self.settings.estimator(camera, self.target)
 
