@@ -191,8 +191,11 @@ class Estimate:
         when unknown.
     covariance_flat : the 36 entries (row by row) of ``covariance``; empty when unknown.
     grabbed_s : ``time.monotonic()`` when its frame was grabbed, where the caller knows it
-        (``perchpose track`` does); NaN otherwise. The MAVLink link maps it to the
-        autopilot's clock (TIMESYNC) for ``time_usec``.
+        (``perchpose track`` does); NaN otherwise.
+    camera_latency_s : the camera chain's glass-to-grab latency the caller subtracted
+        (``perchpose track --camera-latency-ms``): the frame was captured at ``captured_s``,
+        ``grabbed_s`` minus it. The pilots count an estimate's age from there, and the MAVLink
+        link maps it to the autopilot's clock (TIMESYNC) for ``time_usec``.
 
     ``x_cm``, ``y_cm``, ``z_cm`` and ``yaw_deg`` are the same pose in the paper's units.
     """
@@ -211,6 +214,12 @@ class Estimate:
     pitch_rad: float = math.nan
     covariance_flat: tuple[float, ...] = ()
     grabbed_s: float = math.nan
+    camera_latency_s: float = 0.0
+
+    @property
+    def captured_s(self) -> float:
+        """``time.monotonic()`` at the frame's capture (NaN where the grab time is unknown)."""
+        return self.grabbed_s - self.camera_latency_s
 
     @classmethod
     def none(cls, t_s: float, markers: tuple[MarkerState, ...] = ()) -> Estimate:

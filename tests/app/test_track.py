@@ -1,4 +1,5 @@
 import csv
+import math
 from pathlib import Path
 
 import numpy as np
@@ -243,6 +244,19 @@ def test_a_live_camera_is_not_paced(
     estimator = PerchingEstimator(camera, TargetSpec.paper())
     with pytest.raises(PerchposeError, match="camera 0: --realtime and --rate replay recordings"):
         track("0", estimator, tmp_path / "live.csv", progress=False, rate=1.0)
+
+
+def test_a_camera_latency_is_for_live_sources(approach_webcam_dir: Path, tmp_path: Path) -> None:
+    """A recording's times are its own: a camera latency for it is refused, as is one no
+    camera chain has, each in one line before any frame."""
+    camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
+    estimator = PerchingEstimator(camera, TargetSpec.paper())
+    with pytest.raises(PerchposeError, match="--camera-latency-ms is for a live camera"):
+        track(str(approach_webcam_dir), estimator, tmp_path / "p.csv", camera_latency_s=0.08)
+    for bad in (-0.01, math.nan, 5.0):
+        with pytest.raises(PerchposeError, match="--camera-latency-ms must be 0 to 2000"):
+            track(str(approach_webcam_dir), estimator, tmp_path / "p.csv", camera_latency_s=bad)
+    assert not (tmp_path / "p.csv").exists()
 
 
 def test_the_command_runs_as_a_library_call(approach_webcam_dir: Path, tmp_path: Path) -> None:

@@ -3,6 +3,7 @@ touchdown and never on a timer, and the clock thread that ticks it."""
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -360,3 +361,16 @@ def test_ticks_need_no_frames_but_need_a_first_one() -> None:
     vehicle.fly(1.0)
     assert pilot.tick_now() is None  # no frame yet: nothing to take over on
     assert not vehicle.commander.sent
+
+
+def test_a_live_frame_is_dated_from_its_capture_not_its_grab() -> None:
+    """A frame grabbed at 100.0 s (monotonic) by a camera chain 80 ms long, handed over at
+    100.02 s: the pilot's time moves on to its capture plus 100 ms, not its grab plus 20 ms."""
+    vehicle = Vehicle(Recorder(), height_m=1.0)
+    pilot = _pilot(vehicle)
+    vehicle.t_s = 100.02
+    seen = Estimate.of_pose(5.0, (0.0, 0.0, 0.5), 0.0)
+    live = replace(seen, grabbed_s=100.0, camera_latency_s=0.08)
+    assert live.captured_s == pytest.approx(99.92)
+    pilot.update(live, 5.0)
+    assert pilot.last_t_s == pytest.approx(5.1)

@@ -147,12 +147,20 @@ class Pacer:
             time.sleep(due - now)
 
 
-def _with_latency(estimate: Estimate, frame: Frame) -> Estimate:
-    """``estimate`` with the moment its frame was grabbed and the time from then to now."""
+MAX_CAMERA_LATENCY_S = 2.0  # beyond this no camera chain perches a vehicle
+
+
+def _with_latency(estimate: Estimate, frame: Frame, camera_latency_s: float) -> Estimate:
+    """``estimate`` with the moment its frame was grabbed, the camera's glass-to-grab latency
+    before that (so its capture time), and the time from the capture to now."""
     if not math.isfinite(frame.grabbed_s):
         return estimate
+    captured_s = frame.grabbed_s - camera_latency_s
     return replace(
-        estimate, latency_s=time.monotonic() - frame.grabbed_s, grabbed_s=frame.grabbed_s
+        estimate,
+        latency_s=time.monotonic() - captured_s,
+        grabbed_s=frame.grabbed_s,
+        camera_latency_s=camera_latency_s,
     )
 
 
@@ -171,7 +179,11 @@ def _with_bar(frames: FrameSource, progress: bool) -> Iterator[Frame]:
 
 
 def _measured(
-    estimator: PerchingEstimator, frame: Frame, description: str, first: bool
+    estimator: PerchingEstimator,
+    frame: Frame,
+    description: str,
+    first: bool,
+    camera_latency_s: float = 0.0,
 ) -> tuple[Estimate | None, str]:
     """The estimate of ``frame`` (None without one) and what went wrong with it. A frame of
     the wrong size is an error for the ``first`` frame measured (every frame would be)
@@ -182,7 +194,8 @@ def _measured(
         return None, frame.error
     try:
         grey = estimator.camera.check_image(frame.image, f"{description}: {frame.name}")
-        return _with_latency(estimator.update(grey, frame.t_s), frame), frame.error
+        estimate = estimator.update(grey, frame.t_s)
+        return _with_latency(estimate, frame, camera_latency_s), frame.error
     except ImageError as exc:
         if first:
             raise
@@ -203,6 +216,7 @@ def track(
     rate: float | None = None,
     camera_frame: str | None = None,
     target_frame: str = TARGET_FRAME,
+    camera_latency_s: float = 0.0,
 ) -> TrackSummary:
     """Run ``estimator`` (its camera and target) over every frame of ``source`` and write one
     row per frame to ``out``; each estimate carries its latency from the frame's grab.
@@ -212,7 +226,8 @@ def track(
     overlay. ``rate``: replay a recording at this many times the speed of its time stamps
     (``Pacer``; None: as fast as it decodes). ``camera_frame``: the camera's frame id in bags
     and the live view (default: the image's own, else ``camera``); ``target_frame``: the
-    target's.
+    target's. ``camera_latency_s``: a live source's glass-to-grab latency (measured by the
+    user): each frame was captured that long before its grab (``Estimate.captured_s``).
     A live camera is grabbed on a thread of its own and the estimator always takes the newest
     frame: a frame overtaken before it was taken gets an invalid row saying it was stale (no
     warning each; the summary counts them).
@@ -234,6 +249,16 @@ def track(
             f"{frames.description}: --realtime and --rate replay recordings; a live source "
             "already runs in real time"
         )
+    if not (math.isfinite(camera_latency_s) and 0.0 <= camera_latency_s <= MAX_CAMERA_LATENCY_S):
+        raise PerchposeError(
+            f"--camera-latency-ms must be 0 to {MAX_CAMERA_LATENCY_S * 1000:g}, got "
+            f"{camera_latency_s * 1000:g}"
+        )
+    if camera_latency_s and not frames.live:
+        raise PerchposeError(
+            f"{frames.description}: --camera-latency-ms is for a live camera or stream, whose "
+            "frames are stamped when grabbed; a recording's times are its own"
+        )
     pacer = None if rate is None else Pacer(rate)
     video = _Overlay(overlay, frames.fps)
     writer = open_track_writer(out, target, target_frame)
@@ -249,7 +274,9 @@ def track(
                 pacer.wait(frame.t_s)
                 frame = replace(frame, grabbed_s=time.monotonic())
             stamp = Stamp.of(frame, camera_frame)
-            estimate, error = _measured(estimator, frame, frames.description, first_good)
+            estimate, error = _measured(
+                estimator, frame, frames.description, first_good, camera_latency_s
+            )
             first_good = first_good and (frame.image is None or frame.damaged)
             if error and not frame.stale and not (frame.damaged and damaged_before):
                 more = " (and the frames after it until one decodes whole)" * frame.damaged
@@ -301,6 +328,7 @@ class TrackOptions:
     target_frame: str = TARGET_FRAME
     links: LinkOptions = field(default_factory=LinkOptions)
     progress: bool = True
+    camera_latency_s: float = 0.0
 
 
 def _camera(options: TrackOptions) -> CameraModel:
@@ -378,4 +406,5 @@ def run(options: TrackOptions, report: Callable[[str], None]) -> TrackSummary:
             rate=options.rate,
             camera_frame=options.camera_frame,
             target_frame=options.target_frame,
+            camera_latency_s=options.camera_latency_s,
         )

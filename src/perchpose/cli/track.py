@@ -143,6 +143,14 @@ if TYPE_CHECKING:
     "other origins are refused, so that no web page opened on this machine can read it).",
 )
 @click.option(
+    "--camera-latency-ms",
+    default=0.0,
+    type=float,
+    show_default=True,
+    help="A live camera's glass-to-grab latency (measure it): each frame was captured this "
+    "long before it was grabbed. The pilots and LANDING_TARGET date poses from the capture.",
+)
+@click.option(
     "--realtime",
     is_flag=True,
     help="Replay a recording (folder, video, bag) at the rate its time stamps say, for the "
@@ -193,6 +201,7 @@ def track(
     view: bool,
     view_port: int,
     view_origins: tuple[str, ...],
+    camera_latency_ms: float,
     realtime: bool,
     rate: float | None,
     camera_frame: str | None,
@@ -237,6 +246,7 @@ def track(
         target_frame=target_frame,
         links=links,
         progress=show_progress(quiet),
+        camera_latency_s=camera_latency_ms / 1000.0,
     )
     _print_summary(run(options, warn))
 

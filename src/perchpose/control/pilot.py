@@ -147,7 +147,7 @@ class PerchingPilot:
     estimate, or None while unknown; with it the controller rejects disturbances and flies the
     last centimetres on odometry. ages : how old the link's latest attitude, position and
     height samples are (None: always fresh, as in the simulation). clock : the monotonic clock
-    that ``tick_now`` and live frames' ``grabbed_s`` are on.
+    that ``tick_now`` and live frames' ``captured_s`` are on.
     """
 
     def __init__(
@@ -383,9 +383,9 @@ class PerchingPilot:
 
     def update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         """One frame: the estimate (None, not valid or too old: no target) at time ``t_s``.
-        An estimate of a live frame (``grabbed_s`` known, on this pilot's ``clock``) moves the
-        pilot's time on to its capture time plus the time since its grab, so its latency is
-        counted and the controller places it at its capture time."""
+        An estimate of a live frame (``captured_s`` known, on this pilot's ``clock``) moves
+        the pilot's time on to its capture time plus the time since its capture, so its
+        latency is counted and the controller places it at its capture time."""
         with self._lock:
             return self._update(estimate, t_s)
 
@@ -459,10 +459,10 @@ class PerchingPilot:
         return self._fly(None, t_s)
 
     def _update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
-        if estimate is not None and math.isfinite(estimate.grabbed_s):
-            # a live frame: now is its capture time plus the time since it was grabbed (the
-            # estimate's latency), not the frame's own time, on the frames' clock
-            t_s = max(t_s, estimate.t_s + max(0.0, self.clock() - estimate.grabbed_s))
+        if estimate is not None and math.isfinite(estimate.captured_s):
+            # a live frame: now is its capture time plus the time since then (the estimate's
+            # latency), not the frame's own time, on the frames' clock
+            t_s = max(t_s, estimate.t_s + max(0.0, self.clock() - estimate.captured_s))
         t_s = max(t_s, self.last_t_s)
         self.last_t_s = t_s
         self._frame_clock = (t_s, self.clock())

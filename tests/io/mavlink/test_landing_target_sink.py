@@ -553,10 +553,12 @@ def test_a_live_frame_that_waited_is_never_sent(udp_port: int) -> None:
         waited = replace(fresh, grabbed_s=time.monotonic() - 0.6)
         assert waited.age_s == 0.0
         assert not sink.send(waited)
+        late = replace(fresh, grabbed_s=time.monotonic() - 0.2, camera_latency_s=0.4)
+        assert not sink.send(late)  # captured 0.6 s ago, though grabbed 0.2 s ago
         assert sink.send(replace(fresh, t_s=1.1, grabbed_s=time.monotonic() - 0.1))
     finally:
         sink.close()
         receiver.stop()
-    assert sink.refused == 1
+    assert sink.refused == 2
     assert len(receiver.of_type("LANDING_TARGET")) == 1
     assert "s old (limit 0.5 s); not sent" in reports[0]

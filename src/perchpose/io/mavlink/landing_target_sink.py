@@ -100,14 +100,15 @@ class LandingTargetSink:
     ``control.default_T_body_camera()``. target : sets the angular size fields.
     time_offset_s : added to the frame times for ``time_usec`` until TIMESYNC has mapped this
     computer's clock to the autopilot's (or for estimates without ``grabbed_s``); then
-    ``time_usec`` is ``Estimate.grabbed_s`` on the autopilot's clock. timesync_period_s : how
+    ``time_usec`` is ``Estimate.captured_s`` (the grab less the camera's latency) on the
+    autopilot's clock. timesync_period_s : how
     often a TIMESYNC request is sent (0: never; requests from the vehicle are answered all the
     same). attitude_max_age_s, position_max_age_s : the vehicle's ATTITUDE and
     LOCAL_POSITION_NED older than this are not used (``local_ned`` estimates wait for a fresh
     attitude). target_system : the vehicle's MAVLink system id (None: the first autopilot
     heard); nothing from another system is used. max_age_s : an estimate older than this is
     not sent: the age of its newest measurement (``Estimate.age_s``) plus, for a live frame,
-    the time since its frame was grabbed (a frame that waited on the estimator, a compile or
+    the time since its frame was captured (a frame that waited on the estimator, a compile or
     the link is as old as that when it would arrive); default 0.5 s, well
     inside the autopilots' own LANDING_TARGET timeouts (ArduPilot 2 s, PX4 ``PLD_BTOUT`` 5 s).
     target_relative : also send TARGET_RELATIVE (PX4's vision target estimator;
@@ -216,10 +217,10 @@ class LandingTargetSink:
         or non-finite estimates are refused and counted in ``refused``."""
         if not estimate.valid:
             return None
-        since_grab_s = 0.0
-        if math.isfinite(estimate.grabbed_s):
-            since_grab_s = max(0.0, time.monotonic() - estimate.grabbed_s)
-        age_s = estimate.age_s + since_grab_s
+        since_capture_s = 0.0
+        if math.isfinite(estimate.captured_s):
+            since_capture_s = max(0.0, time.monotonic() - estimate.captured_s)
+        age_s = estimate.age_s + since_capture_s
         if not age_s <= self.max_age_s:
             self._refuse(
                 f"estimate at t = {estimate.t_s:.3f} s is {age_s:.2f} s old "
@@ -239,8 +240,8 @@ class LandingTargetSink:
                 p_ned = self.vehicle.p_ned_m
         shifted = replace(estimate, t_s=estimate.t_s + self.time_offset_s)
         time_usec = None
-        if math.isfinite(estimate.grabbed_s):
-            time_usec = self.timesync.remote_usec(estimate.grabbed_s)
+        if math.isfinite(estimate.captured_s):
+            time_usec = self.timesync.remote_usec(estimate.captured_s)
         try:
             return landing_target(
                 shifted,
