@@ -99,6 +99,7 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert code == 0
     assert "truth" in capsys.readouterr().out
     summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["stamps"] == "live"
     assert summary["runs"] == 2
     assert summary["success_rate"] == 1.0
     assert set(summary["contact_offset_mm"]) == {"p50", "p90", "p95", "max"}

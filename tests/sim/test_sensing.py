@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from perchpose import CameraModel, TargetSpec
-from perchpose.errors import SensingConfigError
+from perchpose.errors import SensingConfigError, VehicleConfigError
 from perchpose.sim.perch import PerchSetup, run_perch
-from perchpose.sim.sensing import SensedState, Sensing, SensingDraw
+from perchpose.sim.sensing import SensedState, Sensing, SensingDraw, mean_glass_to_grab_s
 
 
 def test_draws_stay_in_their_ranges_and_repeat_with_the_seed() -> None:
@@ -90,6 +90,43 @@ def test_ideal_senses_fly_as_before_and_realistic_ones_differ() -> None:
         mount_mm=0.0,
         target_scale_error=0.0,
     )
-    # realistic machinery with every error at zero flies the ideal run again
-    zero = run_perch(setup.with_sensing(exact), 3)
+    # realistic machinery with every error at zero flies the ideal run again (with the true
+    # capture times: live stamps date a frame that came a frame late by its grab)
+    zero = run_perch(replace(setup, stamps="exact").with_sensing(exact), 3)
     assert zero.contact_offset_mm == pytest.approx(ideal.contact_offset_mm, abs=1e-9)
+
+
+def test_the_mean_glass_to_grab_latency_a_user_would_measure() -> None:
+    """50 ms at 30 fps without jitter comes at the second frame's tick (66.7 ms); a tenth of
+    the frames a frame later adds a tenth of a frame; 8 ms of jitter pushes the frames whose
+    jitter passes 16.7 ms (4 %) to a third frame."""
+    assert mean_glass_to_grab_s(0.05, 0.0, 30.0, 0.0) == pytest.approx(2 / 30)
+    assert mean_glass_to_grab_s(0.05, 0.0, 30.0, 0.1) == pytest.approx(2.1 / 30)
+    tail = 2 * (1 - 0.9815)  # P(|N(0, 8 ms)| > 16.67 ms)
+    assert mean_glass_to_grab_s(0.05, 0.008, 30.0, 0.0) == pytest.approx(
+        (2 + tail) / 30, abs=0.01 / 30
+    )
+
+
+def test_live_stamps_date_frames_by_their_grab_less_the_measured_latency() -> None:
+    """With live stamps the pilot is given the run's mean glass-to-grab latency, off by at
+    most ``latency_error_s``; the same world and senses with exact stamps fly otherwise."""
+    setup = PerchSetup(CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth")
+    realistic = setup.with_sensing(Sensing())
+    assert realistic.stamps == "live"
+    live = run_perch(realistic, 4)
+    exact = run_perch(replace(realistic, stamps="exact"), 4)
+    assert live.senses is not None
+    assert exact.senses is not None
+    measured = mean_glass_to_grab_s(
+        live.senses.latency_s,
+        Sensing().latency_jitter_s,
+        realistic.fps,
+        realistic.disturbances.latency_jitter,
+    )
+    assert abs(live.senses.latency_configured_s - measured) <= Sensing().latency_error_s
+    assert live.senses.latency_configured_s != measured
+    assert exact.senses.latency_s == live.senses.latency_s  # the same draw
+    assert live.contact_offset_mm != exact.contact_offset_mm
+    with pytest.raises(VehicleConfigError, match="unknown stamps 'grabbed'"):
+        replace(realistic, stamps="grabbed")

@@ -46,6 +46,7 @@ class PerchCampaign:
         fps: float = 30.0,
         latency_ms: float | None = None,
         sensing: str = "realistic",
+        stamps: str = "live",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -68,6 +69,7 @@ class PerchCampaign:
             TargetSpec.paper(),
             estimator=names[0],
             disturbances=Disturbances() if disturbances else Disturbances.none(),
+            stamps=stamps,
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
         timed = [timed_setup(base, sensing, fps, ms) for ms in latencies]
@@ -152,6 +154,7 @@ class PerchOptions:
     scheduler: str | None = None
     resume: bool = False
     progress: bool = False
+    stamps: str = "live"
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -169,6 +172,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         fps=options.fps,
         latency_ms=options.latency_ms,
         sensing=options.sensing,
+        stamps=options.stamps,
     )
     content = campaign.fly(
         options.out,
@@ -207,9 +211,15 @@ def senses(setup: PerchSetup) -> str:
         )
     low, high = (v * 1000.0 for v in setup.latency_range_s)
     latency = f"{low:.0f} ms" if low == high else f"{low:.0f}-{high:.0f} ms"
+    stamps = (
+        "frames stamped as live sources stamp them (--stamps exact: their true capture time)"
+        if setup.stamps == "live"
+        else "frames stamped with their true capture time"
+    )
     return (
         f"realistic senses, camera at {setup.fps:g} fps with {latency} of latency, odometry "
-        "and attitude late and noisy, calibration, mount and print off (--sensing ideal: none)"
+        "and attitude late and noisy, calibration, mount and print off (--sensing ideal: "
+        f"none); {stamps}"
     )
 
 

@@ -68,6 +68,15 @@ from perchpose.cli.group import group
     help="Camera latency, capture to estimate (default: drawn, 40-150 ms; with --sensing "
     "ideal one frame, and whole frames); up to 200 ms verified.",
 )
+@click.option(
+    "--stamps",
+    type=click.Choice(["live", "exact"]),
+    default="live",
+    show_default=True,
+    help="How frames are dated: live (as the live sources stamp them: the grab, less the "
+    "camera latency the user measured, off by up to 10 ms) or exact (the true capture time, "
+    "for comparison).",
+)
 @camera_option_fpv
 @click.option(
     "--out",
@@ -104,6 +113,7 @@ def perch(
     sensing: str,
     fps: float,
     latency_ms: float | None,
+    stamps: str,
     camera_file: str,
     out: str,
     json_out: str | None,
@@ -134,6 +144,7 @@ def perch(
         scheduler,
         resume,
         progress=show_progress(quiet),
+        stamps=stamps,
     )
     content = run(options, say=lambda m: click.echo(m, err=True))
     click.echo(summary_table(content), nl=False)

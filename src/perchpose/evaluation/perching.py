@@ -55,6 +55,7 @@ RUN_COLUMNS = (
     "mount_error_deg",
     "mount_error_mm",
     "target_scale",
+    "latency_configured_ms",
 )
 SENSE_COLUMNS = RUN_COLUMNS[RUN_COLUMNS.index("latency_ms") :]
 
@@ -247,7 +248,8 @@ def sense_values(draw: SensingDraw | None, setup: PerchSetup) -> tuple[float, ..
     """A run's senses as ``SENSE_COLUMNS`` holds them (ideal: the setup's latency and
     odometry rate, no error)."""
     if draw is None:
-        return (setup.latency_s * 1000.0, setup.odometry_hz, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+        latency_ms = setup.latency_s * 1000.0
+        return (latency_ms, setup.odometry_hz, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, latency_ms)
     K, K_true = draw.camera.K, setup.camera.K
     mount = draw.T_true_believed
     angle = math.degrees(rotation_angle_rad(mount[:3, :3], np.eye(3)))
@@ -262,6 +264,7 @@ def sense_values(draw: SensingDraw | None, setup: PerchSetup) -> tuple[float, ..
         angle,
         float(np.linalg.norm(mount[:3, 3]) * 1000.0),
         draw.target_scale,
+        draw.latency_configured_s * 1000.0,
     )
 
 
@@ -287,6 +290,7 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "controller": {k: v for k, v in asdict(setup.controller).items() if k != "T_body_camera"},
         "contact": asdict(setup.contact),
         "sensing": asdict(setup.sensing),
+        "stamps": setup.stamps,
         "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
     }
 
@@ -472,6 +476,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "contact_offset_mm": top["contact_offset_mm"],
         "time_to_perch_s": top["time_to_perch_s"],
         "sensing": setup.sensing.name,
+        "stamps": setup.stamps,
         "fps": setup.fps,
         "latency_ms": round(setup.latency_s * 1000.0, 3),
         "latency_range_ms": [round(v * 1000.0, 3) for v in setup.latency_range_s],

@@ -38,7 +38,13 @@ from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
-from perchpose.sim.sensing import SensedState, Sensing, SensingDraw, noisy_attitude
+from perchpose.sim.sensing import (
+    SensedState,
+    Sensing,
+    SensingDraw,
+    mean_glass_to_grab_s,
+    noisy_attitude,
+)
 from perchpose.sim.wind import DrydenWind, WindLevel, wind_level
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
@@ -47,6 +53,9 @@ Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 ESTIMATORS = ("paper", "outer", "inner", "covariance", "truth")
+# how frames are stamped: as the live sources stamp them (the grab, less the camera latency
+# the user measured), or with their true capture time (the simulation's earlier clock)
+STAMPS = ("live", "exact")
 # makes the simulated vehicle: parameters, start position, heading, onboard gains
 Plant = Callable[[QuadrotorParams, Array, float, OnboardGains], Quadrotor]
 REASONS = (
@@ -95,8 +104,11 @@ class PerchSetup:
     quality: ImageQuality = field(default_factory=ImageQuality)
     contact: ContactRules = field(default_factory=ContactRules)
     sensing: Sensing = field(default_factory=Sensing.ideal)
+    stamps: str = "live"
 
     def __post_init__(self) -> None:
+        if self.stamps not in STAMPS:
+            raise VehicleConfigError(f"unknown stamps {self.stamps!r} (choose live or exact)")
         if self.estimator not in ESTIMATORS:
             raise VehicleConfigError(
                 f"unknown estimator {self.estimator!r} (choose {', '.join(ESTIMATORS)})"
@@ -289,8 +301,9 @@ class _Flight:
     ) -> None:
         self.setup = setup
         self.seed = seed
-        # the senses draw from a third generator: ideal senses fly the worlds they always did
-        world_seq, camera_seq, senses_seq = np.random.SeedSequence(seed).spawn(3)
+        # the senses draw from a third generator: ideal senses fly the worlds they always did;
+        # the latency the user measured from a fourth (exact stamps fly what they always did)
+        world_seq, camera_seq, senses_seq, stamps_seq = np.random.SeedSequence(seed).spawn(4)
         world = np.random.default_rng(world_seq)
         self.camera_rng = np.random.default_rng(camera_seq)
         self.senses_rng = np.random.default_rng(senses_seq)
@@ -318,6 +331,17 @@ class _Flight:
         flow_noise = 0.0
         if not setup.sensing.is_ideal:
             self.senses = SensingDraw.draw(setup.sensing, setup.camera, self.senses_rng)
+            measured = mean_glass_to_grab_s(
+                self.senses.latency_s,
+                setup.sensing.latency_jitter_s,
+                setup.fps,
+                setup.disturbances.latency_jitter,
+            )
+            error = float(np.random.default_rng(stamps_seq).uniform(-1.0, 1.0))
+            self.senses = replace(
+                self.senses,
+                latency_configured_s=measured + error * setup.sensing.latency_error_s,
+            )
             self.T_body_camera = self.T_body_camera @ self.senses.T_true_believed
             flow_noise = setup.sensing.flow_noise_mps
         self.odometry = OdometryModel(setup.disturbances, start, world, flow_noise)
@@ -406,7 +430,13 @@ class _Flight:
                 shown = T_camera_target.copy()
                 shown[:3, 3] /= self.senses.target_scale
             payload = self.render.render(shown, s.quality, rng)
-        stamp = t_s + (self.senses.clock_offset_s if self.senses is not None else 0.0)
+        if self.senses is None:
+            stamp = t_s
+        elif s.stamps == "live":  # as a live source stamps it: its grab, less the latency set
+            grabbed = _step_of(arrival, s.fps, s.physics_hz) / s.physics_hz
+            stamp = grabbed - self.senses.latency_configured_s
+        else:
+            stamp = t_s + self.senses.clock_offset_s
         self.pipeline.append((arrival, stamp, payload))
 
     def arrived(self, k: int) -> Estimate | None:

@@ -20,6 +20,11 @@ Where the default magnitudes come from:
 - the attitude estimate: 0.2 deg of noise per sample (a MEMS IMU's complementary or Kalman
   filter at rest) and 0-10 ms of delay;
 - clocks: the camera's time stamps and the flight controller's agree to a few ms (±5 ms);
+- live stamps: a live source stamps a frame when it is grabbed, and the pilot dates it from
+  the grab less the camera latency the user measured (``perchpose track --camera-latency-ms``):
+  a measurement that films time-coded markers on a screen knows the chain's mean latency to
+  about ±10 ms (the display's own lag and its refresh are the spread), so the latency the
+  pilot is given is the run's mean glass-to-grab latency plus a uniform error of ±10 ms;
 - calibration: an OpenCV calibration from a few dozen views of a board leaves the focal
   length within about 1 % and the principal point within about 3 px on a 640 x 480 camera,
   and k1 within about 0.01; the camera's mount is measured to about 1 deg and 1 mm;
@@ -31,6 +36,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
+from statistics import NormalDist
 from typing import NamedTuple
 
 import numpy as np
@@ -57,6 +63,8 @@ class Sensing:
     arrival. flow_noise_mps : white velocity noise per odometry sample, integrated into the
     position. attitude_noise_deg : per sample. attitude_delay_s : its age on arrival.
     clock_offset_s : half-width of the camera clock's offset from the flight controller's.
+    latency_error_s : half-width of the error of the camera latency the user measured (live
+    stamps).
     focal_error, principal_point_px, k1_error : half-widths of the calibration's error.
     mount_deg, mount_mm : the camera mount's error (per axis). target_scale_error : the print's
     scale error. ``name`` ideal: none of this is drawn (``Sensing.ideal()``).
@@ -71,6 +79,7 @@ class Sensing:
     attitude_noise_deg: float = 0.2
     attitude_delay_s: tuple[float, float] = (0.0, 0.01)
     clock_offset_s: float = 0.005
+    latency_error_s: float = 0.01
     focal_error: float = 0.01
     principal_point_px: float = 3.0
     k1_error: float = 0.01
@@ -92,6 +101,7 @@ class Sensing:
             "flow_noise_mps",
             "attitude_noise_deg",
             "clock_offset_s",
+            "latency_error_s",
             "focal_error",
             "principal_point_px",
             "k1_error",
@@ -127,7 +137,8 @@ class SensingDraw:
     """One run's senses: the camera's latency, the odometry's rate and delay, the attitude's
     delay, the clock offset, the calibration the estimator is given (``camera``), the mount's
     error ``T_true_believed`` (the true ``T_body_camera`` is the believed one times it) and the
-    print's scale."""
+    print's scale. ``latency_configured_s``: the camera latency the pilot is given with live
+    stamps (NaN until the flight sets it: it depends on the frame rate)."""
 
     latency_s: float
     odometry_hz: float
@@ -137,6 +148,7 @@ class SensingDraw:
     camera: CameraModel
     T_true_believed: Array = field(repr=False)
     target_scale: float
+    latency_configured_s: float = math.nan
 
     @staticmethod
     def draw(sensing: Sensing, camera: CameraModel, rng: np.random.Generator) -> SensingDraw:
@@ -224,3 +236,17 @@ def noisy_attitude(R_world_body: Array, noise_deg: float, rng: np.random.Generat
     rx, ry, rz = np.radians(rng.normal(0.0, noise_deg, 3))
     turned: Array = R_world_body @ rot_z(float(rz)) @ rot_y(float(ry)) @ rot_x(float(rx))
     return turned
+
+
+def mean_glass_to_grab_s(
+    latency_s: float, jitter_s: float, fps: float, late_probability: float
+) -> float:
+    """The mean time from a frame's capture to its grab in the simulation: the latency plus
+    the absolute value of a normal jitter, up to the next frame's tick (at least one frame),
+    and a frame more with ``late_probability``; what a user's latency measurement averages.
+    The jitter's half-normal is integrated on its quantiles (no draw: the run's random
+    streams stay as they were)."""
+    quantiles = (np.arange(200) + 0.5) / 200.0
+    jitters = [jitter_s * NormalDist().inv_cdf(0.5 + 0.5 * q) for q in quantiles]
+    frames = [max(1, math.ceil((latency_s + j) * fps - 1e-9)) for j in jitters]
+    return (float(np.mean(frames)) + late_probability) / fps
