@@ -155,6 +155,38 @@ def test_perch_resume_keeps_runs_and_refuses_another_setup(
     assert json.loads(Path(f"{out}.json").read_text())["runs"] == 1
 
 
+def test_a_folder_with_runs_is_never_written_over_unasked(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A campaign run twice into one folder: refused without --resume or --overwrite, the
+    runs untouched; --overwrite starts afresh and deletes the old reports; --resume without
+    the campaign file that names the runs' setup is refused; no lock file stays behind."""
+    out = tmp_path / "p"
+    base = ["perch", "--estimator", "truth", "--workers", "1", "--out", str(out), "--quiet"]
+    assert main([*base, "--runs", "2"]) == 0
+    assert not (out / "campaign.lock").exists()
+    capsys.readouterr()
+    before = (out / "runs.csv").read_text()
+    assert main([*base, "--runs", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "holds 2 runs: --resume flies only the missing ones, --overwrite starts afresh" in err[0]
+    assert (out / "runs.csv").read_text() == before
+    assert main([*base, "--runs", "1", "--resume", "--overwrite"]) == 2
+    assert "give one" in capsys.readouterr().err
+    (out / "trajectories.png").write_bytes(b"stale")
+    (out / "wind.png").write_bytes(b"stale")  # a sweep's figure the new campaign will not make
+    assert main([*base, "--runs", "1", "--overwrite"]) == 0
+    assert len((out / "runs.csv").read_text().splitlines()) == 2
+    assert not (out / "wind.png").exists()
+    assert (out / "trajectories.png").read_bytes() != b"stale"
+    (out / "campaign.json").unlink()
+    assert main([*base, "--runs", "2", "--resume"]) == 2
+    assert "--resume needs campaign.json" in capsys.readouterr().err
+    assert len((out / "runs.csv").read_text().splitlines()) == 2
+    assert not (out / "campaign.lock").exists()
+
+
 def test_two_campaigns_never_write_one_folder(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -165,7 +197,7 @@ def test_two_campaigns_never_write_one_folder(
         argv = ["perch", "--runs", "1", "--estimator", "truth", "--out", str(tmp_path / "p")]
         assert main([*argv, "--resume"]) == 2
         assert "another perchpose campaign is writing here" in capsys.readouterr().err
-    assert main([*argv, "--quiet"]) == 0  # free again once it ended
+    assert main([*argv, "--quiet", "--overwrite"]) == 0  # free again once it ended
 
 
 def test_perch_scheduler_that_does_not_answer(

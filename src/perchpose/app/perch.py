@@ -89,13 +89,14 @@ class PerchCampaign:
         workers: int = 1,
         scheduler: str | None = None,
         resume: bool = False,
+        overwrite: bool = False,
         progress: bool = False,
         say: Callable[[str], None] = print,
     ) -> dict[str, object]:
         """Fly every run not already in ``out`` (with ``resume``), writing each as it
         finishes; then the reports. Returns the summary JSON."""
         base = self.setups[0]
-        with CampaignLog(out, base, resume=resume) as log:
+        with CampaignLog(out, base, resume=resume, overwrite=overwrite) as log:
             done = log.done
             jobs = campaign_jobs(
                 list(self.setups), self.runs, self.seed, lambda s, k: run_key(s, k) in done
@@ -155,6 +156,7 @@ class PerchOptions:
     resume: bool = False
     progress: bool = False
     stamps: str = "live"
+    overwrite: bool = False
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -179,6 +181,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         workers=max(1, options.workers),
         scheduler=options.scheduler,
         resume=options.resume,
+        overwrite=options.overwrite,
         progress=options.progress,
         say=say,
     )
@@ -257,7 +260,7 @@ def summary_table(content: dict[str, object]) -> str:
         wind, estimator, *latency = name.split("/")
         low, high = c["success_interval_95"]
         off = c["contact_offset_mm"]
-        fails = {k: v for k, v in c["reasons"].items() if k != "perched"}
+        fails = ", ".join(f"{k} {v}" for k, v in c["reasons"].items() if k != "perched" and v)
         lines.append(
             f"{wind:9} {estimator:10} {(latency or [content['latency_label']])[0]:>8} "
             f"{c['runs']:5d} {c['success_rate']:8.1%} "

@@ -100,6 +100,12 @@ from perchpose.cli.group import group
     help="Run on Dask: 'local' (a LocalCluster of --workers processes) or tcp://HOST:PORT.",
 )
 @click.option("--resume", is_flag=True, help="Keep the runs already in --out; fly the rest.")
+@click.option(
+    "--overwrite",
+    is_flag=True,
+    help="Delete the runs and reports already in --out and start afresh (without it, or "
+    "--resume, a folder with runs is refused).",
+)
 @quiet_option
 def perch(
     runs: int,
@@ -120,6 +126,7 @@ def perch(
     workers: int,
     scheduler: str | None,
     resume: bool,
+    overwrite: bool,
     quiet: bool,
 ) -> None:
     """Closed-loop perching in simulation from random starts 60-150 cm below the target."""
@@ -145,6 +152,7 @@ def perch(
         resume,
         progress=show_progress(quiet),
         stamps=stamps,
+        overwrite=overwrite,
     )
     content = run(options, say=lambda m: click.echo(m, err=True))
     click.echo(summary_table(content), nl=False)

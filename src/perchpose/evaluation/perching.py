@@ -319,21 +319,48 @@ def _lock_folder(out: Path) -> TextIO:
     return handle
 
 
+REPORTS = ("perch.json", "perch.md", "trajectories.png", "wind.png", "latency.png")
+
+
+def _rows_in(path: Path) -> int:
+    """The data rows of a ``runs.csv`` (0 when there is none)."""
+    if not path.exists():
+        return 0
+    with path.open("rb") as f:
+        return max(0, sum(1 for line in f if line.strip()) - 1)
+
+
 class CampaignLog:
     """``runs.csv`` written a row at a time (flushed), with ``campaign.json`` naming the setup.
 
-    resume : keep the rows already there (they must come from the same setup) and report
-    which runs are done; otherwise start the file afresh.
+    resume : keep the rows already there (they must come from the same setup, which
+    ``campaign.json`` names) and report which runs are done. overwrite : start afresh, the
+    earlier rows and reports deleted. Neither, in a folder that holds runs: refused, so that
+    no result is lost by a command run twice.
     """
 
-    def __init__(self, out_dir: str | Path, setup: PerchSetup, *, resume: bool = False) -> None:
+    def __init__(
+        self,
+        out_dir: str | Path,
+        setup: PerchSetup,
+        *,
+        resume: bool = False,
+        overwrite: bool = False,
+    ) -> None:
         self.out = Path(out_dir)
+        if resume and overwrite:
+            raise CampaignError("--resume keeps the runs and --overwrite deletes them: give one")
         try:
             self.out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise CampaignError(f"{self.out}: cannot create the output folder ({exc})") from exc
         self._lock = _lock_folder(self.out)
         self.path = self.out / "runs.csv"
+        try:
+            self._check_folder(resume, overwrite)
+        except CampaignError:
+            self._release()
+            raise
         description = setup_description(setup)
         fingerprint = _fingerprint(description)
         meta = self.out / "campaign.json"
@@ -350,6 +377,24 @@ class CampaignLog:
         if fresh:
             self._writer.writerow(RUN_COLUMNS)
             self._file.flush()
+
+    def _check_folder(self, resume: bool, overwrite: bool) -> None:
+        """Refuse to lose runs; with ``overwrite``, delete the earlier rows' reports."""
+        rows = _rows_in(self.path)
+        meta = self.out / "campaign.json"
+        if rows and not (resume or overwrite):
+            raise CampaignError(
+                f"{self.out} holds {rows} runs: --resume flies only the missing ones, "
+                "--overwrite starts afresh, or give another --out"
+            )
+        if rows and resume and not meta.exists():
+            raise CampaignError(
+                f"{self.out}: --resume needs {meta.name}, which names the setup of the {rows} "
+                "runs there, and it is missing: --overwrite starts afresh"
+            )
+        if overwrite:
+            for name in REPORTS:
+                (self.out / name).unlink(missing_ok=True)
 
     def _resumed(self, meta: Path, fingerprint: str) -> list[RunRecord]:
         if not meta.exists() or not self.path.exists():
@@ -382,9 +427,14 @@ class CampaignLog:
         self._writer.writerow(record.row())
         self._file.flush()
 
+    def _release(self) -> None:
+        """Give up the folder's lock and remove its file."""
+        self._lock.close()  # and with it the lock
+        (self.out / "campaign.lock").unlink(missing_ok=True)
+
     def close(self) -> None:
         self._file.close()
-        self._lock.close()  # and with it the lock
+        self._release()
 
     def __enter__(self) -> CampaignLog:
         return self
