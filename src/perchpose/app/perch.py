@@ -47,6 +47,7 @@ class PerchCampaign:
         latency_ms: float | None = None,
         sensing: str = "realistic",
         stamps: str = "live",
+        faults: tuple[str, ...] = (),
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -70,9 +71,10 @@ class PerchCampaign:
             estimator=names[0],
             disturbances=Disturbances() if disturbances else Disturbances.none(),
             stamps=stamps,
+            duration_s=FAULT_RUN_S if faults else PerchSetup.duration_s,
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
-        timed = [timed_setup(base, sensing, fps, ms) for ms in latencies]
+        timed = [replace(timed_setup(base, sensing, fps, ms), faults=faults) for ms in latencies]
         winds = list(WIND_LEVELS) if sweep == "wind" else [wind]
         setups = tuple(
             replace(t, estimator=e, wind=w, wind_mps=wind_mps, gust_mps=gust_mps)
@@ -129,6 +131,7 @@ class PerchCampaign:
 
 
 SWEEP_LATENCIES_MS = (0.0, 50.0, 100.0, 150.0, 200.0)  # --sweep latency
+FAULT_RUN_S = 40.0  # a run with a fault goes on through its landing
 
 
 @dataclass(frozen=True)
@@ -157,6 +160,7 @@ class PerchOptions:
     progress: bool = False
     stamps: str = "live"
     overwrite: bool = False
+    faults: tuple[str, ...] = ()
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -175,6 +179,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         latency_ms=options.latency_ms,
         sensing=options.sensing,
         stamps=options.stamps,
+        faults=options.faults,
     )
     content = campaign.fly(
         options.out,
@@ -266,5 +271,14 @@ def summary_table(content: dict[str, object]) -> str:
             f"{c['runs']:5d} {c['success_rate']:8.1%} "
             f"{low:6.1%} - {high:6.1%} {num(off['p50']):>9}/{num(off['p95']):<10} "
             f"{fails or 'none'}"
+        )
+    outcomes = content.get("fault_outcomes") or {}
+    assert isinstance(outcomes, dict)
+    for kind, o in outcomes.items():
+        ended = ", ".join(f"{k} {v}" for k, v in o["ended"].items())
+        lines.append(
+            f"{kind}: {o['runs']} runs ({ended}); motor stops above 5 cm: "
+            f"{o['motor_stops_above_5cm']}; longest without a setpoint: "
+            f"{o['max_setpoint_gap_s']:.3f} s"
         )
     return "\n".join(lines) + "\n"

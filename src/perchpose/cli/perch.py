@@ -77,6 +77,13 @@ from perchpose.cli.group import group
     "camera latency the user measured, off by up to 10 ms) or exact (the true capture time, "
     "for comparison).",
 )
+@click.option(
+    "--faults",
+    default="",
+    help="Inject one of these faults per run, at a random time: camera-stall, "
+    "odometry-stall, attitude-stall, link-loss (comma-separated; runs then go on through the "
+    "landing until the motors stop, up to 40 s).",
+)
 @camera_option_fpv
 @click.option(
     "--out",
@@ -120,6 +127,7 @@ def perch(
     fps: float,
     latency_ms: float | None,
     stamps: str,
+    faults: str,
     camera_file: str,
     out: str,
     json_out: str | None,
@@ -153,6 +161,7 @@ def perch(
         progress=show_progress(quiet),
         stamps=stamps,
         overwrite=overwrite,
+        faults=tuple(f.strip() for f in faults.split(",") if f.strip()),
     )
     content = run(options, say=lambda m: click.echo(m, err=True))
     click.echo(summary_table(content), nl=False)

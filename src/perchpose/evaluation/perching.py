@@ -24,7 +24,7 @@ import numpy as np
 from perchpose.errors import CampaignError
 from perchpose.evaluation.plots import perch_figure, sweep_figure
 from perchpose.pose.marker import rotation_angle_rad
-from perchpose.sim.perch import CONTACT_RADIUS_MM, REASONS, PerchResult, PerchSetup
+from perchpose.sim.perch import CONTACT_RADIUS_MM, FALL_M, REASONS, PerchResult, PerchSetup
 from perchpose.sim.sensing import SensingDraw
 
 RUN_COLUMNS = (
@@ -45,6 +45,12 @@ RUN_COLUMNS = (
     "contact_tilt_deg",
     "contact_lateral_speed_mps",
     "contact_vertical_speed_mps",
+    "fault",
+    "fault_start_s",
+    "fault_duration_s",
+    "motor_stop_height_m",
+    "max_setpoint_gap_s",
+    "pilot_states",
     "latency_ms",
     "odometry_hz",
     "odometry_delay_ms",
@@ -98,12 +104,19 @@ class RunRecord:
     contact_tilt_deg: float = math.nan
     contact_lateral_speed_mps: float = math.nan
     contact_vertical_speed_mps: float = math.nan
+    fault: str = ""  # the fault injected (empty: none), from when, for how long
+    fault_start_s: float = math.nan
+    fault_duration_s: float = math.nan
+    motor_stop_height_m: float = math.nan  # above what it rests on (NaN: not stopped)
+    max_setpoint_gap_s: float = math.nan
+    pilot_states: str = ""  # state@t;... as the pilot entered them
     senses: tuple[float, ...] = ()  # SENSE_COLUMNS' values (empty: ideal senses)
 
     @staticmethod
     def of(result: PerchResult, setup: PerchSetup) -> RunRecord:
         level = setup.wind_level
         touch = result.contact
+        fault = result.fault
         return RunRecord(
             result.estimator,
             setup.wind,
@@ -122,6 +135,12 @@ class RunRecord:
             touch.tilt_deg if touch is not None else math.nan,
             touch.lateral_speed_mps if touch is not None else math.nan,
             touch.v_mps[2] if touch is not None else math.nan,
+            fault.kind if fault is not None else "",
+            fault.start_s if fault is not None else math.nan,
+            fault.duration_s if fault is not None else math.nan,
+            result.motor_stop_height_m,
+            result.max_setpoint_gap_s,
+            result.pilot_states,
             sense_values(result.senses, setup),
         )
 
@@ -156,6 +175,12 @@ class RunRecord:
             f"{self.contact_tilt_deg:.2f}",
             f"{self.contact_lateral_speed_mps:.4f}",
             f"{self.contact_vertical_speed_mps:.4f}",
+            self.fault,
+            f"{self.fault_start_s:.3f}",
+            f"{self.fault_duration_s:.3f}",
+            f"{self.motor_stop_height_m:.4f}",
+            f"{self.max_setpoint_gap_s:.4f}",
+            self.pilot_states,
             *(f"{v:.6g}" for v in (self.senses or (math.nan,) * len(SENSE_COLUMNS))),
         ]
 
@@ -180,6 +205,12 @@ class RunRecord:
                 float(row["contact_tilt_deg"]),
                 float(row["contact_lateral_speed_mps"]),
                 float(row["contact_vertical_speed_mps"]),
+                row["fault"],
+                float(row["fault_start_s"]),
+                float(row["fault_duration_s"]),
+                float(row["motor_stop_height_m"]),
+                float(row["max_setpoint_gap_s"]),
+                row["pilot_states"],
                 tuple(float(row[name]) for name in SENSE_COLUMNS),
             )
         except (KeyError, ValueError, TypeError) as exc:
@@ -291,6 +322,7 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "contact": asdict(setup.contact),
         "sensing": asdict(setup.sensing),
         "stamps": setup.stamps,
+        "faults": list(setup.faults),
         "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
     }
 
@@ -527,14 +559,49 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "time_to_perch_s": top["time_to_perch_s"],
         "sensing": setup.sensing.name,
         "stamps": setup.stamps,
+        "faults": list(setup.faults),
         "fps": setup.fps,
         "latency_ms": round(setup.latency_s * 1000.0, 3),
         "latency_range_ms": [round(v * 1000.0, 3) for v in setup.latency_range_s],
         "latency_label": f"{setup.latency_label} ms",
         "by_estimator": by_estimator,
         "cells": cells,
+        "fault_outcomes": fault_outcomes(records) if setup.faults else {},
         "setup": setup_description(setup),
     }
+
+
+def _ending(record: RunRecord) -> str:
+    """How a run with a fault ended: ``perched``, ``landed`` (the pilot sensed the
+    touchdown), ``motors stopped in the air`` (the vehicle's own watchdog, or a stop above
+    ``FALL_M``), or what stopped the run otherwise (its reason: the motors still on)."""
+    if record.success:
+        return "perched"
+    height = record.motor_stop_height_m
+    if math.isfinite(height):
+        return "landed" if height <= FALL_M else "motors stopped in the air"
+    return record.reason
+
+
+def fault_outcomes(records: list[RunRecord]) -> dict[str, object]:
+    """Per fault injected: runs, how they ended, motor stops above ``FALL_M``, and the
+    longest time the vehicle went without a setpoint while the pilot flew it."""
+    out: dict[str, object] = {}
+    for kind in sorted({r.fault for r in records if r.fault}):
+        rs = [r for r in records if r.fault == kind]
+        endings: dict[str, int] = {}
+        for r in rs:
+            endings[_ending(r)] = endings.get(_ending(r), 0) + 1
+        gaps = [r.max_setpoint_gap_s for r in rs if math.isfinite(r.max_setpoint_gap_s)]
+        out[kind] = {
+            "runs": len(rs),
+            "ended": endings,
+            "motor_stops_above_5cm": sum(
+                math.isfinite(r.motor_stop_height_m) and r.motor_stop_height_m > FALL_M for r in rs
+            ),
+            "max_setpoint_gap_s": max(gaps) if gaps else math.nan,
+        }
+    return out
 
 
 def _num(v: object, fmt: str = ".1f") -> str:

@@ -35,6 +35,7 @@ from perchpose.fusion.base import stage_of
 from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad, yaw_rad
 from perchpose.sim.contact import Contact, ContactRules, PlateContact, tilt_deg
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
+from perchpose.sim.faults import LEVEL_AFTER_S, MOTORS_OFF_AFTER_S, Fault, check_faults
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
@@ -72,6 +73,9 @@ REASONS = (
 )
 CONTACT_RADIUS_MM = ContactRules().max_offset_mm  # the paper's 25 mm magnet
 MAX_TILT_DEG = 60.0  # beyond this the vehicle has flipped: a crash
+REST_Z_M = 0.025  # the body's centre above the floor when it stands on its feet
+FLOOR_CRASH_MPS = 1.0  # meeting the floor faster than this is a crash, not a landing
+FALL_M = 0.05  # motors stopped higher than this above what the vehicle rests on: it falls
 R_WORLD_TARGET = np.diag([1.0, -1.0, -1.0])  # printed face down, x along world x
 
 
@@ -105,10 +109,17 @@ class PerchSetup:
     contact: ContactRules = field(default_factory=ContactRules)
     sensing: Sensing = field(default_factory=Sensing.ideal)
     stamps: str = "live"
+    faults: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.stamps not in STAMPS:
             raise VehicleConfigError(f"unknown stamps {self.stamps!r} (choose live or exact)")
+        check_faults(self.faults)
+        stalls = [f for f in self.faults if f in ("odometry-stall", "attitude-stall")]
+        if stalls and self.sensing.is_ideal:
+            raise VehicleConfigError(
+                f"{stalls[0]} needs realistic senses (ideal ones reach the pilot at once)"
+            )
         if self.estimator not in ESTIMATORS:
             raise VehicleConfigError(
                 f"unknown estimator {self.estimator!r} (choose {', '.join(ESTIMATORS)})"
@@ -217,7 +228,12 @@ class PerchResult:
     """One run. ``reason``: one of ``REASONS``. ``tries``: final climbs the controller backed
     off from. ``wind_direction_rad``: where this run's mean wind blew to. ``contact``: the
     first contact with the plate (None: none). ``senses``: the run's draw of the vehicle's
-    senses (None: ideal)."""
+    senses (None: ideal). ``fault``: the fault injected (None: none). With faults the run goes
+    on through a landing until the motors stop: ``motor_stop_height_m`` is then the height
+    above whatever the vehicle rests on (0 perched or on the floor; NaN: they never stopped),
+    ``pilot_states`` the pilot's states with the times it entered them
+    (``perching@0.03;lost@5.10``), ``max_setpoint_gap_s`` the longest the vehicle went
+    without a setpoint while the pilot flew it."""
 
     seed: int
     estimator: str
@@ -234,23 +250,48 @@ class PerchResult:
     wind_direction_rad: float = 0.0
     contact: Contact | None = None
     senses: SensingDraw | None = None
+    fault: Fault | None = None
+    motor_stop_height_m: float = math.nan
+    pilot_states: str = ""
+    max_setpoint_gap_s: float = math.nan
 
 
 class HeldSetpoint:
     """The commander the simulated vehicle flies: it holds the last setpoint the pilot sent,
-    and a stop or no setpoint at all is a hover."""
+    and no setpoint at all is a hover. A stop cuts the motors (``stopped``). ``clock`` gives
+    the simulation's time; while ``link_up`` says no, nothing the pilot sends arrives, and
+    ``received_s`` (when the last one did) ages, for the vehicle's own watchdog."""
 
-    def __init__(self) -> None:
+    def __init__(
+        self,
+        clock: Callable[[], float] = lambda: 0.0,
+        link_up: Callable[[], bool] = lambda: True,
+    ) -> None:
         self.v_mps = np.zeros(3)
         self.yaw_rate_rad_s = 0.0
+        self.clock = clock
+        self.link_up = link_up
+        self.stopped = False
+        self.received_s = 0.0
+        self.sent_s: list[float] = []  # when the pilot sent each command
+
+    def _arrives(self) -> bool:
+        self.sent_s.append(self.clock())
+        if self.link_up():
+            self.received_s = self.clock()
+            return True
+        return False
 
     def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
-        self.v_mps = np.array(v_world_mps)
-        self.yaw_rate_rad_s = yaw_rate_rad_s
+        if self._arrives():
+            self.v_mps = np.array(v_world_mps)
+            self.yaw_rate_rad_s = yaw_rate_rad_s
 
     def send_stop(self) -> None:
-        self.v_mps = np.zeros(3)
-        self.yaw_rate_rad_s = 0.0
+        if self._arrives():
+            self.v_mps = np.zeros(3)
+            self.yaw_rate_rad_s = 0.0
+            self.stopped = True
 
     def send_land(self) -> bool:
         """The simulated vehicle has no landing of its own: the pilot lands it."""
@@ -303,7 +344,10 @@ class _Flight:
         self.seed = seed
         # the senses draw from a third generator: ideal senses fly the worlds they always did;
         # the latency the user measured from a fourth (exact stamps fly what they always did)
-        world_seq, camera_seq, senses_seq, stamps_seq = np.random.SeedSequence(seed).spawn(4)
+        seeds = np.random.SeedSequence(seed).spawn(6)
+        world_seq, camera_seq, senses_seq, stamps_seq, faults_seq, range_seq = seeds
+        self.fault = Fault.draw(setup.faults, np.random.default_rng(faults_seq))
+        self.range_rng = np.random.default_rng(range_seq)
         world = np.random.default_rng(world_seq)
         self.camera_rng = np.random.default_rng(camera_seq)
         self.senses_rng = np.random.default_rng(senses_seq)
@@ -349,7 +393,12 @@ class _Flight:
         self.estimator = _estimator_for(
             setup, self.senses.camera if self.senses is not None else setup.camera
         )
-        self.commander = HeldSetpoint()
+        self.commander = HeldSetpoint(
+            lambda: self.now_s, lambda: not self.faulty("link-loss", self.now_s)
+        )
+        self.resting = False  # on the floor, its weight on its feet
+        self.motor_stop_height_m = math.nan  # above what it rests on, once the motors stop
+        self.motors_stopped = False
         self.controller = PerchingController(setup.controller)
         self.now_s = 0.0
         self.sensed: SensedState | None = None
@@ -361,7 +410,7 @@ class _Flight:
             self.attitude,
             controller=self.controller,
             settings=setup.pilot,
-            height_m=lambda: float(self.motion()[0][2]),
+            height_m=self.height_m,
             odometry=self.motion,
             ages=None if self.sensed is None else self.sense_ages,
             report=log.debug,
@@ -372,22 +421,49 @@ class _Flight:
         self.pipeline: deque[tuple[int, float, Array | NDArray[np.uint8] | None]] = deque()
         self._last_arrival = 0
 
+    def faulty(self, kind: str, t_s: float) -> bool:
+        """The run's fault is ``kind`` and is on at ``t_s``."""
+        return self.fault is not None and self.fault.kind == kind and self.fault.active(t_s)
+
+    def _through(self, sense: str) -> float:
+        """Up to when the flight controller's ``sense`` samples have got through (a stalled
+        stream: its stall's start)."""
+        if self.fault is not None and self.faulty(f"{sense}-stall", self.now_s):
+            return self.fault.start_s
+        return self.now_s
+
     def attitude(self) -> Array:
         """The attitude the pilot has now: the flight controller's estimate, as it arrives."""
         if self.sensed is None:
             return self.vehicle.R_estimate
-        return self.sensed.attitude(self.now_s)
+        return self.sensed.attitude(self._through("attitude"))
 
     def motion(self) -> tuple[Array, Array]:
         """The odometry the pilot has now (position, velocity), as it arrives."""
         if self.sensed is None:
             return self.odometry.p_m, self.odometry.v_mps
-        return self.sensed.odometry(self.now_s)
+        return self.sensed.odometry(self._through("odometry"))
+
+    def height_m(self) -> float:
+        """The height the pilot has. With faults (runs that go on to a landing): above the
+        floor (0 standing on it), as the flight controller's estimate gives it with a range
+        sensor under the vehicle (a Flow deck's VL53L1x: noise of 5 mm plus 1 % of the
+        range; exact with ideal senses); otherwise the odometry's, as the campaigns measured
+        before faults were flown."""
+        if not self.setup.faults:  # as the campaigns measured before faults were flown
+            return float(self.motion()[0][2])
+        h = float(self.vehicle.p_m[2]) - REST_Z_M
+        if self.sensed is None:
+            return h
+        return h + float(self.range_rng.normal(0.0, 0.005 + 0.01 * abs(h)))
 
     def sense_ages(self) -> SenseAges:
         """How old the attitude and odometry the pilot has now are (realistic senses)."""
         assert self.sensed is not None
-        attitude_s, odometry_s = self.sensed.ages(self.now_s)
+        attitude_s, _ = self.sensed.ages(self._through("attitude"))
+        _, odometry_s = self.sensed.ages(self._through("odometry"))
+        attitude_s += self.now_s - self._through("attitude")
+        odometry_s += self.now_s - self._through("odometry")
         return SenseAges(attitude_s, odometry_s, odometry_s)
 
     def sense(self, t_s: float) -> None:
@@ -462,18 +538,47 @@ class _Flight:
         touched) or None."""
         s = self.setup
         v = self.vehicle
-        v.thrust_scale = self.draw.thrust_scale(t_s)
         dt_s = 1.0 / s.physics_hz
+        c = self.commander
+        silent_s = 0.0 if not c.sent_s else t_s - c.received_s
+        goes_on = bool(s.faults)  # without faults a run ends as the landing starts
+        if goes_on and not self.motors_stopped and (c.stopped or silent_s >= MOTORS_OFF_AFTER_S):
+            self.motors_stopped = True  # the pilot's stop, or the vehicle's own watchdog
+            self.motor_stop_height_m = 0.0 if self.resting else float(v.p_m[2]) - REST_Z_M
+        v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
+        if self.resting and (self.motors_stopped or v_sp[2] <= 0.0):
+            self.odometry.update(v.p_m, v.v_mps, dt_s * steps)  # on the floor, still
+            return None
+        self.resting = False
+        v.thrust_scale = (0.0,) * 4 if self.motors_stopped else self.draw.thrust_scale(t_s)
         contact = v.fly(
             dt_s,
             steps,
-            self.commander.v_mps,
-            self.commander.yaw_rate_rad_s,
+            v_sp,
+            c.yaw_rate_rad_s if silent_s < LEVEL_AFTER_S else 0.0,
             self.odometry.v_mps,
-            touched=self.plate,
+            touched=self._touched,
         )
         self.odometry.update(v.p_m, v.v_mps, dt_s * (steps if contact is None else contact + 1))
         return contact
+
+    def _touched(self, vehicle: Quadrotor) -> bool:
+        """The vehicle touched the plate, or (with faults, whose runs go on to a landing) its
+        feet met the floor."""
+        if self.plate(vehicle):
+            return True
+        return bool(self.setup.faults) and vehicle.p_m[2] <= REST_Z_M and vehicle.v_mps[2] < 0.0
+
+    def on_floor(self) -> bool:
+        """The vehicle's feet met the floor: it rests there (True), or it fell on it (False:
+        faster than ``FLOOR_CRASH_MPS`` or tilted over 30 degrees)."""
+        v = self.vehicle
+        hard = float(np.linalg.norm(v.v_mps)) > FLOOR_CRASH_MPS or tilt_deg(v) > 30.0
+        p = v.p_m
+        v.p_m = np.array([p[0], p[1], REST_Z_M])
+        v.v_mps = np.zeros(3)
+        self.resting = not hard
+        return self.resting
 
     def crashed(self) -> bool:
         v = self.vehicle
@@ -525,6 +630,8 @@ class _Trace:
     ) -> PerchResult:
         """The run's result: ``outcome`` is (success, reason, offset, speed, time)."""
         success, reason, offset, speed, t = outcome
+        pilot = flight.pilot
+        states = ";".join(f"{after}@{at:.2f}" for at, _, after in pilot.transitions)
         return PerchResult(
             flight.seed,
             flight.setup.estimator,
@@ -541,7 +648,20 @@ class _Trace:
             flight.wind_direction_rad,
             contact,
             flight.senses,
+            flight.fault,
+            flight.motor_stop_height_m,
+            states,
+            _max_gap_s(flight.commander.sent_s, self.ts[-1] if self.ts else 0.0, pilot.flying),
         )
+
+
+def _max_gap_s(sent_s: list[float], end_s: float, still_flying: bool) -> float:
+    """The longest time between two of the pilot's commands (and from the last one to
+    ``end_s`` if the pilot still flies the vehicle then); NaN before the first."""
+    if not sent_s:
+        return math.nan
+    times = [*sent_s, end_s] if still_flying else sent_s
+    return float(np.max(np.diff(times))) if len(times) > 1 else 0.0
 
 
 def run_perch(
@@ -570,10 +690,15 @@ def run_perch(
     senses = flight.senses
     events = event_steps(setup, senses.odometry_hz if senses is not None else None)
     dt_s = 1.0 / setup.physics_hz
+    goes_on = bool(setup.faults)  # through a landing, until the motors stop
     for n, (i, k) in enumerate(events):
         t = i * dt_s
         flight.now_s = t
-        if k is None:  # an odometry sample between frames
+        if k is not None and flight.faulty("camera-stall", t):  # no frame reaches the pilot
+            flight.vehicle.wind_mps = flight.wind.step()
+            flight.pilot.tick(t)
+            trace.frame(t, 0, flight.pilot.state)
+        elif k is None:  # an odometry sample between frames
             flight.pilot.tick(t)
         else:
             flight.vehicle.wind_mps = flight.wind.step()
@@ -589,16 +714,22 @@ def run_perch(
             if k is None:  # contact between frames: its row
                 trace.frame(t, 0, flight.controller.phase)
             trace.magnets.append(magnet)
-        if contact is not None:
-            touch = flight.plate.contact
-            assert touch is not None
+        touch = flight.plate.contact
+        if contact is not None and touch is not None:
             reason = touch.verdict(setup.contact)
             t_contact = t + (contact + 1) * dt_s
             speed = touch.v_mps[2]
+            if reason == "perched" and goes_on:
+                flight.motor_stop_height_m = 0.0  # the magnet holds it; the pilot stops them
             return result(reason == "perched", reason, touch.offset_mm, speed, t_contact, touch)
+        if contact is not None and not flight.on_floor():
+            return result(False, "crash", math.nan, math.nan, math.nan)
         if flight.crashed():
             return result(False, "crash", math.nan, math.nan, math.nan)
-        if flight.pilot.state in (PilotState.LANDING, PilotState.LANDED):
+        landing = flight.pilot.state in (PilotState.LANDING, PilotState.LANDED)
+        if (landing and not goes_on) or (goes_on and flight.motors_stopped):
             reason = "gave-up" if flight.controller.phase == Phase.GIVE_UP else "lost"
+            if flight.motor_stop_height_m > FALL_M:  # stopped in the air: it falls
+                reason = "crash"
             return result(False, reason, math.nan, math.nan, math.nan)
     return result(False, "timeout", math.nan, math.nan, math.nan)
