@@ -3,6 +3,7 @@ touchdown and never on a timer, and the clock thread that ticks it."""
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -106,22 +107,32 @@ def _pilot(
     )
 
 
+def _level_pilot(
+    commander: Recorder,
+    settings: ControllerSettings,
+    position: dict[str, float],
+    clock: Callable[[], float] = time.monotonic,
+) -> PerchingPilot:
+    """A pilot on a level vehicle 1 m up, at ``position["x"]`` along x, still."""
+    return PerchingPilot(
+        commander,
+        lambda: np.eye(3),
+        controller=PerchingController(settings),
+        height_m=lambda: 1.0,
+        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
+        report=lambda _m: None,
+        clock=clock,
+    )
+
+
 def _gaps_s(times: list[float]) -> float:
     return float(np.max(np.diff(times))) if len(times) > 1 else 0.0
 
 
 def test_pilot_lands_when_the_controller_gives_up() -> None:
     s = ControllerSettings(observer_rate=0.0, max_tries=1)
-    commander = Recorder()
     position = {"x": 0.0}
-    pilot = PerchingPilot(
-        commander,
-        lambda: np.eye(3),
-        controller=PerchingController(s),
-        height_m=lambda: 1.0,
-        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
-        report=lambda _m: None,
-    )
+    pilot = _level_pilot(Recorder(), s, position)
     for k in range(3):
         pilot.update(_seen(s, [0.0, 0.0, 0.05], k / 30), k / 30)
     position["x"] = 0.05
@@ -137,15 +148,7 @@ def test_pilot_ticks_between_frames_and_in_every_flying_state() -> None:
     sent = commander.sent
     now = {"t": 100.0}
     position = {"x": 0.0}
-    pilot = PerchingPilot(
-        commander,
-        lambda: np.eye(3),
-        controller=PerchingController(s),
-        height_m=lambda: 1.0,
-        odometry=lambda: (np.array([position["x"], 0.0, 1.0]), np.zeros(3)),
-        report=lambda _m: None,
-        clock=lambda: now["t"],
-    )
+    pilot = _level_pilot(commander, s, position, clock=lambda: now["t"])
     assert pilot.tick_now() is None  # waiting: nothing sent before the first target
     assert not sent
     pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
