@@ -100,6 +100,7 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert "truth" in capsys.readouterr().out
     summary = json.loads((tmp_path / "s.json").read_text())
     assert summary["stamps"] == "live"
+    assert summary["latency_ms"] == [40.0, 150.0]  # drawn per run from this range
     assert summary["runs"] == 2
     assert summary["success_rate"] == 1.0
     assert set(summary["contact_offset_mm"]) == {"p50", "p90", "p95", "max"}

@@ -147,7 +147,9 @@ class PerchingPilot:
     estimate, or None while unknown; with it the controller rejects disturbances and flies the
     last centimetres on odometry. ages : how old the link's latest attitude, position and
     height samples are (None: always fresh, as in the simulation). clock : the monotonic clock
-    that ``tick_now`` and live frames' ``captured_s`` are on.
+    that ``tick_now`` and live frames' ``captured_s`` are on. on_ground : the vehicle's own
+    land detector where it has one (an autopilot's EXTENDED_SYS_STATE: True on the ground,
+    None when it says nothing); while landing, its word is a touchdown too.
     """
 
     def __init__(
@@ -162,8 +164,10 @@ class PerchingPilot:
         ages: Callable[[], SenseAges] | None = None,
         report: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        on_ground: Callable[[], bool | None] | None = None,
     ) -> None:
         self.commander = commander
+        self.on_ground = on_ground
         self.ages = ages
         self._holding = False
         self._bad_attitude_since: float | None = None
@@ -349,6 +353,8 @@ class PerchingPilot:
     def _land_step(self, t_s: float) -> PilotStep:
         """One step of a landing: a descent until touchdown is sensed, never a timer."""
         s = self.settings
+        if self.on_ground is not None and self.on_ground():
+            return self._stop(t_s, PilotState.LANDED, "the vehicle's land detector says landed")
         stale = self._stale(t_s)
         lost = stale is not None and stale[1] >= s.senses_lost_after_s
         height = None if lost else self._height()

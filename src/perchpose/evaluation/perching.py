@@ -299,6 +299,13 @@ def sense_values(draw: SensingDraw | None, setup: PerchSetup) -> tuple[float, ..
     )
 
 
+def _latency_ms(setup: PerchSetup) -> float | list[float]:
+    """The camera latency a campaign flew, ms: one value where it is fixed, the range
+    ``[low, high]`` each run's is drawn from otherwise."""
+    low, high = (round(v * 1000.0, 3) for v in setup.latency_range_s)
+    return low if low == high else [low, high]
+
+
 def setup_description(setup: PerchSetup) -> dict[str, object]:
     """What a campaign's runs depend on besides estimator, wind and seed."""
     c = setup.camera
@@ -309,7 +316,7 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "K": np.asarray(c.K).round(6).tolist(),
         "fps": setup.fps,
         "latency_frames": setup.latency_frames,
-        "latency_ms": round(setup.latency_s * 1000.0, 3),
+        "latency_ms": _latency_ms(setup),
         "drop_probability": setup.drop_probability,
         "start_below_m": list(setup.start_below_m),
         "start_lateral_fraction": setup.start_lateral_fraction,
@@ -561,7 +568,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "stamps": setup.stamps,
         "faults": list(setup.faults),
         "fps": setup.fps,
-        "latency_ms": round(setup.latency_s * 1000.0, 3),
+        "latency_ms": _latency_ms(setup),
         "latency_range_ms": [round(v * 1000.0, 3) for v in setup.latency_range_s],
         "latency_label": f"{setup.latency_label} ms",
         "by_estimator": by_estimator,

@@ -52,6 +52,8 @@ class Vehicle:
         self.vz_ned_mps = 0.0
         self.disarmed_at_m: float | None = None
         self.boot_offset_ms = 0  # a reboot: its clock since boot starts again
+        self.floor_m = 0.0  # what it lands on, above its local origin (a roof: higher)
+        self.land_detector = False  # sends EXTENDED_SYS_STATE with its landed state
         self.spoil: set[str] = set()  # the next sample of these kinds carries a NaN
         self.received: list[tuple[int, Any]] = []  # (the mode it arrived in, message)
         self._stop = threading.Event()
@@ -97,8 +99,11 @@ class Vehicle:
     def _state(self) -> None:
         nan = float("nan")
         if self.flies:
-            self.height_m = max(0.0, self.height_m - self.vz_ned_mps * 0.02)
-        vz = self.vz_ned_mps if self.flies and self.height_m > 0.0 else 0.0
+            self.height_m = max(self.floor_m, self.height_m - self.vz_ned_mps * 0.02)
+        resting = self.height_m <= self.floor_m
+        vz = self.vz_ned_mps if self.flies and not resting else 0.0
+        if self.land_detector:
+            self.conn.mav.extended_sys_state_send(0, 1 if resting else 2)
         boot_ms = int(time.monotonic() * 1000 - self.boot_offset_ms) & 0xFFFFFFFF
         if "ATTITUDE" in self.streams:
             roll = nan if "ATTITUDE" in self.spoil else 0.0
@@ -610,3 +615,18 @@ def test_a_recording_flies_a_vehicle_only_in_real_time(
         )
         assert "add --realtime" in err[0]
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_a_vehicle_landing_on_a_roof_is_disarmed_on_its_own_land_detector(udp_port: int) -> None:
+    """Its floor is 40 cm above its local origin, so its height never reads near zero: the
+    pilot's touchdown rule cannot tell, the autopilot's land detector (EXTENDED_SYS_STATE
+    ON_GROUND) can, and ends the landing with a normal disarm there."""
+    with guided(udp_port, settings=QUICK_LANDING) as (vehicle, pilot, reports):
+        vehicle.flies, vehicle.floor_m, vehicle.land_detector = True, 0.4, True
+        fly(pilot, 0.3, (0.0, 0.0, 0.6), time.monotonic())
+        wait_for(lambda: pilot.pilot.state == "landed", seconds=12.0)
+        time.sleep(0.1)
+    (disarm,) = _command_longs(vehicle, 400)
+    assert disarm.param2 == 0
+    assert vehicle.disarmed_at_m == pytest.approx(0.4)
+    assert any("land detector says landed" in r for r in reports)

@@ -53,6 +53,7 @@ MAV_MODE_FLAG_SAFETY_ARMED = 128
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 STREAM_IDS = {"ATTITUDE": 30, "LOCAL_POSITION_NED": 32}
+MAV_LANDED_STATE_ON_GROUND = 1
 STREAM_RETRY_S = 2.0  # a stream not arriving this long after it was asked for is asked again
 STREAM_TRIES = 3
 # messages waiting for the link's thread; a link this far behind drops the oldest
@@ -123,7 +124,8 @@ class VehicleState:
 
     The autopilot's HEARTBEAT: ``autopilot`` (MAV_AUTOPILOT: 3 ArduPilot, 12 PX4),
     ``custom_mode``, ``base_mode``; ATTITUDE as ``R_ned_frd``; LOCAL_POSITION_NED as
-    ``p_ned_m`` and ``v_ned_mps``. ``system_id`` and ``component_id`` are the autopilot's:
+    ``p_ned_m`` and ``v_ned_mps``; EXTENDED_SYS_STATE's ``landed_state`` (its land detector).
+    ``system_id`` and ``component_id`` are the autopilot's:
     ``target_system`` if given, else the first autopilot whose HEARTBEAT is heard. Nothing from
     another system or component reaches this state. An ATTITUDE or LOCAL_POSITION_NED that
     ``gate`` refuses (non-finite, implausible, out of order, from before a reboot:
@@ -143,6 +145,8 @@ class VehicleState:
     system_id: int | None = None
     component_id: int | None = None
     heartbeat_t_s: float = float("nan")
+    landed_state: int = 0
+    landed_state_t_s: float = float("nan")
     rejected: int = 0
     gate: SampleGate = field(default_factory=SampleGate)
 
@@ -202,9 +206,19 @@ class VehicleState:
                 return False
             self.p_ned_m, self.v_ned_mps = p, v
             self.position_t_s = now
+        elif kind == "EXTENDED_SYS_STATE":
+            self.landed_state = int(msg.landed_state)
+            self.landed_state_t_s = now
         else:
             return False
         return True
+
+    def on_ground(self, now: float, max_age_s: float = 1.0) -> bool | None:
+        """What the autopilot's own land detector says (EXTENDED_SYS_STATE's landed state):
+        on the ground or not; None when it has said nothing for ``max_age_s``."""
+        if not now - self.landed_state_t_s < max_age_s:
+            return None
+        return self.landed_state == MAV_LANDED_STATE_ON_GROUND
 
 
 class MavlinkLink:
@@ -460,7 +474,13 @@ class MavlinkLink:
                 return
             try:
                 msg = self._conn.recv_match(
-                    type=["HEARTBEAT", "ATTITUDE", "LOCAL_POSITION_NED", "TIMESYNC"],
+                    type=[
+                        "HEARTBEAT",
+                        "ATTITUDE",
+                        "LOCAL_POSITION_NED",
+                        "EXTENDED_SYS_STATE",
+                        "TIMESYNC",
+                    ],
                     blocking=False,
                 )
             except OSError as exc:

@@ -24,7 +24,9 @@ The autopilot stays in charge:
   ``proof_of_life_hz``, which outside OFFBOARD it ignores and inside holds it still;
 - contact on the plate force-disarms (MAV_CMD_COMPONENT_ARM_DISARM with 21196: the magnet
   holds the vehicle, and an autopilot's land detector does not know a ceiling); landed asks a
-  normal disarm, which the autopilot refuses unless its land detector agrees;
+  normal disarm, which the autopilot refuses unless its land detector agrees; a landing ends on
+  the pilot's own touchdown rule or on the autopilot's land detector (EXTENDED_SYS_STATE
+  ON_GROUND, where the autopilot sends it: it is heard, not asked for), whichever comes first;
 - ``close`` (end of the video, Ctrl-C) sends one zero-velocity setpoint and then nothing:
   ArduCopter holds position in GUIDED, PX4 leaves OFFBOARD after ``COM_OF_LOSS_T`` for its
   offboard-loss action.
@@ -258,6 +260,7 @@ class MavlinkPilot:
             odometry=self.odometry,
             ages=self.ages,
             report=self.report,
+            on_ground=lambda: self.vehicle.on_ground(time.monotonic()),
         )
         self.proof_of_life = 0
         self._next_proof = 0.0
