@@ -229,6 +229,19 @@ def test_bad_sources_and_outputs_exit_2(
             ],
             "--fps must be a positive",
         ),
+        (
+            [
+                "track",
+                str(short_sequence),
+                "--camera",
+                camera,
+                "--out",
+                str(tmp_path / "p.csv"),
+                "--budget-ms",
+                "nan",
+            ],
+            "--budget-ms must be a positive number, got nan",
+        ),
         (["simulate", "orbit", "--out", str(tmp_path / "s")], "unknown scenario 'orbit'"),
         (
             [

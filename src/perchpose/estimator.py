@@ -19,7 +19,7 @@ from perchpose.detection.detector import (
     MarkerDetector,
 )
 from perchpose.detection.windows import extrapolated
-from perchpose.errors import TimestampError
+from perchpose.errors import PerchposeError, TimestampError
 from perchpose.filters.kalman import CovarianceFilterSettings, KalmanSettings, MarkerFilters
 from perchpose.fusion.base import STAGE_NONE, Fusion
 from perchpose.fusion.consistency import DISAGREE_CHI2, disagreements
@@ -147,6 +147,8 @@ class PerchingEstimator:
         """The estimator a user configures by files and a budget (``perchpose track``, the
         ROS 2 node): with ``sigmas_file`` (``fit-fusion --json``) the paper's fusion and those
         weights, else the joint pose; ``budget_ms`` per frame (None: none)."""
+        if budget_ms is not None and not (math.isfinite(budget_ms) and budget_ms > 0):
+            raise PerchposeError(f"--budget-ms must be a positive number, got {budget_ms:g}")
         if sigmas_file is None:
             return PerchingEstimator(camera, target, budget_ms=budget_ms)
         sigmas = FusionSigmas.load(sigmas_file)

@@ -123,6 +123,7 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         (["--fps", "10"], "10 fps is outside what was verified (15-60 fps)"),
         (["--latency-ms", "300"], "latency of 300 ms is outside what was verified"),
         (["--latency-ms", "-5"], "--latency-ms must be >= 0"),
+        (["--fps", "0"], "--fps must be a positive number, got 0"),
     ],
 )
 def test_perch_bad_input(

@@ -198,6 +198,8 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
 
 def timed_setup(base: PerchSetup, sensing: str, fps: float, latency_ms: float | None) -> PerchSetup:
     """``base`` with the senses, frame rate and latency asked for (None: the senses' own)."""
+    if not (math.isfinite(fps) and fps > 0):
+        raise PerchposeError(f"--fps must be a positive number, got {fps:g}")
     try:
         if sensing == "ideal":
             return base.with_timing(fps, latency_frames(fps, latency_ms))

@@ -630,3 +630,17 @@ def test_a_vehicle_landing_on_a_roof_is_disarmed_on_its_own_land_detector(udp_po
     assert disarm.param2 == 0
     assert vehicle.disarmed_at_m == pytest.approx(0.4)
     assert any("land detector says landed" in r for r in reports)
+
+
+def test_tracking_that_ends_mid_landing_hands_the_vehicle_to_land(udp_port: int) -> None:
+    """The source ends while the pilot is landing: not a hover where the landing left the
+    vehicle, but the autopilot's own LAND."""
+    with guided(udp_port, settings=QUICK_LANDING) as (vehicle, pilot, reports):
+        fly(pilot, 0.3, (0.0, 0.0, 0.6), time.monotonic())
+        wait_for(lambda: pilot.pilot.state == "landing", seconds=5.0)
+    wait_for(lambda: vehicle.mode == 9)
+    assert pilot.pilot.state == "released"
+    (land,) = _command_longs(vehicle, 176)
+    assert (land.param1, land.param2) == (1, 9)
+    assert any("while landing: the autopilot's LAND lands the vehicle" in r for r in reports)
+    assert not any("a hover setpoint" in r for r in reports)

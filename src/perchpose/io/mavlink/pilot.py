@@ -29,7 +29,8 @@ The autopilot stays in charge:
   ON_GROUND, where the autopilot sends it: it is heard, not asked for), whichever comes first;
 - ``close`` (end of the video, Ctrl-C) sends one zero-velocity setpoint and then nothing:
   ArduCopter holds position in GUIDED, PX4 leaves OFFBOARD after ``COM_OF_LOSS_T`` for its
-  offboard-loss action.
+  offboard-loss action; a pilot that was landing hands the vehicle to the autopilot's LAND
+  instead (a hover would hold it where the landing left it).
 """
 
 from __future__ import annotations
@@ -403,10 +404,12 @@ class MavlinkPilot:
             self.proof_of_life += 1
 
     def close(self, reason: str = "tracking ended") -> None:
-        """Stop: one zero-velocity setpoint if flying in the setpoint mode, then nothing more
-        (said once), and close the link."""
+        """Stop: one zero-velocity setpoint if flying in the setpoint mode (the autopilot's
+        LAND if the pilot was landing), then nothing more (said once), and close the link."""
         self.clock.stop()
-        if self.pilot.flying:
+        if self.pilot.state == PilotState.LANDING and self.commander.send_land():
+            self.pilot.release(f"{reason} while landing: the autopilot's LAND lands the vehicle")
+        elif self.pilot.flying:
             if self.engaged():
                 self.commander.velocity((0.0, 0.0, 0.0), 0.0)
             mode = setpoint_mode(self.vehicle) or "its mode"
