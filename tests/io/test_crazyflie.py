@@ -24,6 +24,7 @@ from perchpose.cli import main
 from perchpose.control import PerchingController, PerchingPilot, PilotSettings
 from perchpose.errors import ControllerConfigError, LinkError
 from perchpose.io.crazyflie import CflibCommander, connect
+from perchpose.io.samples import SampleGate
 from perchpose.values import Estimate
 
 PROTOCOL_VERSION = 10
@@ -393,6 +394,8 @@ def bare_connection(cf: Crazyflie, clock: Callable[[], float] | None = None) -> 
     connection.report = lambda _m: None
     connection.clock = clock or time.monotonic
     connection.rejected = 0
+    connection.gate = SampleGate()
+    connection._said = set()
     connection._R_world_body = np.eye(3)
     connection._height_m = None
     connection._odometry = None
@@ -528,3 +531,32 @@ def test_a_live_frame_is_placed_at_its_capture(crazyflie: tuple[Crazyflie, FakeR
     d_level, _ = reference.magnet_to_target(live, np.eye(3))
     assert step.v_mps is not None
     assert np.sign(step.v_mps[0]) == np.sign(d_level[0])  # steered along the level fix's x
+
+
+def test_reversed_and_implausible_state_samples_are_dropped(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """Log blocks stamped before the last one taken (the firmware's milliseconds), or with the
+    vehicle tilted 70 degrees, are dropped and said once each; the last good sample stays."""
+    cf, _link = crazyflie
+    reports: list[str] = []
+    connection = bare_connection(cf)
+    connection.report = reports.append
+    connection._state(1000, state_sample(1.0), None)
+    connection._moved(1000, STILL, None)
+    connection._state(980, state_sample(0.5), None)  # older than the one taken
+    connection._moved(990, {**STILL, "stateEstimate.x": 0.3}, None)
+    tilted = math.cos(math.radians(35.0))  # a quaternion of 70 degrees about x
+    sample = {**state_sample(0.9, qw=tilted), "stateEstimate.qx": math.sin(math.radians(35.0))}
+    connection._state(1020, sample, None)
+    assert connection.height_m() == 1.0
+    odometry = connection.odometry()
+    assert odometry is not None
+    assert odometry[0][0] == 0.0
+    np.testing.assert_allclose(connection.attitude(), np.eye(3))
+    assert connection.rejected == 3
+    assert connection.gate.refused == {"out of order": 2, "implausible": 1}
+    assert sum("out of order" in r for r in reports) == 1
+    assert sum("implausible" in r for r in reports) == 1
+    connection._state(1040, state_sample(0.95), None)
+    assert connection.height_m() == 0.95

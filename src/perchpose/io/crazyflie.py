@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from perchpose.control.pilot import PerchingPilot, SenseAges
 from perchpose.errors import LinkError
 from perchpose.geometry import rotation_from_quaternion
+from perchpose.io.samples import SampleGate
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -57,7 +58,8 @@ class CrazyflieConnection:
     Each block is stamped on arrival (``time.monotonic``) so the pilots know how old the
     vehicle's senses are (``ages``): a stream that stops is stale, never "height stopped
     rising". A sample with a non-finite value is dropped whole (``rejected``; said once) and the
-    last good one ages."""
+    last good one ages; so is one the sample gate refuses (``perchpose.io.samples``:
+    implausible, out of order by the firmware's log timestamp, from before a reboot)."""
 
     def __init__(self, uri: str, report: Callable[[str], None] | None = None) -> None:
         try:
@@ -79,6 +81,8 @@ class CrazyflieConnection:
         self._state_t_s = math.nan
         self._motion_t_s = math.nan
         self.rejected = 0
+        self.gate = SampleGate()  # implausible, out of order (the firmware's ms), rebooted
+        self._said: set[str] = set()
         cflib.crtp.init_drivers()
         self.cf: Any = Crazyflie()
         self._sync = SyncCrazyflie(uri, cf=self.cf)
@@ -118,28 +122,51 @@ class CrazyflieConnection:
             )
         return False
 
-    def _state(self, _timestamp: int, data: dict[str, float], _config: object) -> None:
+    def _refused(self, why: str | None, block: str) -> bool:
+        """The sample gate refused a block (``why``): dropped, counted, each reason said once."""
+        if why is None:
+            return False
+        self.rejected += 1
+        if why not in self._said:
+            self._said.add(why)
+            self.report(
+                f"Crazyflie {self.uri}: a {block} sample was dropped: {why} (reported once; "
+                "the pilot flies on the last good one while it is fresh)"
+            )
+        return True
+
+    def _state(self, timestamp: int, data: dict[str, float], _config: object) -> None:
         if not self._usable(data):
             return
-        self._R_world_body = rotation_from_quaternion(
+        R = rotation_from_quaternion(
             data["stateEstimate.qw"],
             data["stateEstimate.qx"],
             data["stateEstimate.qy"],
             data["stateEstimate.qz"],
         )
+        roll = math.atan2(R[2, 1], R[2, 2])
+        pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+        yaw = math.atan2(R[1, 0], R[0, 0])
+        now = self.clock()
+        if self._refused(self.gate.attitude(int(timestamp), roll, pitch, yaw, now), "attitude"):
+            return
+        self._R_world_body = R
         self._height_m = float(data["stateEstimate.z"])
-        self._state_t_s = self.clock()
+        self._state_t_s = now
 
-    def _moved(self, _timestamp: int, data: dict[str, float], _config: object) -> None:
+    def _moved(self, timestamp: int, data: dict[str, float], _config: object) -> None:
         if not self._usable(data):
             return
-        self._motion_t_s = self.clock()
+        now = self.clock()
         z = self._height_m if self._height_m is not None else 0.0
         p = np.array([data["stateEstimate.x"], data["stateEstimate.y"], z], np.float64)
         v = np.array(
             [data["stateEstimate.vx"], data["stateEstimate.vy"], data["stateEstimate.vz"]],
             np.float64,
         )
+        if self._refused(self.gate.position(int(timestamp), p, v, now), "position"):
+            return
+        self._motion_t_s = now
         self._odometry = (p, v)
         for pilot in self._pilots:  # the lateral loop closes at the state estimate's rate
             pilot.tick_now()

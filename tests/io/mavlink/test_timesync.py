@@ -73,3 +73,24 @@ def test_negative_times_are_neither_answered_nor_used() -> None:
     clocks.round_trip(sync, 500_000, 500_000)
     assert sync.offset_ns is None  # its answer is a negative time too
     assert sync.remote_usec(float("nan")) is None
+
+
+def test_timesync_forgets_the_old_offset_when_the_autopilot_clock_restarts() -> None:
+    """Ten answers put the autopilot 500 s ahead; it reboots and the next answer puts it 2 s
+    ahead: the offset follows at once, not after the window has turned over."""
+    now = [1_000_000_000]
+    sync = TimeSync(clock_ns=lambda: now[0])
+
+    def answer(remote_ns: int) -> None:
+        _, ts1 = sync.request()
+        now[0] += 2_000_000  # a 2 ms round trip
+        sync.handle(remote_ns + now[0] - 1_000_000, ts1)
+
+    for _ in range(10):
+        answer(500_000_000_000)
+    assert sync.offset_ns is not None
+    assert abs(sync.offset_ns - 500_000_000_000) < 2_000_000
+    answer(2_000_000_000)
+    assert sync.offset_ns is not None
+    assert abs(sync.offset_ns - 2_000_000_000) < 2_000_000
+    assert sync.resets == 1

@@ -37,8 +37,8 @@ from numpy.typing import NDArray
 
 from perchpose.errors import LinkError
 from perchpose.io.mavlink.landing_target import R_ned_frd_from_euler
-from perchpose.io.mavlink.samples import SampleGate
 from perchpose.io.mavlink.timesync import TimeSync
+from perchpose.io.samples import SampleGate
 
 Array = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -129,7 +129,7 @@ class VehicleState:
     ``target_system`` if given, else the first autopilot whose HEARTBEAT is heard. Nothing from
     another system or component reaches this state. An ATTITUDE or LOCAL_POSITION_NED that
     ``gate`` refuses (non-finite, implausible, out of order, from before a reboot:
-    ``perchpose.io.mavlink.samples``) is dropped whole (``rejected`` counts them, ``gate.refused``
+    ``perchpose.io.samples``) is dropped whole (``rejected`` counts them, ``gate.refused``
     by reason): the last good one stays, and ages.
     """
 

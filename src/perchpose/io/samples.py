@@ -1,4 +1,5 @@
-"""Which of a vehicle's ATTITUDE and LOCAL_POSITION_NED samples may be flown on.
+"""Which of a vehicle's attitude and position samples may be flown on (MAVLink's ATTITUDE and
+LOCAL_POSITION_NED, the Crazyflie's state estimate log blocks).
 
 A sample is refused, with its reason counted, when it is
 
