@@ -133,14 +133,19 @@ def facing_pose(
     return make_transform(R, np.array([x_m, y_m, z_m]))
 
 
+def roll_pitch_rad(R: Array) -> tuple[float, float]:
+    """(roll, pitch) of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (z-y-x angles, as a vehicle's
+    attitude is given), radians; ``yaw_rad`` is the third."""
+    pitch = -math.asin(max(-1.0, min(1.0, float(R[2, 0]))))
+    roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
+    return roll, pitch
+
+
 def tilt_rad(R_camera_target: Array) -> tuple[float, float]:
     """(roll, pitch) of the target's plane, radians, with the estimate's yaw (``yaw_rad``)
     completing them: ``R = Rz(yaw) Ry(pitch) Rx(roll) R_CAMERA_TARGET_FACING``. Both are 0
     for a target facing the camera (``facing_pose`` without tilt), whatever its yaw."""
-    M = np.asarray(R_camera_target, np.float64) @ R_CAMERA_TARGET_FACING
-    pitch = -math.asin(max(-1.0, min(1.0, float(M[2, 0]))))
-    roll = math.atan2(float(M[2, 1]), float(M[2, 2]))
-    return roll, pitch
+    return roll_pitch_rad(np.asarray(R_camera_target, np.float64) @ R_CAMERA_TARGET_FACING)
 
 
 def rotation_from_angles(yaw_rad_: float, roll_rad: float, pitch_rad: float) -> Array:

@@ -186,7 +186,7 @@ class PerchingPilot:
         self._frame_t: float | None = None  # the pilot's time of the last frame handed over
         self._camera_silent = False
         self._landing_since: float | None = None
-        self._landing_said: tuple[float, str] | None = None  # (when, what) last said
+        self._landing_said: tuple[float, str] | None = None  # (when, which news) last said
         s = self.settings
         self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
         self._touchdown = TouchdownDetector(
@@ -436,7 +436,7 @@ class PerchingPilot:
     def _between_frames(self, t_s: float) -> PilotStep | None:
         """While perching with frames coming: the controller's odometry loop and the contact
         check (None: no odometry, or nothing held to steer on)."""
-        motion = self._motion() if self.odometry is not None else None
+        motion = self._motion()
         if motion is None:
             return None
         odometry = Odometry(t_s - self._age("position"), motion[0], motion[1])

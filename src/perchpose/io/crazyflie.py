@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from perchpose.control.pilot import PerchingPilot, SenseAges
 from perchpose.errors import LinkError
-from perchpose.geometry import rotation_from_quaternion
+from perchpose.geometry import roll_pitch_rad, rotation_from_quaternion, yaw_rad
 from perchpose.io.samples import SampleGate
 
 Array = NDArray[np.float64]
@@ -144,11 +144,10 @@ class CrazyflieConnection:
             data["stateEstimate.qy"],
             data["stateEstimate.qz"],
         )
-        roll = math.atan2(R[2, 1], R[2, 2])
-        pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
-        yaw = math.atan2(R[1, 0], R[0, 0])
+        roll, pitch = roll_pitch_rad(R)
         now = self.clock()
-        if self._refused(self.gate.attitude(int(timestamp), roll, pitch, yaw, now), "attitude"):
+        why = self.gate.attitude(int(timestamp), roll, pitch, yaw_rad(R), now)
+        if self._refused(why, "attitude"):
             return
         self._R_world_body = R
         self._height_m = float(data["stateEstimate.z"])
