@@ -383,7 +383,11 @@ def test_nothing_imports_cflib_without_the_crazyflie_link() -> None:
     assert out.stdout.strip() == "False"
 
 
-def bare_connection(cf: Crazyflie, clock: Callable[[], float] | None = None) -> Any:
+def bare_connection(
+    cf: Crazyflie,
+    clock: Callable[[], float] | None = None,
+    report: Callable[[str], None] | None = None,
+) -> Any:
     """A ``CrazyflieConnection`` over ``cf`` without a radio to open: its log callbacks are
     called by hand, as cflib would call them."""
     from perchpose.io.crazyflie import CrazyflieConnection
@@ -391,7 +395,7 @@ def bare_connection(cf: Crazyflie, clock: Callable[[], float] | None = None) -> 
     connection = CrazyflieConnection.__new__(CrazyflieConnection)
     connection.cf = cf
     connection.uri = "radio://0/80/2M/E7E7E7E7E7"
-    connection.report = lambda _m: None
+    connection.report = report or (lambda _m: None)
     connection.clock = clock or time.monotonic
     connection.rejected = 0
     connection.gate = SampleGate()
@@ -446,8 +450,7 @@ def test_a_nan_state_sample_is_dropped_and_the_pilot_keeps_steering(
     the last good one; every later setpoint still steers towards the target."""
     cf, link = crazyflie
     reports: list[str] = []
-    connection = bare_connection(cf)
-    connection.report = reports.append
+    connection = bare_connection(cf, report=reports.append)
     connection._state(0, state_sample(1.0), None)
     connection._moved(0, STILL, None)
     pilot = connection.pilot()
@@ -479,8 +482,7 @@ def test_a_height_that_stops_updating_is_never_contact(
     cf, link = crazyflie
     now = [0.0]
     reports: list[str] = []
-    connection = bare_connection(cf, clock=lambda: now[0])
-    connection.report = reports.append
+    connection = bare_connection(cf, clock=lambda: now[0], report=reports.append)
     pilot = connection.pilot(clock=lambda: now[0])
     height = 1.80
     near = Estimate.of_pose(0.0, (-0.015, 0.0, 0.01), 0.0, stage=3)
@@ -540,8 +542,7 @@ def test_reversed_and_implausible_state_samples_are_dropped(
     vehicle tilted 70 degrees, are dropped and said once each; the last good sample stays."""
     cf, _link = crazyflie
     reports: list[str] = []
-    connection = bare_connection(cf)
-    connection.report = reports.append
+    connection = bare_connection(cf, report=reports.append)
     connection._state(1000, state_sample(1.0), None)
     connection._moved(1000, STILL, None)
     connection._state(980, state_sample(0.5), None)  # older than the one taken

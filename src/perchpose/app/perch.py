@@ -47,11 +47,12 @@ class PerchCampaign:
         latency_ms: float | None = None,
         sensing: str = "realistic",
         stamps: str = "live",
-        faults: tuple[str, ...] = (),
+        faults: str = "",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
-        names = [e.strip() for e in estimators.split(",") if e.strip()]
+        names = list(comma_list(estimators))
+        injected = comma_list(faults)
         unknown = [n for n in names if n not in ESTIMATORS]
         if unknown or not names:
             raise PerchposeError(
@@ -71,10 +72,10 @@ class PerchCampaign:
             estimator=names[0],
             disturbances=Disturbances() if disturbances else Disturbances.none(),
             stamps=stamps,
-            duration_s=FAULT_RUN_S if faults else PerchSetup.duration_s,
+            duration_s=FAULT_RUN_S if injected else PerchSetup.duration_s,
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
-        timed = [replace(timed_setup(base, sensing, fps, ms), faults=faults) for ms in latencies]
+        timed = [replace(timed_setup(base, sensing, fps, ms), faults=injected) for ms in latencies]
         winds = list(WIND_LEVELS) if sweep == "wind" else [wind]
         setups = tuple(
             replace(t, estimator=e, wind=w, wind_mps=wind_mps, gust_mps=gust_mps)
@@ -160,7 +161,7 @@ class PerchOptions:
     progress: bool = False
     stamps: str = "live"
     overwrite: bool = False
-    faults: tuple[str, ...] = ()
+    faults: str = ""
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -194,6 +195,11 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         text = json.dumps(content, indent=2, default=str)
         Path(options.json_out).write_text(text, encoding="utf-8")
     return content
+
+
+def comma_list(text: str) -> tuple[str, ...]:
+    """The names of a comma-separated option (``covariance,truth``), blanks dropped."""
+    return tuple(name.strip() for name in text.split(",") if name.strip())
 
 
 def timed_setup(base: PerchSetup, sensing: str, fps: float, latency_ms: float | None) -> PerchSetup:

@@ -161,7 +161,7 @@ def perch(
         progress=show_progress(quiet),
         stamps=stamps,
         overwrite=overwrite,
-        faults=tuple(f.strip() for f in faults.split(",") if f.strip()),
+        faults=faults,
     )
     content = run(options, say=lambda m: click.echo(m, err=True))
     click.echo(summary_table(content), nl=False)

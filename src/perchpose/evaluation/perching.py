@@ -596,9 +596,7 @@ def fault_outcomes(records: list[RunRecord]) -> dict[str, object]:
     out: dict[str, object] = {}
     for kind in sorted({r.fault for r in records if r.fault}):
         rs = [r for r in records if r.fault == kind]
-        endings: dict[str, int] = {}
-        for r in rs:
-            endings[_ending(r)] = endings.get(_ending(r), 0) + 1
+        endings = dict(Counter(_ending(r) for r in rs))
         gaps = [r.max_setpoint_gap_s for r in rs if math.isfinite(r.max_setpoint_gap_s)]
         out[kind] = {
             "runs": len(rs),

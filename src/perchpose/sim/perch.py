@@ -145,6 +145,12 @@ class PerchSetup:
         self.check_start_box()
 
     @property
+    def to_motor_stop(self) -> bool:
+        """Runs go on through a landing until the motors stop (with faults); otherwise they
+        end where a landing starts, as the campaigns before faults measured them."""
+        return bool(self.faults)
+
+    @property
     def latency_s(self) -> float:
         """The camera's latency, capture to estimate, before jitter (with realistic senses the
         longest drawn)."""
@@ -272,7 +278,7 @@ class HeldSetpoint:
         self.clock = clock
         self.link_up = link_up
         self.stopped = False
-        self.received_s = 0.0
+        self.received_s: float | None = None  # the vehicle's watchdog starts at the first
         self.sent_s: list[float] = []  # when the pilot sent each command
 
     def _arrives(self) -> bool:
@@ -450,7 +456,7 @@ class _Flight:
         sensor under the vehicle (a Flow deck's VL53L1x: noise of 5 mm plus 1 % of the
         range; exact with ideal senses); otherwise the odometry's, as the campaigns measured
         before faults were flown."""
-        if not self.setup.faults:  # as the campaigns measured before faults were flown
+        if not self.setup.to_motor_stop:
             return float(self.motion()[0][2])
         h = float(self.vehicle.p_m[2]) - REST_Z_M
         if self.sensed is None:
@@ -460,10 +466,9 @@ class _Flight:
     def sense_ages(self) -> SenseAges:
         """How old the attitude and odometry the pilot has now are (realistic senses)."""
         assert self.sensed is not None
-        attitude_s, _ = self.sensed.ages(self._through("attitude"))
-        _, odometry_s = self.sensed.ages(self._through("odometry"))
-        attitude_s += self.now_s - self._through("attitude")
-        odometry_s += self.now_s - self._through("odometry")
+        attitude_at, odometry_at = self._through("attitude"), self._through("odometry")
+        attitude_s = self.sensed.ages(attitude_at)[0] + self.now_s - attitude_at
+        odometry_s = self.sensed.ages(odometry_at)[1] + self.now_s - odometry_at
         return SenseAges(attitude_s, odometry_s, odometry_s)
 
     def sense(self, t_s: float) -> None:
@@ -540,9 +545,9 @@ class _Flight:
         v = self.vehicle
         dt_s = 1.0 / s.physics_hz
         c = self.commander
-        silent_s = 0.0 if not c.sent_s else t_s - c.received_s
-        goes_on = bool(s.faults)  # without faults a run ends as the landing starts
-        if goes_on and not self.motors_stopped and (c.stopped or silent_s >= MOTORS_OFF_AFTER_S):
+        silent_s = 0.0 if c.received_s is None else t_s - c.received_s
+        stops = c.stopped or silent_s >= MOTORS_OFF_AFTER_S
+        if s.to_motor_stop and not self.motors_stopped and stops:
             self.motors_stopped = True  # the pilot's stop, or the vehicle's own watchdog
             self.motor_stop_height_m = 0.0 if self.resting else float(v.p_m[2]) - REST_Z_M
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
@@ -567,7 +572,7 @@ class _Flight:
         feet met the floor."""
         if self.plate(vehicle):
             return True
-        return bool(self.setup.faults) and vehicle.p_m[2] <= REST_Z_M and vehicle.v_mps[2] < 0.0
+        return self.setup.to_motor_stop and vehicle.p_m[2] <= REST_Z_M and vehicle.v_mps[2] < 0.0
 
     def on_floor(self) -> bool:
         """The vehicle's feet met the floor: it rests there (True), or it fell on it (False:
@@ -690,7 +695,7 @@ def run_perch(
     senses = flight.senses
     events = event_steps(setup, senses.odometry_hz if senses is not None else None)
     dt_s = 1.0 / setup.physics_hz
-    goes_on = bool(setup.faults)  # through a landing, until the motors stop
+    goes_on = setup.to_motor_stop
     for n, (i, k) in enumerate(events):
         t = i * dt_s
         flight.now_s = t
