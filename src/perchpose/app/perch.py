@@ -16,7 +16,7 @@ from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write
 from perchpose.sim.campaign import campaign_jobs, execute
 from perchpose.sim.disturbances import Disturbances
 from perchpose.sim.perch import ESTIMATORS, PerchResult, PerchSetup
-from perchpose.sim.sensing import Sensing
+from perchpose.sim.sensing import ODOMETRY_ERRORS, Sensing
 from perchpose.sim.wind import WIND_LEVELS
 from perchpose.target import TargetSpec
 
@@ -48,6 +48,7 @@ class PerchCampaign:
         sensing: str = "realistic",
         stamps: str = "live",
         faults: str = "",
+        odometry: str = "white",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -62,6 +63,10 @@ class PerchCampaign:
             raise PerchposeError(f"--estimator: {estimators!r} names an estimator twice")
         if runs < 1:
             raise PerchposeError(f"--runs must be >= 1, got {runs}")
+        if odometry not in ODOMETRY_ERRORS:
+            raise PerchposeError(
+                f"--odometry: unknown {odometry!r} (choose {' or '.join(ODOMETRY_ERRORS)})"
+            )
         if sweep == "wind" and (wind_mps is not None or gust_mps is not None):
             raise PerchposeError("--sweep wind flies the named levels: drop --wind-mps/--gust-mps")
         if sweep == "latency" and latency_ms is not None:
@@ -75,7 +80,10 @@ class PerchCampaign:
             duration_s=FAULT_RUN_S if injected else PerchSetup.duration_s,
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
-        timed = [replace(timed_setup(base, sensing, fps, ms), faults=injected) for ms in latencies]
+        timed = [
+            replace(timed_setup(base, sensing, fps, ms, odometry), faults=injected)
+            for ms in latencies
+        ]
         winds = list(WIND_LEVELS) if sweep == "wind" else [wind]
         setups = tuple(
             replace(t, estimator=e, wind=w, wind_mps=wind_mps, gust_mps=gust_mps)
@@ -162,6 +170,7 @@ class PerchOptions:
     stamps: str = "live"
     overwrite: bool = False
     faults: str = ""
+    odometry: str = "white"
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -181,6 +190,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         sensing=options.sensing,
         stamps=options.stamps,
         faults=options.faults,
+        odometry=options.odometry,
     )
     content = campaign.fly(
         options.out,
@@ -202,14 +212,21 @@ def comma_list(text: str) -> tuple[str, ...]:
     return tuple(name.strip() for name in text.split(",") if name.strip())
 
 
-def timed_setup(base: PerchSetup, sensing: str, fps: float, latency_ms: float | None) -> PerchSetup:
-    """``base`` with the senses, frame rate and latency asked for (None: the senses' own)."""
+def timed_setup(
+    base: PerchSetup,
+    sensing: str,
+    fps: float,
+    latency_ms: float | None,
+    odometry: str = "white",
+) -> PerchSetup:
+    """``base`` with the senses, frame rate and latency asked for (None: the senses' own) and
+    the realistic odometry's error (``odometry``)."""
     if not (math.isfinite(fps) and fps > 0):
         raise PerchposeError(f"--fps must be a positive number, got {fps:g}")
     try:
         if sensing == "ideal":
             return base.with_timing(fps, latency_frames(fps, latency_ms))
-        senses = Sensing()
+        senses = Sensing(odometry=odometry)
         if latency_ms is not None:
             senses = senses.with_latency(latency_seconds(latency_ms))
         return base.with_sensing(senses).with_timing(fps, 1)
@@ -227,15 +244,16 @@ def senses(setup: PerchSetup) -> str:
         )
     low, high = (v * 1000.0 for v in setup.latency_range_s)
     latency = f"{low:.0f} ms" if low == high else f"{low:.0f}-{high:.0f} ms"
+    odometry = "flow-deck (correlated)" if setup.sensing.odometry == "flow-deck" else "white-noise"
     stamps = (
         "frames stamped as live sources stamp them (--stamps exact: their true capture time)"
         if setup.stamps == "live"
         else "frames stamped with their true capture time"
     )
     return (
-        f"realistic senses, camera at {setup.fps:g} fps with {latency} of latency, odometry "
-        "and attitude late and noisy, calibration, mount and print off (--sensing ideal: "
-        f"none); {stamps}"
+        f"realistic senses, camera at {setup.fps:g} fps with {latency} of latency, {odometry} "
+        "odometry and attitude late and noisy, calibration, mount and print off (--sensing "
+        f"ideal: none); {stamps}"
     )
 
 

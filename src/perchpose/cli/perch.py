@@ -69,6 +69,15 @@ from perchpose.cli.group import group
     "ideal one frame, and whole frames); up to 200 ms verified.",
 )
 @click.option(
+    "--odometry",
+    type=click.Choice(["white", "flow-deck"]),
+    default="white",
+    show_default=True,
+    help="The realistic odometry's horizontal error: white (3 cm/s per sample) or flow-deck "
+    "(a PMW3901 flow deck under a Kalman filter: correlated over 50-250 ms, growing with "
+    "height and yaw rate; the pilot does not perch on it yet, see the README).",
+)
+@click.option(
     "--stamps",
     type=click.Choice(["live", "exact"]),
     default="live",
@@ -127,6 +136,7 @@ def perch(
     fps: float,
     latency_ms: float | None,
     stamps: str,
+    odometry: str,
     faults: str,
     camera_file: str,
     out: str,
@@ -160,6 +170,7 @@ def perch(
         resume,
         progress=show_progress(quiet),
         stamps=stamps,
+        odometry=odometry,
         overwrite=overwrite,
         faults=faults,
     )

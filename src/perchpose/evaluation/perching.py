@@ -565,6 +565,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "contact_offset_mm": top["contact_offset_mm"],
         "time_to_perch_s": top["time_to_perch_s"],
         "sensing": setup.sensing.name,
+        "odometry": None if setup.sensing.is_ideal else setup.sensing.odometry,
         "stamps": setup.stamps,
         "faults": list(setup.faults),
         "fps": setup.fps,

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from perchpose.errors import DisturbanceConfigError
 from perchpose.geometry import rot_x, rot_y
+from perchpose.sim.flow_deck import FlowDeckError
 
 Array = NDArray[np.float64]
 
@@ -123,21 +124,37 @@ class OdometryModel:
     """The flight controller's position and velocity: the truth plus white velocity noise and
     a velocity bias that random-walks; the position integrates the biased velocity, so it
     drifts from the truth as a real state estimate does. ``flow_noise_mps``: white velocity
-    noise that the position integrates too (an optical-flow estimator's)."""
+    noise that the position integrates too (an optical-flow estimator's). ``flow``: a flow
+    deck's horizontal error (``sim.flow_deck``), correlated in time, in place of the white
+    flow noise along x and y; ``update`` then needs the vehicle's attitude and body rates."""
 
     def __init__(
-        self, d: Disturbances, p_m: Array, rng: np.random.Generator, flow_noise_mps: float = 0.0
+        self,
+        d: Disturbances,
+        p_m: Array,
+        rng: np.random.Generator,
+        flow_noise_mps: float = 0.0,
+        flow: FlowDeckError | None = None,
     ) -> None:
         self._d = d
         self._rng = rng
         self.flow_noise_mps = flow_noise_mps
+        self.flow = flow
         self.bias_mps = np.zeros(3)
         self.drift_m = np.zeros(3)
         self.p_m = np.asarray(p_m, np.float64).copy()
         self.v_mps = np.zeros(3)
 
-    def update(self, p_true_m: Array, v_true_mps: Array, dt_s: float) -> None:
-        """Advance by ``dt_s`` to the vehicle's true position and velocity."""
+    def update(
+        self,
+        p_true_m: Array,
+        v_true_mps: Array,
+        dt_s: float,
+        R_world_body: Array | None = None,
+        omega_rad_s: Array | None = None,
+    ) -> None:
+        """Advance by ``dt_s`` to the vehicle's true position and velocity (with a flow deck,
+        also its attitude and body rates)."""
         d = self._d
         self.bias_mps = self.bias_mps + d.odometry_drift_mps_per_sqrt_s * math.sqrt(
             dt_s
@@ -145,6 +162,12 @@ class OdometryModel:
         noise = self._rng.normal(0.0, d.odometry_noise_mps, 3)
         # an optical-flow velocity's own noise, which the position integrates
         flow = self._rng.normal(0.0, self.flow_noise_mps, 3) if self.flow_noise_mps else 0.0
+        if self.flow is not None:
+            if R_world_body is None or omega_rad_s is None:
+                raise ValueError("a flow deck's odometry needs the attitude and body rates")
+            flow = flow * np.array([0.0, 0.0, 1.0]) + self.flow.advance(
+                dt_s, float(p_true_m[2]), v_true_mps, R_world_body, omega_rad_s
+            )
         self.drift_m = self.drift_m + dt_s * (self.bias_mps + flow)
         self.v_mps = np.asarray(v_true_mps, np.float64) + self.bias_mps + noise + flow
         self.p_m = np.asarray(p_true_m, np.float64) + self.drift_m

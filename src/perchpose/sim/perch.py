@@ -36,6 +36,7 @@ from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad
 from perchpose.sim.contact import Contact, ContactRules, PlateContact, tilt_deg
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.faults import LEVEL_AFTER_S, MOTORS_OFF_AFTER_S, Fault, check_faults
+from perchpose.sim.flow_deck import FlowDeckError
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
@@ -350,8 +351,8 @@ class _Flight:
         self.seed = seed
         # the senses draw from a third generator: ideal senses fly the worlds they always did;
         # the latency the user measured from a fourth (exact stamps fly what they always did)
-        seeds = np.random.SeedSequence(seed).spawn(6)
-        world_seq, camera_seq, senses_seq, stamps_seq, faults_seq, range_seq = seeds
+        seeds = np.random.SeedSequence(seed).spawn(7)
+        world_seq, camera_seq, senses_seq, stamps_seq, faults_seq, range_seq, flow_seq = seeds
         self.fault = Fault.draw(setup.faults, np.random.default_rng(faults_seq))
         self.range_rng = np.random.default_rng(range_seq)
         world = np.random.default_rng(world_seq)
@@ -379,6 +380,7 @@ class _Flight:
         self.senses: SensingDraw | None = None
         self.T_body_camera = np.asarray(setup.controller.T_body_camera, np.float64)
         flow_noise = 0.0
+        flow: FlowDeckError | None = None
         if not setup.sensing.is_ideal:
             self.senses = SensingDraw.draw(setup.sensing, setup.camera, self.senses_rng)
             measured = mean_glass_to_grab_s(
@@ -394,7 +396,9 @@ class _Flight:
             )
             self.T_body_camera = self.T_body_camera @ self.senses.T_true_believed
             flow_noise = setup.sensing.flow_noise_mps
-        self.odometry = OdometryModel(setup.disturbances, start, world, flow_noise)
+            if setup.sensing.odometry == "flow-deck":
+                flow = FlowDeckError(setup.sensing.flow_deck, np.random.default_rng(flow_seq))
+        self.odometry = OdometryModel(setup.disturbances, start, world, flow_noise, flow)
         self.render = renderer
         self.estimator = _estimator_for(
             setup, self.senses.camera if self.senses is not None else setup.camera
@@ -552,7 +556,7 @@ class _Flight:
             self.motor_stop_height_m = 0.0 if self.resting else float(v.p_m[2]) - REST_Z_M
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
         if self.resting and (self.motors_stopped or v_sp[2] <= 0.0):
-            self.odometry.update(v.p_m, v.v_mps, dt_s * steps)  # on the floor, still
+            self._follow(dt_s * steps)  # on the floor, still
             return None
         self.resting = False
         v.thrust_scale = (0.0,) * 4 if self.motors_stopped else self.draw.thrust_scale(t_s)
@@ -564,8 +568,13 @@ class _Flight:
             self.odometry.v_mps,
             touched=self._touched,
         )
-        self.odometry.update(v.p_m, v.v_mps, dt_s * (steps if contact is None else contact + 1))
+        self._follow(dt_s * (steps if contact is None else contact + 1))
         return contact
+
+    def _follow(self, dt_s: float) -> None:
+        """The odometry follows the vehicle through ``dt_s``."""
+        v = self.vehicle
+        self.odometry.update(v.p_m, v.v_mps, dt_s, v.R_world_body, v.omega_rad_s)
 
     def _touched(self, vehicle: Quadrotor) -> bool:
         """The vehicle touched the plate, or (with faults, whose runs go on to a landing) its

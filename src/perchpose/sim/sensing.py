@@ -11,10 +11,12 @@ Where the default magnitudes come from:
   webcams, of FPV video through a receiver and a USB grabber, and of the Crazyflie AI deck's
   WiFi stream is typically 50-150 ms; the lower end is a global-shutter camera on a companion
   computer's CSI port. 8 ms of jitter per frame (scheduling, USB transfers);
-- odometry as an onboard estimator gives it: the Crazyflie's Flow deck (PMW3901 optical flow
-  with a VL53L1x range) fused in its Kalman filter reports velocity with a few cm/s of noise;
-  its position integrates that velocity, so it drifts as a random walk (3 cm/s of white
-  velocity noise per sample, integrated, beside the disturbances' slow velocity bias); its
+- odometry as an onboard estimator gives it: by default velocity with 3 cm/s of white noise
+  per sample, whose integral the position drifts by (beside the disturbances' slow velocity
+  bias). A Crazyflie's Flow deck (PMW3901 optical flow with a VL53L1x range) fused in its
+  Kalman filter gives an error correlated over the filter's time constant and growing with
+  the height and the yaw rate: ``odometry="flow-deck"`` (``sim.flow_deck`` says how and from
+  which figures; the vertical axis then keeps the white noise, the range sensor's). Its
   state log and an autopilot's LOCAL_POSITION_NED stream at 50-100 Hz and describe the
   vehicle 10-30 ms before they arrive;
 - the attitude estimate: 0.2 deg of noise per sample (a MEMS IMU's complementary or Kalman
@@ -46,10 +48,12 @@ from perchpose.camera import CameraModel
 from perchpose.control.history import newest_at
 from perchpose.errors import SensingConfigError, require_non_negative
 from perchpose.geometry import make_transform, rot_x, rot_y, rot_z
+from perchpose.sim.flow_deck import FlowDeck
 
 Array = NDArray[np.float64]
 
 SENSINGS = ("realistic", "ideal")
+ODOMETRY_ERRORS = ("white", "flow-deck")  # how the realistic odometry's error behaves
 HISTORY = 256  # samples kept: seconds at the fastest rates, far beyond any delay drawn
 
 
@@ -60,8 +64,11 @@ class Sensing:
 
     latency_s : the camera's latency range. latency_jitter_s : per-frame jitter (the absolute
     value of a normal). odometry_hz, odometry_delay_s : the odometry's rate and age on
-    arrival. flow_noise_mps : white velocity noise per odometry sample, integrated into the
-    position. attitude_noise_deg : per sample. attitude_delay_s : its age on arrival.
+    arrival. odometry : how the odometry's horizontal error behaves: ``white`` (white
+    ``flow_noise_mps`` per sample) or ``flow-deck`` (correlated in time, growing with height
+    and yaw rate, drawn from ``flow_deck``). flow_noise_mps : white velocity noise per
+    odometry sample, integrated into the position (with a flow deck, along z only).
+    attitude_noise_deg : per sample. attitude_delay_s : its age on arrival.
     clock_offset_s : half-width of the camera clock's offset from the flight controller's.
     latency_error_s : half-width of the error of the camera latency the user measured (live
     stamps).
@@ -75,6 +82,8 @@ class Sensing:
     latency_jitter_s: float = 0.008
     odometry_hz: tuple[float, float] = (50.0, 100.0)
     odometry_delay_s: tuple[float, float] = (0.01, 0.03)
+    odometry: str = "white"
+    flow_deck: FlowDeck = field(default_factory=FlowDeck)
     flow_noise_mps: float = 0.03
     attitude_noise_deg: float = 0.2
     attitude_delay_s: tuple[float, float] = (0.0, 0.01)
@@ -94,6 +103,10 @@ class Sensing:
             low, high = getattr(self, name)
             if not (math.isfinite(low) and math.isfinite(high) and 0 <= low <= high):
                 raise SensingConfigError(f"{name} must be 0 <= low <= high, got {low}, {high}")
+        if self.odometry not in ODOMETRY_ERRORS:
+            raise SensingConfigError(
+                f"unknown odometry {self.odometry!r} (choose {' or '.join(ODOMETRY_ERRORS)})"
+            )
         if self.odometry_hz[0] <= 0:
             raise SensingConfigError("odometry_hz must be positive")
         spreads = (
