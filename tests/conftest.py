@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import socket
+import struct
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -118,3 +120,17 @@ def silent_scheduler(monkeypatch: pytest.MonkeyPatch, tcp_port: int) -> str:
 
     monkeypatch.setattr(campaign, "SCHEDULER_TIMEOUT_S", 1)
     return f"tcp://127.0.0.1:{tcp_port}"
+
+
+@pytest.fixture(scope="session")
+def huge_png() -> bytes:
+    """A small PNG whose header claims 40000 x 40000 pixels (1.6 Gpx, over OpenCV's limit)."""
+    ihdr = struct.pack(">IIBBBBB", 40000, 40000, 8, 0, 0, 0, 0)
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+        )
+
+    idat = zlib.compress(b"\x00" * 16)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")

@@ -42,6 +42,22 @@ def test_unreadable_frame_is_reported_in_place(tmp_path: Path) -> None:
     assert frames[1].t_s == pytest.approx(1 / 30)
 
 
+def test_images_opencv_refuses_are_rows_and_the_rest_are_read(
+    tmp_path: Path, huge_png: bytes
+) -> None:
+    """An empty file and a PNG that claims 1.6 Gpx (OpenCV raises, it does not return None)
+    are each a row with the reason; the frames around them are read."""
+    _write_images(tmp_path, ["0.png", "3.png"])
+    (tmp_path / "1.png").write_bytes(b"")
+    (tmp_path / "2.png").write_bytes(huge_png)
+    source = open_source(str(tmp_path))
+    frames = list(source)
+    assert [f.image is None for f in frames] == [False, True, True, False]
+    assert frames[1].error == f"{tmp_path / '1.png'}: cannot read image"
+    assert frames[2].error.endswith("cannot read image (pixels <= CV_IO_MAX_IMAGE_PIXELS)")
+    assert source.lost == 2
+
+
 def test_video_file(tmp_path: Path) -> None:
     path = tmp_path / "v.avi"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 25.0, (64, 48))

@@ -25,3 +25,13 @@ def native_stderr_silenced() -> Iterator[None]:
     finally:
         os.dup2(saved, 2)
         os.close(saved)
+
+
+def opencv_reason(exc: Exception) -> str:
+    """The reason an OpenCV error gives, without its source location: ``pixels <=
+    CV_IO_MAX_IMAGE_PIXELS`` of ``OpenCV(5.0.0) .../loadsave.cpp:79: error: (-215:Assertion
+    failed) pixels <= CV_IO_MAX_IMAGE_PIXELS in function 'validateInputImageSize'``."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if "failed)" in text:
+        text = text.split("failed)", 1)[1]
+    return text.split(" in function", 1)[0].strip()

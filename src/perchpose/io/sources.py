@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from perchpose.errors import SourceError
 from perchpose.io.decoding import AvCapture
 from perchpose.io.frames import IMAGE_SUFFIXES, Frame, FrameSource, natural_key
-from perchpose.io.native import native_stderr_silenced
+from perchpose.io.native import native_stderr_silenced, opencv_reason
 
 VIDEO_SUFFIXES = frozenset(
     {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".ts", ".m2ts", ".flv"}
@@ -42,10 +42,14 @@ class ImageFilesSource(FrameSource):
         for i, path in enumerate(self.paths):
             t_s = i / self.fps
             grabbed = time.monotonic()
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if image is None:
+            why = f"{path}: cannot read image"
+            try:
+                image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            except cv2.error as exc:  # OpenCV refuses, e.g., a header claiming 2^30 pixels
+                image, why = None, f"{why} ({opencv_reason(exc)})"
+            if image is None or image.size == 0:
                 self.lost += 1
-                yield Frame(i, t_s, None, path.name, f"{path}: cannot read image", str(path))
+                yield Frame(i, t_s, None, path.name, why, str(path))
                 continue
             yield Frame(i, t_s, _to_uint8(image), path.name, _damage(path), str(path), grabbed)
 

@@ -366,6 +366,52 @@ def test_one_damaged_message_is_a_flagged_row_and_the_rest_are_tracked(
     assert err.count("warning:") == 3
 
 
+def test_empty_huge_and_zero_size_images_are_flagged_rows(
+    approach_webcam_dir: Path, tmp_path: Path, huge_png: bytes
+) -> None:
+    """An empty CompressedImage, one whose PNG claims 1.6 Gpx, and a 0x0 Image: each is a row
+    with its reason, and the frames after them are tracked."""
+    camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
+    frames = _frames(approach_webcam_dir)
+    for topic in ("/camera/image_raw/compressed", "/camera/image_raw"):
+        path = tmp_path / topic.rsplit("/", 1)[1]
+        bag = Bag(path, "sqlite3")
+        bag.camera_info("/camera/camera_info", camera, T0_NS)
+        for k in range(5):
+            t_ns = T0_NS + k * 33_333_333
+            if topic.endswith("compressed") and k in (1, 2):
+                data = np.frombuffer(huge_png if k == 2 else b"", np.uint8)
+                msg = bag.ts.types["sensor_msgs/msg/CompressedImage"](
+                    header=bag.header(t_ns), format="png", data=data
+                )
+                bag.write(topic, msg, t_ns)
+            elif k == 1:
+                msg = bag.ts.types["sensor_msgs/msg/Image"](
+                    header=bag.header(t_ns), height=0, width=0, encoding="bgr8",
+                    is_bigendian=0, step=0, data=np.zeros(0, np.uint8),
+                )  # fmt: skip
+                bag.write(topic, msg, t_ns)
+            elif topic.endswith("compressed"):
+                bag.compressed(topic, frames[k], t_ns)
+            else:
+                bag.image(topic, frames[k], "bgr8", t_ns)
+        bag.close()
+        out = tmp_path / f"{topic.rsplit('/', 1)[1]}.csv"
+        argv = ["track", str(path), "--image-topic", topic, "--out", str(out), "--quiet"]
+        assert main(argv) == 0
+        rows = read_track_csv(out)
+        flagged = {int(r["frame"]): r["error"] for r in rows if r["error"]}
+        assert len(rows) == 5
+        if topic.endswith("compressed"):
+            assert sorted(flagged) == [1, 2]
+            assert "the compressed image (png) is empty; skipped" in flagged[1]
+            assert "CV_IO_MAX_IMAGE_PIXELS" in flagged[2]
+        else:
+            assert sorted(flagged) == [1]
+            assert "the image is 0x0 pixels: nothing to look at; skipped" in flagged[1]
+        assert all(r["valid"] == "1" for r in rows if int(r["frame"]) in (3, 4))
+
+
 def _track_salvaged(
     bag: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> list[dict[str, str]]:

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from perchpose.errors import SourceError
 from perchpose.geometry import quaternion_xyzw
+from perchpose.io.native import opencv_reason
 from perchpose.values import Estimate
 
 ENCODINGS = ("mono8", "mono16", "bgr8", "rgb8", "bgra8", "rgba8")
@@ -27,8 +28,15 @@ def supported(msg: Any) -> bool:
 
 def _compressed(msg: Any, where: str) -> NDArray[np.uint8]:
     data = np.frombuffer(bytes(msg.data), np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    if image is None:
+    if data.size == 0:
+        raise SourceError(f"{where}: the compressed image ({msg.format}) is empty")
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:  # OpenCV refuses, e.g., a header claiming over 2^30 pixels
+        raise SourceError(
+            f"{where}: the compressed image ({msg.format}) cannot be decoded ({opencv_reason(exc)})"
+        ) from exc
+    if image is None or image.size == 0:
         raise SourceError(f"{where}: the compressed image ({msg.format}) cannot be decoded")
     if image.dtype == np.uint16:
         image = (image // 256).astype(np.uint8)
@@ -45,6 +53,8 @@ def image_of(msg: Any, where: str) -> NDArray[np.uint8]:
             f"{where}: image encoding {msg.encoding!r} is not supported ({', '.join(ENCODINGS)})"
         )
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise SourceError(f"{where}: the image is {w}x{h} pixels: nothing to look at")
     channels = _CHANNELS[encoding]
     depth = 2 if encoding == "mono16" else 1
     raw = np.frombuffer(bytes(msg.data), np.uint8)
