@@ -104,3 +104,33 @@ def test_a_late_velocity_is_compared_with_the_estimate_of_its_moment() -> None:
     assert drift_told < 0.95 * drift_current
     assert max(told) < 0.9 * max(current)
     assert abs(told[-1]) < 1e-3
+
+
+def _late_loop(observer: DisturbanceObserver, delay_s: float, seconds: float) -> float:
+    """A first-order loop that answers the setpoint sent ``delay_s`` ago, commanded a 0.3 m/s
+    step with the observer's offset added, the observer updated at 100 Hz (an odometry's
+    rate); the largest offset the observer asked for."""
+    dt = 0.01
+    steps_late = round(delay_s / dt)
+    sent = [np.zeros(3)] * (steps_late + 1)
+    v = np.zeros(3)
+    largest = 0.0
+    for _ in range(int(seconds / dt)):
+        v_sp = np.array([0.3, 0.0, 0.0]) + observer.offset_mps
+        sent.append(v_sp)
+        answered = sent[-1 - steps_late]
+        for _ in range(10):
+            v = v + dt / 10 * (K_V * (answered - v))
+        observer.update(v_sp, v, dt)
+        largest = max(largest, float(np.abs(observer.offset_mps).max()))
+    return largest
+
+
+def test_a_late_answer_is_not_a_disturbance_when_the_delay_is_known() -> None:
+    """A vehicle that answers 0.13 s late (a real attitude loop): told the delay, the observer
+    asks for little; not told, it reads the lag as a push and offsets the setpoint by several
+    times as much."""
+    told = _late_loop(DisturbanceObserver(K_V, 12.0, (0.6, 0.6, 0.3), delay_s=0.13), 0.13, 3.0)
+    blind = _late_loop(DisturbanceObserver(K_V, 12.0, (0.6, 0.6, 0.3)), 0.13, 3.0)
+    assert told < 0.04
+    assert blind > 4 * told

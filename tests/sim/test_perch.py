@@ -14,7 +14,14 @@ from perchpose.control import PerchingController
 from perchpose.errors import VehicleConfigError, WindConfigError
 from perchpose.evaluation.perching import summarise
 from perchpose.sim.campaign import run_campaign
-from perchpose.sim.perch import CONTACT_RADIUS_MM, PerchSetup, event_steps, run_perch
+from perchpose.sim.perch import (
+    CONTACT_RADIUS_MM,
+    HeldSetpoint,
+    PerchSetup,
+    event_steps,
+    run_perch,
+)
+from perchpose.sim.sensing import Sensing
 
 
 @pytest.fixture(scope="module")
@@ -277,18 +284,19 @@ def test_moderate_wind_needs_the_disturbance_rejection() -> None:
 
 
 def test_latency_is_flown_with_the_attitude_at_capture(monkeypatch: pytest.MonkeyPatch) -> None:
-    """100 ms of camera latency (3 frames), still air, the true pose: each fix placed in the
+    """167 ms of camera latency (5 frames), still air, the true pose: each fix placed in the
     world with the attitude the vehicle had when its frame was captured perches every run;
     with the attitude of the moment the frame arrives (as before), the vehicle oscillates
-    sideways and misses the capture cone."""
+    sideways and misses the capture cone. (At 100 ms the observer that knows the vehicle's
+    own delay damps enough of that oscillation for 4 runs of 6 to perch even so.)"""
     base = PerchSetup(CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth")
-    late = base.with_timing(30.0, 3)
+    late = base.with_timing(30.0, 5)
     runs = [run_perch(late, seed) for seed in range(6)]
     assert all(r.success for r in runs), [r.reason for r in runs]
     assert max(r.contact_offset_mm for r in runs) < CONTACT_RADIUS_MM / 2
     monkeypatch.setattr(PerchingController, "attitude_at", lambda _self, _t, R_now: R_now)
     arrival = [run_perch(late, seed) for seed in range(6)]
-    assert sum(r.success for r in arrival) <= 3
+    assert sum(r.success for r in arrival) <= 2
 
 
 def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
@@ -332,3 +340,31 @@ def test_perch_sweeps_latency(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert [float(r["latency_ms"]) for r in rows] == [0.0, 50.0, 100.0, 150.0, 200.0]
     assert (out / "latency.png").stat().st_size > 0
     assert "150 ms" in capsys.readouterr().out
+
+
+def test_a_setpoint_reaches_the_vehicle_after_the_uplink_delay() -> None:
+    """Sent at 1.000 s over a 15 ms uplink, a setpoint is held from 1.015 s on: before it the
+    vehicle flies the one before, and its watchdog counts from the arrival."""
+    now = [1.0]
+    commander = HeldSetpoint(lambda: now[0], lambda: True, 0.015)
+    commander.send_velocity((0.1, 0.0, 0.0), 0.2)
+    assert commander.next_arrival_s() == pytest.approx(1.015)
+    assert commander.received_s is None
+    np.testing.assert_allclose(commander.v_mps, 0.0)
+    now[0] = 1.014
+    commander.deliver()
+    np.testing.assert_allclose(commander.v_mps, 0.0)
+    now[0] = 1.015
+    commander.deliver()
+    np.testing.assert_allclose(commander.v_mps, [0.1, 0.0, 0.0])
+    assert commander.yaw_rate_rad_s == 0.2
+    assert commander.received_s == pytest.approx(1.015)
+    assert commander.next_arrival_s() is None
+    assert commander.sent_s == [1.0]
+
+
+def test_realistic_runs_record_the_uplink_delay_they_drew(setup: PerchSetup) -> None:
+    realistic = setup.with_sensing(Sensing())
+    result = run_perch(replace(realistic, estimator="truth"), 5)
+    assert result.senses is not None
+    assert 0.004 <= result.senses.uplink_delay_s <= 0.02

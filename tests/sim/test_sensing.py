@@ -89,6 +89,7 @@ def test_ideal_senses_fly_as_before_and_realistic_ones_differ() -> None:
         mount_deg=0.0,
         mount_mm=0.0,
         target_scale_error=0.0,
+        uplink_delay_s=(0.0, 0.0),
     )
     # realistic machinery with every error at zero flies the ideal run again (with the true
     # capture times: live stamps date a frame that came a frame late by its grab)

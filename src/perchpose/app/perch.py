@@ -15,6 +15,7 @@ from perchpose.errors import PerchposeError
 from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write_reports
 from perchpose.sim.campaign import campaign_jobs, execute
 from perchpose.sim.disturbances import Disturbances
+from perchpose.sim.firmware import FLIGHT_CONTROLLERS, check_flight_controller, load_firmware
 from perchpose.sim.perch import ESTIMATORS, PerchResult, PerchSetup
 from perchpose.sim.sensing import ODOMETRY_ERRORS, Sensing
 from perchpose.sim.wind import WIND_LEVELS
@@ -49,6 +50,7 @@ class PerchCampaign:
         stamps: str = "live",
         faults: str = "",
         odometry: str = "white",
+        flight_controller: str = "model",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -63,6 +65,20 @@ class PerchCampaign:
             raise PerchposeError(f"--estimator: {estimators!r} names an estimator twice")
         if runs < 1:
             raise PerchposeError(f"--runs must be >= 1, got {runs}")
+        if flight_controller not in FLIGHT_CONTROLLERS:
+            raise PerchposeError(
+                f"--flight-controller: unknown {flight_controller!r} "
+                f"(choose {', '.join(FLIGHT_CONTROLLERS)})"
+            )
+        try:
+            check_flight_controller(flight_controller)
+        except PerchposeError as exc:
+            raise PerchposeError(f"--flight-controller: {exc}") from exc
+        if flight_controller != "model":
+            try:
+                load_firmware()
+            except PerchposeError as exc:
+                raise PerchposeError(f"--flight-controller {flight_controller}: {exc}") from exc
         if odometry not in ODOMETRY_ERRORS:
             raise PerchposeError(
                 f"--odometry: unknown {odometry!r} (choose {' or '.join(ODOMETRY_ERRORS)})"
@@ -78,6 +94,7 @@ class PerchCampaign:
             disturbances=Disturbances() if disturbances else Disturbances.none(),
             stamps=stamps,
             duration_s=FAULT_RUN_S if injected else PerchSetup.duration_s,
+            flight_controller=flight_controller,
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
         timed = [
@@ -126,7 +143,14 @@ class PerchCampaign:
                 say(f"{kept} runs kept from {log.path}{aside}; {len(jobs)} to fly")
             cells = len(self.setups)
             plural = "s" * (cells > 1)
-            say(f"{len(jobs)} runs: {cells} cell{plural} of {self.runs} runs; {senses(base)}")
+            flown = (
+                ""
+                if base.flight_controller == "model"
+                else f"; the Crazyflie firmware's {base.flight_controller} controller flies it"
+            )
+            say(
+                f"{len(jobs)} runs: {cells} cell{plural} of {self.runs} runs; {senses(base)}{flown}"
+            )
             trajectories: list[PerchResult] = []
             for setup, result in execute(
                 jobs, workers=workers, scheduler=scheduler, progress=progress
@@ -171,6 +195,7 @@ class PerchOptions:
     overwrite: bool = False
     faults: str = ""
     odometry: str = "white"
+    flight_controller: str = "model"
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -191,6 +216,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         stamps=options.stamps,
         faults=options.faults,
         odometry=options.odometry,
+        flight_controller=options.flight_controller,
     )
     content = campaign.fly(
         options.out,

@@ -6,6 +6,7 @@ import click
 
 from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress
 from perchpose.cli.group import group
+from perchpose.sim.firmware import FLIGHT_CONTROLLERS
 
 
 @group.command()
@@ -67,6 +68,15 @@ from perchpose.cli.group import group
     type=float,
     help="Camera latency, capture to estimate (default: drawn, 40-150 ms; with --sensing "
     "ideal one frame, and whole frames); up to 200 ms verified.",
+)
+@click.option(
+    "--flight-controller",
+    type=click.Choice(list(FLIGHT_CONTROLLERS)),
+    default="model",
+    show_default=True,
+    help="The vehicle's onboard loops: model (this package's) or the Crazyflie firmware's own "
+    "controller (needs its Python module cffirmware: ../shared/firmware/install-cffirmware, "
+    "GPL-3.0).",
 )
 @click.option(
     "--odometry",
@@ -137,6 +147,7 @@ def perch(
     latency_ms: float | None,
     stamps: str,
     odometry: str,
+    flight_controller: str,
     faults: str,
     camera_file: str,
     out: str,
@@ -171,6 +182,7 @@ def perch(
         progress=show_progress(quiet),
         stamps=stamps,
         odometry=odometry,
+        flight_controller=flight_controller,
         overwrite=overwrite,
         faults=faults,
     )

@@ -59,7 +59,7 @@ from numpy.typing import NDArray
 from perchpose.control.disturbance import DisturbanceObserver
 from perchpose.control.history import newest_at
 from perchpose.control.mount import default_T_body_camera
-from perchpose.errors import ControllerConfigError, require_positive
+from perchpose.errors import ControllerConfigError, require_non_negative, require_positive
 from perchpose.geometry import angle_diff_rad, wrap_angle_rad, yaw_rad
 from perchpose.values import Estimate
 
@@ -117,7 +117,9 @@ class ControllerSettings:
     With odometry: hold_target_s : how long the target's position held from the last fix is
     flown on. fix_weight : the weight of a new fix against the held position (the target does
     not move; the odometry drifts slowly). onboard_velocity_gain : the flight controller's
-    velocity-loop gain, 1/s (its model in the disturbance observer). observer_rate : the
+    velocity-loop gain, 1/s (its model in the disturbance observer). onboard_delay_s : how much
+    later than that first-order loop the vehicle answers a setpoint (the observer's model;
+    ``control.disturbance``). observer_rate : the
     observer's poles, rad/s (0: no observer). commit_observer_rate : its poles during the
     final climb (0: observer_rate): faster there, where a gust has a few tenths of a second to
     push the magnet aside, and the climb ends before the oscillation that a fast observer
@@ -157,6 +159,7 @@ class ControllerSettings:
     max_estimate_age_s: float = 0.5
     hold_target_s: float = 1.0
     onboard_velocity_gain: float = 4.3
+    onboard_delay_s: float = 0.1
     observer_rate: float = 12.0
     commit_observer_rate: float = 18.0
     k_i_xy: float = 1.5
@@ -207,6 +210,7 @@ class ControllerSettings:
             "commit_gain",
         )
         require_positive(self, positive, ControllerConfigError)
+        require_non_negative(self, ("onboard_delay_s",), ControllerConfigError)
         if self.commit_frames < 1:
             raise ControllerConfigError(f"commit_frames must be >= 1, got {self.commit_frames}")
         if self.max_tries < 1:
@@ -359,6 +363,7 @@ class PerchingController:
                 self.settings.max_disturbance_xy_mps,
                 self.settings.max_disturbance_z_mps,
             ),
+            self.settings.onboard_delay_s,
         )
         self._integral_xy = np.zeros(2)
         self._steer_t: float | None = None

@@ -62,6 +62,7 @@ RUN_COLUMNS = (
     "mount_error_mm",
     "target_scale",
     "latency_configured_ms",
+    "uplink_delay_ms",
 )
 SENSE_COLUMNS = RUN_COLUMNS[RUN_COLUMNS.index("latency_ms") :]
 
@@ -280,7 +281,9 @@ def sense_values(draw: SensingDraw | None, setup: PerchSetup) -> tuple[float, ..
     odometry rate, no error)."""
     if draw is None:
         latency_ms = setup.latency_s * 1000.0
-        return (latency_ms, setup.odometry_hz, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, latency_ms)
+        return (
+            latency_ms, setup.odometry_hz, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, latency_ms, 0.0
+        )  # fmt: skip
     K, K_true = draw.camera.K, setup.camera.K
     mount = draw.T_true_believed
     angle = math.degrees(rotation_angle_rad(mount[:3, :3], np.eye(3)))
@@ -296,6 +299,7 @@ def sense_values(draw: SensingDraw | None, setup: PerchSetup) -> tuple[float, ..
         float(np.linalg.norm(mount[:3, 3]) * 1000.0),
         draw.target_scale,
         draw.latency_configured_s * 1000.0,
+        draw.uplink_delay_s * 1000.0,
     )
 
 
@@ -330,6 +334,7 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "sensing": asdict(setup.sensing),
         "stamps": setup.stamps,
         "faults": list(setup.faults),
+        "flight_controller": setup.flight_controller,
         "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
     }
 
@@ -566,6 +571,8 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "time_to_perch_s": top["time_to_perch_s"],
         "sensing": setup.sensing.name,
         "odometry": None if setup.sensing.is_ideal else setup.sensing.odometry,
+        "flight_controller": setup.flight_controller,
+        "onboard_estimator": "model",
         "stamps": setup.stamps,
         "faults": list(setup.faults),
         "fps": setup.fps,

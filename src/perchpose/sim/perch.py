@@ -15,6 +15,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,6 +37,7 @@ from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad
 from perchpose.sim.contact import Contact, ContactRules, PlateContact, tilt_deg
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.faults import LEVEL_AFTER_S, MOTORS_OFF_AFTER_S, Fault, check_faults
+from perchpose.sim.firmware import FirmwareQuadrotor, check_flight_controller
 from perchpose.sim.flow_deck import FlowDeckError
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 from perchpose.sim.render import ImageQuality, Renderer
@@ -111,8 +113,10 @@ class PerchSetup:
     sensing: Sensing = field(default_factory=Sensing.ideal)
     stamps: str = "live"
     faults: tuple[str, ...] = ()
+    flight_controller: str = "model"
 
     def __post_init__(self) -> None:
+        check_flight_controller(self.flight_controller)
         if self.stamps not in STAMPS:
             raise VehicleConfigError(f"unknown stamps {self.stamps!r} (choose live or exact)")
         check_faults(self.faults)
@@ -264,41 +268,54 @@ class PerchResult:
 
 
 class HeldSetpoint:
-    """The commander the simulated vehicle flies: it holds the last setpoint the pilot sent,
+    """The commander the simulated vehicle flies: it holds the last setpoint that reached it,
     and no setpoint at all is a hover. A stop cuts the motors (``stopped``). ``clock`` gives
     the simulation's time; while ``link_up`` says no, nothing the pilot sends arrives, and
-    ``received_s`` (when the last one did) ages, for the vehicle's own watchdog."""
+    ``received_s`` (when the last one did) ages, for the vehicle's own watchdog. What is sent
+    reaches the vehicle ``delay_s`` later (the radio uplink); ``deliver`` hands over what has
+    arrived by now, ``next_arrival_s`` says when the next will."""
 
     def __init__(
         self,
         clock: Callable[[], float] = lambda: 0.0,
         link_up: Callable[[], bool] = lambda: True,
+        delay_s: float = 0.0,
     ) -> None:
         self.v_mps = np.zeros(3)
         self.yaw_rate_rad_s = 0.0
         self.clock = clock
         self.link_up = link_up
+        self.delay_s = delay_s
         self.stopped = False
         self.received_s: float | None = None  # the vehicle's watchdog starts at the first
         self.sent_s: list[float] = []  # when the pilot sent each command
+        # on their way: (arrival time, velocity, yaw rate, stop)
+        self._pending: deque[tuple[float, Array, float, bool]] = deque()
 
-    def _arrives(self) -> bool:
-        self.sent_s.append(self.clock())
+    def _send(self, v_mps: Array, yaw_rate_rad_s: float, stop: bool) -> None:
+        now = self.clock()
+        self.sent_s.append(now)
         if self.link_up():
-            self.received_s = self.clock()
-            return True
-        return False
+            self._pending.append((now + self.delay_s, v_mps, yaw_rate_rad_s, stop))
+            self.deliver()
+
+    def deliver(self) -> None:
+        """Take every setpoint that has arrived by now."""
+        now = self.clock()
+        while self._pending and self._pending[0][0] <= now + 1e-12:
+            arrived_s, v_mps, yaw_rate, stop = self._pending.popleft()
+            self.received_s = arrived_s
+            self.v_mps, self.yaw_rate_rad_s = v_mps, yaw_rate
+            self.stopped = self.stopped or stop
+
+    def next_arrival_s(self) -> float | None:
+        return self._pending[0][0] if self._pending else None
 
     def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
-        if self._arrives():
-            self.v_mps = np.array(v_world_mps)
-            self.yaw_rate_rad_s = yaw_rate_rad_s
+        self._send(np.array(v_world_mps, np.float64), yaw_rate_rad_s, False)
 
     def send_stop(self) -> None:
-        if self._arrives():
-            self.v_mps = np.zeros(3)
-            self.yaw_rate_rad_s = 0.0
-            self.stopped = True
+        self._send(np.zeros(3), 0.0, True)
 
     def send_land(self) -> bool:
         """The simulated vehicle has no landing of its own: the pilot lands it."""
@@ -337,6 +354,46 @@ def _estimator_for(setup: PerchSetup, camera: CameraModel) -> PerchingEstimator 
     return PerchingEstimator(camera, setup.target, markers=markers[setup.estimator], fusion="paper")
 
 
+def _plant_for(setup: PerchSetup, plant: Plant) -> Plant:
+    """What makes the run's vehicle: ``plant``, or with one of the firmware's flight
+    controllers this package's ``Quadrotor`` flown by it."""
+    if setup.flight_controller == "model":
+        return plant
+    if plant is not Quadrotor.hovering:
+        raise VehicleConfigError(
+            f"the {setup.flight_controller} flight controller flies this package's Quadrotor, "
+            "not another plant"
+        )
+    return partial(
+        FirmwareQuadrotor.hovering_on_firmware, setup.flight_controller, setup.physics_hz
+    )
+
+
+def _draw_senses(
+    setup: PerchSetup,
+    rng: np.random.Generator,
+    stamps_seq: np.random.SeedSequence,
+    uplink_seq: np.random.SeedSequence,
+) -> SensingDraw:
+    """A run's realistic senses: drawn from ``rng``; the latency the user measured (its
+    error from ``stamps_seq``) and the uplink's delay (from ``uplink_seq``) each from a
+    generator of its own, so that the earlier draws stay as they were."""
+    senses = SensingDraw.draw(setup.sensing, setup.camera, rng)
+    measured = mean_glass_to_grab_s(
+        senses.latency_s,
+        setup.sensing.latency_jitter_s,
+        setup.fps,
+        setup.disturbances.latency_jitter,
+    )
+    error = float(np.random.default_rng(stamps_seq).uniform(-1.0, 1.0))
+    uplink = np.random.default_rng(uplink_seq)
+    return replace(
+        senses,
+        latency_configured_s=measured + error * setup.sensing.latency_error_s,
+        uplink_delay_s=float(uplink.uniform(*setup.sensing.uplink_delay_s)),
+    )
+
+
 class _Flight:
     """One run's world and vehicle, stepped frame by frame."""
 
@@ -351,8 +408,8 @@ class _Flight:
         self.seed = seed
         # the senses draw from a third generator: ideal senses fly the worlds they always did;
         # the latency the user measured from a fourth (exact stamps fly what they always did)
-        seeds = np.random.SeedSequence(seed).spawn(7)
-        world_seq, camera_seq, senses_seq, stamps_seq, faults_seq, range_seq, flow_seq = seeds
+        seeds = np.random.SeedSequence(seed).spawn(8)
+        world_seq, camera_seq, senses_seq, stamps_seq, faults_seq, range_seq, flow_seq = seeds[:7]
         self.fault = Fault.draw(setup.faults, np.random.default_rng(faults_seq))
         self.range_rng = np.random.default_rng(range_seq)
         world = np.random.default_rng(world_seq)
@@ -367,7 +424,7 @@ class _Flight:
                 setup.plate_z_m - below,
             ]
         )
-        self.vehicle = plant(
+        self.vehicle = _plant_for(setup, plant)(
             setup.vehicle, start, float(world.uniform(-math.pi, math.pi)), setup.onboard
         )
         self.vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
@@ -377,23 +434,14 @@ class _Flight:
         )
         self.draw = VehicleDraw.draw(setup.disturbances, setup.duration_s, world)
         self.vehicle.attitude_bias = self.draw.attitude_bias
+        self.vehicle.thrust_scale = self.draw.thrust_scale(0.0)
+        self.vehicle.settle()
         self.senses: SensingDraw | None = None
         self.T_body_camera = np.asarray(setup.controller.T_body_camera, np.float64)
         flow_noise = 0.0
         flow: FlowDeckError | None = None
         if not setup.sensing.is_ideal:
-            self.senses = SensingDraw.draw(setup.sensing, setup.camera, self.senses_rng)
-            measured = mean_glass_to_grab_s(
-                self.senses.latency_s,
-                setup.sensing.latency_jitter_s,
-                setup.fps,
-                setup.disturbances.latency_jitter,
-            )
-            error = float(np.random.default_rng(stamps_seq).uniform(-1.0, 1.0))
-            self.senses = replace(
-                self.senses,
-                latency_configured_s=measured + error * setup.sensing.latency_error_s,
-            )
+            self.senses = _draw_senses(setup, self.senses_rng, stamps_seq, seeds[7])
             self.T_body_camera = self.T_body_camera @ self.senses.T_true_believed
             flow_noise = setup.sensing.flow_noise_mps
             if setup.sensing.odometry == "flow-deck":
@@ -404,7 +452,9 @@ class _Flight:
             setup, self.senses.camera if self.senses is not None else setup.camera
         )
         self.commander = HeldSetpoint(
-            lambda: self.now_s, lambda: not self.faulty("link-loss", self.now_s)
+            lambda: self.now_s,
+            lambda: not self.faulty("link-loss", self.now_s),
+            0.0 if self.senses is None else self.senses.uplink_delay_s,
         )
         self.resting = False  # on the floor, its weight on its feet
         self.motor_stop_height_m = math.nan  # above what it rests on, once the motors stop
@@ -542,9 +592,30 @@ class _Flight:
         return estimate
 
     def fly(self, t_s: float, steps: int) -> int | None:
-        """The vehicle through ``steps`` physics steps from ``t_s`` on the setpoint it holds;
-        the odometry follows at the end. The contact step (``plate.contact`` says what
-        touched) or None."""
+        """The vehicle through ``steps`` physics steps from ``t_s`` on the setpoint it holds,
+        taking each setpoint on its way at the step it arrives; the odometry follows. The
+        contact step (``plate.contact`` says what touched) or None."""
+        dt_s = 1.0 / self.setup.physics_hz
+        c = self.commander
+        event_s, done = self.now_s, 0
+        try:
+            while done < steps:
+                self.now_s = t_s + done * dt_s
+                c.deliver()
+                block = steps - done
+                arrival = c.next_arrival_s()
+                if arrival is not None:
+                    block = min(block, max(1, math.ceil((arrival - self.now_s) / dt_s - 1e-9)))
+                contact = self._fly_block(self.now_s, block)
+                if contact is not None:
+                    return done + contact
+                done += block
+            return None
+        finally:
+            self.now_s = event_s
+
+    def _fly_block(self, t_s: float, steps: int) -> int | None:
+        """``fly`` on one setpoint."""
         s = self.setup
         v = self.vehicle
         dt_s = 1.0 / s.physics_hz

@@ -326,6 +326,10 @@ class Quadrotor:
                 return i
         return None
 
+    def settle(self) -> None:
+        """Bring the onboard loops to a steady hover where the vehicle is (the model's loops
+        start settled: nothing to do)."""
+
     @property
     def hubs_m(self) -> tuple[tuple[float, float], ...]:
         """The rotor hubs' (x, y) on the body, metres."""

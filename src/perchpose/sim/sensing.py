@@ -19,6 +19,10 @@ Where the default magnitudes come from:
   which figures; the vertical axis then keeps the white noise, the range sensor's). Its
   state log and an autopilot's LOCAL_POSITION_NED stream at 50-100 Hz and describe the
   vehicle 10-30 ms before they arrive;
+- the setpoint uplink: a setpoint the pilot sends reaches the flight controller 4-20 ms later
+  (cflib queues packets for its radio thread, which trades them with the Crazyradio over USB
+  a packet per millisecond or so, each acknowledged; MAVLink over a serial or Wi-Fi link takes
+  as long); drawn per run;
 - the attitude estimate: 0.2 deg of noise per sample (a MEMS IMU's complementary or Kalman
   filter at rest) and 0-10 ms of delay;
 - clocks: the camera's time stamps and the flight controller's agree to a few ms (±5 ms);
@@ -70,6 +74,7 @@ class Sensing:
     odometry sample, integrated into the position (with a flow deck, along z only).
     attitude_noise_deg : per sample. attitude_delay_s : its age on arrival.
     clock_offset_s : half-width of the camera clock's offset from the flight controller's.
+    uplink_delay_s : the range of the setpoint uplink's delay.
     latency_error_s : half-width of the error of the camera latency the user measured (live
     stamps).
     focal_error, principal_point_px, k1_error : half-widths of the calibration's error.
@@ -88,6 +93,7 @@ class Sensing:
     attitude_noise_deg: float = 0.2
     attitude_delay_s: tuple[float, float] = (0.0, 0.01)
     clock_offset_s: float = 0.005
+    uplink_delay_s: tuple[float, float] = (0.004, 0.02)
     latency_error_s: float = 0.01
     focal_error: float = 0.01
     principal_point_px: float = 3.0
@@ -99,7 +105,14 @@ class Sensing:
     def __post_init__(self) -> None:
         if self.name not in SENSINGS:
             raise SensingConfigError(f"unknown sensing {self.name!r} (choose realistic or ideal)")
-        for name in ("latency_s", "odometry_hz", "odometry_delay_s", "attitude_delay_s"):
+        ranges = (
+            "latency_s",
+            "odometry_hz",
+            "odometry_delay_s",
+            "attitude_delay_s",
+            "uplink_delay_s",
+        )
+        for name in ranges:
             low, high = getattr(self, name)
             if not (math.isfinite(low) and math.isfinite(high) and 0 <= low <= high):
                 raise SensingConfigError(f"{name} must be 0 <= low <= high, got {low}, {high}")
@@ -151,7 +164,8 @@ class SensingDraw:
     delay, the clock offset, the calibration the estimator is given (``camera``), the mount's
     error ``T_true_believed`` (the true ``T_body_camera`` is the believed one times it) and the
     print's scale. ``latency_configured_s``: the camera latency the pilot is given with live
-    stamps (NaN until the flight sets it: it depends on the frame rate)."""
+    stamps (NaN until the flight sets it: it depends on the frame rate). ``uplink_delay_s``:
+    the setpoint uplink's delay (the flight draws it from a generator of its own)."""
 
     latency_s: float
     odometry_hz: float
@@ -162,6 +176,7 @@ class SensingDraw:
     T_true_believed: Array = field(repr=False)
     target_scale: float
     latency_configured_s: float = math.nan
+    uplink_delay_s: float = 0.0
 
     @staticmethod
     def draw(sensing: Sensing, camera: CameraModel, rng: np.random.Generator) -> SensingDraw:

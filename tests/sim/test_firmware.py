@@ -1,0 +1,100 @@
+import importlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perchpose.app.perch import PerchOptions, run
+from perchpose.errors import PerchposeError, VehicleConfigError
+from perchpose.sim import firmware
+from perchpose.sim.quadrotor import QuadrotorParams
+
+DT = 1 / 500
+
+
+def test_without_the_firmware_module_the_error_says_how_to_build_it(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    real = importlib.import_module
+
+    def missing(name: str, package: str | None = None) -> object:
+        if name == "cffirmware":
+            raise ImportError("No module named 'cffirmware'")
+        return real(name, package)
+
+    monkeypatch.setattr(importlib, "import_module", missing)
+    with pytest.raises(VehicleConfigError, match="install-cffirmware"):
+        firmware.load_firmware()
+    options = PerchOptions(
+        str(tmp_path), estimators="truth", runs=1, flight_controller="crazyflie-pid"
+    )
+    with pytest.raises(PerchposeError, match=r"--flight-controller crazyflie-pid: .*cffirmware"):
+        run(options)
+    with pytest.raises(PerchposeError, match="--flight-controller: unknown 'crazyflie-bogus'"):
+        run(PerchOptions(str(tmp_path), runs=1, flight_controller="crazyflie-bogus"))
+
+
+def test_a_physics_rate_the_firmware_loop_cannot_divide_is_refused() -> None:
+    pytest.importorskip("cffirmware")
+    with pytest.raises(VehicleConfigError, match="divides it, got 300 Hz"):
+        firmware.FirmwareQuadrotor("crazyflie-pid", 300.0)
+
+
+def test_controllers_that_need_position_setpoints_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(VehicleConfigError, match="crazyflie-mellinger holds thrust only on"):
+        firmware.check_flight_controller("crazyflie-mellinger")
+    options = PerchOptions(str(tmp_path), runs=1, flight_controller="crazyflie-lee")
+    with pytest.raises(PerchposeError, match="--flight-controller: crazyflie-lee holds thrust"):
+        run(options)
+
+
+def test_the_firmware_flies_the_velocity_and_yaw_rate_cflib_sends() -> None:
+    """Settled in a hover, the firmware's controller holds height, follows a 0.3 m/s world
+    velocity along x and then y, and turns counter-clockwise for a positive yaw rate, as
+    cflib's send_velocity_world_setpoint asks of it."""
+    pytest.importorskip("cffirmware")
+    start = np.array([0.2, -0.1, 1.0])
+    q = firmware.FirmwareQuadrotor.hovering_on_firmware(
+        "crazyflie-pid", 500.0, QuadrotorParams(), start, 0.4
+    )
+    q.settle()
+    np.testing.assert_allclose(q.p_m, start)
+
+    def fly(seconds: float, v_sp: tuple[float, float, float], yaw_rate: float = 0.0) -> None:
+        for _ in range(round(seconds / DT)):
+            q.fly(DT, 1, np.array(v_sp), yaw_rate, q.v_mps)
+
+    fly(1.0, (0.0, 0.0, 0.0))
+    assert abs(q.p_m[2] - 1.0) < 0.02  # the integrators hold the hover of a 39 g vehicle
+    assert np.linalg.norm(q.v_mps) < 0.02
+    fly(1.5, (0.3, 0.0, 0.0))
+    np.testing.assert_allclose(q.v_mps, [0.3, 0.0, 0.0], atol=0.04)
+    fly(1.5, (0.0, 0.3, 0.0))
+    np.testing.assert_allclose(q.v_mps, [0.0, 0.3, 0.0], atol=0.04)
+    yaw_before = q.yaw_rad
+    fly(1.0, (0.0, 0.0, 0.0), yaw_rate=0.5)
+    turned = math.remainder(q.yaw_rad - yaw_before, math.tau)
+    assert 0.3 < turned < 0.6  # about 0.5 rad, counter-clockwise
+    assert all(0 < m <= firmware.FULL_COMMAND for m in q.motor_command)
+
+
+def test_a_campaign_flown_by_the_firmware_says_so(tmp_path: Path) -> None:
+    pytest.importorskip("cffirmware")
+    out = tmp_path / "fw"
+    said: list[str] = []
+    options = PerchOptions(
+        str(out),
+        estimators="truth",
+        runs=2,
+        seed=700000,
+        workers=1,
+        flight_controller="crazyflie-pid",
+    )
+    content = run(options, say=said.append)
+    summary = json.loads((out / "perch.json").read_text())
+    assert summary["flight_controller"] == "crazyflie-pid"
+    assert summary["onboard_estimator"] == "model"
+    assert any("crazyflie-pid controller flies it" in line for line in said)
+    assert content["runs"] == 2
