@@ -207,6 +207,9 @@ def test_a_rigid_projection_is_the_projection_of_the_moved_points(name: str) -> 
         ({"fx": 1e300}, "fx = 1e+300 px is over 100 times"),
         ({"cx": 1e9}, "cx = 1e+09 px lies more than an image's size outside"),
         ({"k1": 1e300}, "distortion coefficient of 1e+300 is over 10000"),
+        ({"fx": 1e-9}, "fx = 1e-09 px is under a pixel"),
+        ({"fx": 4.0}, "fy / fx = 100, pixels over 10 times taller than wide"),
+        ({"skew": 1e6}, "a skew of 1e+06 px is over fx (400 px)"),
     ],
 )
 def test_intrinsics_no_camera_has_are_refused(change: dict[str, float], message: str) -> None:
@@ -214,6 +217,7 @@ def test_intrinsics_no_camera_has_are_refused(change: dict[str, float], message:
     dist = np.zeros(5)
     K[0, 0] = change.get("fx", K[0, 0])
     K[0, 2] = change.get("cx", K[0, 2])
+    K[0, 1] = change.get("skew", 0.0)
     dist[0] = change.get("k1", 0.0)
     with pytest.raises(CameraFileError, match=re.escape(message)):
         CameraModel(K, dist, 640, 480)

@@ -336,17 +336,33 @@ def _floats(a: Array) -> list[float]:
 
 MAX_FOCAL_PER_SIDE = 100.0  # fx, fy over the image's longer side: a 0.6 deg field of view
 MAX_DISTORTION = 1e4  # no lens model's coefficient comes near this
+MAX_ASPECT = 10.0  # fy / fx (or fx / fy): pixels no camera has
 
 
 def _check_plausible(K: Array, dist: Array, width: int, height: int, name: str) -> None:
     """Refuse intrinsics no camera has (they pass every other check and give garbage)."""
     side = max(width, height)
     for axis, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not f >= 1.0:
+            raise CameraFileError(
+                f"camera {name!r}: {axis} = {f:g} px is under a pixel: no lens focuses so short"
+            )
         if not f <= MAX_FOCAL_PER_SIDE * side:
             raise CameraFileError(
                 f"camera {name!r}: {axis} = {f:g} px is over {MAX_FOCAL_PER_SIDE:g} times the "
                 f"image's {side} px: not a camera"
             )
+    aspect = max(K[0, 0], K[1, 1]) / min(K[0, 0], K[1, 1])
+    if aspect > MAX_ASPECT:
+        raise CameraFileError(
+            f"camera {name!r}: fy / fx = {K[1, 1] / K[0, 0]:g}, pixels over {MAX_ASPECT:g} times "
+            "taller than wide (or wider than tall): not a camera"
+        )
+    if abs(K[0, 1]) > K[0, 0]:
+        raise CameraFileError(
+            f"camera {name!r}: a skew of {K[0, 1]:g} px is over fx ({K[0, 0]:g} px), more than a "
+            "pixel sideways per pixel up: not a camera"
+        )
     for axis, c, size in (("cx", K[0, 2], width), ("cy", K[1, 2], height)):
         if not -size <= c <= 2 * size:
             raise CameraFileError(

@@ -149,3 +149,31 @@ def test_a_compressed_image_of_another_size_is_refused_with_a_log_and_the_rest_t
     reports = heard["diagnostics"]
     assert sum(int(d["values"]["refused"]) for d in reports) == 1  # sent once
     assert [d["message"] for d in reports if d["level"] == 2] == ["1 image refused (see the log)"]
+
+
+def test_a_refused_camera_info_is_in_the_diagnostics_until_a_good_one_replaces_it() -> None:
+    """fx of a billionth of a pixel is no camera: refused, and the diagnostics say why while
+    the node waits; the next good camera_info is taken."""
+    rclpy = pytest.importorskip("rclpy")
+    from perchpose.io.ros.node import NodeSettings, PoseNode, _ros
+
+    ros = _ros()
+    rclpy.init(args=[])
+    try:
+        node = rclpy.create_node("perchpose_info_test")
+        pose_node = PoseNode(ros, node, NodeSettings())
+        info = ros["sensor"].CameraInfo(width=640, height=480, distortion_model="plumb_bob")
+        info.d = [0.0] * 5
+        info.k = [1e-9, 0.0, 320.0, 0.0, 400.0, 240.0, 0.0, 0.0, 1.0]
+        pose_node._on_camera_info(info)
+        assert pose_node.camera is None
+        assert pose_node.waiting_for().startswith("camera_info (the last refused: ")
+        assert "fx = 1e-09 px is under a pixel" in pose_node.waiting_for()
+        info.k = [400.0, 0.0, 320.0, 0.0, 400.0, 240.0, 0.0, 0.0, 1.0]
+        pose_node._on_camera_info(info)
+        assert pose_node.camera is not None
+        assert pose_node.waiting_for() == ""
+        pose_node.close()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()

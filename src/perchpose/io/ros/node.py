@@ -216,6 +216,7 @@ class PoseNode:
             TargetSpec.load(settings.target_file) if settings.target_file else TargetSpec.paper()
         )
         self.camera: CameraModel | None = None
+        self.info_refused = ""  # why the last camera_info was refused, while no camera is set
         self.estimator: PerchingEstimator | None = None
         if settings.camera_file:
             self._use_camera(CameraModel.load(settings.camera_file))
@@ -291,6 +292,7 @@ class PoseNode:
             )
         except PerchposeError as exc:
             self._say_once("info-bad", f"camera_info refused: {exc}")
+            self.info_refused = str(exc)  # the diagnostics say so until a good one comes
             return
         self._use_camera(camera)
         self.log.info(f"camera from camera_info: {camera.width_px}x{camera.height_px}")
@@ -375,10 +377,17 @@ class PoseNode:
                 compressed.data = bytes(jpeg)
                 self.overlay_pub.publish(compressed)
 
+    def waiting_for(self) -> str:
+        """What the node waits for before it can track (empty: nothing), as the diagnostics
+        say it: a camera_info, and why the last one was refused."""
+        if self.camera is not None:
+            return ""
+        refused = f" (the last refused: {self.info_refused})" if self.info_refused else ""
+        return f"camera_info{refused}"
+
     def _diagnostics(self) -> None:
         diagnostic = self.ros["diagnostic"]
-        waiting = "camera_info" if self.camera is None else ""
-        level, message, values = self.stats.report(waiting)
+        level, message, values = self.stats.report(self.waiting_for())
         status = diagnostic.DiagnosticStatus(
             level=bytes([level]),
             name="perchpose: target pose",
