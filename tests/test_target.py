@@ -52,6 +52,11 @@ def test_yaml_round_trip(tmp_path: Path) -> None:
         ([{"dictionary": "DICT_4X4_100", "id": 997, "side_mm": 150}], "not in DICT_4X4_100"),
         ([{"dictionary": "DICT_NOPE", "id": 1, "side_mm": 10}], "unknown ArUco dictionary"),
         ([{"dictionary": "DICT_4X4_50", "id": 1, "side_mm": -3}], "side_mm must be positive"),
+        ([{"dictionary": "DICT_4X4_50", "id": 1, "side_mm": 1e300}], "side_mm 1e+300 is over"),
+        (
+            [{"dictionary": "DICT_4X4_50", "id": 1, "side_mm": 30, "centre_mm": [1e12, 0]}],
+            "a centre over 10000 mm",
+        ),
         ([{"dictionary": "DICT_4X4_50", "side_mm": 3}], "lacks field 'id'"),
         (
             [{"dictionary": "DICT_4X4_50", "id": 1, "side_mm": 3}] * 2,

@@ -38,6 +38,9 @@ def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
     return cv2.aruco.getPredefinedDictionary(code)
 
 
+MAX_SIDE_MM = 10_000.0  # a marker's side, and its centre's offset: 10 m is no print
+
+
 @dataclass(frozen=True)
 class MarkerSpec:
     """One square marker of a target.
@@ -64,10 +67,20 @@ class MarkerSpec:
             )
         if not (math.isfinite(self.side_mm) and self.side_mm > 0):
             raise TargetSpecError(f"marker {self.label}: side_mm must be positive")
+        if self.side_mm > MAX_SIDE_MM:
+            raise TargetSpecError(
+                f"marker {self.label}: side_mm {self.side_mm:g} is over {MAX_SIDE_MM:g} mm "
+                "(10 m): not a print"
+            )
         if not all(math.isfinite(c) for c in self.centre_mm) or not math.isfinite(
             self.rotation_deg
         ):
             raise TargetSpecError(f"marker {self.label}: centre and rotation must be finite")
+        if max(abs(c) for c in self.centre_mm) > MAX_SIDE_MM:
+            raise TargetSpecError(
+                f"marker {self.label}: a centre over {MAX_SIDE_MM:g} mm from the target's: "
+                "not a print"
+            )
 
     @property
     def label(self) -> str:

@@ -233,3 +233,32 @@ def test_an_opencv_file_with_a_2x2_camera_matrix_is_named(tmp_path: Path) -> Non
     fs.release()
     with pytest.raises(CameraFileError, match=r"cam\.xml: camera_matrix must be 3 x 3, got 2 x 2"):
         CameraModel.load(path)
+
+
+def test_a_camera_file_nested_too_deep_for_opencv_is_refused_before_it(tmp_path: Path) -> None:
+    """OpenCV's FileStorage parser recurses per level and crashes the process on a file
+    nested 100,000 deep (a segmentation fault): such a file is refused first, by name."""
+    deep = tmp_path / "deep.xml"
+    deep.write_text(
+        '<?xml version="1.0"?>\n<opencv_storage>\n'
+        + "<a>" * 100_000
+        + "</a>" * 100_000
+        + "\n</opencv_storage>\n"
+    )
+    with pytest.raises(CameraFileError, match=r"deep\.xml: nested over 64 levels deep"):
+        CameraModel.load(deep)
+    flow = tmp_path / "deep.yaml"
+    flow.write_text("%YAML:1.0\n---\nimage_width: " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(CameraFileError, match=r"deep\.yaml: nested over 64 levels deep"):
+        CameraModel.load(flow)
+
+
+def test_an_infinite_image_size_is_not_an_integer(tmp_path: Path) -> None:
+    path = tmp_path / "inf.yaml"
+    path.write_text(
+        "image_width: .inf\nimage_height: 480\n"
+        "camera_matrix: {rows: 3, cols: 3, data: [400, 0, 320, 0, 400, 240, 0, 0, 1]}\n"
+        "distortion_coefficients: {rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}\n"
+    )
+    with pytest.raises(CameraFileError, match="field 'image_width' is not an integer"):
+        CameraModel.load(path)

@@ -32,3 +32,7 @@ def test_a_mount_file_or_a_clear_error(tmp_path: Path) -> None:
     assert np.allclose(mount_T_body_camera(str(path)), T)
     with pytest.raises(ControllerConfigError, match=r"sideways\.yaml: cannot read"):
         mount_T_body_camera(str(tmp_path / "sideways.yaml"))
+    binary = tmp_path / "mount.bin"
+    binary.write_bytes(bytes(range(256)))
+    with pytest.raises(ControllerConfigError, match=r"mount\.bin: not a text file"):
+        mount_T_body_camera(str(binary))

@@ -188,6 +188,7 @@ def test_weights_load_from_the_file_fit_fusion_writes(tmp_path: Path) -> None:
         ('{"sigma_x": 0.3}', "missing x, y, z, yaw"),
         ("[0.3, 0.4]", "expected an object"),
         ("not json", "not a JSON file"),
+        ("[" * 100_000 + "]" * 100_000, "nested too deep"),
     ],
 )
 def test_bad_weight_files_name_the_file_and_the_field(

@@ -11,6 +11,7 @@ Two distortion models are supported:
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -287,6 +288,7 @@ class CameraModel:
         except OSError as exc:
             raise CameraFileError(f"{p}: cannot read camera file ({exc.strerror})") from exc
         if text.lstrip().startswith(("%YAML", "<?xml", "<opencv_storage")):
+            _check_nesting(text, p)  # OpenCV's parser recurses per level: deep files crash it
             return _load_opencv_storage(p)
         try:
             data = safe_yaml.load(text)
@@ -337,6 +339,7 @@ def _floats(a: Array) -> list[float]:
 MAX_FOCAL_PER_SIDE = 100.0  # fx, fy over the image's longer side: a 0.6 deg field of view
 MAX_DISTORTION = 1e4  # no lens model's coefficient comes near this
 MAX_ASPECT = 10.0  # fy / fx (or fx / fy): pixels no camera has
+MAX_NESTING = 64  # levels of a camera file; a calibration has 2 or 3
 
 
 def _check_plausible(K: Array, dist: Array, width: int, height: int, name: str) -> None:
@@ -376,6 +379,29 @@ def _check_plausible(K: Array, dist: Array, width: int, height: int, name: str) 
         )
 
 
+def _check_nesting(text: str, path: Path) -> None:
+    """Refuse a FileStorage file nested deeper than ``MAX_NESTING`` (XML elements, YAML flow
+    brackets or indentation steps), which OpenCV's recursive parser would crash on (a
+    segmentation fault, not an exception) before perchpose could say a word."""
+    depth = deepest = 0
+    for m in re.finditer(r"<(/?)[A-Za-z_][^<>]*?(/?)>|[\[{]|[\]}]", text):
+        token = m.group(0)
+        if token in "[{":
+            depth += 1
+        elif token in "]}" or m.group(1):
+            depth -= 1
+        elif not m.group(2):
+            depth += 1
+        deepest = max(deepest, depth)
+        if deepest > MAX_NESTING:
+            break
+    indents = {len(line) - len(line.lstrip(" ")) for line in text.splitlines() if line.strip()}
+    if deepest > MAX_NESTING or len(indents) > MAX_NESTING:
+        raise CameraFileError(
+            f"{path}: nested over {MAX_NESTING} levels deep: not a camera calibration"
+        )
+
+
 def _first_line(exc: Exception) -> str:
     return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
 
@@ -397,7 +423,7 @@ def _int_field(data: dict[str, Any], keys: tuple[str, ...], path: Path) -> int:
         if key in data:
             try:
                 return int(data[key])
-            except (TypeError, ValueError) as exc:
+            except (TypeError, ValueError, OverflowError) as exc:
                 raise CameraFileError(f"{path}: field {key!r} is not an integer") from exc
     raise CameraFileError(f"{path}: missing field {keys[0]!r}")
 

@@ -47,9 +47,11 @@ def load_T_body_camera(path: str | Path) -> Array:
     forward, y left, z up; camera: OpenCV optical frame)."""
     where = Path(path)
     try:
-        data = safe_yaml.load(where.read_text())
+        data = safe_yaml.load(where.read_text(encoding="utf-8"))
     except OSError as exc:
         raise ControllerConfigError(f"{where}: cannot read ({exc.strerror})") from exc
+    except UnicodeDecodeError as exc:
+        raise ControllerConfigError(f"{where}: not a text file (a YAML mount)") from exc
     except yaml.YAMLError as exc:
         raise ControllerConfigError(f"{where}: not YAML ({exc})") from exc
     if not isinstance(data, dict) or "T_body_camera" not in data:

@@ -69,6 +69,8 @@ class FusionSigmas:
             raise FusionFileError(f"{path}: file not found") from exc
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise FusionFileError(f"{path}: not a JSON file of fusion weights ({exc})") from exc
+        except RecursionError as exc:  # Python's parser recurses once per level
+            raise FusionFileError(f"{path}: nested too deep to be fusion weights") from exc
         if not isinstance(content, dict):
             raise FusionFileError(f"{path}: expected an object with x, y, z and yaw")
         missing = [name for name in SIGMA_FIELDS if name not in content]
