@@ -132,6 +132,24 @@ def test_corrupt_frame_does_not_stop_the_run(
     assert rows[2]["frame"] == "2"
 
 
+def test_a_folder_of_nothing_but_unreadable_images_exits_non_zero(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every frame's row is written with its reason, and the run says that none was read."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(3):
+        (frames / f"frame_{k}.png").write_bytes(b"not a png")
+    out = tmp_path / "p.csv"
+    code, _, err = _run(
+        ["track", str(frames), "--camera", "preset:webcam", "--out", str(out)], capsys
+    )
+    assert code == 2
+    assert f"perchpose: error: {frames}: none of its 3 frames could be read" in err
+    assert "Traceback" not in err
+    assert len(read_track_csv(out)) == 3
+
+
 def test_a_lossy_video_says_which_frames_it_did_not_measure(
     short_sequence: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

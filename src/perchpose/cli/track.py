@@ -16,6 +16,7 @@ from perchpose.cli.common import (
     warn,
 )
 from perchpose.cli.group import group
+from perchpose.errors import SourceError
 
 if TYPE_CHECKING:
     from perchpose.app.links import LinkOptions
@@ -248,7 +249,14 @@ def track(
         progress=show_progress(quiet),
         camera_latency_s=camera_latency_ms / 1000.0,
     )
-    _print_summary(run(options, warn))
+    summary = run(options, warn)
+    _print_summary(summary)
+    if summary.frames and summary.bad_frames == summary.frames:
+        # the rows are written, each with its reason; the run itself found nothing to track
+        raise SourceError(
+            f"{source}: none of its {summary.frames} frames could be read (the warnings above "
+            "say why)"
+        )
 
 
 def _link_options(
