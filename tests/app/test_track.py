@@ -153,7 +153,8 @@ def test_a_live_camera_drops_stale_frames_and_says_so(
 ) -> None:
     """The rendered approach as a live camera (a real capture of an MJPG video, grabbed on
     its own thread as fast as it decodes, faster than the estimator): a row for every frame
-    in order; the overtaken ones stale, invalid and not passed to the vehicle links."""
+    in order; the overtaken ones stale, invalid and not passed to the vehicle links; the end of
+    the video is a camera that stopped delivering, an error once every row is written."""
     import cv2
 
     from perchpose.app import track as track_module
@@ -166,27 +167,32 @@ def test_a_live_camera_drops_stale_frames_and_says_so(
         writer.write(cv2.imread(str(path)))
     writer.release()
 
+    opened: list[VideoSource] = []
+
     def live(
         source: str, fps: float | None, size: tuple[int, int], image_topic: str | None = None
     ) -> VideoSource:
-        return VideoSource(cv2.VideoCapture(source), 30.0, "camera 0", live=True)
+        opened.append(VideoSource(cv2.VideoCapture(source), 30.0, "camera 0", live=True))
+        return opened[-1]
 
     monkeypatch.setattr(track_module, "open_source", live)
     seen: list[float] = []
     camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
-    summary = track(
-        str(video),
-        PerchingEstimator(camera, TargetSpec.paper()),
-        tmp_path / "live.csv",
-        progress=False,
-        on_frame=[lambda estimate, t_s: seen.append(t_s)],
-    )
+    estimator = PerchingEstimator(camera, TargetSpec.paper())
+    with pytest.raises(PerchposeError, match="camera 0: stopped delivering frames"):
+        track(
+            str(video),
+            estimator,
+            tmp_path / "live.csv",
+            progress=False,
+            on_frame=[lambda estimate, t_s: seen.append(t_s)],
+        )
     rows = read_track_csv(tmp_path / "live.csv")
     assert [int(r["frame"]) for r in rows] == list(range(len(frames)))
     stale = [r for r in rows if r["error"] == track_module.STALE]
     assert stale
-    assert summary.stale_frames == len(stale)
-    assert summary.bad_frames == 0
+    assert opened[0].stale == len(stale)
+    assert all(r["error"] in ("", track_module.STALE) for r in rows)
     assert all(r["valid"] == "0" for r in stale)
     processed = [r for r in rows if not r["error"]]
     assert len(seen) == len(processed)

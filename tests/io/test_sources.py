@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from perchpose.errors import SourceError
+from perchpose.io.frames import Frame
 from perchpose.io.sources import LatestFrame, VideoSource, open_source
 from perchpose.sim.lossy_video import encode_h264
 
@@ -191,15 +192,21 @@ def test_a_live_capture_gives_the_newest_frame_and_marks_the_overtaken_stale(
     """A real capture read as a live camera (its own thread grabs as fast as it decodes)
     behind a consumer that takes 15 ms a frame: every frame comes once, in order; those a
     newer one overtook come stale and without an image; the others are the frame their index
-    says, stamped when grabbed."""
+    says, stamped when grabbed; the end of its frames is a camera that stopped delivering."""
     path = tmp_path / "live.avi"
     _numbered_video(path, 60)
     source = VideoSource(cv2.VideoCapture(str(path)), 30.0, "camera 7", live=True)
-    frames = []
-    for frame in source:
-        frames.append(frame)
-        if not frame.stale:
-            time.sleep(0.015)
+    frames: list[Frame] = []
+
+    def consume() -> None:
+        for frame in source:
+            frames.append(frame)
+            if not frame.stale:
+                time.sleep(0.015)
+
+    # a camera has no end: one whose capture stops delivering is an error, after its frames
+    with pytest.raises(SourceError, match="camera 7: stopped delivering frames"):
+        consume()
     assert [f.index for f in frames] == list(range(60))
     stale = [f for f in frames if f.stale]
     assert stale

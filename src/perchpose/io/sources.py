@@ -153,6 +153,11 @@ class VideoSource(FrameSource):
         finally:
             grabber.close()
             grabber.capture.release()
+        if grabber.failed:
+            raise SourceError(
+                f"{self.description}: stopped delivering frames (unplugged, or taken by another "
+                "program); tracking stopped there"
+            )
         if self.gave_up:
             raise SourceError(
                 f"{self.description}: the stream dropped and did not come back within "
@@ -217,6 +222,7 @@ class LatestFrame:
         self._overtaken: list[tuple[int, float]] = []
         self._ended = False
         self._closing = threading.Event()
+        self.failed = False  # the capture stopped delivering (not closed, nothing to reopen)
         self._thread = threading.Thread(target=self._grab, name="perchpose-capture", daemon=True)
         self._thread.start()
 
@@ -228,7 +234,10 @@ class LatestFrame:
                 grabbed = time.monotonic()
                 image = self.capture.retrieve()[1] if ok else None
                 if image is None:
-                    if self.reconnect is None or self._closing.is_set():
+                    if self._closing.is_set():
+                        break
+                    if self.reconnect is None:
+                        self.failed = True  # a camera that stopped delivering
                         break
                     self.capture.release()
                     capture = self.reconnect()
