@@ -8,6 +8,7 @@ import os
 import random
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -173,6 +174,50 @@ def test_a_refused_camera_info_is_in_the_diagnostics_until_a_good_one_replaces_i
         pose_node._on_camera_info(info)
         assert pose_node.camera is not None
         assert pose_node.waiting_for() == ""
+        pose_node.close()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()
+
+
+def test_a_camera_whose_stamps_start_over_is_followed_with_one_warning(
+    approach_webcam_dir: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Frames stamped 100.0, 100.033, 100.067 s, then 5.0 s (a driver that restarted): the
+    fourth is tracked, tracking starting over, with one warning; a frame 10 ms behind the one
+    before it is refused as out of order, not taken for a restart."""
+    rclpy = pytest.importorskip("rclpy")
+    import cv2
+
+    from perchpose.io.ros.node import NodeSettings, PoseNode, _ros
+
+    ros = _ros()
+    rclpy.init(args=[])
+    try:
+        node = rclpy.create_node("perchpose_stamps_test")
+        settings = NodeSettings(camera_file=str(approach_webcam_dir / "camera.yaml"))
+        pose_node = PoseNode(ros, node, settings)
+        frames = sorted(approach_webcam_dir.glob("frame_*.png"))
+
+        def image(k: int, t_s: float) -> object:
+            grey = cv2.imread(str(frames[k]), cv2.IMREAD_GRAYSCALE)
+            msg = ros["sensor"].Image(
+                height=grey.shape[0], width=grey.shape[1], encoding="mono8", step=grey.shape[1]
+            )
+            msg.data = grey.tobytes()
+            msg.header.stamp.sec = int(t_s)
+            msg.header.stamp.nanosec = round((t_s % 1) * 1e9)
+            msg.header.frame_id = "camera_optical_frame"
+            return msg
+
+        for k, t_s in enumerate((100.0, 100.033, 100.067, 5.0, 4.99, 5.033)):
+            pose_node._process(image(k, t_s), time.monotonic())
+        assert pose_node.stats.total_taken == 5
+        assert pose_node.stats.refused == 1
+        assert pose_node.last_stamp_s == pytest.approx(5.033)
+        log = capfd.readouterr().err
+        assert log.count("the stamps went back 95.1 s") == 1
+        assert "a stamp 10.0 ms behind the one before; refused" in log
         pose_node.close()
         node.destroy_node()
     finally:

@@ -78,6 +78,9 @@ def _ros() -> dict[str, Any]:
     return found
 
 
+RESTART_BACK_S = 1.0  # an image stamp this far behind the last: the camera started over
+
+
 @dataclass(frozen=True)
 class NodeSettings:
     """The node's parameters (``perchpose.params.yaml`` holds their defaults, and is the file
@@ -217,6 +220,7 @@ class PoseNode:
         )
         self.camera: CameraModel | None = None
         self.info_refused = ""  # why the last camera_info was refused, while no camera is set
+        self.last_stamp_s: float | None = None  # the newest image stamp taken
         self.estimator: PerchingEstimator | None = None
         if settings.camera_file:
             self._use_camera(CameraModel.load(settings.camera_file))
@@ -336,11 +340,36 @@ class PoseNode:
             self.stats.count("refused")
             self._say_once(f"image {exc}", f"{exc}; refused")
             return
+        if not self._in_order(stamp.t_s, estimator):
+            return
         estimate = estimator.update(grey, stamp.t_s)
         latency_s = time.monotonic() - received_s
         estimate = replace(estimate, latency_s=latency_s, grabbed_s=received_s)
         self._publish(stamp, estimate, image)
         self.stats.took(estimate, latency_s)
+
+    def _in_order(self, t_s: float, estimator: PerchingEstimator) -> bool:
+        """A stamp a little behind the last one is a frame out of order: refused. One at least
+        ``RESTART_BACK_S`` behind is a camera whose clock started over (its driver restarted,
+        a bag played again): said once per restart, and tracking starts over from it."""
+        last = self.last_stamp_s
+        if last is not None and t_s < last:
+            back_s = last - t_s
+            if back_s < RESTART_BACK_S:
+                self.stats.count("refused")
+                self._say_once(
+                    "stamp-back",
+                    f"image_raw: a stamp {1000 * back_s:.1f} ms behind the one before; refused "
+                    "(out of order)",
+                )
+                return False
+            self.log.warning(
+                f"image_raw: the stamps went back {back_s:.1f} s (a camera driver that "
+                "restarted, or a bag played again): tracking starts over from this frame"
+            )
+            estimator.reset()
+        self.last_stamp_s = t_s
+        return True
 
     def _header(self, stamp: Stamp) -> Any:
         std = self.ros["std"]
