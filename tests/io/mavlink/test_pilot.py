@@ -49,6 +49,7 @@ class Vehicle:
         self.streams = {"ATTITUDE", "LOCAL_POSITION_NED"}
         self.height_m = 1.0
         self.flies = False  # its height follows the vertical speed it is sent (floor at 0)
+        self._stated_s: float | None = None  # when it last sent its state
         self.vz_ned_mps = 0.0
         self.disarmed_at_m: float | None = None
         self.boot_offset_ms = 0  # a reboot: its clock since boot starts again
@@ -82,7 +83,7 @@ class Vehicle:
                 self._beat()
             if self.received and now >= next_state:
                 next_state = now + 0.02
-                self._state()
+                self._state(now)
 
     def _obey(self, msg: Any) -> None:
         """Fly a velocity setpoint (when ``flies``), disarm or change mode as told."""
@@ -96,10 +97,13 @@ class Vehicle:
         elif kind == "COMMAND_LONG" and msg.command == 176:
             self.set_mode(int(msg.param2))
 
-    def _state(self) -> None:
+    def _state(self, now_s: float) -> None:
         nan = float("nan")
+        # it moves in real time, however late this thread runs on a busy machine
+        dt_s = 0.02 if self._stated_s is None else now_s - self._stated_s
+        self._stated_s = now_s
         if self.flies:
-            self.height_m = max(self.floor_m, self.height_m - self.vz_ned_mps * 0.02)
+            self.height_m = max(self.floor_m, self.height_m - self.vz_ned_mps * dt_s)
         resting = self.height_m <= self.floor_m
         vz = self.vz_ned_mps if self.flies and not resting else 0.0
         if self.land_detector:
