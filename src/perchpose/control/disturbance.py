@@ -87,11 +87,7 @@ class DisturbanceObserver:
         then = newest_at(self._past, self._clock_s - age_s) if age_s > 0 else self.v_mps
         error = v_odo - then
         self._sent.append((self._clock_s, np.asarray(v_sp_mps, np.float64)))
-        answered = (
-            newest_at(self._sent, self._clock_s - self.delay_s)
-            if self.delay_s > 0
-            else self._sent[-1][1]
-        )
+        answered = newest_at(self._sent, self._clock_s - self.delay_s)
         dv = self.k_v * (answered - self.v_mps) + self.a_mps2
         self.v_mps = self.v_mps + dt_s * (dv + self.l1 * error)
         limit = self.max_offset_mps * self.k_v

@@ -167,7 +167,7 @@ class FirmwareQuadrotor(Quadrotor):
     ) -> FirmwareQuadrotor:
         """A vehicle hovering at ``p_m`` with heading ``yaw_rad``, the firmware flying it."""
         q = FirmwareQuadrotor(controller, physics_hz, params, gains, np.asarray(p_m, np.float64))
-        q.R_world_body = Quadrotor.hovering(params, p_m, yaw_rad, gains).R_world_body
+        q.R_world_body = rot_z(yaw_rad)
         return q
 
     def settle(self) -> None:
