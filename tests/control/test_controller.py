@@ -393,3 +393,29 @@ def test_a_late_odometry_sample_is_carried_to_now_by_its_velocity() -> None:
     assert command is not None
     assert command.error_m is not None
     np.testing.assert_allclose(command.error_m - first.error_m, [-0.005, 0.0, 0.0], atol=1e-12)
+
+
+def test_a_measured_push_is_leant_against_at_once() -> None:
+    """The accelerometer says the air pushes along +x at 1.3 m/s^2: the setpoints between
+    frames lean against it by the (low-passed) push over the velocity loop's gain, before the
+    odometry has seen any drift; without ``push_feedforward``, or without an accelerometer,
+    they do not."""
+    push = np.array([1.3, 0.0, 0.0])
+    sent = {}
+    for on, measured in ((True, push), (False, push), (True, None)):
+        s = ControllerSettings(push_feedforward=on, observer_rate=0.0)
+        c = PerchingController(s)
+        c.update(_seen(s, [0.0, 0.0, 0.3], 0.0), 0.0, np.eye(3), _odometry(0.0))
+        for k in range(1, 6):
+            command = c.between_frames(
+                k / 50, np.eye(3), replace(_odometry(k / 50), push_mps2=measured)
+            )
+            assert command is not None
+        sent[on, measured is not None] = command.v_mps
+    s = ControllerSettings()
+    filtered = 1.0 - math.exp(-5 * 0.02 / s.push_filter_s)
+    leaning = sent[True, True] - sent[False, True]
+    np.testing.assert_allclose(
+        leaning, [-filtered * 1.3 / s.onboard_velocity_gain, 0, 0], atol=1e-9
+    )
+    np.testing.assert_allclose(sent[True, False], sent[False, True], atol=1e-12)

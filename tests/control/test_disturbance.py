@@ -134,3 +134,27 @@ def test_a_late_answer_is_not_a_disturbance_when_the_delay_is_known() -> None:
     blind = _late_loop(DisturbanceObserver(K_V, 12.0, (0.6, 0.6, 0.3)), 0.13, 3.0)
     assert told < 0.04
     assert blind > 4 * told
+
+
+def test_a_measured_push_is_a_known_input_not_cancelled_twice() -> None:
+    """A push measured apart and cancelled through the setpoint (the accelerometer's): given
+    to the observer as known, its own estimate stays near zero and the vehicle holds still;
+    not given, the observer takes it for a disturbance too and the vehicle is pushed back the
+    other way, the push cancelled twice over until the observer catches up."""
+    push = np.array([1.2, -0.8, 0.0])
+    for known in (True, False):
+        observer = DisturbanceObserver(K_V, 5.0, (0.6, 0.6, 0.3))
+        v = np.zeros(3)
+        drift = 0.0
+        for _ in range(int(2.0 / DT)):
+            v_sp = observer.offset_mps - push / K_V
+            for _ in range(10):
+                v = v + DT / 10 * (K_V * (v_sp - v) + push)
+            observer.update(v_sp, v, DT, known_mps2=push if known else None)
+            drift = max(drift, float(np.abs(v).max()))
+        if known:
+            assert np.abs(observer.a_mps2).max() < 1e-9
+            assert drift < 1e-9
+        else:
+            np.testing.assert_allclose(observer.a_mps2, push, atol=0.05)
+            assert drift > 0.05

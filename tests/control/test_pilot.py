@@ -377,3 +377,58 @@ def test_a_live_frame_is_dated_from_its_capture_not_its_grab() -> None:
     assert live.captured_s == pytest.approx(99.92)
     pilot.update(live, 5.0)
     assert pilot.last_t_s == pytest.approx(5.1)
+
+
+class Tunable(Recorder):
+    """A commander whose vehicle takes a velocity gain (``refuses``: it cannot)."""
+
+    def __init__(self, refuses: bool = False) -> None:
+        super().__init__()
+        self.refuses = refuses
+        self.gains: list[float | None] = []
+
+    def set_velocity_gain(self, gain_per_s: float) -> bool:
+        if self.refuses:
+            return False
+        self.gains.append(gain_per_s)
+        return True
+
+    def restore_velocity_gain(self) -> None:
+        self.gains.append(None)
+
+
+def test_the_velocity_gain_is_set_at_take_over_and_given_back_after_the_motors_stop() -> None:
+    commander = Tunable()
+    vehicle = Vehicle(commander, 1.0)
+    pilot = _pilot(vehicle, controller=ControllerSettings(observer_rate=0.0))
+    s = pilot.controller.settings
+    assert s.onboard_velocity_gain == pytest.approx(4.3)
+    pilot.update(None, 0.0)
+    assert commander.gains == []  # nothing before the take-over
+    pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
+    assert commander.gains == [6.0]
+    assert pilot.controller.settings.onboard_velocity_gain == 6.0  # the model follows it
+    pilot.abort(0.1)
+    for k in range(200):  # the landing: down at 0.2 m/s, stopped on a sensed touchdown
+        vehicle.fly(0.05)
+        pilot.tick(0.1 + 0.05 * (k + 1))
+        if pilot.state == "landed":
+            break
+    assert pilot.state == "landed"
+    assert commander.gains == [6.0, None]  # given back once, after the stop
+    assert commander.sent[-1] == ()
+
+
+def test_a_vehicle_that_refuses_the_gain_is_flown_on_its_own_and_said() -> None:
+    reports: list[str] = []
+    commander = Tunable(refuses=True)
+    pilot = _pilot(Vehicle(commander, 1.0), reports=reports)
+    pilot.update(_seen(pilot.controller.settings, [0.0, 0.0, 0.5], 0.0), 0.0)
+    assert pilot.controller.settings.onboard_velocity_gain == pytest.approx(4.3)
+    assert any("could not be set to 6 /s" in r for r in reports)
+    unset = Tunable()
+    quiet = _pilot(Vehicle(unset, 1.0), settings=PilotSettings(velocity_gain_per_s=None))
+    quiet.update(_seen(quiet.controller.settings, [0.0, 0.0, 0.5], 0.0), 0.0)
+    assert unset.gains == []
+    with pytest.raises(ControllerConfigError, match="velocity_gain_per_s must be within"):
+        PilotSettings(velocity_gain_per_s=40.0)

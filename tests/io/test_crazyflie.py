@@ -406,6 +406,8 @@ def bare_connection(
     connection._pilots = []
     connection._state_t_s = math.nan
     connection._motion_t_s = math.nan
+    connection._f_body_mps2 = None
+    connection.own_gains = {}
     return connection
 
 
@@ -415,7 +417,11 @@ def state_sample(z_m: float, qw: float = 1.0) -> dict[str, float]:
     return dict(zip([f"stateEstimate.{n}" for n in names], (qw, 0.0, 0.0, 0.0, z_m), strict=True))
 
 
-STILL = {f"stateEstimate.{a}": 0.0 for a in ("x", "y", "vx", "vy", "vz")}
+STILL = {
+    **{f"stateEstimate.{a}": 0.0 for a in ("x", "y", "vx", "vy", "vz")},
+    "acc.x": 0.0,
+    "acc.y": 0.0,
+}
 
 
 def test_each_state_estimate_sample_ticks_the_pilot(
@@ -426,8 +432,7 @@ def test_each_state_estimate_sample_ticks_the_pilot(
     cf, link = crazyflie
     connection = bare_connection(cf)
     connection._state(0, state_sample(1.0), None)
-    still = {f"stateEstimate.{a}": 0.0 for a in ("x", "y", "vx", "vy", "vz")}
-    connection._moved(0, still, None)
+    connection._moved(0, STILL, None)
     pilot = connection.pilot()
     settings = pilot.controller.settings
     seen = Estimate.of_pose(0.0, (0.0, 0.0, 0.5), 0.0)  # upward camera: target straight above
@@ -435,7 +440,7 @@ def test_each_state_estimate_sample_ticks_the_pilot(
     frames = len(link.sent)
     assert frames == 1
     vx_frame = decode(link.sent[0])[1]
-    connection._moved(0, {**still, "stateEstimate.x": 0.006}, None)  # pushed 6 mm along x
+    connection._moved(0, {**STILL, "stateEstimate.x": 0.006}, None)  # pushed 6 mm along x
     packets = [decode(p) for p in link.sent[frames:]]
     assert len(packets) == 1
     kind, vx, _vy, _vz, _yaw_rate = packets[0]
@@ -561,3 +566,57 @@ def test_reversed_and_implausible_state_samples_are_dropped(
     assert sum("implausible" in r for r in reports) == 1
     connection._state(1040, state_sample(0.95), None)
     assert connection.height_m() == 0.95
+
+
+class ParamLog:
+    """cflib's ``Param`` as the commander uses it: the values it was asked to set, in order
+    (``fails``: the link is gone)."""
+
+    def __init__(self, fails: bool = False) -> None:
+        self.set: list[tuple[str, str]] = []
+        self.fails = fails
+
+    def set_value(self, name: str, value: str) -> None:
+        if self.fails:
+            raise Exception("Connection timed out")
+        self.set.append((name, value))
+
+
+def test_the_commander_sets_the_firmware_s_velocity_gains_and_gives_back_its_own() -> None:
+    """6 /s is 35 deg of tilt per m/s (g tan(theta) ~ g theta); the values read at connection
+    go back afterwards. Without them, or on a link that fails, nothing is claimed."""
+    own = {"velCtlPid.vxKp": "25.0", "velCtlPid.vyKp": "25.0"}
+    params = ParamLog()
+    commander = CflibCommander(None, params, own)
+    assert commander.set_velocity_gain(6.0)
+    assert params.set == [("velCtlPid.vxKp", "35.043"), ("velCtlPid.vyKp", "35.043")]
+    commander.restore_velocity_gain()
+    assert params.set[2:] == list(own.items())
+    assert not CflibCommander(None, ParamLog(), {}).set_velocity_gain(6.0)
+    assert not CflibCommander(None, ParamLog(fails=True), own).set_velocity_gain(6.0)
+
+
+def test_the_accelerometer_is_logged_with_the_odometry_and_leant_against(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """``acc.x`` (g, body frame) comes with the odometry block: a push of 0.1 g along the
+    body's x on a vehicle yawed 90 deg is a push along the world's y, and the setpoint leans
+    against it."""
+    cf, link = crazyflie
+    now = {"s": 100.0}
+    connection = bare_connection(cf, clock=lambda: now["s"])
+    yawed = {**state_sample(1.0), "stateEstimate.qw": math.cos(math.pi / 4)}
+    yawed["stateEstimate.qz"] = math.sin(math.pi / 4)
+    connection._state(0, yawed, None)
+    connection._moved(0, STILL, None)
+    pilot = connection.pilot(clock=lambda: now["s"])
+    pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.5), 0.0), 0.0)
+    for k in range(1, 11):  # 50 Hz
+        now["s"] += 0.02
+        connection._moved(20 * k, {**STILL, "acc.x": 0.1}, None)
+    f = connection.specific_force()
+    assert f is not None
+    np.testing.assert_allclose(f, [0.981, 0.0])
+    _kind, vx, vy, _vz, _yaw_rate = decode(link.sent[-1])
+    assert vy < -0.1  # against the push, along world y
+    assert abs(vx) < 0.05

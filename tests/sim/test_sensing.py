@@ -9,7 +9,13 @@ import pytest
 from perchpose import CameraModel, TargetSpec
 from perchpose.errors import SensingConfigError, VehicleConfigError
 from perchpose.sim.perch import PerchSetup, run_perch
-from perchpose.sim.sensing import SensedState, Sensing, SensingDraw, mean_glass_to_grab_s
+from perchpose.sim.sensing import (
+    Accelerometer,
+    SensedState,
+    Sensing,
+    SensingDraw,
+    mean_glass_to_grab_s,
+)
 
 
 def test_draws_stay_in_their_ranges_and_repeat_with_the_seed() -> None:
@@ -90,6 +96,8 @@ def test_ideal_senses_fly_as_before_and_realistic_ones_differ() -> None:
         mount_mm=0.0,
         target_scale_error=0.0,
         uplink_delay_s=(0.0, 0.0),
+        accel_noise_mps2=0.0,
+        accel_bias_mps2=0.0,
     )
     # realistic machinery with every error at zero flies the ideal run again (with the true
     # capture times: live stamps date a frame that came a frame late by its grab)
@@ -131,3 +139,21 @@ def test_live_stamps_date_frames_by_their_grab_less_the_measured_latency() -> No
     assert live.contact_offset_mm != exact.contact_offset_mm
     with pytest.raises(VehicleConfigError, match="unknown stamps 'grabbed'"):
         replace(realistic, stamps="grabbed")
+
+
+def test_the_accelerometer_comes_with_the_odometry_and_has_its_errors() -> None:
+    state = SensedState(attitude_delay_s=0.0, odometry_delay_s=0.02)
+    for i in range(5):
+        t = 0.01 * i
+        state.record(t, np.eye(3), np.zeros(3), np.zeros(3), np.array([float(i), 0.0, 9.81]))
+    f = state.specific_force(0.04)
+    assert f is not None
+    assert f[0] == 2.0  # the sample made 20 ms before, as the odometry's
+    rng = np.random.default_rng(0)
+    accelerometer = Accelerometer(0.2, 0.1, rng)
+    assert np.all(np.abs(accelerometer.bias_mps2) <= 0.1)
+    reads = np.array([accelerometer.read(np.array([0.5, 0.0, 9.81])) for _ in range(2000)])
+    np.testing.assert_allclose(
+        reads.mean(axis=0), [0.5, 0.0, 9.81] + accelerometer.bias_mps2, atol=0.02
+    )
+    np.testing.assert_allclose(reads.std(axis=0), 0.2, rtol=0.1)

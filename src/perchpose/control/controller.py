@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 import numpy as np
@@ -126,7 +126,12 @@ class ControllerSettings:
     final climb (0: observer_rate): faster there, where a gust has a few tenths of a second to
     push the magnet aside, and the climb ends before the oscillation that a fast observer
     brings across a long approach can build. max_disturbance_xy_mps, max_disturbance_z_mps :
-    the largest setpoint offset it may add. k_i_xy :
+    the largest setpoint offset it may add. push_feedforward : cancel the aerodynamic push the
+    accelerometer measures (``Odometry.push_mps2``) as it comes, through a velocity-setpoint
+    offset of ``-push / onboard_velocity_gain`` that the observer takes as a known input (it
+    then estimates only what the push does not explain): a gust is answered when it pushes,
+    not once it has moved the vehicle. push_filter_s : the push's low-pass time constant (the
+    propellers' vibration). max_push_mps2 : the largest push cancelled. k_i_xy :
     integral gain on the lateral position error, 1/s^2 (with k_xy, a critically damped loop):
     it removes what the velocity integrator cannot see, a bias of the odometry's own velocity;
     max_integral_xy_mps : its clamp. integrate_within_m : the integral runs only while the
@@ -169,6 +174,9 @@ class ControllerSettings:
     integrate_within_m: float = 0.03
     max_disturbance_xy_mps: float = 0.6
     max_disturbance_z_mps: float = 0.3
+    push_feedforward: bool = True
+    push_filter_s: float = 0.03
+    max_push_mps2: float = 4.0
     capture_speed_mps: float = 0.03
     speed_window_s: float = 0.1
     retry_below_m: float = 0.15
@@ -206,13 +214,14 @@ class ControllerSettings:
             "retry_below_m",
             "max_disturbance_xy_mps",
             "max_disturbance_z_mps",
+            "max_push_mps2",
             "max_integral_xy_mps",
             "integrate_within_m",
             "onboard_velocity_gain",
             "commit_gain",
         )
         require_positive(self, positive, ControllerConfigError)
-        require_non_negative(self, ("onboard_delay_s",), ControllerConfigError)
+        require_non_negative(self, ("onboard_delay_s", "push_filter_s"), ControllerConfigError)
         if self.commit_frames < 1:
             raise ControllerConfigError(f"commit_frames must be >= 1, got {self.commit_frames}")
         if self.max_tries < 1:
@@ -309,6 +318,9 @@ class Odometry:
     t_s: float
     p_m: Array
     v_mps: Array
+    # the aerodynamic push the accelerometer measures (its body x and y specific force, turned
+    # into the world frame; z is 0), m/s^2, or None where the link does not stream it
+    push_mps2: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -371,9 +383,17 @@ class PerchingController:
         self._steer_t: float | None = None
         self._last_t: float | None = None
         self._last_sp: Array | None = None
+        self._push_mps2 = np.zeros(3)  # the measured push, low-passed (world frame)
         # the last frame's command before the observer's offset (flown on between frames)
         self._frame_command: Command | None = None
         self._frame_t = -math.inf
+
+    def use_velocity_gain(self, gain_per_s: float) -> None:
+        """The vehicle's velocity loop now has this gain (the pilot set it): the observer and
+        the push's cancellation model it from now on."""
+        self.settings = replace(self.settings, onboard_velocity_gain=gain_per_s)
+        self._observer.k_v = gain_per_s
+        self._observer.rate = self._observer.rate  # its gains follow the loop's
 
     @property
     def disturbance_mps(self) -> Array:
@@ -499,15 +519,35 @@ class PerchingController:
         s = self.settings
         dt = 0.0 if self._last_t is None else min(0.1, max(0.0, t_s - self._last_t))
         self._last_t = t_s
-        if odometry is None or s.observer_rate == 0:
+        if odometry is None:
             return v_cmd
+        push = self._filtered_push(odometry, dt)
+        v_sp = v_cmd - push / s.onboard_velocity_gain
+        if s.observer_rate == 0:
+            return v_sp
         previous = self._last_sp if self._last_sp is not None else np.zeros(3)
         fast = self.phase == Phase.COMMIT and s.commit_observer_rate > 0
         self._observer.rate = s.commit_observer_rate if fast else s.observer_rate
-        self._observer.update(previous, odometry.v_mps, dt, max(0.0, t_s - odometry.t_s))
-        v_sp = v_cmd + self._observer.offset_mps
+        self._observer.update(previous, odometry.v_mps, dt, max(0.0, t_s - odometry.t_s), push)
+        v_sp = v_sp + self._observer.offset_mps
         self._last_sp = v_sp
         return v_sp
+
+    def _filtered_push(self, odometry: Odometry, dt_s: float) -> Array:
+        """The push to cancel now: the accelerometer's, low-passed and clamped (zero without
+        one, or with ``push_feedforward`` off)."""
+        s = self.settings
+        push = odometry.push_mps2
+        if not s.push_feedforward or push is None or not np.all(np.isfinite(push)):
+            self._push_mps2 = np.zeros(3)
+            return self._push_mps2
+        measured = np.array([push[0], push[1], 0.0], np.float64)
+        size = float(np.linalg.norm(measured))
+        if size > s.max_push_mps2:
+            measured *= s.max_push_mps2 / size
+        alpha = 1.0 if s.push_filter_s == 0 else 1.0 - math.exp(-dt_s / s.push_filter_s)
+        self._push_mps2 = self._push_mps2 + alpha * (measured - self._push_mps2)
+        return self._push_mps2
 
     # -- the loop -----------------------------------------------------------------------------
 

@@ -19,6 +19,11 @@ the vehicle first (the Crazyflie firmware's PID lags a first-order 4.3 /s loop b
 deg at 1 Hz and 95 deg at 2 Hz, about 0.13 s). ``delay_s`` makes the model answer the
 setpoint that was sent that long ago: without it, an observer as fast as 6-18 rad/s reads the
 vehicle's own late answer as a disturbance and rings with it at about 2 Hz.
+
+A disturbance measured apart (the accelerometer's aerodynamic push, cancelled through the
+setpoint by the controller) is a known input ``a_k`` of the model, ``dv/dt = k_v (v_sp - v) +
+a_k + a``: the observer then estimates only what it leaves unexplained, and does not cancel the
+push a second time.
 """
 
 from __future__ import annotations
@@ -72,10 +77,17 @@ class DisturbanceObserver:
         return np.clip(-self.a_mps2 / self.k_v, -self.max_offset_mps, self.max_offset_mps)
 
     def update(
-        self, v_sp_mps: Array, v_odometry_mps: Array, dt_s: float, age_s: float = 0.0
+        self,
+        v_sp_mps: Array,
+        v_odometry_mps: Array,
+        dt_s: float,
+        age_s: float = 0.0,
+        known_mps2: Array | None = None,
     ) -> None:
         """Advance ``dt_s`` with the setpoint the vehicle flew over it and the velocity it
-        reports, which describes it ``age_s`` ago."""
+        reports, which describes it ``age_s`` ago. ``known_mps2``: a disturbance measured
+        (and cancelled by the setpoint) apart from this observer, which it then leaves out of
+        its estimate."""
         v_odo = np.asarray(v_odometry_mps, np.float64)
         if self.v_mps is None:
             self.v_mps = v_odo.copy()
@@ -89,6 +101,8 @@ class DisturbanceObserver:
         self._sent.append((self._clock_s, np.asarray(v_sp_mps, np.float64)))
         answered = newest_at(self._sent, self._clock_s - self.delay_s)
         dv = self.k_v * (answered - self.v_mps) + self.a_mps2
+        if known_mps2 is not None:
+            dv = dv + known_mps2
         self.v_mps = self.v_mps + dt_s * (dv + self.l1 * error)
         limit = self.max_offset_mps * self.k_v
         # anti-windup: the estimate never leaves what the clamp lets the setpoint cancel

@@ -56,7 +56,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -126,6 +126,20 @@ class VehicleCommander(Protocol):
         ...
 
 
+@runtime_checkable
+class VelocityGainSetter(Protocol):
+    """A commander that can set the vehicle's horizontal velocity-loop gain (a parameter of
+    its flight controller) and give the vehicle's own back."""
+
+    def set_velocity_gain(self, gain_per_s: float) -> bool:
+        """Set the gain (1/s); False where the vehicle refused or cannot (nothing changed)."""
+        ...
+
+    def restore_velocity_gain(self) -> None:
+        """Give back the gain the vehicle had before (nothing where none was set)."""
+        ...
+
+
 @dataclass(frozen=True)
 class PilotStep:
     """What the pilot did for one frame or tick: its state and the setpoint sent (None: nothing)."""
@@ -149,7 +163,10 @@ class PerchingPilot:
     height samples are (None: always fresh, as in the simulation). clock : the monotonic clock
     that ``tick_now`` and live frames' ``captured_s`` are on. on_ground : the vehicle's own
     land detector where it has one (an autopilot's EXTENDED_SYS_STATE: True on the ground,
-    None when it says nothing); while landing, its word is a touchdown too.
+    None when it says nothing); while landing, its word is a touchdown too. specific_force :
+    the vehicle's accelerometer along body x and y (and z, unused), m/s^2: its latest sample,
+    as old as the odometry's; None while unknown. It is the aerodynamic push, which the
+    controller cancels as it comes (``ControllerSettings.push_feedforward``).
     """
 
     def __init__(
@@ -165,8 +182,10 @@ class PerchingPilot:
         report: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
         on_ground: Callable[[], bool | None] | None = None,
+        specific_force: Callable[[], Array | None] | None = None,
     ) -> None:
         self.commander = commander
+        self.specific_force = specific_force
         self.on_ground = on_ground
         self.ages = ages
         self._holding = False
@@ -179,6 +198,7 @@ class PerchingPilot:
         self.odometry = odometry
         self.report = report or log.warning
         self.state = PilotState.WAITING
+        self._gain_raised = False
         self.transitions: list[tuple[float, PilotState, PilotState]] = []
         self.replaced_setpoints = 0
         self.silences = 0  # times the camera's watchdog fired
@@ -211,7 +231,33 @@ class PerchingPilot:
         if state != self.state:
             self.transitions.append((t_s, self.state, state))
             self.report(f"pilot: {self.state} -> {state} at t = {t_s:.2f} s ({why})")
-            self.state = state
+            before, self.state = self.state, state
+            if before == PilotState.WAITING and state in FLYING:
+                self._raise_velocity_gain()
+            elif state == PilotState.RELEASED:
+                self._restore_velocity_gain()
+
+    def _raise_velocity_gain(self) -> None:
+        """Take over with the velocity loop of ``PilotSettings.velocity_gain_per_s`` where the
+        commander can set it; the controller then models that gain."""
+        gain = self.settings.velocity_gain_per_s
+        if gain is None or not isinstance(self.commander, VelocityGainSetter):
+            return
+        if self.commander.set_velocity_gain(gain):
+            self.controller.use_velocity_gain(gain)
+            self._gain_raised = True
+        else:
+            self.report(
+                f"pilot: the vehicle's velocity gain could not be set to {gain:g} /s: flying "
+                f"on its own ({self.controller.settings.onboard_velocity_gain:g} /s)"
+            )
+
+    def _restore_velocity_gain(self) -> None:
+        """The vehicle's own velocity gain back, once the motors stopped or it was handed back
+        (after a link loss nothing reaches it: it keeps the raised gain until it restarts)."""
+        if self._gain_raised and isinstance(self.commander, VelocityGainSetter):
+            self.commander.restore_velocity_gain()
+            self._gain_raised = False
 
     @property
     def flying(self) -> bool:
@@ -257,6 +303,7 @@ class PerchingPilot:
     def _stop(self, t_s: float, state: PilotState, why: str) -> PilotStep:
         self._enter(state, t_s, why)  # first: a commander may ask which stop this is
         self.commander.send_stop()
+        self._restore_velocity_gain()
         return PilotStep(t_s, self.state, None, None, None)
 
     def _start_landing(self, t_s: float, why: str) -> None:
@@ -284,6 +331,17 @@ class PerchingPilot:
         ):
             return None
         return motion
+
+    def _odometry(self, t_s: float, motion: tuple[Array, Array]) -> Odometry:
+        """The odometry for the controller: the motion, and the accelerometer's push turned
+        into the world frame by the attitude (None where there is no finite sample)."""
+        f_body = None if self.specific_force is None else self.specific_force()
+        push = None
+        if f_body is not None and np.all(np.isfinite(f_body[:2])):
+            f_xy = np.array([f_body[0], f_body[1], 0.0], np.float64)
+            push = np.asarray(self.attitude(), np.float64) @ f_xy
+            push[2] = 0.0
+        return Odometry(t_s - self._age("position"), motion[0], motion[1], push)
 
     def _age(self, sense: str) -> float:
         """How old the vehicle's latest ``attitude`` or ``position`` sample is (0 without
@@ -439,7 +497,7 @@ class PerchingPilot:
         motion = self._motion()
         if motion is None:
             return None
-        odometry = Odometry(t_s - self._age("position"), motion[0], motion[1])
+        odometry = self._odometry(t_s, motion)
         command = self.controller.between_frames(
             t_s, self.attitude(), odometry, self._age("attitude")
         )
@@ -499,7 +557,7 @@ class PerchingPilot:
     def _fly(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         """The controller's command for ``estimate`` (None: no target) at ``t_s``."""
         motion = self._motion()
-        odometry = None if motion is None else Odometry(t_s - self._age("position"), *motion)
+        odometry = None if motion is None else self._odometry(t_s, motion)
         command: Command = self.controller.update(
             estimate, t_s, self.attitude(), odometry, self._age("attitude")
         )

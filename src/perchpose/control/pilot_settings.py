@@ -42,6 +42,14 @@ class PilotSettings:
     count only height samples younger than this (a stream at 10 Hz or faster stays live between
     its samples); it must be shorter than the contact window, so that a height that froze never
     makes a contact on its own. limits : the largest setpoint sent.
+
+    The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
+    sets on the vehicle when it takes over, where its commander can
+    (``VelocityGainSetter``: the Crazyflie's ``velCtlPid.vxKp/vyKp``), and gives back when it
+    stops the motors or hands the vehicle back; None leaves the vehicle's own. A stiffer loop
+    holds the magnet against gusts; the stock Crazyflie's 25 deg per m/s is about 4.3 /s, 6 /s
+    is 35 deg per m/s. Where it cannot be set, the controller keeps modelling the vehicle's
+    own gain (``ControllerSettings.onboard_velocity_gain``).
     """
 
     land_after_lost_s: float = 4.0
@@ -60,6 +68,7 @@ class PilotSettings:
     live_height_s: float = 0.2
     on_senses_lost: str = "land"
     limits: SetpointLimits = field(default_factory=SetpointLimits)
+    velocity_gain_per_s: float | None = 6.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -79,6 +88,12 @@ class PilotSettings:
             "live_height_s",
         )
         require_positive(self, positive, ControllerConfigError, "pilot setting ")
+        gain = self.velocity_gain_per_s
+        if gain is not None and not 0.5 <= gain <= 12.0:
+            raise ControllerConfigError(
+                f"pilot setting velocity_gain_per_s must be within 0.5-12 /s (a vehicle's "
+                f"velocity loop), got {gain}"
+            )
         if self.on_senses_lost not in ON_SENSES_LOST:
             raise ControllerConfigError(
                 f"pilot setting on_senses_lost {self.on_senses_lost!r}: choose "

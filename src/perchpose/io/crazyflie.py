@@ -23,6 +23,8 @@ from perchpose.geometry import roll_pitch_rad, rotation_from_quaternion, yaw_rad
 from perchpose.io.samples import SampleGate
 
 Array = NDArray[np.float64]
+GRAVITY_MPS2 = 9.81  # the firmware's g: its ``acc`` log group is in g
+VELOCITY_GAINS = ("velCtlPid.vxKp", "velCtlPid.vyKp")  # the firmware's, deg per m/s
 log = logging.getLogger(__name__)
 
 
@@ -30,10 +32,41 @@ class CflibCommander:
     """The pilot's ``VehicleCommander`` on cflib's ``Commander``: a velocity in the world
     frame of the Crazyflie's state estimator (z up, m/s) with the yaw rate in deg/s
     (``send_velocity_world_setpoint``); a stop cuts the motors and hands the setpoint priority
-    back to the high-level commander (``send_stop_setpoint``, ``send_notify_setpoint_stop``)."""
+    back to the high-level commander (``send_stop_setpoint``, ``send_notify_setpoint_stop``).
 
-    def __init__(self, commander: Any) -> None:
+    With cflib's ``Param`` (``param``) it sets the firmware's horizontal velocity gains
+    (``velCtlPid.vxKp``, ``vyKp``: degrees of tilt per m/s of error; g tan(kp) per m/s is the
+    loop's gain, so 25 is about 4.3 /s) and gives back the values it read before."""
+
+    def __init__(
+        self, commander: Any, param: Any = None, own_gains: dict[str, str] | None = None
+    ) -> None:
         self.commander = commander
+        self.param = param
+        self.own_gains = own_gains or {}  # the vehicle's velocity gains, read at connection
+        self._set = False
+
+    def set_velocity_gain(self, gain_per_s: float) -> bool:
+        """False without the vehicle's own gains to give back (read at connection)."""
+        if self.param is None or set(self.own_gains) != set(VELOCITY_GAINS):
+            return False
+        kp_deg = math.degrees(gain_per_s / GRAVITY_MPS2)  # small tilts: tan(theta) ~ theta
+        try:
+            for name in VELOCITY_GAINS:
+                self.param.set_value(name, f"{kp_deg:.3f}")
+        except Exception:  # cflib raises bare Exceptions (no such parameter, not connected)
+            self.restore_velocity_gain()
+            return False
+        self._set = True
+        return True
+
+    def restore_velocity_gain(self) -> None:
+        try:
+            for name, value in self.own_gains.items():
+                self.param.set_value(name, value)
+        except Exception:  # the link is going: the vehicle keeps ours until it restarts
+            return
+        self._set = False
 
     def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
         vx, vy, vz = v_world_mps
@@ -51,7 +84,8 @@ class CflibCommander:
 class CrazyflieConnection:
     """An open cflib link with the vehicle's attitude, height, position and velocity streamed
     from its state estimate (``stateEstimate.qw/qx/qy/qz`` and ``.z`` in one log block,
-    ``stateEstimate.x/y/vx/vy/vz`` in a second: a block holds at most 26 bytes; 50 Hz). Each
+    ``stateEstimate.x/y/vx/vy/vz`` with the accelerometer's ``acc.x/y`` (g, half floats) in a
+    second: a block holds at most 26 bytes; 50 Hz). Each
     odometry sample ticks the pilots it handed out (``PerchingPilot.tick_now``): their lateral
     loop closes at 50 Hz on odometry between camera frames.
 
@@ -76,6 +110,7 @@ class CrazyflieConnection:
         self._R_world_body = np.eye(3)
         self._height_m: float | None = None
         self._odometry: tuple[Array, Array] | None = None
+        self._f_body_mps2: Array | None = None
         self._pilots: list[PerchingPilot] = []
         self.clock: Callable[[], float] = time.monotonic  # stamps each block on arrival
         self._state_t_s = math.nan
@@ -99,6 +134,8 @@ class CrazyflieConnection:
         self._motion = LogConfig(name="perchpose-odometry", period_in_ms=20)
         for axis in ("x", "y", "vx", "vy", "vz"):
             self._motion.add_variable(f"stateEstimate.{axis}", "float")
+        for axis in ("x", "y"):  # the body's specific force: the aerodynamic push
+            self._motion.add_variable(f"acc.{axis}", "FP16")
         self._motion.data_received_cb.add_callback(self._moved)
         try:
             for block in (self._log, self._motion):
@@ -107,6 +144,19 @@ class CrazyflieConnection:
         except (KeyError, AttributeError) as exc:
             self._sync.close_link()
             raise LinkError(f"{uri}: the firmware does not log the state estimate: {exc}") from exc
+        self.own_gains = self._read_velocity_gains()
+
+    def _read_velocity_gains(self) -> dict[str, str]:
+        """The firmware's horizontal velocity gains as they are (the pilots set theirs at
+        take-over and give these back); empty, and said, where they cannot be read."""
+        try:
+            return {name: str(self.cf.param.get_value(name)) for name in VELOCITY_GAINS}
+        except Exception as exc:  # cflib raises bare Exceptions; a missing name is a KeyError
+            self.report(
+                f"Crazyflie {self.uri}: cannot read {', '.join(VELOCITY_GAINS)} ({exc}): the "
+                "pilots fly the vehicle's own velocity gains"
+            )
+            return {}
 
     def _usable(self, data: dict[str, float]) -> bool:
         """All of a log block's values are finite; else it is dropped (said once)."""
@@ -167,6 +217,7 @@ class CrazyflieConnection:
             return
         self._motion_t_s = now
         self._odometry = (p, v)
+        self._f_body_mps2 = GRAVITY_MPS2 * np.array([data["acc.x"], data["acc.y"]], np.float64)
         for pilot in self._pilots:  # the lateral loop closes at the state estimate's rate
             pilot.tick_now()
 
@@ -180,6 +231,10 @@ class CrazyflieConnection:
     def height_m(self) -> float | None:
         return self._height_m
 
+    def specific_force(self) -> Array | None:
+        """The accelerometer's body x and y (m/s^2) logged with the odometry, or None."""
+        return self._f_body_mps2
+
     def ages(self) -> SenseAges:
         """How old the last attitude-and-height block and the last odometry block are."""
         now = self.clock()
@@ -191,12 +246,13 @@ class CrazyflieConnection:
     def pilot(self, **kwargs: Any) -> PerchingPilot:
         """A pilot on this link, told about a link loss."""
         pilot = PerchingPilot(
-            CflibCommander(self.cf.commander),
+            CflibCommander(self.cf.commander, self.cf.param, self.own_gains),
             self.attitude,
             height_m=self.height_m,
             odometry=self.odometry,
             ages=self.ages,
             report=self.report,
+            specific_force=self.specific_force,
             **kwargs,
         )
         pilot.watch_link(self.cf)

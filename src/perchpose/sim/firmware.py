@@ -182,6 +182,12 @@ class FirmwareQuadrotor(Quadrotor):
         self.p_m, self.R_world_body = p_m, R
         self.v_mps, self.omega_rad_s = np.zeros(3), np.zeros(3)
 
+    def set_velocity_gain(self, gain_per_s: float | None) -> bool:
+        """The firmware's velocity PID gains (``velCtlPid.vxKp``, a parameter a pilot sets on
+        a real Crazyflie over the link) are static variables its Python bindings do not reach:
+        refused, so the pilot flies the stock gain, and says so."""
+        return gain_per_s is None
+
     def _integrate_velocity_error(self, dt_s: float, v_sp: Any, v_est: Any) -> None:
         """The firmware's own PIDs integrate; the model's integral stays unused."""
 

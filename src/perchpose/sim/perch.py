@@ -43,6 +43,7 @@ from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
 from perchpose.sim.sensing import (
+    Accelerometer,
     SensedState,
     Sensing,
     SensingDraw,
@@ -273,14 +274,18 @@ class HeldSetpoint:
     the simulation's time; while ``link_up`` says no, nothing the pilot sends arrives, and
     ``received_s`` (when the last one did) ages, for the vehicle's own watchdog. What is sent
     reaches the vehicle ``delay_s`` later (the radio uplink); ``deliver`` hands over what has
-    arrived by now, ``next_arrival_s`` says when the next will."""
+    arrived by now, ``next_arrival_s`` says when the next will. ``velocity_gain`` sets the
+    vehicle's horizontal velocity gain (None: its own back) and says whether it could, as a
+    parameter set over the link does."""
 
     def __init__(
         self,
         clock: Callable[[], float] = lambda: 0.0,
         link_up: Callable[[], bool] = lambda: True,
         delay_s: float = 0.0,
+        velocity_gain: Callable[[float | None], bool] = lambda _gain: False,
     ) -> None:
+        self.velocity_gain = velocity_gain
         self.v_mps = np.zeros(3)
         self.yaw_rate_rad_s = 0.0
         self.clock = clock
@@ -320,6 +325,13 @@ class HeldSetpoint:
     def send_land(self) -> bool:
         """The simulated vehicle has no landing of its own: the pilot lands it."""
         return False
+
+    def set_velocity_gain(self, gain_per_s: float) -> bool:
+        return self.link_up() and self.velocity_gain(gain_per_s)
+
+    def restore_velocity_gain(self) -> None:
+        if self.link_up():
+            self.velocity_gain(None)
 
 
 def truth_estimate(
@@ -408,7 +420,7 @@ class _Flight:
         self.seed = seed
         # the senses draw from a third generator: ideal senses fly the worlds they always did;
         # the latency the user measured from a fourth (exact stamps fly what they always did)
-        seeds = np.random.SeedSequence(seed).spawn(8)
+        seeds = np.random.SeedSequence(seed).spawn(9)
         world_seq, camera_seq, senses_seq, stamps_seq, faults_seq, range_seq, flow_seq = seeds[:7]
         self.fault = Fault.draw(setup.faults, np.random.default_rng(faults_seq))
         self.range_rng = np.random.default_rng(range_seq)
@@ -455,6 +467,7 @@ class _Flight:
             lambda: self.now_s,
             lambda: not self.faulty("link-loss", self.now_s),
             0.0 if self.senses is None else self.senses.uplink_delay_s,
+            self.vehicle.set_velocity_gain,
         )
         self.resting = False  # on the floor, its weight on its feet
         self.motor_stop_height_m = math.nan  # above what it rests on, once the motors stop
@@ -462,8 +475,14 @@ class _Flight:
         self.controller = PerchingController(setup.controller)
         self.now_s = 0.0
         self.sensed: SensedState | None = None
+        self.accelerometer: Accelerometer | None = None
         if self.senses is not None:
             self.sensed = SensedState(self.senses.attitude_delay_s, self.senses.odometry_delay_s)
+            self.accelerometer = Accelerometer(
+                setup.sensing.accel_noise_mps2,
+                setup.sensing.accel_bias_mps2,
+                np.random.default_rng(seeds[8]),
+            )
             self.sense(0.0)
         self.pilot = PerchingPilot(
             self.commander,
@@ -474,6 +493,7 @@ class _Flight:
             odometry=self.motion,
             ages=None if self.sensed is None else self.sense_ages,
             report=log.debug,
+            specific_force=self.specific_force,
         )
         # frames on their way to the estimator: (arrival frame, capture time, image or pose)
         magnet = setup.controller.p_body_magnet_m
@@ -504,6 +524,12 @@ class _Flight:
             return self.odometry.p_m, self.odometry.v_mps
         return self.sensed.odometry(self._through("odometry"))
 
+    def specific_force(self) -> Array | None:
+        """The accelerometer's sample the pilot has now (body frame), as it arrives."""
+        if self.sensed is None:
+            return self.vehicle.specific_force_body_mps2
+        return self.sensed.specific_force(self._through("odometry"))
+
     def height_m(self) -> float:
         """The height the pilot has. With faults (runs that go on to a landing): above the
         floor (0 standing on it), as the flight controller's estimate gives it with a range
@@ -532,7 +558,9 @@ class _Flight:
         R = noisy_attitude(
             self.vehicle.R_estimate, self.setup.sensing.attitude_noise_deg, self.senses_rng
         )
-        self.sensed.record(t_s, R, self.odometry.p_m, self.odometry.v_mps)
+        assert self.accelerometer is not None
+        f_body = self.accelerometer.read(self.vehicle.specific_force_body_mps2)
+        self.sensed.record(t_s, R, self.odometry.p_m, self.odometry.v_mps, f_body)
 
     def frames_late(self) -> int:
         """How many frame periods after its capture this frame reaches the pilot: the

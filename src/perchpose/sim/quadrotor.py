@@ -35,6 +35,9 @@ from perchpose.geometry import rot_z
 
 Array = NDArray[np.float64]
 GRAVITY_MPS2 = 9.81
+# the accelerometer's low-pass, Hz: the cut-off of the filter the Crazyflie firmware runs on its
+# IMU's accelerometer, and PX4's default (IMU_ACCEL_CUTOFF)
+ACCEL_CUTOFF_HZ = 30.0
 
 
 @dataclass(frozen=True)
@@ -183,6 +186,8 @@ class Quadrotor:
         self.thrust_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
         self._bias: Mat3 | None = None
         self._vi: Vec3 = (0.0, 0.0, 0.0)  # the onboard velocity integral, m/s^2
+        self._k_xy = self.gains.k_velocity  # the horizontal velocity gain (a parameter), 1/s
+        self._f_body: Vec3 = (0.0, 0.0, GRAVITY_MPS2)  # the accelerometer, low-passed
         a = self.params.arm_m
         self._hubs = ((a, a), (a, -a), (-a, -a), (-a, a))
         self._spin = (1.0, -1.0, 1.0, -1.0)
@@ -303,7 +308,31 @@ class Quadrotor:
     def step(self, dt_s: float, motor_cmd_n: Array) -> None:
         """Advance ``dt_s`` seconds (semi-implicit Euler) with these thrust commands (N)."""
         c = [float(x) for x in np.asarray(motor_cmd_n, np.float64).reshape(4)]
-        self._step(dt_s, (c[0], c[1], c[2], c[3]))
+        self._advance(dt_s, (c[0], c[1], c[2], c[3]))
+
+    @property
+    def specific_force_body_mps2(self) -> Array:
+        """What an accelerometer at the centre of mass reads, body frame, m/s^2: the
+        acceleration less gravity (at rest, +g along body z), low-passed at
+        ``ACCEL_CUTOFF_HZ`` as the Crazyflie firmware filters its IMU's. Along body x and y
+        it is the aerodynamic push over the mass (thrust has no part there)."""
+        return np.array(self._f_body)
+
+    def _advance(self, dt_s: float, cmd: tuple[float, float, float, float]) -> None:
+        """One step of the dynamics, and the accelerometer's reading of it."""
+        v0 = self._v
+        self._step(dt_s, cmd)
+        v1, R = self._v, self._R
+        ax = (v1[0] - v0[0]) / dt_s
+        ay = (v1[1] - v0[1]) / dt_s
+        az = (v1[2] - v0[2]) / dt_s + GRAVITY_MPS2
+        alpha = 1.0 - math.exp(-2.0 * math.pi * ACCEL_CUTOFF_HZ * dt_s)
+        fx, fy, fz = self._f_body
+        self._f_body = (
+            fx + alpha * (R[0][0] * ax + R[1][0] * ay + R[2][0] * az - fx),
+            fy + alpha * (R[0][1] * ax + R[1][1] * ay + R[2][1] * az - fy),
+            fz + alpha * (R[0][2] * ax + R[1][2] * ay + R[2][2] * az - fz),
+        )
 
     def fly(
         self,
@@ -321,10 +350,16 @@ class Quadrotor:
         v_sp, v_est, yaw_rate = _vec3(v_sp_mps), _vec3(v_estimate_mps), float(yaw_rate_sp)
         for i in range(n_steps):
             self._integrate_velocity_error(dt_s, v_sp, v_est)
-            self._step(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
+            self._advance(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
             if touched is not None and touched(self):
                 return i
         return None
+
+    def set_velocity_gain(self, gain_per_s: float | None) -> bool:
+        """Set the onboard loops' horizontal velocity gain, 1/s, as a pilot sets the flight
+        controller's parameter (None: the gains' own back). True: it took."""
+        self._k_xy = self.gains.k_velocity if gain_per_s is None else float(gain_per_s)
+        return True
 
     def settle(self) -> None:
         """Bring the onboard loops to a steady hover where the vehicle is (the model's loops
@@ -352,8 +387,8 @@ class Quadrotor:
         p, g = self.params, self.gains
         m = p.mass_kg
         ix, iy, iz = self._vi
-        fx = m * (g.k_velocity * (v_sp[0] - v_est[0]) + ix)
-        fy = m * (g.k_velocity * (v_sp[1] - v_est[1]) + iy)
+        fx = m * (self._k_xy * (v_sp[0] - v_est[0]) + ix)
+        fy = m * (self._k_xy * (v_sp[1] - v_est[1]) + iy)
         fz = m * (g.k_velocity * (v_sp[2] - v_est[2]) + iz + GRAVITY_MPS2)
         # limit the tilt of the thrust vector
         horizontal = math.hypot(fx, fy)

@@ -23,6 +23,11 @@ Where the default magnitudes come from:
   (cflib queues packets for its radio thread, which trades them with the Crazyradio over USB
   a packet per millisecond or so, each acknowledged; MAVLink over a serial or Wi-Fi link takes
   as long); drawn per run;
+- the accelerometer (``acc.x``, ``acc.y`` in the Crazyflie's log, logged with the odometry):
+  the BMI088's own noise (about 175 ug/sqrt(Hz), 0.01 m/s^2 over the firmware's 30 Hz filter)
+  is small beside the propellers' vibration that gets through the filter, taken as 0.2 m/s^2
+  per sample; a bias of up to 0.1 m/s^2 per axis (the sensor's offset left by the level
+  calibration at start, and a thrust line a fraction of a degree off the sensor's z axis);
 - the attitude estimate: 0.2 deg of noise per sample (a MEMS IMU's complementary or Kalman
   filter at rest) and 0-10 ms of delay;
 - clocks: the camera's time stamps and the flight controller's agree to a few ms (±5 ms);
@@ -74,7 +79,8 @@ class Sensing:
     odometry sample, integrated into the position (with a flow deck, along z only).
     attitude_noise_deg : per sample. attitude_delay_s : its age on arrival.
     clock_offset_s : half-width of the camera clock's offset from the flight controller's.
-    uplink_delay_s : the range of the setpoint uplink's delay.
+    uplink_delay_s : the range of the setpoint uplink's delay. accel_noise_mps2,
+    accel_bias_mps2 : the accelerometer's noise per sample and its bias's half-width.
     latency_error_s : half-width of the error of the camera latency the user measured (live
     stamps).
     focal_error, principal_point_px, k1_error : half-widths of the calibration's error.
@@ -94,6 +100,8 @@ class Sensing:
     attitude_delay_s: tuple[float, float] = (0.0, 0.01)
     clock_offset_s: float = 0.005
     uplink_delay_s: tuple[float, float] = (0.004, 0.02)
+    accel_noise_mps2: float = 0.2
+    accel_bias_mps2: float = 0.1
     latency_error_s: float = 0.01
     focal_error: float = 0.01
     principal_point_px: float = 3.0
@@ -126,6 +134,8 @@ class Sensing:
             "latency_jitter_s",
             "flow_noise_mps",
             "attitude_noise_deg",
+            "accel_noise_mps2",
+            "accel_bias_mps2",
             "clock_offset_s",
             "latency_error_s",
             "focal_error",
@@ -220,6 +230,7 @@ class Sample(NamedTuple):
     R_world_body: Array
     p_m: Array
     v_mps: Array
+    f_body_mps2: Array | None = None  # the accelerometer
 
 
 class SensedState:
@@ -231,9 +242,23 @@ class SensedState:
         self.odometry_delay_s = odometry_delay_s
         self._samples: deque[tuple[float, Sample]] = deque(maxlen=HISTORY)
 
-    def record(self, t_s: float, R_world_body: Array, p_m: Array, v_mps: Array) -> None:
-        """A sample the flight controller made at ``t_s``."""
-        sample = Sample(t_s, R_world_body, np.array(p_m, np.float64), np.array(v_mps, np.float64))
+    def record(
+        self,
+        t_s: float,
+        R_world_body: Array,
+        p_m: Array,
+        v_mps: Array,
+        f_body_mps2: Array | None = None,
+    ) -> None:
+        """A sample the flight controller made at ``t_s`` (``f_body_mps2``: its
+        accelerometer's, where it logs one)."""
+        sample = Sample(
+            t_s,
+            R_world_body,
+            np.array(p_m, np.float64),
+            np.array(v_mps, np.float64),
+            None if f_body_mps2 is None else np.array(f_body_mps2, np.float64),
+        )
         self._samples.append((t_s, sample))
 
     def _attitude_sample(self, t_s: float) -> Sample:
@@ -255,6 +280,26 @@ class SensedState:
         """The position and velocity that have reached the pilot at ``t_s``."""
         sample = self._odometry_sample(t_s)
         return sample.p_m, sample.v_mps
+
+    def specific_force(self, t_s: float) -> Array | None:
+        """The accelerometer's sample that has reached the pilot at ``t_s`` (it comes with the
+        odometry)."""
+        return self._odometry_sample(t_s).f_body_mps2
+
+
+class Accelerometer:
+    """The accelerometer's errors over one run: a bias drawn once per axis, noise per sample."""
+
+    def __init__(self, noise_mps2: float, bias_mps2: float, rng: np.random.Generator) -> None:
+        self.noise_mps2 = noise_mps2
+        self.bias_mps2 = np.asarray(rng.uniform(-bias_mps2, bias_mps2, 3), np.float64)
+        self._rng = rng
+
+    def read(self, f_body_mps2: Array) -> Array:
+        """A sample of the true specific force ``f_body_mps2`` (body frame)."""
+        noise = self._rng.normal(0.0, self.noise_mps2, 3) if self.noise_mps2 > 0 else 0.0
+        read: Array = np.asarray(f_body_mps2, np.float64) + self.bias_mps2 + noise
+        return read
 
 
 def noisy_attitude(R_world_body: Array, noise_deg: float, rng: np.random.Generator) -> Array:
