@@ -9,7 +9,10 @@ import zlib
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -134,3 +137,25 @@ def huge_png() -> bytes:
 
     idat = zlib.compress(b"\x00" * 16)
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+Filming = Callable[[NDArray[np.uint8], np.random.Generator], NDArray[np.uint8]]
+
+
+def _filmed(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """``image`` on a screen seen by a 640 x 480 camera: smaller, slanted, blurred, noisy."""
+    h, w = image.shape
+    src = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
+    dst = np.float32([[90, 130], [560, 100], [580, 360], [70, 380]])
+    view = cv2.warpPerspective(
+        image, cv2.getPerspectiveTransform(src, dst), (640, 480), borderValue=60
+    )
+    view = cv2.GaussianBlur(view, (0, 0), 1.2).astype(np.float64)
+    view = 0.6 * view + 40 + rng.normal(0, 4, view.shape)
+    return np.clip(view, 0, 255).astype(np.uint8)
+
+
+@pytest.fixture
+def film_screen() -> Filming:
+    """A camera filming a screen: an image as the screen shows it -> the camera's frame."""
+    return _filmed

@@ -29,6 +29,10 @@ class SourceError(PerchposeError):
     """A frame source (folder, glob, video, camera) cannot be opened or is empty."""
 
 
+class DisplayError(PerchposeError):
+    """A window cannot be shown (no display, or an OpenCV built without one)."""
+
+
 class TimestampError(PerchposeError):
     """A frame timestamp is not finite or goes backwards."""
 

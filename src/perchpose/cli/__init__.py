@@ -10,6 +10,7 @@ from perchpose.cli import (  # noqa: F401  (each module registers its command on
     demo,
     evaluate,
     fit_fusion,
+    latency,
     perch,
     ros2,
     simulate,
