@@ -68,16 +68,21 @@ def _ros_env() -> dict[str, str]:
 
 
 def _fly(
-    frames: Path, tmp_path: Path, node_args: list[str], camera_args: list[str]
+    frames: Path,
+    tmp_path: Path,
+    node_args: list[str],
+    camera_args: list[str],
+    qos_overrides: bool = True,
 ) -> tuple[dict, str]:
-    """Run the node and the camera; what the camera heard, and the node's log."""
+    """Run the node and the camera; what the camera heard, and the node's log.
+    ``qos_overrides``: the image subscription told to be reliable by parameter (else the node
+    matches the camera's publisher by itself)."""
     env = _ros_env()
     remaps = ["-r", "camera_info:=/cam/camera_info"]
     for topic in ("image_raw", "image_raw/compressed"):
-        # the whole images, as the camera sends them (sensor-data QoS drops their fragments
-        # here)
         remaps += ["-r", f"{topic}:=/cam/{topic}"]
-        remaps += ["-p", f"qos_overrides./cam/{topic}.subscription.reliability:=reliable"]
+        if qos_overrides:
+            remaps += ["-p", f"qos_overrides./cam/{topic}.subscription.reliability:=reliable"]
     node = subprocess.Popen(
         [sys.executable, "-m", "perchpose", "ros2", "--ros-args", *remaps, *node_args],
         env=env,
@@ -103,7 +108,11 @@ def test_every_pose_has_its_image_s_exact_stamp_and_frame_and_matches_the_truth(
     approach_webcam_dir: Path, tmp_path: Path
 ) -> None:
     pytest.importorskip("rclpy")
-    heard, log = _fly(approach_webcam_dir, tmp_path, ["-p", "target_frame:=plate"], [])
+    heard, log = _fly(
+        approach_webcam_dir, tmp_path, ["-p", "target_frame:=plate"], [], qos_overrides=False
+    )
+    # the camera publishes reliable: the node subscribes so, as ros2 topic echo would
+    assert "/cam/image_raw: 1 publisher(s), reliable: subscribed reliable" in log, log
     sent, poses, tracks = heard["sent"], heard["poses"], heard["tracks"]
     assert sent[0] % 10**9 == 123_456_789  # not a float's worth of nanoseconds
     assert {t["stamp_ns"] for t in tracks} == set(sent), log

@@ -1,9 +1,12 @@
 """perchpose as a ROS 2 node (``perchpose ros2``; rclpy, from a ROS 2 install or the ``ros2``
 extra's wheels).
 
-Subscribes (remappable, sensor-data QoS) to ``image_raw`` (``sensor_msgs/Image``; with
-``image_transport: compressed``, ``image_raw/compressed``) and ``camera_info``; publishes, each
-stamped with its image's exact stamp in its image's frame id (or ``camera_frame``):
+Subscribes (remappable) to ``image_raw`` (``sensor_msgs/Image``; with ``image_transport:
+compressed``, ``image_raw/compressed``), reliable where every publisher of it is reliable and
+best effort otherwise, as ``ros2 topic echo`` matches them (``perchpose.io.ros.transport``; a
+``qos_overrides`` parameter still decides), and to ``camera_info`` (sensor-data QoS);
+publishes, each stamped with its image's exact stamp in its image's frame id (or
+``camera_frame``):
 - ``~/pose`` (``/perchpose/pose``): ``geometry_msgs/PoseWithCovarianceStamped``, the target in
   the camera frame with ``Estimate.covariance``, on frames with a valid pose;
 - ``~/track``: ``std_msgs/String``, the frame's track row as JSON (stage, markers,
@@ -11,7 +14,8 @@ stamped with its image's exact stamp in its image's frame id (or ``camera_frame`
 - ``~/overlay/compressed``: ``sensor_msgs/CompressedImage`` (JPEG) with ``publish_overlay``;
 - ``/tf``: camera frame -> ``target_frame``, where ``tf2_msgs`` is importable;
 - ``/diagnostics``: ``diagnostic_msgs/DiagnosticArray`` every ``diagnostics_period_s`` (rate,
-  latency percentiles, stage counts, drops, refusals), where ``diagnostic_msgs`` is importable.
+  latency percentiles, stage counts, drops, refusals, frames lost in transport: gaps in the
+  header stamps against the camera's period), where ``diagnostic_msgs`` is importable.
 
 Images are taken newest first on a thread of their own: one that arrives while another waits
 replaces it (counted as dropped), so the node never works through a queue of stale frames. The
@@ -38,6 +42,7 @@ from perchpose.estimator import PerchingEstimator
 from perchpose.io.frames import CAMERA_FRAME, Stamp
 from perchpose.io.overlay import draw_overlay, encode_jpeg
 from perchpose.io.ros.messages import camera_info_fields, header_stamp_ns, image_of, pose_fields
+from perchpose.io.ros.transport import BEST_EFFORT, RELIABLE, StampGaps, matching_reliability
 from perchpose.io.sinks import estimate_row, track_json
 from perchpose.safe_yaml import load as load_yaml
 from perchpose.target import TargetSpec
@@ -79,6 +84,8 @@ def _ros() -> dict[str, Any]:
 
 
 RESTART_BACK_S = 1.0  # an image stamp this far behind the last: the camera started over
+LOST_WARN = 0.05  # a share of images lost in transport that the diagnostics warn of
+MATCH_PERIOD_S = 0.5  # how often the publishers are looked for until the first is found
 
 
 @dataclass(frozen=True)
@@ -165,7 +172,7 @@ class NodeStats:
 
     def _reset(self, now_s: float) -> None:
         self.since_s = now_s
-        self.received = self.taken = self.dropped = self.refused = 0
+        self.received = self.taken = self.dropped = self.refused = self.lost = 0
         self.stages = {0: 0, 1: 0, 2: 0, 3: 0}
         self.latencies_ms: list[float] = []
 
@@ -176,9 +183,9 @@ class NodeStats:
             self.stages[estimate.stage] += 1
             self.latencies_ms.append(latency_s * 1e3)
 
-    def count(self, name: str) -> None:
+    def count(self, name: str, n: int = 1) -> None:
         with self.lock:
-            setattr(self, name, getattr(self, name) + 1)
+            setattr(self, name, getattr(self, name) + n)
 
     def report(self, waiting_for: str) -> tuple[int, str, dict[str, str]]:
         """(level 0 OK / 1 WARN / 2 ERROR, message, values) since the last report, which
@@ -194,6 +201,7 @@ class NodeStats:
                 "latency_p95_ms": f"{np.percentile(latencies, 95):.1f}",
                 "dropped": str(self.dropped),
                 "refused": str(self.refused),
+                "lost_in_transport": str(self.lost),
             } | {f"stage_{k}": str(v) for k, v in self.stages.items()}
             valid = self.taken - self.stages[0]
             if waiting_for:
@@ -201,6 +209,12 @@ class NodeStats:
             elif self.refused:
                 plural = "s" if self.refused != 1 else ""
                 level, message = 2, f"{self.refused} image{plural} refused (see the log)"
+            elif self.lost > LOST_WARN * (self.received + self.lost):
+                level = 1
+                message = (
+                    f"{self.lost} of {self.received + self.lost} images lost in transport "
+                    "(gaps in their stamps)"
+                )
             elif self.taken and not valid:
                 level, message = 1, "no target in view"
             else:
@@ -228,23 +242,27 @@ class PoseNode:
         # every compiled kernel before the first image: none is left to build mid-stream
         self.log.info(warm_up(self.target).describe())
         self.stats = NodeStats()
+        self.gaps = StampGaps()
         self.slot = LatestImage()
         sensor, geometry, std = ros["sensor"], ros["geometry"], ros["std"]
-        # sensor-data QoS (best effort, the newest few), which matches any camera driver's
-        # publisher; -p qos_overrides.<topic>.subscription.reliability:=reliable where large
-        # images are lost in fragments
+        # camera_info: sensor-data QoS (best effort, the newest few) matches any publisher
         qos = ros["qos"].qos_profile_sensor_data
-        overrides = {
-            "qos_overriding_options": ros["overriding"].QoSOverridingOptions.with_default_policies()
-        }
-        if settings.image_transport == "compressed":
-            image_type, image_topic = sensor.CompressedImage, "image_raw/compressed"
-        else:
-            image_type, image_topic = sensor.Image, "image_raw"
-        node.create_subscription(image_type, image_topic, self._on_image, qos, **overrides)
         node.create_subscription(
-            sensor.CameraInfo, "camera_info", self._on_camera_info, qos, **overrides
+            sensor.CameraInfo, "camera_info", self._on_camera_info, qos, **self._overrides()
         )
+        if settings.image_transport == "compressed":
+            self.image_type, self.image_topic = sensor.CompressedImage, "image_raw/compressed"
+        else:
+            self.image_type, self.image_topic = sensor.Image, "image_raw"
+        self.image_sub: Any = None
+        self.match_timer: Any = None
+        self._matched = False
+        if not self._match_image_qos():
+            # no publisher yet: best effort takes any until one is found (then matched)
+            self.image_sub = node.create_subscription(
+                self.image_type, self.image_topic, self._on_image, qos
+            )
+            self.match_timer = node.create_timer(MATCH_PERIOD_S, self._match_image_qos)
         self.pose_pub = node.create_publisher(geometry.PoseWithCovarianceStamped, "~/pose", 10)
         self.track_pub = node.create_publisher(std.String, "~/track", 10)
         self.overlay_pub = (
@@ -262,6 +280,52 @@ class PoseNode:
             node.create_timer(settings.diagnostics_period_s, self._diagnostics)
         self.worker = threading.Thread(target=self._work, name="perchpose-node", daemon=True)
         self.worker.start()
+
+    def _overrides(self) -> dict[str, Any]:
+        """``qos_overrides.<topic>.subscription.*`` parameters, where the user gives them."""
+        options = self.ros["overriding"].QoSOverridingOptions.with_default_policies()
+        return {"qos_overriding_options": options}
+
+    def _match_image_qos(self) -> bool:
+        """Subscribe to the images with the reliability their publishers offer, once the
+        first publisher is seen; False while there is none."""
+        if self._matched:
+            return True
+        topic = self.node.resolve_topic_name(self.image_topic)
+        qos = self.ros["qos"]
+        infos = self.node.get_publishers_info_by_topic(topic)
+        names = [
+            RELIABLE if i.qos_profile.reliability == qos.ReliabilityPolicy.RELIABLE else BEST_EFFORT
+            for i in infos
+        ]
+        reliability = matching_reliability(names)
+        if reliability is None:
+            return False
+        profile = qos.QoSProfile(
+            depth=5,
+            history=qos.HistoryPolicy.KEEP_LAST,
+            reliability=(
+                qos.ReliabilityPolicy.RELIABLE
+                if reliability == RELIABLE
+                else qos.ReliabilityPolicy.BEST_EFFORT
+            ),
+            durability=qos.DurabilityPolicy.VOLATILE,
+        )
+        if self.image_sub is not None:
+            self.node.destroy_subscription(self.image_sub)
+        self.image_sub = self.node.create_subscription(
+            self.image_type, self.image_topic, self._on_image, profile, **self._overrides()
+        )
+        if self.match_timer is not None:
+            self.node.destroy_timer(self.match_timer)
+        self._matched = True
+        taken = self.image_sub.qos_profile.reliability == qos.ReliabilityPolicy.RELIABLE
+        self.log.info(
+            f"{topic}: {len(names)} publisher(s), {', '.join(sorted(set(names)))}: subscribed "
+            f"{RELIABLE if taken else BEST_EFFORT}"
+            + ("" if (taken == (reliability == RELIABLE)) else " (as qos_overrides asks)")
+        )
+        return True
 
     # what comes in (the executor's thread)
     def _say_once(self, key: str, text: str, error: bool = True) -> None:
@@ -303,6 +367,9 @@ class PoseNode:
 
     def _on_image(self, msg: Any) -> None:
         self.stats.count("received")
+        lost = self.gaps.seen(header_stamp_ns(msg.header))
+        if lost:
+            self.stats.count("lost", lost)
         if self.slot.put(msg, time.monotonic()):
             self.stats.count("dropped")
 
