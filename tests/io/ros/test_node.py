@@ -231,3 +231,16 @@ def test_a_camera_whose_stamps_start_over_is_followed_with_one_warning(
         node.destroy_node()
     finally:
         rclpy.shutdown()
+
+
+def test_without_rclpy_the_error_says_what_to_do_on_this_python() -> None:
+    """The 'ros2' extra installs nothing outside Python 3.11 on Linux: there the error says
+    to source a ROS 2 install, not to install the extra just installed."""
+    from perchpose.io.ros.node import missing_rclpy
+
+    elsewhere = missing_rclpy("rclpy", (3, 12), "linux")
+    assert "Python 3.12 on linux" in elsewhere
+    assert "install nothing" in elsewhere
+    assert "pip install" not in elsewhere
+    assert "pip install 'perchpose[ros2]'" in missing_rclpy("rclpy", (3, 11), "linux")
+    assert "install nothing on Python 3.11 on darwin" in missing_rclpy("rclpy", (3, 11), "darwin")

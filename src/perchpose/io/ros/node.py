@@ -28,6 +28,7 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import sys
 import threading
 import time
 from dataclasses import dataclass, fields, replace
@@ -64,6 +65,27 @@ _MODULES = {
 _OPTIONAL = {"tf": "tf2_msgs.msg", "diagnostic": "diagnostic_msgs.msg"}
 
 
+def missing_rclpy(
+    module: str, python: tuple[int, int] | None = None, platform: str | None = None
+) -> str:
+    """What to do when rclpy (or a message package) is not importable: the ``ros2`` extra's
+    wheels exist only for ROS 2 Jazzy on Python 3.11 under Linux, and elsewhere the extra
+    installs nothing, without a word."""
+    python = python or (sys.version_info.major, sys.version_info.minor)
+    platform = platform or sys.platform
+    here = f"Python {python[0]}.{python[1]} on {platform}"
+    if python != (3, 11) or platform != "linux":
+        return (
+            f"perchpose ros2 needs rclpy ({module} is missing): source a ROS 2 install whose "
+            f"Python this is (Jazzy's is 3.12); the 'ros2' extra's wheels are for Python 3.11 "
+            f"on Linux only and install nothing on {here}"
+        )
+    return (
+        f"perchpose ros2 needs rclpy ({module} is missing): source a ROS 2 install, or "
+        "pip install 'perchpose[ros2]' (ROS 2 Jazzy's wheels for Python 3.11)"
+    )
+
+
 def _ros() -> dict[str, Any]:
     """rclpy and the message packages the node needs; the optional ones where importable."""
     found: dict[str, Any] = {}
@@ -71,10 +93,7 @@ def _ros() -> dict[str, Any]:
         for key, name in _MODULES.items():
             found[key] = importlib.import_module(name)
     except ImportError as exc:
-        raise PerchposeError(
-            f"perchpose ros2 needs rclpy ({exc.name} is missing): source a ROS 2 install, or "
-            "pip install 'perchpose[ros2]'"
-        ) from exc
+        raise PerchposeError(missing_rclpy(exc.name or name)) from exc
     for key, name in _OPTIONAL.items():
         try:
             found[key] = importlib.import_module(name)
