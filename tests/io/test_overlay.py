@@ -63,3 +63,28 @@ def test_an_mp4_overlay_is_h264_and_prints_nothing(
     assert len(levels) == 4
     assert np.all(np.abs(np.diff(levels) - 50) < 5)
     assert capfd.readouterr().err == ""
+
+
+def test_an_mp4_overlay_killed_mid_run_plays_up_to_its_last_second(tmp_path: Path) -> None:
+    """A process writing 100 frames at 30 fps killed with SIGKILL before it closes the file:
+    the fragmented MP4 plays every whole second written (at least 90 frames), where an MP4
+    with its index at the end played none."""
+    import subprocess
+    import sys
+
+    import av
+
+    path = tmp_path / "killed.mp4"
+    script = (
+        "import os, signal, numpy as np\n"
+        "from perchpose.io.overlay import OverlayWriter\n"
+        f"w = OverlayWriter({str(path)!r}, 30.0, (160, 120))\n"
+        "for k in range(100):\n"
+        "    w.write(np.full((120, 160, 3), (5 * k) % 250, np.uint8))\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], timeout=120, check=False)
+    assert done.returncode == -9
+    with av.open(str(path)) as video:
+        frames = sum(1 for _ in video.decode(video.streams.video[0]))
+    assert frames >= 90

@@ -119,11 +119,23 @@ def check_overlay_path(path: str | Path) -> Path:
 class _H264File:
     """An MP4 of H.264 written by PyAV's libx264: yuv420p without B-frames (``ultrafast``:
     what every browser plays), 2-3 ms a 640x480 frame, about OpenCV's MPEG-4 Part 2, so that
-    writing keeps up with tracking."""
+    writing keeps up with tracking.
+
+    The MP4 is fragmented (``movflags=frag_keyframe+empty_moov``, a key frame every second):
+    each second is written whole as it ends, so a run that is killed (SIGKILL, a power cut)
+    leaves a video that plays up to its last second, not a file without its index."""
 
     def __init__(self, path: Path, rate: float, size: tuple[int, int]) -> None:
         try:
-            self._container = av.open(str(path), "w")
+            self._container = av.open(
+                str(path),
+                "w",
+                format="mp4",
+                options={
+                    "movflags": "frag_keyframe+empty_moov+default_base_moof",
+                    "flush_packets": "1",
+                },
+            )
             self._stream = self._container.add_stream(
                 "libx264", rate=Fraction(rate).limit_denominator(1001)
             )
@@ -131,7 +143,8 @@ class _H264File:
             raise PerchposeError(f"{path}: cannot open a video writer ({exc})") from exc
         self._stream.width, self._stream.height = size
         self._stream.pix_fmt = "yuv420p"
-        self._stream.options = {"preset": "ultrafast", "crf": "23"}
+        key_every = str(max(1, round(rate)))
+        self._stream.options = {"preset": "ultrafast", "crf": "23", "g": key_every}
 
     def write(self, frame_bgr: NDArray[np.uint8]) -> None:
         frame = av.VideoFrame.from_ndarray(frame_bgr, format="bgr24")
