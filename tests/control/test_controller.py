@@ -419,3 +419,30 @@ def test_a_measured_push_is_leant_against_at_once() -> None:
         leaning, [-filtered * 1.3 / s.onboard_velocity_gain, 0, 0], atol=1e-9
     )
     np.testing.assert_allclose(sent[True, False], sent[False, True], atol=1e-12)
+
+
+def test_a_vehicle_leaning_into_a_gust_waits_under_the_plate_for_a_lull() -> None:
+    """Centred 3.5 cm under the plate: level, three consistent frames start the final climb;
+    leaning 14 deg into a gust (more than ``max_commit_tilt_deg``), the same frames do not,
+    and the vehicle backs down instead of climbing into the plate at a tilt the magnet cannot
+    seat at; at 6 cm it holds its height. Upright again, it climbs."""
+    s = ControllerSettings()
+    magnet = np.array(s.p_body_magnet_m)
+
+    def view(R: np.ndarray, d_world: list[float], t_s: float) -> Estimate:
+        return replace(_camera_view(s, magnet + R.T @ np.array(d_world)), t_s=t_s)
+
+    level = np.eye(3)
+    leaning = Rotation.from_euler("x", 14.0, degrees=True).as_matrix()
+    for R, expect in ((level, "commit"), (leaning, "climb")):
+        c = PerchingController(s)
+        for k in range(3):
+            command = c.update(view(R, [0.0005, 0.0, 0.035], k / 30), k / 30, R)
+        assert command.phase == expect
+    assert command.v_mps[2] == pytest.approx(-s.descend_mps)
+    c = PerchingController(s)
+    holding = c.update(view(leaning, [0.0, 0.0, 0.06], 0.0), 0.0, leaning)
+    assert holding.phase == "climb"
+    assert holding.v_mps[2] == 0.0
+    climbing = c.update(view(level, [0.0, 0.0, 0.06], 1 / 30), 1 / 30, level)
+    assert climbing.v_mps[2] > 0.1

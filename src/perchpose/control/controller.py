@@ -40,8 +40,10 @@ controller's state estimate, in its own drifting world frame), the controller al
   integral on the lateral position error (what the odometry cannot see: its own velocity
   bias), both with anti-windup (clamped; the position integral runs only within
   ``integrate_within_m`` of the centre);
-- commits only inside a capture cone: the magnet within ``commit_align_m`` of the centre and
-  moving sideways slower than ``capture_speed_mps``. A final climb that leaves the cone or
+- commits only inside a capture cone: the magnet within ``commit_align_m`` of the centre,
+  moving sideways slower than ``capture_speed_mps``, and the vehicle leaning less than
+  ``max_commit_tilt_deg`` (leaning into a gust further than that, it waits under the plate
+  for a lull: the magnet does not seat at a tilt). A final climb that leaves the cone or
   times out backs off (``retreat``: down to ``retry_below_m`` under the target, then align
   again); after ``max_tries`` failed climbs it gives up (``give-up``: the pilot lands).
 """
@@ -140,7 +142,11 @@ class ControllerSettings:
     are small there and the time short, so a stiffer loop holds the magnet on the centre
     without the overshoot it would cause across a long approach). capture_speed_mps : the
     largest sideways speed at which the final climb may start, measured
-    over the last speed_window_s of odometry positions.
+    over the last speed_window_s of odometry positions. max_commit_tilt_deg : the largest
+    tilt (the latest attitude's) at which the final climb may start; leaning further within
+    twice ``commit_distance_m`` of the plate, the vehicle stops climbing (and backs down
+    within ``commit_distance_m``) until a lull lets it level: in strong wind the tilt that
+    holds it against a gust is what a contact at over 15 deg fails on.
     retry_below_m : how far under the target a backed-off climb descends before aligning
     again. max_tries : failed final climbs before giving up.
     """
@@ -178,6 +184,7 @@ class ControllerSettings:
     push_filter_s: float = 0.03
     max_push_mps2: float = 4.0
     capture_speed_mps: float = 0.03
+    max_commit_tilt_deg: float = 12.0
     speed_window_s: float = 0.1
     retry_below_m: float = 0.15
     max_tries: int = 3
@@ -210,6 +217,7 @@ class ControllerSettings:
             "max_estimate_age_s",
             "hold_target_s",
             "capture_speed_mps",
+            "max_commit_tilt_deg",
             "speed_window_s",
             "retry_below_m",
             "max_disturbance_xy_mps",
@@ -384,6 +392,7 @@ class PerchingController:
         self._last_t: float | None = None
         self._last_sp: Array | None = None
         self._push_mps2 = np.zeros(3)  # the measured push, low-passed (world frame)
+        self._tilt_deg = 0.0
         # the last frame's command before the observer's offset (flown on between frames)
         self._frame_command: Command | None = None
         self._frame_t = -math.inf
@@ -444,6 +453,8 @@ class PerchingController:
     # -- the vehicle's past ---------------------------------------------------------------
 
     def _remember_attitude(self, t_s: float, R_world_body: Array) -> None:
+        z = float(np.clip(np.asarray(R_world_body, np.float64)[2, 2], -1.0, 1.0))
+        self._tilt_deg = math.degrees(math.acos(z))  # the latest attitude's
         if self._attitudes and t_s < self._attitudes[-1][0]:
             return  # out of order: the history stays sorted
         self._attitudes.append((t_s, np.asarray(R_world_body, np.float64)))
@@ -694,9 +705,11 @@ class PerchingController:
             self.phase = Phase.ALIGN
             self._commit_since = None
         slow = odometry is None or self._sideways_mps(odometry) < s.capture_speed_mps
+        level = self._tilt_deg < s.max_commit_tilt_deg
         if self.phase == Phase.COMMIT or (
             may_commit
             and slow
+            and level
             and (
                 self._all_recent(s.commit_distance_m, s.commit_align_m)
                 or (blind and self._all_recent(s.blind_commit_m, s.blind_align_m))
@@ -713,6 +726,9 @@ class PerchingController:
             # momentum (its speed over onboard_velocity_gain, 35 mm at commit_speed_mps)
             # would carry the vehicle into the plate off-centre
             v[2] = -s.descend_mps
+        elif not level and height < 2.0 * s.commit_distance_m:
+            # leaning into a gust too far to seat the magnet: wait under the plate for a lull
+            v[2] = -s.descend_mps if height < s.commit_distance_m else min(v[2], 0.0)
         return Command(v, yaw_rate, self.phase, d)
 
     def _aligned(self, lateral_m: float, height_m: float) -> float:
