@@ -1,5 +1,6 @@
 import csv
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -148,13 +149,38 @@ def test_frames_decoded_from_damaged_data_are_shown_not_measured(
     assert not (abs_err[:, 2] > np.maximum(0.015 * errors.z_true_cm[measured], 0.1)).any()
 
 
+class PacedCapture:
+    """A video read as a camera delivers it: a frame every ``period_s`` at most (OpenCV's
+    ``grab``/``retrieve``/``release``, which the live source calls)."""
+
+    def __init__(self, path: str, period_s: float = 0.01) -> None:
+        import cv2
+
+        self.capture = cv2.VideoCapture(path)
+        self.period_s = period_s
+
+    def grab(self) -> bool:
+        time.sleep(self.period_s)
+        return bool(self.capture.grab())
+
+    def retrieve(self) -> tuple[bool, np.ndarray | None]:
+        ok, image = self.capture.retrieve()
+        return bool(ok), image
+
+    def release(self) -> None:
+        self.capture.release()
+
+
 def test_a_live_camera_drops_stale_frames_and_says_so(
     approach_webcam_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The rendered approach as a live camera (a real capture of an MJPG video, grabbed on
-    its own thread as fast as it decodes, faster than the estimator): a row for every frame
-    in order; the overtaken ones stale, invalid and not passed to the vehicle links; the end of
-    the video is a camera that stopped delivering, an error once every row is written."""
+    its own thread a frame every 10 ms, faster than the estimator with a vehicle link that
+    takes 40 ms a frame): a row for every frame in order; the overtaken ones stale, invalid
+    and not passed to the vehicle links; the end of the video is a camera that stopped
+    delivering, an error once every row is written. Every frame processed outside the
+    approach's dropout (frames 30-41, the target hidden) has a pose; which frames are processed
+    depends on the machine's load."""
     import cv2
 
     from perchpose.app import track as track_module
@@ -172,11 +198,17 @@ def test_a_live_camera_drops_stale_frames_and_says_so(
     def live(
         source: str, fps: float | None, size: tuple[int, int], image_topic: str | None = None
     ) -> VideoSource:
-        opened.append(VideoSource(cv2.VideoCapture(source), 30.0, "camera 0", live=True))
+        opened.append(VideoSource(PacedCapture(source), 30.0, "camera 0", live=True))
         return opened[-1]
 
     monkeypatch.setattr(track_module, "open_source", live)
     seen: list[float] = []
+
+    def slow_link(_estimate: object, t_s: float) -> None:
+        """A vehicle link that takes 40 ms a frame: the camera's next frames overtake it."""
+        seen.append(t_s)
+        time.sleep(0.04)
+
     camera = CameraModel.load(approach_webcam_dir / "camera.yaml")
     estimator = PerchingEstimator(camera, TargetSpec.paper())
     with pytest.raises(PerchposeError, match="camera 0: stopped delivering frames"):
@@ -185,7 +217,7 @@ def test_a_live_camera_drops_stale_frames_and_says_so(
             estimator,
             tmp_path / "live.csv",
             progress=False,
-            on_frame=[lambda estimate, t_s: seen.append(t_s)],
+            on_frame=[slow_link],
         )
     rows = read_track_csv(tmp_path / "live.csv")
     assert [int(r["frame"]) for r in rows] == list(range(len(frames)))
@@ -197,7 +229,10 @@ def test_a_live_camera_drops_stale_frames_and_says_so(
     processed = [r for r in rows if not r["error"]]
     assert len(seen) == len(processed)
     assert all(r["latency_ms"] != "" for r in processed)
-    assert sum(r["valid"] == "1" for r in processed) >= len(processed) - 2
+    dropout = range(30, 42)  # the fixture's 0.4 s dropout at 1.0 s
+    seeing = [r for r in processed if int(r["frame"]) not in dropout]
+    assert seeing
+    assert all(r["valid"] == "1" for r in seeing), [(r["frame"], r["stage"]) for r in seeing]
 
 
 class _Clock:
