@@ -402,7 +402,6 @@ class PerchingController:
         the push's cancellation model it from now on."""
         self.settings = replace(self.settings, onboard_velocity_gain=gain_per_s)
         self._observer.k_v = gain_per_s
-        self._observer.rate = self._observer.rate  # its gains follow the loop's
 
     @property
     def disturbance_mps(self) -> Array:

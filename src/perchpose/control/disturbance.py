@@ -49,7 +49,7 @@ class DisturbanceObserver:
         max_offset_mps: tuple[float, float, float],
         delay_s: float = 0.0,
     ) -> None:
-        self.k_v = velocity_gain
+        self._k_v = velocity_gain
         self.delay_s = delay_s
         self.rate = rate  # sets the gains l1, l2
         self.max_offset_mps = np.asarray(max_offset_mps, np.float64)
@@ -58,6 +58,17 @@ class DisturbanceObserver:
         self._clock_s = 0.0
         self._past: deque[tuple[float, Array]] = deque(maxlen=HISTORY)
         self._sent: deque[tuple[float, Array]] = deque(maxlen=HISTORY)  # setpoints, by time
+
+    @property
+    def k_v(self) -> float:
+        """The velocity loop's gain in the model, 1/s."""
+        return self._k_v
+
+    @k_v.setter
+    def k_v(self, velocity_gain: float) -> None:
+        """A new loop gain (the pilot set the vehicle's): the observer's gain l1 follows."""
+        self._k_v = velocity_gain
+        self.rate = self._rate
 
     @property
     def rate(self) -> float:

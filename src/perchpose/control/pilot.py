@@ -332,14 +332,14 @@ class PerchingPilot:
             return None
         return motion
 
-    def _odometry(self, t_s: float, motion: tuple[Array, Array]) -> Odometry:
+    def _odometry(self, t_s: float, motion: tuple[Array, Array], R_world_body: Array) -> Odometry:
         """The odometry for the controller: the motion, and the accelerometer's push turned
         into the world frame by the attitude (None where there is no finite sample)."""
         f_body = None if self.specific_force is None else self.specific_force()
         push = None
         if f_body is not None and np.all(np.isfinite(f_body[:2])):
             f_xy = np.array([f_body[0], f_body[1], 0.0], np.float64)
-            push = np.asarray(self.attitude(), np.float64) @ f_xy
+            push = np.asarray(R_world_body, np.float64) @ f_xy
             push[2] = 0.0
         return Odometry(t_s - self._age("position"), motion[0], motion[1], push)
 
@@ -497,10 +497,9 @@ class PerchingPilot:
         motion = self._motion()
         if motion is None:
             return None
-        odometry = self._odometry(t_s, motion)
-        command = self.controller.between_frames(
-            t_s, self.attitude(), odometry, self._age("attitude")
-        )
+        R_world_body = self.attitude()
+        odometry = self._odometry(t_s, motion, R_world_body)
+        command = self.controller.between_frames(t_s, R_world_body, odometry, self._age("attitude"))
         if command is None:
             return None
         if command.phase == Phase.COMMIT and self._contact.touched(t_s, self._height()):
@@ -557,9 +556,10 @@ class PerchingPilot:
     def _fly(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         """The controller's command for ``estimate`` (None: no target) at ``t_s``."""
         motion = self._motion()
-        odometry = None if motion is None else self._odometry(t_s, motion)
+        R_world_body = self.attitude()
+        odometry = None if motion is None else self._odometry(t_s, motion, R_world_body)
         command: Command = self.controller.update(
-            estimate, t_s, self.attitude(), odometry, self._age("attitude")
+            estimate, t_s, R_world_body, odometry, self._age("attitude")
         )
         return self._follow(command, t_s)
 

@@ -16,10 +16,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cache
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from perchpose.target import aruco_dictionary
 
 DIGITS = 25  # ids per marker: the fine marker is 0-24, the coarse one 25-49
 CYCLE = DIGITS * DIGITS  # display counts before a count repeats
@@ -28,8 +31,9 @@ QUIET_PX = 60  # white margin around and between the markers
 INLIER_S = 0.1  # samples this far from the median are counted apart as misreads
 
 
+@cache
 def dictionary() -> cv2.aruco.Dictionary:
-    return cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    return aruco_dictionary("DICT_4X4_50")
 
 
 def display_image(count: int) -> NDArray[np.uint8]:

@@ -44,7 +44,6 @@ class CflibCommander:
         self.commander = commander
         self.param = param
         self.own_gains = own_gains or {}  # the vehicle's velocity gains, read at connection
-        self._set = False
 
     def set_velocity_gain(self, gain_per_s: float) -> bool:
         """False without the vehicle's own gains to give back (read at connection)."""
@@ -57,7 +56,6 @@ class CflibCommander:
         except Exception:  # cflib raises bare Exceptions (no such parameter, not connected)
             self.restore_velocity_gain()
             return False
-        self._set = True
         return True
 
     def restore_velocity_gain(self) -> None:
@@ -66,7 +64,6 @@ class CflibCommander:
                 self.param.set_value(name, value)
         except Exception:  # the link is going: the vehicle keeps ours until it restarts
             return
-        self._set = False
 
     def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
         vx, vy, vz = v_world_mps
