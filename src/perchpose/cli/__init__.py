@@ -13,6 +13,7 @@ from perchpose.cli import (  # noqa: F401  (each module registers its command on
     latency,
     perch,
     ros2,
+    sim_vehicle,
     simulate,
     target,
     track,

@@ -1,0 +1,105 @@
+"""The vehicle's end of a MAVLink link, heard by the project's own companion link: the
+autopilot it says it is, its mode and arming, its attitude and position in NED, the stream
+rates asked of it and TIMESYNC."""
+
+import math
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from perchpose.geometry import rot_z
+from perchpose.io.mavlink.landing_target import R_ned_frd_from_euler
+from perchpose.io.mavlink.link import MavlinkLink
+from perchpose.io.mavlink.vehicle_endpoint import F, VehicleEndpoint, euler_ned_frd
+
+pytest.importorskip("pymavlink")
+
+
+def _rot_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def test_attitude_angles_turn_back_into_the_body_attitude():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        yaw, roll = rng.uniform(-3.0, 3.0), rng.uniform(-0.5, 0.5)
+        R_world_body = rot_z(yaw) @ _rot_x(roll)
+        R_ned_frd = R_ned_frd_from_euler(*euler_ned_frd(R_world_body))
+        assert np.allclose(F @ R_ned_frd @ F, R_world_body, atol=1e-9)
+
+
+class Served:
+    """An endpoint served on a thread as the sim-vehicle serves it: a vehicle 1 m up, 0.2 m
+    north and 0.1 m west of its origin, heading 30 deg left of north, climbing at 0.1 m/s,
+    LOITER (custom mode 5), armed; its ATTITUDE stream off until asked for."""
+
+    R = rot_z(math.radians(30.0))
+    p = np.array([0.2, 0.1, 1.0])
+    v = np.array([0.0, 0.0, 0.1])
+
+    def __init__(self, port: int) -> None:
+        self.endpoint = VehicleEndpoint(f"udpin:127.0.0.1:{port}", autopilot=3)
+        self.endpoint.interval_s["ATTITUDE"] = math.inf
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        start = time.monotonic()
+        while not self._stop.is_set():
+            list(self.endpoint.messages())
+            now = time.monotonic() - start
+            self.endpoint.heartbeat(now, 5, armed=True)
+            self.endpoint.state(now, self.R, np.zeros(3), self.p, self.v, on_ground=False)
+            time.sleep(0.005)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.endpoint.close()
+
+
+@pytest.fixture
+def served(udp_port: int) -> Iterator[Served]:
+    vehicle = Served(udp_port)
+    yield vehicle
+    vehicle.stop()
+
+
+def _until(check, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if check():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_a_companion_hears_the_autopilot_its_state_in_ned_and_its_clock(
+    served: Served, udp_port: int
+):
+    link = MavlinkLink(
+        f"udpout:127.0.0.1:{udp_port}",
+        streams=("ATTITUDE", "LOCAL_POSITION_NED"),
+        stream_hz=25.0,
+    )
+    try:
+        vehicle = link.vehicle
+        assert _until(lambda: vehicle.R_ned_frd is not None and vehicle.p_ned_m is not None)
+        assert vehicle.autopilot == 3
+        assert vehicle.custom_mode == 5
+        assert vehicle.armed
+        assert np.allclose(F @ vehicle.R_ned_frd @ F, Served.R, atol=1e-6)
+        assert np.allclose(vehicle.p_ned_m, [0.2, -0.1, -1.0], atol=1e-6)
+        assert np.allclose(vehicle.v_ned_mps, [0.0, 0.0, -0.1], atol=1e-6)
+        # the stream came at the rate the companion asked for; its TIMESYNC was answered
+        assert served.endpoint.interval_s["ATTITUDE"] == pytest.approx(0.04)
+        assert link.stream_requests >= 1
+        assert _until(lambda: link.timesync.offset_ns is not None)
+        assert served.endpoint.received["HEARTBEAT"] > 0
+    finally:
+        link.close()
