@@ -432,3 +432,35 @@ def test_a_vehicle_that_refuses_the_gain_is_flown_on_its_own_and_said() -> None:
     assert unset.gains == []
     with pytest.raises(ControllerConfigError, match="velocity_gain_per_s must be within"):
         PilotSettings(velocity_gain_per_s=40.0)
+
+
+def _against_the_plate(target_above_magnet_m: float) -> tuple[PerchingPilot, list[str]]:
+    """A vehicle under a plate that stops its climb, whose camera keeps seeing the target
+    ``target_above_magnet_m`` above the magnet, centred (a late pose: the plate looks further
+    than it is); one second of frames at 30 Hz."""
+    s = ControllerSettings(observer_rate=0.0)
+    commander = Recorder()
+    vehicle = Vehicle(commander, 1.0, stuck=False)
+    reports: list[str] = []
+    pilot = _pilot(vehicle, controller=s, reports=reports)
+    magnet_z = s.p_body_magnet_m[2]
+    for _ in range(30):
+        pilot.update(
+            _seen(s, [0.0, 0.0, magnet_z + target_above_magnet_m], vehicle.t_s), vehicle.t_s
+        )
+        vehicle.fly(1 / 30)
+        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)  # the plate
+    return pilot, commander.sent
+
+
+def test_a_climb_stopped_by_the_plate_before_the_final_climb_is_contact() -> None:
+    pilot, sent = _against_the_plate(0.07)
+    assert pilot.controller.phase == "climb"
+    assert pilot.state == "perched"
+    assert sent[-1] == ()
+
+
+def test_a_climb_far_from_the_plate_that_does_not_rise_is_not_contact() -> None:
+    pilot, sent = _against_the_plate(0.3)
+    assert pilot.state == "perching"
+    assert sent[-1] != ()

@@ -25,7 +25,8 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
   again every ``stuck_report_s``. Without a live height an autopilot is handed its own LAND
   (``VehicleCommander.send_land``); a vehicle without one (the Crazyflie) keeps descending at
   the landing speed until a live height senses the touchdown, and the pilot says so;
-- ``perched``: contact: during the final climb the vehicle's height stopped rising (under
+- ``perched``: contact: during the final climb (or a climb at its speed with the plate
+  within ``climb_contact_within_m``) the vehicle's height stopped rising (under
   ``contact_rise_m`` over ``contact_window_s`` while climbing): a stop setpoint cuts the motors
   and the magnet holds the vehicle. Time alone never stops the motors; without a height source
   there is no contact evidence, and a final climb that does not end backs off;
@@ -502,9 +503,23 @@ class PerchingPilot:
         command = self.controller.between_frames(t_s, R_world_body, odometry, self._age("attitude"))
         if command is None:
             return None
-        if command.phase == Phase.COMMIT and self._contact.touched(t_s, self._height()):
-            return self._stop(t_s, PilotState.PERCHED, "the final climb stopped against the plate")
+        if self._pressing(command) and self._contact.touched(t_s, self._height()):
+            return self._stop(t_s, PilotState.PERCHED, _stopped_against(command))
         return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
+
+    def _pressing(self, command: Command) -> bool:
+        """The command climbs into the plate, so that a height that stops rising is contact:
+        the final climb, or a climb at its speed or faster with the plate within
+        ``climb_contact_within_m`` by the camera."""
+        if command.phase == Phase.COMMIT:
+            return True
+        if command.phase != Phase.CLIMB or command.error_m is None:
+            return False
+        climb_mps = self.controller.settings.commit_speed_mps
+        return (
+            float(command.v_mps[2]) >= climb_mps - 1e-9
+            and float(command.error_m[2]) < self.settings.climb_contact_within_m
+        )
 
     def _silent(self, t_s: float) -> PilotStep:
         """The camera's watchdog: no frame for ``frame_timeout_s``; each tick flies as a frame
@@ -570,14 +585,14 @@ class PerchingPilot:
             tries = self.controller.tries
             self._start_landing(t_s, f"gave up after {tries} final climbs without contact")
             return self._land_step(t_s)
+        pressing = self._pressing(command)
+        if pressing and self._contact.touched(t_s, self._height()):
+            return self._stop(t_s, PilotState.PERCHED, _stopped_against(command))
         if command.phase == Phase.COMMIT:
-            if self._contact.touched(t_s, self._height()):
-                return self._stop(
-                    t_s, PilotState.PERCHED, "the final climb stopped against the plate"
-                )
             self._enter(PilotState.PERCHING, t_s, "final climb")
         else:
-            self._contact.reset()
+            if not pressing:
+                self._contact.reset()
             if command.phase == Phase.LOST:
                 last = self._last_valid_t if self._last_valid_t is not None else t_s
                 if t_s - last >= s.land_after_lost_s:
@@ -606,3 +621,8 @@ class PerchingPilot:
         while self.state == PilotState.LANDING:
             self.tick(clock() - t0)
             sleep(self.settings.setpoint_period_s)
+
+
+def _stopped_against(command: Command) -> str:
+    what = "final climb" if command.phase == Phase.COMMIT else "climb"
+    return f"the {what} stopped against the plate"

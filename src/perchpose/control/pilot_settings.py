@@ -38,7 +38,10 @@ class PilotSettings:
     often (the motors stay on).
 
     Contact: contact_window_s, contact_rise_m : contact is a final climb whose height rose less
-    than contact_rise_m over the last contact_window_s. live_height_s : contact and touchdown
+    than contact_rise_m over the last contact_window_s; or a climb at the final climb's speed or
+    faster with the plate within climb_contact_within_m by the camera (a pose whose latency is
+    under-stated puts the plate further than it is, and the magnet seats before the final
+    climb begins). live_height_s : contact and touchdown
     count only height samples younger than this (a stream at 10 Hz or faster stays live between
     its samples); it must be shorter than the contact window, so that a height that froze never
     makes a contact on its own. limits : the largest setpoint sent.
@@ -61,6 +64,7 @@ class PilotSettings:
     stuck_report_s: float = 5.0
     contact_window_s: float = 0.3
     contact_rise_m: float = 0.005
+    climb_contact_within_m: float = 0.1
     setpoint_period_s: float = 0.05
     frame_timeout_s: float = 0.25
     stale_after_s: float = 0.25
@@ -81,6 +85,7 @@ class PilotSettings:
             "stuck_report_s",
             "contact_window_s",
             "contact_rise_m",
+            "climb_contact_within_m",
             "setpoint_period_s",
             "frame_timeout_s",
             "stale_after_s",
