@@ -41,7 +41,7 @@ from perchpose.io.video_stream import H264Stream
 from perchpose.sim.autopilot import MAV_AUTOPILOT, SETPOINT_MODE, StandInAutopilot
 from perchpose.sim.contact import Contact, PlateContact, tilt_deg
 from perchpose.sim.disturbances import OdometryModel
-from perchpose.sim.perch import FLOOR_CRASH_MPS, REST_Z_M, PerchSetup
+from perchpose.sim.perch import FLOOR_CRASH_MPS, REST_Z_M, PerchSetup, draw_start
 from perchpose.sim.quadrotor import Quadrotor
 from perchpose.sim.wind import DrydenWind
 
@@ -103,16 +103,8 @@ class SimulatedVehicle:
         self.frame = frame
         self.hand_over_s = hand_over_s
         world = np.random.default_rng(seed)
-        below = float(world.uniform(*setup.start_below_m))
-        lateral = setup.start_lateral_fraction * below
-        start = np.array(
-            [
-                world.uniform(-lateral, lateral),
-                world.uniform(-lateral, lateral),
-                setup.plate_z_m - below,
-            ]
-        )
-        yaw = float(world.uniform(-math.pi, math.pi))
+        start, yaw = draw_start(setup, world)
+        below = setup.plate_z_m - float(start[2])
         self.vehicle = Quadrotor.hovering(setup.vehicle, start, yaw, setup.onboard)
         self.vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
         direction = float(world.uniform(-math.pi, math.pi))

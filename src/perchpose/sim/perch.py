@@ -406,6 +406,20 @@ def _draw_senses(
     )
 
 
+def draw_start(setup: PerchSetup, world: np.random.Generator) -> tuple[Array, float]:
+    """A run's start, hovering under the plate (world frame, m), and its heading (rad)."""
+    below = float(world.uniform(*setup.start_below_m))
+    lateral = setup.start_lateral_fraction * below
+    start = np.array(
+        [
+            world.uniform(-lateral, lateral),
+            world.uniform(-lateral, lateral),
+            setup.plate_z_m - below,
+        ]
+    )
+    return start, float(world.uniform(-math.pi, math.pi))
+
+
 class _Flight:
     """One run's world and vehicle, stepped frame by frame."""
 
@@ -427,18 +441,8 @@ class _Flight:
         world = np.random.default_rng(world_seq)
         self.camera_rng = np.random.default_rng(camera_seq)
         self.senses_rng = np.random.default_rng(senses_seq)
-        below = float(world.uniform(*setup.start_below_m))
-        lateral = setup.start_lateral_fraction * below
-        start = np.array(
-            [
-                world.uniform(-lateral, lateral),
-                world.uniform(-lateral, lateral),
-                setup.plate_z_m - below,
-            ]
-        )
-        self.vehicle = _plant_for(setup, plant)(
-            setup.vehicle, start, float(world.uniform(-math.pi, math.pi)), setup.onboard
-        )
+        start, heading_rad = draw_start(setup, world)
+        self.vehicle = _plant_for(setup, plant)(setup.vehicle, start, heading_rad, setup.onboard)
         self.vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
         self.wind_direction_rad = float(world.uniform(-math.pi, math.pi))
         self.wind = DrydenWind(
