@@ -210,6 +210,7 @@ class PerchingPilot:
         self._landing_said: tuple[float, str] | None = None  # (when, which news) last said
         s = self.settings
         self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
+        self._climbing_since: float | None = None  # a climb that may meet the plate began
         self._touchdown = TouchdownDetector(
             s.touchdown_window_s, s.touchdown_still_m, s.landed_height_m, s.touchdown_speed_mps
         )
@@ -503,23 +504,29 @@ class PerchingPilot:
         command = self.controller.between_frames(t_s, R_world_body, odometry, self._age("attitude"))
         if command is None:
             return None
-        if self._pressing(command) and self._contact.touched(t_s, self._height()):
+        if self._pressing(command, t_s) and self._contact.touched(t_s, self._height()):
             return self._stop(t_s, PilotState.PERCHED, _stopped_against(command))
         return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
 
-    def _pressing(self, command: Command) -> bool:
+    def _pressing(self, command: Command, t_s: float) -> bool:
         """The command climbs into the plate, so that a height that stops rising is contact:
         the final climb, or a climb at its speed or faster with the plate within
-        ``climb_contact_within_m`` by the camera."""
+        ``climb_contact_within_m`` by the camera that has gone on for a contact window (a
+        vehicle still turning from a descent to the climb rises little at first)."""
         if command.phase == Phase.COMMIT:
             return True
-        if command.phase != Phase.CLIMB or command.error_m is None:
-            return False
         climb_mps = self.controller.settings.commit_speed_mps
-        return (
-            float(command.v_mps[2]) >= climb_mps - 1e-9
+        if not (
+            command.phase == Phase.CLIMB
+            and command.error_m is not None
+            and float(command.v_mps[2]) >= climb_mps - 1e-9
             and float(command.error_m[2]) < self.settings.climb_contact_within_m
-        )
+        ):
+            self._climbing_since = None
+            return False
+        if self._climbing_since is None:
+            self._climbing_since = t_s
+        return t_s - self._climbing_since >= self.settings.contact_window_s
 
     def _silent(self, t_s: float) -> PilotStep:
         """The camera's watchdog: no frame for ``frame_timeout_s``; each tick flies as a frame
@@ -585,7 +592,7 @@ class PerchingPilot:
             tries = self.controller.tries
             self._start_landing(t_s, f"gave up after {tries} final climbs without contact")
             return self._land_step(t_s)
-        pressing = self._pressing(command)
+        pressing = self._pressing(command, t_s)
         if pressing and self._contact.touched(t_s, self._height()):
             return self._stop(t_s, PilotState.PERCHED, _stopped_against(command))
         if command.phase == Phase.COMMIT:

@@ -39,9 +39,9 @@ class PilotSettings:
 
     Contact: contact_window_s, contact_rise_m : contact is a final climb whose height rose less
     than contact_rise_m over the last contact_window_s; or a climb at the final climb's speed or
-    faster with the plate within climb_contact_within_m by the camera (a pose whose latency is
-    under-stated puts the plate further than it is, and the magnet seats before the final
-    climb begins). live_height_s : contact and touchdown
+    faster with the plate within climb_contact_within_m by the camera, once it has gone on for
+    a contact window (a pose whose latency is under-stated puts the plate further than it is,
+    and the magnet seats before the final climb begins). live_height_s : contact and touchdown
     count only height samples younger than this (a stream at 10 Hz or faster stays live between
     its samples); it must be shorter than the contact window, so that a height that froze never
     makes a contact on its own. limits : the largest setpoint sent.
