@@ -39,9 +39,9 @@ from perchpose.io.mavlink.vehicle_endpoint import (
 )
 from perchpose.io.video_stream import H264Stream
 from perchpose.sim.autopilot import MAV_AUTOPILOT, SETPOINT_MODE, StandInAutopilot
-from perchpose.sim.contact import Contact, PlateContact, tilt_deg
+from perchpose.sim.contact import Contact, PlateContact
 from perchpose.sim.disturbances import OdometryModel
-from perchpose.sim.perch import FLOOR_CRASH_MPS, REST_Z_M, PerchSetup, draw_start
+from perchpose.sim.perch import REST_Z_M, PerchSetup, draw_start, set_on_floor
 from perchpose.sim.quadrotor import Quadrotor
 from perchpose.sim.wind import DrydenWind
 
@@ -262,9 +262,7 @@ class SimulatedVehicle:
         v = self.vehicle
         contact = self.plate.contact
         if v.p_m[2] <= REST_Z_M:  # the floor
-            hard = float(np.linalg.norm(v.v_mps)) > FLOOR_CRASH_MPS or tilt_deg(v) > 30.0
-            v.p_m = np.array([v.p_m[0], v.p_m[1], REST_Z_M])
-            v.v_mps = np.zeros(3)
+            hard = not set_on_floor(v)
             self.resting = True
             if hard:
                 self.outcome.crashed = True

@@ -406,6 +406,16 @@ def _draw_senses(
     )
 
 
+def set_on_floor(vehicle: Quadrotor) -> bool:
+    """Stand a vehicle whose feet met the floor on it, still; True if it came down softly,
+    False if it fell (faster than ``FLOOR_CRASH_MPS`` or tilted over 30 degrees)."""
+    hard = float(np.linalg.norm(vehicle.v_mps)) > FLOOR_CRASH_MPS or tilt_deg(vehicle) > 30.0
+    p = vehicle.p_m
+    vehicle.p_m = np.array([p[0], p[1], REST_Z_M])
+    vehicle.v_mps = np.zeros(3)
+    return not hard
+
+
 def draw_start(setup: PerchSetup, world: np.random.Generator) -> tuple[Array, float]:
     """A run's start, hovering under the plate (world frame, m), and its heading (rad)."""
     below = float(world.uniform(*setup.start_below_m))
@@ -689,12 +699,7 @@ class _Flight:
     def on_floor(self) -> bool:
         """The vehicle's feet met the floor: it rests there (True), or it fell on it (False:
         faster than ``FLOOR_CRASH_MPS`` or tilted over 30 degrees)."""
-        v = self.vehicle
-        hard = float(np.linalg.norm(v.v_mps)) > FLOOR_CRASH_MPS or tilt_deg(v) > 30.0
-        p = v.p_m
-        v.p_m = np.array([p[0], p[1], REST_Z_M])
-        v.v_mps = np.zeros(3)
-        self.resting = not hard
+        self.resting = set_on_floor(self.vehicle)
         return self.resting
 
     def crashed(self) -> bool:
