@@ -480,6 +480,30 @@ def test_target_system_is_checked_and_needs_a_link(
     assert "--target-system" in capsys.readouterr().err
 
 
+def test_a_vehicle_gone_silent_is_not_told_to_set_its_stream_rates(
+    udp_port: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A vehicle that streamed, then stopped sending anything (switched off, out of range):
+    its streams are missing because it is, and the link does not ask for them nor blame its
+    stream rates."""
+    monkeypatch.setattr(mavlink_link, "STREAM_RETRY_S", 0.2)
+    monkeypatch.setattr(mavlink_link, "SILENT_VEHICLE_S", 0.5)
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
+    reports: list[str] = []
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=reports.append)
+    try:
+        wait_for(lambda: pilot.link.vehicle.R_ned_frd is not None)
+        vehicle.stop()
+        time.sleep(1.0)  # its last HEARTBEAT is over 0.5 s old: it is silent
+        asked = pilot.link.stream_requests
+        time.sleep(1.0)  # far beyond three stream requests 0.2 s apart
+    finally:
+        pilot.close()
+    assert pilot.link.vehicle.R_ned_frd is not None
+    assert not any("though asked" in r for r in reports), reports
+    assert pilot.link.stream_requests == asked  # no more asking a silent vehicle
+
+
 def test_the_pilot_asks_for_its_streams_and_says_why_it_never_took_over(
     udp_port: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:

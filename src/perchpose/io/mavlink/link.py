@@ -56,6 +56,7 @@ STREAM_IDS = {"ATTITUDE": 30, "LOCAL_POSITION_NED": 32}
 MAV_LANDED_STATE_ON_GROUND = 1
 STREAM_RETRY_S = 2.0  # a stream not arriving this long after it was asked for is asked again
 STREAM_TRIES = 3
+SILENT_VEHICLE_S = 3.0  # no HEARTBEAT for this long: the vehicle is silent, not its streams
 # messages waiting for the link's thread; a link this far behind drops the oldest
 QUEUE_LENGTH = 8
 
@@ -439,6 +440,8 @@ class MavlinkLink:
         system, component = self.vehicle.system_id, self.vehicle.component_id
         if system is None or component is None or now < self._next_stream_request:
             return
+        if not now - self.vehicle.heartbeat_t_s < SILENT_VEHICLE_S:
+            return  # the vehicle itself is silent: its streams' rates are not what is wrong
         missing = self._missing_streams(now)
         if not missing:
             return
