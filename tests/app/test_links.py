@@ -11,8 +11,10 @@ from perchpose.values import Estimate
 
 def test_no_options_open_no_link() -> None:
     said: list[str] = []
-    with vehicle_links(TargetSpec.paper(), LinkOptions(), said.append) as hooks:
-        assert hooks == []
+    with vehicle_links(TargetSpec.paper(), LinkOptions(), said.append) as links:
+        assert links.hooks == []
+        assert links.controllers == []
+        assert links.time_offset() is None
     assert said == []
 
 
@@ -34,8 +36,10 @@ def test_landing_target_goes_out_and_the_link_closes(udp_port: int) -> None:
     vehicle = mavutil_module().mavlink_connection(f"udpin:127.0.0.1:{udp_port}")
     options = LinkOptions(mavlink_url=f"udpout:127.0.0.1:{udp_port}", mount="down")
     try:
-        with vehicle_links(TargetSpec.paper(), options, print) as hooks:
+        with vehicle_links(TargetSpec.paper(), options, print) as links:
+            hooks = links.hooks
             assert len(hooks) == 1
+            assert links.controllers == []  # LANDING_TARGET informs; no controller flies
             for k in range(5):
                 estimate = Estimate.of_pose(0.1 * k, (0.01, -0.02, 0.5), 0.3)
                 hooks[0](estimate, 0.1 * k)

@@ -2,6 +2,7 @@
 the network; and end to end, its MAVLink link and video stream perched on by ``track``'s
 pilot in the same process."""
 
+import csv
 import math
 import threading
 import time
@@ -168,3 +169,9 @@ def test_track_perches_on_it_end_to_end(tmp_path: Path, udp_port: int):
     assert "touched the plate" in text, text
     flown = int(text.split(" setpoints received (")[1].split(" flown")[0])
     assert flown > 50, text
+    tracker.join(timeout=30.0)  # the stream's end ends the track
+    assert not tracker.is_alive()
+    with out.open() as f:
+        offsets = [r["time_offset_ms"] for r in csv.DictReader(f)]
+    # the pilot's online estimate of the camera-to-vehicle time offset, in the rows once made
+    assert any(offsets), "no time-offset estimate in the track rows"

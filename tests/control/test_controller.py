@@ -446,3 +446,45 @@ def test_a_vehicle_leaning_into_a_gust_waits_under_the_plate_for_a_lull() -> Non
     assert holding.v_mps[2] == 0.0
     climbing = c.update(view(level, [0.0, 0.0, 0.06], 1 / 30), 1 / 30, level)
     assert climbing.v_mps[2] > 0.1
+
+
+def _fly_with_stamps_off(settings: ControllerSettings, offset_s: float) -> PerchingController:
+    """A controller fed the vehicle's samples at 100 Hz and fixes at 30 fps of a vehicle
+    rocking under the target, each frame stamped ``offset_s`` before its capture."""
+    c = PerchingController(settings)
+    target_world = np.array([0.0, 0.0, 1.0])
+
+    def R_at(t_s: float) -> np.ndarray:
+        wobble = [0.05 * math.sin(8.0 * t_s), 0.04 * math.sin(5.7 * t_s + 1.0), 0.2]
+        return Rotation.from_rotvec(wobble).as_matrix()
+
+    def p_at(t_s: float) -> np.ndarray:
+        return np.array([0.04 * math.sin(3.1 * t_s), 0.03 * math.cos(4.4 * t_s), 0.1 * t_s])
+
+    rng = np.random.default_rng(3)
+    captures = list(np.arange(0.0, 5.0, 1.0 / 30.0))
+    for t in (0.01 * i for i in range(530)):
+        odometry = Odometry(t, p_at(t), np.zeros(3))
+        while captures and captures[0] + 0.1 <= t:
+            captured = float(captures.pop(0))
+            body = R_at(captured).T @ (target_world - p_at(captured))
+            seen = _camera_view(settings, body + rng.normal(0.0, 0.0005, 3))
+            c.update(replace(seen, t_s=captured - offset_s), t, R_at(t), odometry)
+        c.between_frames(t, R_at(t), odometry)
+    return c
+
+
+def test_the_stamps_offset_is_estimated_and_corrected_once_sure() -> None:
+    settings = ControllerSettings()
+    c = _fly_with_stamps_off(settings, 0.06)
+    found = c.time_offset
+    assert found is not None
+    assert found.offset_s == pytest.approx(0.06, abs=0.004)
+    assert found.sigma_s < settings.time_offset.trusted_sigma_s
+    frame = Estimate.of_pose(10.0, (0.0, 0.0, 0.5), 0.0)
+    assert c.capture_time(frame) == pytest.approx(10.0 + found.offset_s)
+    # asked only to report it, the controller estimates it alike and places fixes at the stamp
+    reported = _fly_with_stamps_off(replace(settings, correct_time_offset=False), 0.06)
+    assert reported.time_offset is not None
+    assert reported.time_offset.offset_s == pytest.approx(found.offset_s, abs=0.002)
+    assert reported.capture_time(frame) == 10.0

@@ -113,6 +113,12 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert set(summary["contact_offset_mm"]) == {"p50", "p90", "p95", "max"}
     assert (out / "trajectories.png").stat().st_size > 0
     assert len((out / "runs.csv").read_text().splitlines()) == 3
+    with (out / "runs.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert all(float(r["time_offset_sigma_ms"]) > 0.0 for r in rows)  # estimated after 3 s
+    offset = next(iter(summary["cells"].values()))["time_offset"]
+    assert offset["runs_with_estimate"] == 2
+    assert offset["error_ms"]["max"] < 10.0
     assert main(["perch", "--estimator", "oracle", "--out", str(out)]) == 2
     assert "unknown" in capsys.readouterr().err
 
@@ -376,3 +382,16 @@ def test_realistic_runs_record_the_uplink_delay_they_drew(setup: PerchSetup) -> 
     result = run_perch(replace(realistic, estimator="truth"), 5)
     assert result.senses is not None
     assert 0.004 <= result.senses.uplink_delay_s <= 0.02
+
+
+def test_the_time_offset_of_live_stamps_is_found_in_flight(setup: PerchSetup) -> None:
+    """The user's latency measure off by up to 60 ms: after 3 s of flight the controller's
+    estimate is within 10 ms of the true offset of the frames it rests on."""
+    realistic = setup.with_sensing(Sensing(latency_error_s=0.06)).with_timing(30.0, 1)
+    result = run_perch(replace(realistic, wind="moderate"), 11)
+    early, end = result.time_offset, result.time_offset_end
+    assert result.senses is not None
+    assert abs(early.true_s) > 0.02  # an offset worth finding (this seed's draw)
+    assert abs(early.offset_s - early.true_s) < 0.01
+    assert 0.0 < early.sigma_s < 0.01
+    assert abs(end.offset_s - end.true_s) < 0.01

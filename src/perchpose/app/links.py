@@ -6,10 +6,15 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
+
+if TYPE_CHECKING:
+    from perchpose.control import PerchingController
+    from perchpose.control.time_offset import TimeOffset
 
 MAVLINK_READY_WAIT_S = 3.0  # how long the MAVLink pilot waits for the vehicle before the frames
 
@@ -42,12 +47,29 @@ class LinkOptions:
         return "--crazyflie" if self.crazyflie_uri is not None else None
 
 
+@dataclass
+class VehicleLinks:
+    """The open links: ``hooks`` take each frame's estimate and time; ``controllers`` are the
+    perching controllers of the links that fly the vehicle."""
+
+    hooks: list[FrameHook] = field(default_factory=list)
+    controllers: list[PerchingController] = field(default_factory=list)
+
+    def time_offset(self) -> TimeOffset | None:
+        """The flying controller's latest estimate of the camera-to-vehicle time offset
+        (None: no link flies, or no estimate yet)."""
+        for controller in self.controllers:
+            if controller.time_offset is not None:
+                return controller.time_offset
+        return None
+
+
 @contextmanager
 def vehicle_links(
     target: TargetSpec, options: LinkOptions, report: Callable[[str], None]
-) -> Iterator[list[FrameHook]]:
-    """The per-frame hooks of the links ``options`` asks for (each takes an estimate and its
-    time); at the end a Crazyflie is landed and every link closed, newest first."""
+) -> Iterator[VehicleLinks]:
+    """The links ``options`` asks for; at the end a Crazyflie is landed and every link
+    closed, newest first."""
     from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
     from perchpose.control.mount import require_upward
     from perchpose.control.pilot import PilotState
@@ -64,16 +86,18 @@ def vehicle_links(
         if T_body_camera is None
         else ControllerSettings(T_body_camera=T_body_camera)
     )
-    hooks: list[FrameHook] = []
+    links = VehicleLinks()
+    hooks = links.hooks
     closers: list[Callable[[], None]] = []
     pilot = None
     try:
         if o.mavlink_url is not None and o.mavlink_pilot:
             from perchpose.io.mavlink.pilot import MavlinkPilot
 
+            links.controllers.append(PerchingController(settings))
             autopilot = MavlinkPilot(
                 o.mavlink_url,
-                controller=PerchingController(settings),
+                controller=links.controllers[-1],
                 target_system=o.target_system,
                 report=report,
             )
@@ -102,12 +126,13 @@ def vehicle_links(
             logging.getLogger("cflib").addHandler(logging.NullHandler())
             link = connect(o.crazyflie_uri, report=report)
             closers.append(link.close)
-            pilot = link.pilot(controller=PerchingController(settings))
+            links.controllers.append(PerchingController(settings))
+            pilot = link.pilot(controller=links.controllers[-1])
             hooks.append(pilot)
             clock = PilotClock(pilot).start()  # the pilot's watchdogs tick without frames
             closers.append(clock.stop)
         try:
-            yield hooks
+            yield links
         finally:
             if pilot is not None:  # source ended, an error, or Ctrl-C: land
                 pilot.abort(pilot.now() or pilot.last_t_s, "tracking ended")

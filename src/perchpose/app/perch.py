@@ -22,6 +22,7 @@ from perchpose.sim.wind import WIND_LEVELS
 from perchpose.target import TargetSpec
 
 TRAJECTORIES = 5
+TIME_OFFSETS = ("correct", "report")  # what the controller does with its time-offset estimate
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,8 @@ class PerchCampaign:
         faults: str = "",
         odometry: str = "white",
         flight_controller: str = "model",
+        latency_error_ms: float = 10.0,
+        time_offset: str = "correct",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -83,6 +86,14 @@ class PerchCampaign:
             raise PerchposeError(
                 f"--odometry: unknown {odometry!r} (choose {' or '.join(ODOMETRY_ERRORS)})"
             )
+        if time_offset not in TIME_OFFSETS:
+            raise PerchposeError(
+                f"--time-offset: unknown {time_offset!r} (choose {' or '.join(TIME_OFFSETS)})"
+            )
+        if not (math.isfinite(latency_error_ms) and 0.0 <= latency_error_ms <= 200.0):
+            raise PerchposeError(
+                f"--latency-error-ms must be between 0 and 200, got {latency_error_ms:g}"
+            )
         if sweep == "wind" and (wind_mps is not None or gust_mps is not None):
             raise PerchposeError("--sweep wind flies the named levels: drop --wind-mps/--gust-mps")
         if sweep == "latency" and latency_ms is not None:
@@ -98,7 +109,11 @@ class PerchCampaign:
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
         timed = [
-            replace(timed_setup(base, sensing, fps, ms, odometry), faults=injected)
+            offset_setup(
+                replace(timed_setup(base, sensing, fps, ms, odometry), faults=injected),
+                latency_error_ms,
+                time_offset,
+            )
             for ms in latencies
         ]
         winds = list(WIND_LEVELS) if sweep == "wind" else [wind]
@@ -196,6 +211,8 @@ class PerchOptions:
     faults: str = ""
     odometry: str = "white"
     flight_controller: str = "model"
+    latency_error_ms: float = 10.0
+    time_offset: str = "correct"
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -217,6 +234,8 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         faults=options.faults,
         odometry=options.odometry,
         flight_controller=options.flight_controller,
+        latency_error_ms=options.latency_error_ms,
+        time_offset=options.time_offset,
     )
     content = campaign.fly(
         options.out,
@@ -260,6 +279,17 @@ def timed_setup(
         raise PerchposeError(f"--fps / --latency-ms: {exc}") from exc
 
 
+def offset_setup(setup: PerchSetup, latency_error_ms: float, time_offset: str) -> PerchSetup:
+    """``setup`` with the user's latency measure off by up to ``latency_error_ms`` (realistic
+    senses), and the controller correcting the frames' stamps by its online time-offset
+    estimate (``correct``) or only estimating it (``report``)."""
+    controller = replace(setup.controller, correct_time_offset=time_offset == "correct")
+    if setup.sensing.is_ideal:
+        return replace(setup, controller=controller)
+    sensing = replace(setup.sensing, latency_error_s=latency_error_ms / 1000.0)
+    return replace(setup, sensing=sensing, controller=controller)
+
+
 def senses(setup: PerchSetup) -> str:
     """The campaign's senses in words."""
     if setup.sensing.is_ideal:
@@ -271,11 +301,17 @@ def senses(setup: PerchSetup) -> str:
     low, high = (v * 1000.0 for v in setup.latency_range_s)
     latency = f"{low:.0f} ms" if low == high else f"{low:.0f}-{high:.0f} ms"
     odometry = "flow-deck (correlated)" if setup.sensing.odometry == "flow-deck" else "white-noise"
+    error_ms = setup.sensing.latency_error_s * 1000.0
     stamps = (
-        "frames stamped as live sources stamp them (--stamps exact: their true capture time)"
+        "frames stamped as live sources stamp them, the latency set off by up to "
+        f"{error_ms:g} ms (--stamps exact: their true capture time)"
         if setup.stamps == "live"
         else "frames stamped with their true capture time"
     )
+    if setup.controller.correct_time_offset:
+        stamps += "; the time offset estimated online and corrected"
+    else:
+        stamps += "; the time offset estimated online, not corrected (--time-offset report)"
     return (
         f"realistic senses, camera at {setup.fps:g} fps with {latency} of latency, {odometry} "
         "odometry and attitude late and noisy, calibration, mount and print off (--sensing "

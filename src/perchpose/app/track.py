@@ -20,12 +20,13 @@ from tqdm import tqdm
 from perchpose.app.inputs import load_camera, load_target
 from perchpose.app.links import LinkOptions, vehicle_links
 from perchpose.camera import CameraModel
+from perchpose.control.time_offset import TimeOffset
 from perchpose.errors import ImageError, PerchposeError
 from perchpose.estimator import PerchingEstimator
 from perchpose.io.frames import TARGET_FRAME, Frame, FrameSource, Stamp
 from perchpose.io.outputs import open_track_writer
 from perchpose.io.overlay import OverlayWriter, check_overlay_path, draw_overlay
-from perchpose.io.sinks import estimate_row
+from perchpose.io.sinks import estimate_row, offset_columns
 from perchpose.io.sources import is_live, open_source
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
@@ -217,6 +218,7 @@ def track(
     camera_frame: str | None = None,
     target_frame: str = TARGET_FRAME,
     camera_latency_s: float = 0.0,
+    time_offset: Callable[[], TimeOffset | None] = lambda: None,
 ) -> TrackSummary:
     """Run ``estimator`` (its camera and target) over every frame of ``source`` and write one
     row per frame to ``out``; each estimate carries its latency from the frame's grab.
@@ -238,7 +240,9 @@ def track(
     one) is drawn but not measured: an invalid row that says why, and one warning where a run
     of them starts. The first frame having a size other than the calibration's is an
     error, since then every frame would be. Each of ``on_frame`` (vehicle links) is called once
-    per frame with the estimate (None for an unreadable frame) and the frame's time.
+    per frame with the estimate (None for an unreadable frame) and the frame's time, before
+    its row is written; ``time_offset`` gives the flying controller's estimate of the
+    camera-to-vehicle time offset for the rows (``time_offset_ms``, ``time_offset_sigma_ms``).
     """
     if overlay is not None:
         check_overlay_path(overlay)
@@ -286,11 +290,12 @@ def track(
             if draw and frame.image is not None:
                 note = f"t {frame.t_s:.2f} s" + "  damaged: not measured" * frame.damaged
                 picture = draw_overlay(frame.image, estimate, camera, note=note)
-            row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)
-            writer.write_frame(row, estimate, stamp, picture)
-            tally.add(estimate, error, frame)
             for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
                 hook(estimate, frame.t_s)
+            row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)
+            row.update(offset_columns(time_offset()))
+            writer.write_frame(row, estimate, stamp, picture)
+            tally.add(estimate, error, frame)
             if view is not None and not frame.stale:
                 view.publish(stamp, estimate, picture)
             video.write(picture)
@@ -385,8 +390,9 @@ def run(options: TrackOptions, report: Callable[[str], None]) -> TrackSummary:
         check_overlay_path(options.overlay)  # before any vehicle link takes over
     with (
         _live_view(options, target, report) as live,
-        vehicle_links(target, options.links, report) as hooks,
+        vehicle_links(target, options.links, report) as links,
     ):
+        hooks = links.hooks
         if is_live(options.source) or options.rate is not None or hooks or live is not None:
             # in real time no frame may wait on a compile: every kernel is built before the
             # first (after the links opened, so that a wrong link is said at once)
@@ -401,6 +407,7 @@ def run(options: TrackOptions, report: Callable[[str], None]) -> TrackSummary:
             overlay=options.overlay,
             progress=options.progress,
             on_frame=hooks,
+            time_offset=links.time_offset,
             image_topic=options.image_topic,
             view=live,
             rate=options.rate,

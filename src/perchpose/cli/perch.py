@@ -97,6 +97,22 @@ from perchpose.sim.firmware import FLIGHT_CONTROLLERS
     "for comparison).",
 )
 @click.option(
+    "--latency-error-ms",
+    default=10.0,
+    show_default=True,
+    type=float,
+    help="With --stamps live: how far off (up to, either way) the camera latency the user "
+    "measured is, drawn per run.",
+)
+@click.option(
+    "--time-offset",
+    type=click.Choice(["correct", "report"]),
+    default="correct",
+    show_default=True,
+    help="The camera-to-vehicle time offset estimated online from the motion: correct the "
+    "stamps by it once it is sure (to 5 ms), or only report it (runs.csv time_offset_*).",
+)
+@click.option(
     "--faults",
     default="",
     help="Inject one of these faults per run, at a random time: camera-stall, "
@@ -148,6 +164,8 @@ def perch(
     stamps: str,
     odometry: str,
     flight_controller: str,
+    latency_error_ms: float,
+    time_offset: str,
     faults: str,
     camera_file: str,
     out: str,
@@ -185,6 +203,8 @@ def perch(
         flight_controller=flight_controller,
         overwrite=overwrite,
         faults=faults,
+        latency_error_ms=latency_error_ms,
+        time_offset=time_offset,
     )
     content = run(options, say=lambda m: click.echo(m, err=True))
     click.echo(summary_table(content), nl=False)

@@ -61,6 +61,7 @@ from numpy.typing import NDArray
 from perchpose.control.disturbance import DisturbanceObserver
 from perchpose.control.history import newest_at
 from perchpose.control.mount import default_T_body_camera
+from perchpose.control.time_offset import TimeOffset, TimeOffsetEstimator, TimeOffsetSettings
 from perchpose.errors import ControllerConfigError, require_non_negative, require_positive
 from perchpose.geometry import angle_diff_rad, wrap_angle_rad, yaw_rad
 from perchpose.values import Estimate
@@ -149,6 +150,12 @@ class ControllerSettings:
     holds it against a gust is what a contact at over 15 deg fails on.
     retry_below_m : how far under the target a backed-off climb descends before aligning
     again. max_tries : failed final climbs before giving up.
+
+    time_offset : the online estimate of the camera-to-vehicle time offset
+    (``control.time_offset``: what the frames' stamps are off by against the vehicle's samples,
+    from the motion both see). correct_time_offset : place each fix at its stamp plus that
+    offset while the estimate is trusted (without it the offset is only estimated and
+    reported).
     """
 
     k_xy: float = 2.5
@@ -196,6 +203,8 @@ class ControllerSettings:
     odometry_period_s: float | None = 0.02
     p_body_magnet_m: tuple[float, float, float] = (0.0, 0.0, 0.035)
     T_body_camera: Array = field(default_factory=default_T_body_camera)
+    time_offset: TimeOffsetSettings = field(default_factory=TimeOffsetSettings)
+    correct_time_offset: bool = True
 
     def __post_init__(self) -> None:
         positive = (
@@ -396,12 +405,26 @@ class PerchingController:
         # the last frame's command before the observer's offset (flown on between frames)
         self._frame_command: Command | None = None
         self._frame_t = -math.inf
+        self._offset = TimeOffsetEstimator(self.settings.time_offset)
 
     def use_velocity_gain(self, gain_per_s: float) -> None:
         """The vehicle's velocity loop now has this gain (the pilot set it): the observer and
         the push's cancellation model it from now on."""
         self.settings = replace(self.settings, onboard_velocity_gain=gain_per_s)
         self._observer.k_v = gain_per_s
+
+    @property
+    def time_offset(self) -> TimeOffset | None:
+        """The latest estimate of the camera-to-vehicle time offset (None before the first:
+        too few fixes, or too little motion to tell)."""
+        return self._offset.latest
+
+    def capture_time(self, estimate: Estimate) -> float:
+        """When ``estimate``'s frame was captured, on the vehicle's clock: its stamp, plus
+        the estimated time offset while that is trusted (``correct_time_offset``)."""
+        if not self.settings.correct_time_offset:
+            return estimate.t_s
+        return estimate.t_s + self._offset.correction_s
 
     @property
     def disturbance_mps(self) -> Array:
@@ -454,6 +477,7 @@ class PerchingController:
     def _remember_attitude(self, t_s: float, R_world_body: Array) -> None:
         z = float(np.clip(np.asarray(R_world_body, np.float64)[2, 2], -1.0, 1.0))
         self._tilt_deg = math.degrees(math.acos(z))  # the latest attitude's
+        self._offset.attitude(t_s, R_world_body)
         if self._attitudes and t_s < self._attitudes[-1][0]:
             return  # out of order: the history stays sorted
         self._attitudes.append((t_s, np.asarray(R_world_body, np.float64)))
@@ -475,6 +499,12 @@ class PerchingController:
         """Add an odometry sample to the history fixes are matched against."""
         self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
 
+    def _place(self, estimate: Estimate) -> None:
+        """Give a measured fix to the time-offset estimate: its stamp, and the target in the
+        body frame."""
+        T = np.asarray(self.settings.T_body_camera, np.float64)
+        self._offset.fix(estimate.t_s, T[:3, :3] @ estimate.t_m + T[:3, 3])
+
     def _position_at(self, t_s: float) -> Array | None:
         """The odometry's position at ``t_s`` (interpolated; None before its history)."""
         if not self._track or t_s < self._track[0][0] - 1e-9:
@@ -489,9 +519,10 @@ class PerchingController:
             previous = sample
         return self._track[-1][1]
 
-    def _hold_fix(self, estimate: Estimate, d: Array, R_world_body: Array) -> None:
-        """Hold the target's odometry-frame position from a fresh fix."""
-        p_capture = self._position_at(estimate.t_s)
+    def _hold_fix(self, t_capture_s: float, d: Array, R_world_body: Array) -> None:
+        """Hold the target's odometry-frame position from a fresh fix captured at
+        ``t_capture_s``."""
+        p_capture = self._position_at(t_capture_s)
         if p_capture is None:
             return
         fix = self._magnet_odom(p_capture, R_world_body) + d
@@ -501,7 +532,7 @@ class PerchingController:
             self._target_odom = self._target_odom + self.settings.fix_weight * (
                 fix - self._target_odom
             )
-        self._target_t = estimate.t_s
+        self._target_t = t_capture_s
 
     def _sideways_mps(self, odometry: Odometry) -> float:
         """The vehicle's sideways speed: from the odometry's positions over the last
@@ -574,6 +605,8 @@ class PerchingController:
         ``attitude_age_s``: how long before ``t_s`` the attitude ``R_world_body`` was
         measured (it is kept in the history at that time)."""
         self._remember_attitude(t_s - attitude_age_s, R_world_body)
+        if odometry is not None:
+            self._offset.position(odometry.t_s, odometry.p_m)
         command = self._command(estimate, t_s, R_world_body, odometry)
         steered = command.phase in STEERED and command.error_m is not None
         self._frame_command = command if steered else None
@@ -601,6 +634,7 @@ class PerchingController:
         height, except in the final climb, and after ``hold_target_s`` nothing is sent."""
         s = self.settings
         self._remember_attitude(t_s - attitude_age_s, R_world_body)
+        self._offset.position(odometry.t_s, odometry.p_m)
         last = self._frame_command
         if last is None or self.phase not in STEERED:
             return None
@@ -645,15 +679,19 @@ class PerchingController:
         if usable(estimate, t_s, s.max_estimate_age_s):
             assert estimate is not None
             self._lost_since = None
-            R_capture = self.attitude_at(estimate.t_s, R_world_body)
+            measured = estimate.age_s <= 0.0  # a measurement of this frame, not a coasting guess
+            if measured:
+                self._place(estimate)
+            t_capture = self.capture_time(estimate)
+            R_capture = self.attitude_at(t_capture, R_world_body)
             d, heading_error = self.magnet_to_target(estimate, R_capture)
             turned = angle_diff_rad(yaw_rad(R_world_body), yaw_rad(R_capture))
             heading_error = wrap_angle_rad(heading_error - turned)
             yaw_rate = float(np.clip(s.k_yaw * heading_error, -s.max_yaw_rate, s.max_yaw_rate))
-            if estimate.age_s <= 0.0:  # a measurement of this frame, not a coasting guess
+            if measured:
                 self._recent.append(d)
                 if odometry is not None:
-                    self._hold_fix(estimate, d, R_capture)
+                    self._hold_fix(t_capture, d, R_capture)
             held = self._held_error(t_s, R_world_body, odometry, s.hold_target_s)
             error = held if held is not None else d
             return self._steer(error, yaw_rate, t_s, odometry)

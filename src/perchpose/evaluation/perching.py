@@ -24,7 +24,14 @@ import numpy as np
 from perchpose.errors import CampaignError
 from perchpose.evaluation.plots import perch_figure, sweep_figure
 from perchpose.pose.marker import rotation_angle_rad
-from perchpose.sim.perch import CONTACT_RADIUS_MM, FALL_M, REASONS, PerchResult, PerchSetup
+from perchpose.sim.perch import (
+    CONTACT_RADIUS_MM,
+    FALL_M,
+    OFFSET_AT_S,
+    REASONS,
+    PerchResult,
+    PerchSetup,
+)
 from perchpose.sim.sensing import SensingDraw
 
 RUN_COLUMNS = (
@@ -51,6 +58,11 @@ RUN_COLUMNS = (
     "motor_stop_height_m",
     "max_setpoint_gap_s",
     "pilot_states",
+    "time_offset_ms",
+    "time_offset_sigma_ms",
+    "time_offset_true_ms",
+    "time_offset_end_ms",
+    "time_offset_end_true_ms",
     "latency_ms",
     "odometry_hz",
     "odometry_delay_ms",
@@ -65,6 +77,7 @@ RUN_COLUMNS = (
     "uplink_delay_ms",
 )
 SENSE_COLUMNS = RUN_COLUMNS[RUN_COLUMNS.index("latency_ms") :]
+OFFSET_GOAL_MS = 10.0  # the time-offset estimate's goal: this near the truth after 3 s (p95)
 
 
 RunKey = tuple[str, str, float, float, str, int]
@@ -111,6 +124,12 @@ class RunRecord:
     motor_stop_height_m: float = math.nan  # above what it rests on (NaN: not stopped)
     max_setpoint_gap_s: float = math.nan
     pilot_states: str = ""  # state@t;... as the pilot entered them
+    # the time-offset estimate after OFFSET_AT_S of flight (its spread, its truth), at the end
+    time_offset_ms: float = math.nan
+    time_offset_sigma_ms: float = math.nan
+    time_offset_true_ms: float = math.nan
+    time_offset_end_ms: float = math.nan
+    time_offset_end_true_ms: float = math.nan
     senses: tuple[float, ...] = ()  # SENSE_COLUMNS' values (empty: ideal senses)
 
     @staticmethod
@@ -142,6 +161,11 @@ class RunRecord:
             result.motor_stop_height_m,
             result.max_setpoint_gap_s,
             result.pilot_states,
+            result.time_offset.offset_s * 1000.0,
+            result.time_offset.sigma_s * 1000.0,
+            result.time_offset.true_s * 1000.0,
+            result.time_offset_end.offset_s * 1000.0,
+            result.time_offset_end.true_s * 1000.0,
             sense_values(result.senses, setup),
         )
 
@@ -182,6 +206,11 @@ class RunRecord:
             f"{self.motor_stop_height_m:.4f}",
             f"{self.max_setpoint_gap_s:.4f}",
             self.pilot_states,
+            f"{self.time_offset_ms:.3f}",
+            f"{self.time_offset_sigma_ms:.3f}",
+            f"{self.time_offset_true_ms:.3f}",
+            f"{self.time_offset_end_ms:.3f}",
+            f"{self.time_offset_end_true_ms:.3f}",
             *(f"{v:.6g}" for v in (self.senses or (math.nan,) * len(SENSE_COLUMNS))),
         ]
 
@@ -212,6 +241,11 @@ class RunRecord:
                 float(row["motor_stop_height_m"]),
                 float(row["max_setpoint_gap_s"]),
                 row["pilot_states"],
+                float(row["time_offset_ms"]),
+                float(row["time_offset_sigma_ms"]),
+                float(row["time_offset_true_ms"]),
+                float(row["time_offset_end_ms"]),
+                float(row["time_offset_end_true_ms"]),
                 tuple(float(row[name]) for name in SENSE_COLUMNS),
             )
         except (KeyError, ValueError, TypeError) as exc:
@@ -534,6 +568,26 @@ def _summary_dict(s: CampaignSummary, records: list[RunRecord]) -> dict[str, obj
             _percentiles(r.contact_lateral_speed_mps for r in records)
         ),
         "contact_first": dict(Counter(r.contact_first or "none" for r in records)),
+        "time_offset": time_offset_summary(records),
+    }
+
+
+def time_offset_summary(records: list[RunRecord]) -> dict[str, object]:
+    """How well the online time-offset estimate found the truth after ``OFFSET_AT_S`` of
+    flight: how many runs had one then, the error's percentiles (|estimate - truth|, ms),
+    how many were within ``OFFSET_GOAL_MS``, and the true offsets' size in those runs (what
+    no correction at all would be off by)."""
+    found = [r for r in records if math.isfinite(r.time_offset_ms)]
+    errors = [abs(r.time_offset_ms - r.time_offset_true_ms) for r in found]
+    truths = [abs(r.time_offset_true_ms) for r in records if math.isfinite(r.time_offset_true_ms)]
+    return {
+        "at_s": OFFSET_AT_S,
+        "runs_with_estimate": len(found),
+        "error_ms": _clean(_percentiles(errors)),
+        "within_goal": sum(e <= OFFSET_GOAL_MS for e in errors),
+        "goal_ms": OFFSET_GOAL_MS,
+        "true_offset_abs_ms": _clean(_percentiles(truths)),
+        "sigma_ms": _clean(_percentiles(r.time_offset_sigma_ms for r in found)),
     }
 
 

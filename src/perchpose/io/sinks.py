@@ -13,6 +13,7 @@ from typing import IO, Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.control.time_offset import TimeOffset
 from perchpose.errors import PerchposeError
 from perchpose.io.frames import Stamp
 from perchpose.target import TargetSpec
@@ -52,6 +53,10 @@ def raw_columns(target: TargetSpec) -> tuple[str, ...]:
 UNCERTAINTY_COLUMNS = ("roll_deg", "pitch_deg", "x_std_cm", "y_std_cm", "z_std_cm", "yaw_std_deg")
 
 
+# the flying controller's estimate of the camera-to-vehicle time offset (control.time_offset)
+OFFSET_COLUMNS = ("time_offset_ms", "time_offset_sigma_ms")
+
+
 def columns(target: TargetSpec) -> tuple[str, ...]:
     """All columns of a track file."""
     return (
@@ -64,9 +69,20 @@ def columns(target: TargetSpec) -> tuple[str, ...]:
         "measured",
         "predicted",
         "skipped",
+        *OFFSET_COLUMNS,
         "error",
         "file",
     )
+
+
+def offset_columns(estimate: TimeOffset | None) -> dict[str, str]:
+    """A row's time-offset columns: the estimate and its spread, ms (empty: none yet)."""
+    if estimate is None:
+        return dict.fromkeys(OFFSET_COLUMNS, "")
+    return {
+        "time_offset_ms": _num(estimate.offset_s * 1000.0, 2),
+        "time_offset_sigma_ms": _num(estimate.sigma_s * 1000.0, 2),
+    }
 
 
 def _num(value: float, digits: int) -> str:

@@ -16,6 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -81,6 +82,20 @@ REST_Z_M = 0.025  # the body's centre above the floor when it stands on its feet
 FLOOR_CRASH_MPS = 1.0  # meeting the floor faster than this is a crash, not a landing
 FALL_M = 0.05  # motors stopped higher than this above what the vehicle rests on: it falls
 R_WORLD_TARGET = np.diag([1.0, -1.0, -1.0])  # printed face down, x along world x
+OFFSET_AT_S = 3.0  # the flight time at which the time-offset estimate is scored
+
+
+class OffsetReport(NamedTuple):
+    """A time-offset estimate as a run reports it (s): the estimate, its spread, and the true
+    offset (each frame's true capture time less its stamp, averaged over the frames the pilot
+    got within the estimate's window)."""
+
+    offset_s: float
+    sigma_s: float
+    true_s: float
+
+
+NO_OFFSET = OffsetReport(math.nan, math.nan, math.nan)
 
 
 @dataclass(frozen=True)
@@ -245,7 +260,10 @@ class PerchResult:
     above whatever the vehicle rests on (0 perched or on the floor; NaN: they never stopped),
     ``pilot_states`` the pilot's states with the times it entered them
     (``perching@0.03;lost@5.10``), ``max_setpoint_gap_s`` the longest the vehicle went
-    without a setpoint while the pilot flew it."""
+    without a setpoint while the pilot flew it. ``time_offset`` and ``time_offset_end``: the
+    controller's estimate of the camera-to-vehicle time offset after ``OFFSET_AT_S`` of
+    flight and at the run's end, each with the truth over the frames it rests on (NaN: no
+    estimate yet)."""
 
     seed: int
     estimator: str
@@ -266,6 +284,8 @@ class PerchResult:
     motor_stop_height_m: float = math.nan
     pilot_states: str = ""
     max_setpoint_gap_s: float = math.nan
+    time_offset: OffsetReport = field(default_factory=lambda: NO_OFFSET)
+    time_offset_end: OffsetReport = field(default_factory=lambda: NO_OFFSET)
 
 
 class HeldSetpoint:
@@ -509,11 +529,15 @@ class _Flight:
             report=log.debug,
             specific_force=self.specific_force,
         )
-        # frames on their way to the estimator: (arrival frame, capture time, image or pose)
+        # frames on their way to the estimator: (arrival frame, stamp, true capture time,
+        # image or pose)
         magnet = setup.controller.p_body_magnet_m
         self.plate = PlateContact(setup.plate_z_m, magnet, setup.contact)
-        self.pipeline: deque[tuple[int, float, Array | NDArray[np.uint8] | None]] = deque()
+        self.pipeline: deque[tuple[int, float, float, Array | NDArray[np.uint8] | None]] = deque()
         self._last_arrival = 0
+        # each frame the pilot got: its stamp, and how far its true capture time is from it (s)
+        self.stamp_errors: list[tuple[float, float]] = []
+        self.offset_at: OffsetReport | None = None  # the estimate after OFFSET_AT_S
 
     def faulty(self, kind: str, t_s: float) -> bool:
         """The run's fault is ``kind`` and is on at ``t_s``."""
@@ -589,6 +613,8 @@ class _Flight:
         """The camera captures frame ``k`` now; it arrives ``frames_late`` (sometimes one
         more) frames later, never before the frame captured before it."""
         s = self.setup
+        if self.offset_at is None and t_s >= OFFSET_AT_S:
+            self.offset_at = self.offset_report()
         rng = self.camera_rng
         T_world_camera = make_transform(self.vehicle.R_world_body, self.vehicle.p_m)
         T_camera_target = invert_transform(T_world_camera @ self.T_body_camera) @ s.T_world_target
@@ -614,23 +640,35 @@ class _Flight:
             stamp = grabbed - self.senses.latency_configured_s
         else:
             stamp = t_s + self.senses.clock_offset_s
-        self.pipeline.append((arrival, stamp, payload))
+        self.pipeline.append((arrival, stamp, t_s, payload))
+
+    def offset_report(self) -> OffsetReport:
+        """The controller's time-offset estimate now, with the truth over its frames."""
+        e = self.controller.time_offset
+        if e is None:
+            return NO_OFFSET
+        truth = [err for stamp, err in self.stamp_errors if e.from_s <= stamp <= e.to_s]
+        return OffsetReport(e.offset_s, e.sigma_s, float(np.mean(truth)) if truth else math.nan)
 
     def arrived(self, k: int) -> Estimate | None:
         """Every frame that has reached the estimator by frame ``k``, in order; the newest
         estimate (None when no frame arrived)."""
         s = self.setup
         estimate = None
+        true_s = math.nan
         while self.pipeline and self.pipeline[0][0] <= k:
-            _, t_capture, payload = self.pipeline.popleft()
+            _, stamp, captured_s, payload = self.pipeline.popleft()
             if payload is None:
                 continue
+            true_s = captured_s
             if self.estimator is None:
                 estimate = truth_estimate(
-                    np.asarray(payload, np.float64), s.camera, s.target, t_capture
+                    np.asarray(payload, np.float64), s.camera, s.target, stamp
                 )
             else:
-                estimate = self.estimator.update(np.asarray(payload, np.uint8), t_capture)
+                estimate = self.estimator.update(np.asarray(payload, np.uint8), stamp)
+        if estimate is not None:
+            self.stamp_errors.append((estimate.t_s, true_s - estimate.t_s))
         return estimate
 
     def fly(self, t_s: float, steps: int) -> int | None:
@@ -807,7 +845,9 @@ def run_perch(
         t: float,
         contact: Contact | None = None,
     ) -> PerchResult:
-        return trace.result(flight, (success, reason, offset, speed, t), contact)
+        run = trace.result(flight, (success, reason, offset, speed, t), contact)
+        end = flight.offset_report()
+        return replace(run, time_offset=flight.offset_at or NO_OFFSET, time_offset_end=end)
 
     senses = flight.senses
     events = event_steps(setup, senses.odometry_hz if senses is not None else None)
