@@ -1,7 +1,9 @@
-"""Printable sheets at true scale: the target (SVG, PDF or PNG) with a 100 mm scale bar."""
+"""Printable sheets at true scale: the target and the calibration board (SVG, PDF or PNG) with a
+100 mm scale bar, on A4, Letter or a page their own size."""
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,45 @@ from perchpose.target import TargetSpec
 MM_PER_INCH = 25.4
 SHEET_MARGIN_MM = 10.0
 SCALE_BAR_MM = 100.0
+FOOTER_MM = 30.0  # under the pattern: the scale bar and what the sheet is
+FOOTER_PT = 5.5
+FOOTER_CHAR_MM = 1.25  # wider than the widest average character of the footer's font, mm
 FORMATS = (".svg", ".pdf", ".png")
+PAPERS = {"a4": (210.0, 297.0), "letter": (215.9, 279.4)}  # (width, height), mm
+PAPER_NAMES = ("a4", "letter", "fit")  # fit: a page the pattern's own size
+
+
+def page_size_mm(pattern_mm: tuple[float, float], paper: str, what: str) -> tuple[float, float]:
+    """(width, height) of the page for a pattern ``pattern_mm`` wide and high with its margins
+    and footer: the paper's, or for ``fit`` just enough; PerchposeError naming ``what`` when
+    it does not fit on the paper, or for an unknown paper."""
+    w_mm, h_mm = pattern_mm
+    need = (
+        max(w_mm, SCALE_BAR_MM + 20.0) + 2 * SHEET_MARGIN_MM,
+        h_mm + 2 * SHEET_MARGIN_MM + FOOTER_MM,
+    )
+    if paper == "fit":
+        return need
+    if paper not in PAPERS:
+        raise PerchposeError(f"--paper: unknown {paper!r} (choose {', '.join(PAPER_NAMES)})")
+    width, height = PAPERS[paper]
+    if need[0] > width or need[1] > height:
+        raise PerchposeError(
+            f"{what} needs a page of {need[0]:.0f} x {need[1]:.0f} mm, more than {paper} "
+            f"({width:g} x {height:g} mm): --paper fit writes a page its own size, to print on "
+            "a larger sheet"
+        )
+    return width, height
+
+
+def draw_footer(ax: Axes, page_mm: tuple[float, float], bar_y_mm: float, text: str) -> None:
+    """The 100 mm scale bar centred at ``bar_y_mm`` and ``text`` under it, wrapped to the
+    page's width inside its margins."""
+    width = page_mm[0]
+    draw_scale_bar(ax, width / 2 - SCALE_BAR_MM / 2 - 10.0, bar_y_mm)
+    usable_mm = width - 2 * SHEET_MARGIN_MM
+    wrapped = textwrap.fill(text, width=max(20, int(usable_mm / FOOTER_CHAR_MM)))
+    ax.text(SHEET_MARGIN_MM, bar_y_mm + 6.0, wrapped, fontsize=FOOTER_PT, va="top")
 
 
 def check_output_format(path: Path) -> str:
@@ -56,15 +96,16 @@ def save_sheet(fig: Figure, path: Path, dpi: int) -> None:
         raise PerchposeError(f"{path}: cannot write ({exc.strerror})") from exc
 
 
-def write_target_sheet(target: TargetSpec, path: str | Path, dpi: int = 600) -> Path:
-    """Write ``target`` as a printable sheet; the format follows the suffix (.svg .pdf .png)."""
+def write_target_sheet(
+    target: TargetSpec, path: str | Path, dpi: int = 600, paper: str = "a4"
+) -> Path:
+    """Write ``target`` as a printable sheet on ``paper`` (``PAPER_NAMES``); the format
+    follows the suffix (.svg .pdf .png)."""
     out = Path(path)
     check_output_format(out)
-    if not 72 <= dpi <= 2400:
-        raise PerchposeError(f"--dpi must be between 72 and 2400, got {dpi}")
+    _check_dpi(dpi)
     side_mm = 2000.0 * target.sheet_half_extent_m
-    width = max(side_mm, SCALE_BAR_MM + 20.0) + 2 * SHEET_MARGIN_MM
-    height = side_mm + 2 * SHEET_MARGIN_MM + 30.0
+    width, height = sheet_size_mm(target, paper)
     fig, ax = new_sheet(width, height)
     cx = width / 2.0
     cy = SHEET_MARGIN_MM + side_mm / 2.0
@@ -102,42 +143,56 @@ def write_target_sheet(target: TargetSpec, path: str | Path, dpi: int = 600) -> 
                         edgecolor="none",
                     )
                 )
-    bar_y = cy + side_mm / 2 + 12.0
-    draw_scale_bar(ax, cx - SCALE_BAR_MM / 2 - 10.0, bar_y)
     markers = "; ".join(f"{m.dictionary} id {m.marker_id} {m.side_mm:g} mm" for m in target.markers)
-    ax.text(
-        SHEET_MARGIN_MM,
-        bar_y + 10.0,
-        f"perchpose target '{target.name}': {markers}. Print at 100 %: the bar is 100 mm.",
-        fontsize=5.5,
-        va="center",
+    draw_footer(
+        ax,
+        (width, height),
+        cy + side_mm / 2 + 12.0,
+        f"perchpose target '{target.name}': {markers}. Print at 100 % (no fit to page): the "
+        "bar is 100 mm.",
     )
     save_sheet(fig, out, dpi)
     return out
 
 
-def sheet_size_mm(target: TargetSpec) -> tuple[float, float]:
-    """(width, height) of the sheet ``write_target_sheet`` draws, millimetres."""
-    side_mm = 2000.0 * target.sheet_half_extent_m
-    return (
-        max(side_mm, SCALE_BAR_MM + 20.0) + 2 * SHEET_MARGIN_MM,
-        side_mm + 2 * SHEET_MARGIN_MM + 30.0,
-    )
-
-
-__all__ = ["sheet_size_mm", "write_board_sheet", "write_target_sheet"]
-
-
-def write_board_sheet(board: CharucoBoardSpec, path: str | Path, dpi: int = 600) -> Path:
-    """Write a ChArUco board at true scale with its parameters and a 100 mm scale bar."""
-    out = Path(path)
-    check_output_format(out)
+def _check_dpi(dpi: int) -> None:
     if not 72 <= dpi <= 2400:
         raise PerchposeError(f"--dpi must be between 72 and 2400, got {dpi}")
+
+
+def sheet_size_mm(target: TargetSpec, paper: str = "a4") -> tuple[float, float]:
+    """(width, height) of the sheet ``write_target_sheet`` draws on ``paper``, millimetres."""
+    side_mm = 2000.0 * target.sheet_half_extent_m
+    return page_size_mm((side_mm, side_mm), paper, f"the target '{target.name}'")
+
+
+def board_sheet_size_mm(board: CharucoBoardSpec, paper: str = "a4") -> tuple[float, float]:
+    """(width, height) of the sheet ``write_board_sheet`` draws on ``paper``, millimetres."""
+    sx, sy = board.squares
+    pattern = (sx * board.square_mm, sy * board.square_mm)
+    return page_size_mm(pattern, paper, f"the board ({board.describe()})")
+
+
+__all__ = [
+    "PAPER_NAMES",
+    "board_sheet_size_mm",
+    "sheet_size_mm",
+    "write_board_sheet",
+    "write_target_sheet",
+]
+
+
+def write_board_sheet(
+    board: CharucoBoardSpec, path: str | Path, dpi: int = 600, paper: str = "a4"
+) -> Path:
+    """Write a ChArUco board at true scale on ``paper`` with its parameters and a 100 mm
+    scale bar."""
+    out = Path(path)
+    check_output_format(out)
+    _check_dpi(dpi)
     sx, sy = board.squares
     w_mm, h_mm = sx * board.square_mm, sy * board.square_mm
-    width = max(w_mm, SCALE_BAR_MM + 20.0) + 2 * SHEET_MARGIN_MM
-    height = h_mm + 2 * SHEET_MARGIN_MM + 30.0
+    width, height = board_sheet_size_mm(board, paper)
     fig, ax = new_sheet(width, height)
     x0 = (width - w_mm) / 2.0
     y0 = SHEET_MARGIN_MM
@@ -173,15 +228,13 @@ def write_board_sheet(board: CharucoBoardSpec, path: str | Path, dpi: int = 600)
                             edgecolor="none",
                         )
                     )
-    bar_y = y0 + h_mm + 12.0
-    draw_scale_bar(ax, width / 2 - SCALE_BAR_MM / 2 - 10.0, bar_y)
-    ax.text(
-        SHEET_MARGIN_MM,
-        bar_y + 10.0,
-        f"perchpose calibration board: {board.describe()}. Print at 100 %: the bar is "
-        "100 mm. Any scale works: measure a square and give its side as --square-mm.",
-        fontsize=5.5,
-        va="center",
+    draw_footer(
+        ax,
+        (width, height),
+        y0 + h_mm + 12.0,
+        f"perchpose calibration board: {board.describe()}. Print at 100 % (no fit to page): "
+        "the bar is 100 mm. Any scale works: measure a square and give its side as "
+        "--square-mm.",
     )
     save_sheet(fig, out, dpi)
     return out

@@ -11,13 +11,15 @@ from perchpose.target import TargetSpec
 
 @dataclass(frozen=True)
 class TargetOptions:
-    """Where to write the sheet, the target YAML (None: the paper's), a PNG's resolution, and
-    where to write the target's own YAML as well (None: nowhere)."""
+    """Where to write the sheet, the target YAML (None: the paper's), a PNG's resolution,
+    where to write the target's own YAML as well (None: nowhere), and the page (``a4``,
+    ``letter`` or ``fit``)."""
 
     out: str
     target_file: str | None = None
     dpi: int = 600
     save_spec: str | None = None
+    paper: str = "a4"
 
 
 @dataclass(frozen=True)
@@ -33,7 +35,7 @@ def run(options: TargetOptions) -> TargetSheet:
     from perchpose.printable import write_target_sheet
 
     spec = load_target(options.target_file)
-    path = write_target_sheet(spec, options.out, dpi=options.dpi)
+    path = write_target_sheet(spec, options.out, dpi=options.dpi, paper=options.paper)
     if options.save_spec:
         spec.save(options.save_spec)
     return TargetSheet(path, spec)

@@ -32,6 +32,14 @@ sheet_out_option = click.option(
     help="Output file: .svg, .pdf or .png.",
 )
 dpi_option = click.option("--dpi", default=600, show_default=True, help="Resolution of a PNG.")
+paper_option = click.option(
+    "--paper",
+    default="a4",
+    show_default=True,
+    type=click.Choice(["a4", "letter", "fit"]),
+    help="The page: A4 (210 x 297 mm), Letter (8.5 x 11 in) or fit (a page the pattern's own "
+    "size, for a larger sheet).",
+)
 
 
 def budget_option(help_text: str) -> Callable[[Callable[..., None]], Callable[..., None]]:

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import click
 
-from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress, target_option
+from perchpose.cli.common import (
+    board_options,
+    board_spec,
+    camera_option_fpv,
+    quiet_option,
+    show_progress,
+    target_option,
+)
 from perchpose.cli.group import group
 
 
@@ -26,6 +33,8 @@ from perchpose.cli.group import group
 @click.option(
     "--frames", "max_frames", default=None, type=int, help="Keep only the first N frames."
 )
+@click.option("--views", default=20, show_default=True, help="board: how many views of the board.")
+@board_options
 @quiet_option
 def simulate(
     scenario: str,
@@ -35,10 +44,29 @@ def simulate(
     quality: str,
     seed: int,
     max_frames: int | None,
+    views: int,
+    squares: str,
+    square_mm: float,
+    marker_mm: float,
+    dictionary: str,
     quiet: bool,
 ) -> None:
-    """Render SCENARIO (approach or static) to frames, camera.yaml and truth.csv."""
-    from perchpose.app.simulate import SimulateOptions, run
+    """Render SCENARIO to a folder: approach or static (frames, camera.yaml, target.yaml and
+    truth.csv), or board (views of the ChArUco board the board options describe and the true
+    camera.yaml, to try calibrate on)."""
+    from perchpose.app.simulate import BoardViewsOptions, SimulateOptions, run, run_board
+
+    if scenario == "board":
+        board = board_spec(squares, square_mm, marker_mm, dictionary)
+        done = run_board(BoardViewsOptions(out, board, camera_file, views, quality, seed))
+        model = f" --model {done.lens}" if done.lens != "plumb_bob" else ""
+        click.echo(
+            f"wrote {done.frames} views of the board and the true camera.yaml to {done.path}; "
+            f"calibrate: perchpose calibrate {done.path} --out cal.yaml{model} "
+            f"--squares {squares} --square-mm {square_mm:g} --marker-mm {marker_mm:g} "
+            f"--dictionary {dictionary}"
+        )
+        return
 
     options = SimulateOptions(
         scenario,

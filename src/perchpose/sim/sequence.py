@@ -13,12 +13,13 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from perchpose.calibration import CharucoBoardSpec
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError
 from perchpose.fusion.base import stage_of
 from perchpose.geometry import yaw_rad
-from perchpose.sim.render import Occluder, Renderer
-from perchpose.sim.scenarios import Scenario, markers_in_view
+from perchpose.sim.render import ImageQuality, Occluder, Renderer
+from perchpose.sim.scenarios import Scenario, markers_in_view, spread_board_poses
 from perchpose.target import TargetSpec
 from perchpose.values import POSE_COLUMNS
 
@@ -106,6 +107,39 @@ def truth_row(
     return row
 
 
+def write_board_views(
+    board: CharucoBoardSpec,
+    camera: CameraModel,
+    out_dir: str | Path,
+    views: int,
+    quality: ImageQuality,
+    seed: int = 0,
+) -> Path:
+    """Render ``views`` views of a ChArUco ``board`` as a person waves one in front of the
+    camera (``scenarios.spread_board_poses``: anywhere in the image, turned and tilted) into
+    ``out_dir``: ``view_00.png`` ... and the true ``camera.yaml`` that a calibration of them
+    should find. Returns the folder."""
+    out = _folder(out_dir)
+    rng = np.random.default_rng(seed)
+    renderer = Renderer(camera, board)
+    poses = spread_board_poses(camera, board.size_m[0], views, rng)
+    for k, T in enumerate(poses):
+        name = out / f"view_{k:02d}.png"
+        if not cv2.imwrite(str(name), renderer.render(T, quality, rng)):
+            raise PerchposeError(f"{name}: cannot write image")
+    camera.save(out / "camera.yaml")
+    return out
+
+
+def _folder(out_dir: str | Path) -> Path:
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PerchposeError(f"{out}: cannot create folder ({exc.strerror})") from exc
+    return out
+
+
 def write_sequence(
     scenario: Scenario,
     camera: CameraModel,
@@ -117,11 +151,7 @@ def write_sequence(
 ) -> Path:
     """Render ``scenario`` into ``out_dir``: ``frame_000000.png`` ..., ``camera.yaml``,
     ``target.yaml`` and ``truth.csv``. Returns the folder."""
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise PerchposeError(f"{out}: cannot create folder ({exc.strerror})") from exc
+    out = _folder(out_dir)
     camera.save(out / "camera.yaml")
     target.save(out / "target.yaml")
     with (out / "truth.csv").open("w", newline="", encoding="utf-8") as f:
