@@ -104,7 +104,10 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         ]
     )
     assert code == 0
-    assert "truth" in capsys.readouterr().out
+    table = capsys.readouterr().out
+    assert "truth" in table
+    assert "clock p95 (ms)" in table  # the time-offset estimate's error, per cell
+    assert "2 of 2 |" in (out / "perch.md").read_text()  # both within 10 ms of the truth
     summary = json.loads((tmp_path / "s.json").read_text())
     assert summary["stamps"] == "live"
     assert summary["latency_ms"] == [40.0, 150.0]  # drawn per run from this range

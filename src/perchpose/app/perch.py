@@ -343,7 +343,7 @@ def summary_table(content: dict[str, object]) -> str:
     assert isinstance(cells, dict)
     lines = [
         f"{'wind':9} {'estimator':10} {'latency':>8} {'runs':>5} {'perched':>8} "
-        f"{'95 % interval':>15} {'offset p50/p95 (mm)':>20}  failures"
+        f"{'95 % interval':>15} {'offset p50/p95 (mm)':>20} {'clock p95 (ms)':>14}  failures"
     ]
 
     def num(v: object) -> str:
@@ -354,11 +354,12 @@ def summary_table(content: dict[str, object]) -> str:
         low, high = c["success_interval_95"]
         off = c["contact_offset_mm"]
         fails = ", ".join(f"{k} {v}" for k, v in c["reasons"].items() if k != "perched" and v)
+        clock = c["time_offset"]["error_ms"]["p95"]  # the time-offset estimate's error at 3 s
         lines.append(
             f"{wind:9} {estimator:10} {(latency or [content['latency_label']])[0]:>8} "
             f"{c['runs']:5d} {c['success_rate']:8.1%} "
             f"{low:6.1%} - {high:6.1%} {num(off['p50']):>9}/{num(off['p95']):<10} "
-            f"{fails or 'none'}"
+            f"{num(clock):>14}  {fails or 'none'}"
         )
     outcomes = content.get("fault_outcomes") or {}
     assert isinstance(outcomes, dict)

@@ -679,8 +679,9 @@ def markdown(records: list[RunRecord]) -> str:
     """``perch.md``: one row per wind and estimator."""
     lines = [
         "| wind | mean / gust (m/s) | estimator | latency (ms) | runs | perched | 95 % interval | "
-        "offset p50 / p95 (mm) | speed max (m/s) | failures |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "offset p50 / p95 (mm) | speed max (m/s) | time offset after 3 s: error p95 (ms), "
+        "within 10 ms | failures |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (wind, estimator, latency), rs in group(records).items():
         s = summarise(rs)
@@ -688,11 +689,16 @@ def markdown(records: list[RunRecord]) -> str:
         fails = (
             ", ".join(f"{k} {v}" for k, v in sorted(s.reasons.items()) if k != "perched") or "none"
         )
+        clock = time_offset_summary(rs)
+        errors = clock["error_ms"]
+        assert isinstance(errors, dict)
         lines.append(
             f"| {wind} | {rs[0].wind_mean_mps:g} / {rs[0].turbulence_sigma_mps:g} | "
             f"{estimator} | {latency} | {s.runs} | {s.success_rate:.1%} | {low:.1%} - {high:.1%} | "
             f"{_num(s.contact_offset_mm['p50'])} / {_num(s.contact_offset_mm['p95'])} | "
-            f"{_num(s.contact_speed_mps['max'], '.2f')} | {fails} |"
+            f"{_num(s.contact_speed_mps['max'], '.2f')} | "
+            f"{_num(errors['p95'])}, {clock['within_goal']} of {clock['runs_with_estimate']} | "
+            f"{fails} |"
         )
     return "\n".join(lines) + "\n"
 
