@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from perchpose.control.time_offset import TimeOffsetEstimator, TimeOffsetSettings
+from perchpose.control.time_offset import TimeOffset, TimeOffsetEstimator, TimeOffsetSettings
 from perchpose.errors import ControllerConfigError
 from perchpose.geometry import rot_x, rot_y, rot_z
 
@@ -124,3 +124,11 @@ def test_out_of_order_and_non_finite_input_is_ignored() -> None:
 def test_bad_settings(settings: dict[str, float], message: str) -> None:
     with pytest.raises(ControllerConfigError, match=message):
         TimeOffsetSettings(**settings)  # type: ignore[arg-type]
+
+
+def test_an_estimate_in_words() -> None:
+    early = TimeOffset(-0.0804, 0.0015, 90, 0.0, 3.0, 3.0)
+    said = "frames captured 80 ms before their stamps (+- 1.5 ms, from 90 fixes)"
+    assert early.describe() == said
+    late = TimeOffset(0.03, 0.002, 40, 0.0, 3.0, 3.0)
+    assert late.describe().startswith("frames captured 30 ms after their stamps")

@@ -63,6 +63,20 @@ class VehicleLinks:
                 return controller.time_offset
         return None
 
+    def say_clock(self, report: Callable[[str], None]) -> None:
+        """Say the flying controller's last time-offset estimate, and whether it placed the
+        fixes (nothing when there is none)."""
+        for controller in self.controllers:
+            offset = controller.time_offset
+            if offset is None:
+                continue
+            used = controller.capture_time_correction_s() != 0.0
+            report(
+                f"camera clock against the vehicle's, from the motion: {offset.describe()}; "
+                + ("the fixes were placed by it" if used else "not used (too unsure, or not asked)")
+            )
+            return
+
 
 @contextmanager
 def vehicle_links(
@@ -87,7 +101,6 @@ def vehicle_links(
         else ControllerSettings(T_body_camera=T_body_camera)
     )
     links = VehicleLinks()
-    hooks = links.hooks
     closers: list[Callable[[], None]] = []
     pilot = None
     try:
@@ -102,7 +115,7 @@ def vehicle_links(
                 report=report,
             )
             closers.append(autopilot.close)
-            hooks.append(autopilot)
+            links.hooks.append(autopilot)
             autopilot.wait_until_ready(MAVLINK_READY_WAIT_S)
         elif o.mavlink_url is not None:
             from perchpose.io.mavlink.landing_target_sink import LandingTargetSink
@@ -118,7 +131,7 @@ def vehicle_links(
                 report=report,
             )
             closers.append(sink.close)
-            hooks.append(sink)
+            links.hooks.append(sink)
         if o.crazyflie_uri is not None:
             from perchpose.io.crazyflie import connect
 
@@ -128,12 +141,13 @@ def vehicle_links(
             closers.append(link.close)
             links.controllers.append(PerchingController(settings))
             pilot = link.pilot(controller=links.controllers[-1])
-            hooks.append(pilot)
+            links.hooks.append(pilot)
             clock = PilotClock(pilot).start()  # the pilot's watchdogs tick without frames
             closers.append(clock.stop)
         try:
             yield links
         finally:
+            links.say_clock(report)
             if pilot is not None:  # source ended, an error, or Ctrl-C: land
                 pilot.abort(pilot.now() or pilot.last_t_s, "tracking ended")
                 if pilot.state == PilotState.LANDING:

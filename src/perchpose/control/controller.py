@@ -422,9 +422,12 @@ class PerchingController:
     def capture_time(self, estimate: Estimate) -> float:
         """When ``estimate``'s frame was captured, on the vehicle's clock: its stamp, plus
         the estimated time offset while that is trusted (``correct_time_offset``)."""
-        if not self.settings.correct_time_offset:
-            return estimate.t_s
-        return estimate.t_s + self._offset.correction_s
+        return estimate.t_s + self.capture_time_correction_s()
+
+    def capture_time_correction_s(self) -> float:
+        """What ``capture_time`` adds to a stamp now (0: no trusted estimate, or not asked
+        to correct)."""
+        return self._offset.correction_s if self.settings.correct_time_offset else 0.0
 
     @property
     def disturbance_mps(self) -> Array:

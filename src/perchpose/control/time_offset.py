@@ -94,6 +94,15 @@ class TimeOffset:
     to_s: float
     t_s: float
 
+    def describe(self) -> str:
+        """In words: ``frames captured 80 ms before their stamps (+- 1.5 ms, from 90 fixes)``."""
+        ms = self.offset_s * 1000.0
+        side = "before" if ms < 0.0 else "after"
+        return (
+            f"frames captured {abs(ms):.0f} ms {side} their stamps (+- {self.sigma_s * 1000.0:.1f} "
+            f"ms, from {self.fixes} fixes)"
+        )
+
 
 class _Samples:
     """A time-ordered history of vector samples in a growing buffer, interpolated linearly."""
