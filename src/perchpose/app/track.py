@@ -240,9 +240,10 @@ def track(
     one) is drawn but not measured: an invalid row that says why, and one warning where a run
     of them starts. The first frame having a size other than the calibration's is an
     error, since then every frame would be. Each of ``on_frame`` (vehicle links) is called once
-    per frame with the estimate (None for an unreadable frame) and the frame's time, before
-    its row is written; ``time_offset`` gives the flying controller's estimate of the
-    camera-to-vehicle time offset for the rows (``time_offset_ms``, ``time_offset_sigma_ms``).
+    per frame with the estimate (None for an unreadable frame) and the frame's time, as soon
+    as it is made (before the overlay and the row); ``time_offset`` gives the flying
+    controller's estimate of the camera-to-vehicle time offset for the rows
+    (``time_offset_ms``, ``time_offset_sigma_ms``).
     """
     if overlay is not None:
         check_overlay_path(overlay)
@@ -281,6 +282,8 @@ def track(
             estimate, error = _measured(
                 estimator, frame, frames.description, first_good, camera_latency_s
             )
+            for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
+                hook(estimate, frame.t_s)  # the vehicle first: nothing else waits on it
             first_good = first_good and (frame.image is None or frame.damaged)
             if error and not frame.stale and not (frame.damaged and damaged_before):
                 more = " (and the frames after it until one decodes whole)" * frame.damaged
@@ -290,8 +293,6 @@ def track(
             if draw and frame.image is not None:
                 note = f"t {frame.t_s:.2f} s" + "  damaged: not measured" * frame.damaged
                 picture = draw_overlay(frame.image, estimate, camera, note=note)
-            for hook in () if frame.stale else on_frame:  # no news in a frame not looked at
-                hook(estimate, frame.t_s)
             row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)
             row.update(offset_columns(time_offset()))
             writer.write_frame(row, estimate, stamp, picture)
