@@ -443,10 +443,8 @@ class PerchingController:
     def magnet_to_target(self, estimate: Estimate, R_world_body: Array) -> tuple[Array, float]:
         """(world-frame vector from the magnet to the target centre, heading error in rad)."""
         s = self.settings
-        p_camera = estimate.t_m
         T = s.T_body_camera
-        p_body = T[:3, :3] @ p_camera + T[:3, 3]
-        d_world = R_world_body @ (p_body - np.asarray(s.p_body_magnet_m))
+        d_world = R_world_body @ (self._target_in_body(estimate) - np.asarray(s.p_body_magnet_m))
         yaw = estimate.yaw_rad
         x_target_camera = np.array([math.cos(yaw), math.sin(yaw), 0.0])
         x_target_body = T[:3, :3] @ x_target_camera
@@ -502,11 +500,16 @@ class PerchingController:
         """Add an odometry sample to the history fixes are matched against."""
         self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
 
+    def _target_in_body(self, estimate: Estimate) -> Array:
+        """The target's centre in the body frame (m), through the camera's mount."""
+        T = np.asarray(self.settings.T_body_camera, np.float64)
+        p_body: Array = T[:3, :3] @ estimate.t_m + T[:3, 3]
+        return p_body
+
     def _place(self, estimate: Estimate) -> None:
         """Give a measured fix to the time-offset estimate: its stamp, and the target in the
         body frame."""
-        T = np.asarray(self.settings.T_body_camera, np.float64)
-        self._offset.fix(estimate.t_s, T[:3, :3] @ estimate.t_m + T[:3, 3])
+        self._offset.fix(estimate.t_s, self._target_in_body(estimate))
 
     def _position_at(self, t_s: float) -> Array | None:
         """The odometry's position at ``t_s`` (interpolated; None before its history)."""

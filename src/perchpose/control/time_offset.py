@@ -232,11 +232,12 @@ class TimeOffsetEstimator:
         if self._fixes and t_s <= self._fixes[-1][0]:
             return None
         self._fixes.append((t_s, p))
-        horizon = t_s - s.window_s - s.max_offset_s
-        while self._fixes and self._fixes[0][0] < t_s - s.window_s - 2.0 * s.max_offset_s:
+        oldest_s = t_s - s.window_s  # no fix before this is used again
+        while self._fixes[0][0] < oldest_s:
             self._fixes.popleft()
-        self._attitudes.drop_before(horizon - s.max_offset_s)
-        self._positions.drop_before(horizon - s.max_offset_s)
+        # the samples reach back past the oldest fix's search, and the smoothing's beyond it
+        self._attitudes.drop_before(oldest_s - 2.0 * s.max_offset_s)
+        self._positions.drop_before(oldest_s - 2.0 * s.max_offset_s)
         self._since += 1
         if self._since < s.every_fixes:
             return None
@@ -246,21 +247,19 @@ class TimeOffsetEstimator:
             self.latest = estimate
         return estimate
 
-    def _usable(self, newest_s: float) -> list[tuple[float, Array]]:
+    def _usable(self) -> list[tuple[float, Array]]:
         """The window's fixes whose whole search range the vehicle's samples cover."""
         s = self.settings
         m = s.max_offset_s + 3.0 * s.smooth_s  # the smoothing is one-sided at the ends
         return [
             (t, p)
             for t, p in self._fixes
-            if t >= newest_s - s.window_s
-            and self._attitudes.covers(t - m, t + m)
-            and self._positions.covers(t - m, t + m)
+            if self._attitudes.covers(t - m, t + m) and self._positions.covers(t - m, t + m)
         ]
 
     def _estimate(self, newest_s: float) -> TimeOffset | None:
         s = self.settings
-        fixes = self._usable(newest_s)
+        fixes = self._usable()
         if len(fixes) < s.min_fixes:
             return None
         t = np.array([f[0] for f in fixes])

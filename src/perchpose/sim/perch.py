@@ -812,6 +812,8 @@ class _Trace:
             flight.motor_stop_height_m,
             states,
             _max_gap_s(flight.commander.sent_s, self.ts[-1] if self.ts else 0.0, pilot.flying),
+            flight.offset_at or NO_OFFSET,
+            flight.offset_report(),
         )
 
 
@@ -845,9 +847,7 @@ def run_perch(
         t: float,
         contact: Contact | None = None,
     ) -> PerchResult:
-        run = trace.result(flight, (success, reason, offset, speed, t), contact)
-        end = flight.offset_report()
-        return replace(run, time_offset=flight.offset_at or NO_OFFSET, time_offset_end=end)
+        return trace.result(flight, (success, reason, offset, speed, t), contact)
 
     senses = flight.senses
     events = event_steps(setup, senses.odometry_hz if senses is not None else None)
