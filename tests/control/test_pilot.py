@@ -464,3 +464,55 @@ def test_a_climb_far_from_the_plate_that_does_not_rise_is_not_contact() -> None:
     pilot, sent = _against_the_plate(0.3)
     assert pilot.state == "perching"
     assert sent[-1] != ()
+
+
+class Fixable(Recorder):
+    """A commander whose vehicle's estimator takes external positions (``refuses``: none)."""
+
+    def __init__(self, refuses: bool = False) -> None:
+        super().__init__()
+        self.refuses = refuses
+        self.fixes: list[tuple[float, float, float]] = []
+
+    def send_position_fix(self, p_world_m: tuple[float, float, float]) -> bool:
+        if self.refuses:
+            return False
+        self.fixes.append(p_world_m)
+        return True
+
+
+def test_the_camera_fixes_reach_the_vehicle_estimator_once_the_target_is_anchored() -> None:
+    """A still vehicle 1 m up whose odometry is off by 3 cm along x from the moment the
+    target is anchored: the fixes it is sent put it back where the camera saw it."""
+    commander = Fixable()
+    vehicle = Vehicle(commander, 1.0)
+    pilot = _pilot(vehicle)
+    s = pilot.controller.settings
+    anchor = s.position_fixes.anchor_fixes
+    for k in range(anchor + 5):
+        if k == anchor:
+            vehicle.p_m = vehicle.p_m + np.array([0.03, 0.0, 0.0])  # the odometry jumps
+        t = 0.1 * k
+        vehicle.t_s = 100.0 + t
+        pilot.update(_seen(s, [0.0, 0.0, 0.5], t), t)
+    assert len(commander.fixes) == 5
+    assert commander.fixes[-1] == pytest.approx((0.0, 0.0, 1.0), abs=1e-6)
+    off = Fixable()
+    quiet = _pilot(
+        Vehicle(off, 1.0),
+        controller=replace(s, position_fixes=replace(s.position_fixes, send=False)),
+    )
+    for k in range(anchor + 5):
+        quiet.update(_seen(s, [0.0, 0.0, 0.5], 0.1 * k), 0.1 * k)
+    assert off.fixes == []
+
+
+def test_a_vehicle_that_takes_no_fixes_is_said_once_and_asked_no_more() -> None:
+    reports: list[str] = []
+    commander = Fixable(refuses=True)
+    pilot = _pilot(Vehicle(commander, 1.0), reports=reports)
+    s = pilot.controller.settings
+    for k in range(s.position_fixes.anchor_fixes + 5):
+        pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.1 * k), 0.1 * k)
+    said = [r for r in reports if "takes no position fixes" in r]
+    assert len(said) == 1

@@ -469,9 +469,14 @@ def test_a_nan_state_sample_is_dropped_and_the_pilot_keeps_steering(
         connection._state(0, state_sample(1.0), None)
         connection._moved(0, STILL, None)
         pilot.update(replace(ahead, t_s=i / 30), i / 30)
-    packets = [decode(p) for p in link.sent[before:]]
+    sent = link.sent[before:]
+    packets = [decode(p) for p in sent if p[0] == CRTPPort.COMMANDER_GENERIC]
     assert len(packets) >= 30
     assert all(p[0] == "velocity" and p[1] > 0.01 for p in packets)  # forward, to the target
+    # the fixes go to the Kalman filter beside them, where the odometry says it is
+    fixes = [struct.unpack("<fff", p[2]) for p in sent if p[0] == CRTPPort.LOCALIZATION]
+    assert len(fixes) >= 20
+    assert all(np.isfinite(f).all() for f in fixes)
     assert pilot.replaced_setpoints == 0
     assert connection.rejected == 2
     assert sum("non-finite" in r for r in reports) == 1
@@ -620,3 +625,16 @@ def test_the_accelerometer_is_logged_with_the_odometry_and_leant_against(
     _kind, vx, vy, _vz, _yaw_rate = decode(link.sent[-1])
     assert vy < -0.1  # against the push, along world y
     assert abs(vx) < 0.05
+
+
+def test_a_position_fix_goes_out_as_cflibs_external_position(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    cf, link = crazyflie
+    assert CflibCommander(cf.commander).send_position_fix((0.1, -0.2, 1.5)) is False
+    assert link.sent == []  # without cflib's Extpos nothing goes out
+    commander = CflibCommander(cf.commander, extpos=cf.extpos)
+    assert commander.send_position_fix((0.1, -0.2, 1.5)) is True
+    ((port, channel, data),) = link.sent
+    assert (port, channel) == (CRTPPort.LOCALIZATION, cf.loc.POSITION_CH)
+    assert struct.unpack("<fff", data) == pytest.approx((0.1, -0.2, 1.5))

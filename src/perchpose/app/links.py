@@ -6,14 +6,17 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
 if TYPE_CHECKING:
-    from perchpose.control import PerchingController
+    import numpy as np
+    from numpy.typing import NDArray
+
+    from perchpose.control import ControllerSettings, PerchingController
     from perchpose.control.time_offset import TimeOffset
 
 MAVLINK_READY_WAIT_S = 3.0  # how long the MAVLink pilot waits for the vehicle before the frames
@@ -28,7 +31,9 @@ class LinkOptions:
     the perching controller through velocity setpoints instead of sending LANDING_TARGET.
     target_relative, distance_sensor : also send TARGET_RELATIVE, DISTANCE_SENSOR.
     target_system : the autopilot's system id (None: the first heard). crazyflie_uri : a cflib
-    URI (None: no Crazyflie). mount : ``up``, ``down`` or a mount YAML (None: upward)."""
+    URI (None: no Crazyflie). mount : ``up``, ``down`` or a mount YAML (None: upward).
+    position_fixes : the flying pilot hands each fix to the vehicle's estimator where its link
+    can (the Crazyflie's Kalman filter, as an external position)."""
 
     mavlink_url: str | None = None
     mavlink_frame: str = "body_frd"
@@ -38,6 +43,7 @@ class LinkOptions:
     target_system: int | None = None
     crazyflie_uri: str | None = None
     mount: str | None = None
+    position_fixes: bool = True
 
     @property
     def flies(self) -> str | None:
@@ -77,6 +83,36 @@ class VehicleLinks:
             )
             return
 
+    def say_fixes(self, report: Callable[[str], None]) -> None:
+        """Say how many fixes the flying controller gave the vehicle's estimator (nothing
+        when none)."""
+        for controller in self.controllers:
+            fixes = controller.position_fixes
+            if fixes.sent or fixes.refused:
+                report(
+                    f"position fixes for the vehicle's estimator: {fixes.sent} made, "
+                    f"{fixes.refused} held back as over {fixes.settings.max_jump_m:g} m from its "
+                    "own estimate"
+                )
+
+
+def _flying_settings(o: LinkOptions) -> tuple[NDArray[np.float64] | None, ControllerSettings]:
+    """The camera's mount (None: upward, the default) and the flying controller's settings;
+    a flying link refuses a camera that does not look up."""
+    from perchpose.control import ControllerSettings, mount_T_body_camera
+    from perchpose.control.mount import require_upward
+    from perchpose.control.position_fix import PositionFixSettings
+
+    T_body_camera = mount_T_body_camera(o.mount) if o.mount else None
+    if T_body_camera is not None:
+        for flag, on in (("--mavlink-pilot", o.mavlink_pilot), ("--crazyflie", o.crazyflie_uri)):
+            if on:
+                require_upward(T_body_camera, flag)
+    settings = ControllerSettings(position_fixes=PositionFixSettings(send=o.position_fixes))
+    if T_body_camera is not None:
+        settings = replace(settings, T_body_camera=T_body_camera)
+    return T_body_camera, settings
+
 
 @contextmanager
 def vehicle_links(
@@ -84,22 +120,12 @@ def vehicle_links(
 ) -> Iterator[VehicleLinks]:
     """The links ``options`` asks for; at the end a Crazyflie is landed and every link
     closed, newest first."""
-    from perchpose.control import ControllerSettings, PerchingController, mount_T_body_camera
-    from perchpose.control.mount import require_upward
+    from perchpose.control import PerchingController
     from perchpose.control.pilot import PilotState
     from perchpose.control.pilot_clock import PilotClock
 
     o = options
-    T_body_camera = mount_T_body_camera(o.mount) if o.mount else None
-    if T_body_camera is not None:
-        for flag, on in (("--mavlink-pilot", o.mavlink_pilot), ("--crazyflie", o.crazyflie_uri)):
-            if on:
-                require_upward(T_body_camera, flag)
-    settings = (
-        ControllerSettings()
-        if T_body_camera is None
-        else ControllerSettings(T_body_camera=T_body_camera)
-    )
+    T_body_camera, settings = _flying_settings(o)
     links = VehicleLinks()
     closers: list[Callable[[], None]] = []
     pilot = None
@@ -148,6 +174,7 @@ def vehicle_links(
             yield links
         finally:
             links.say_clock(report)
+            links.say_fixes(report)
             if pilot is not None:  # source ended, an error, or Ctrl-C: land
                 pilot.abort(pilot.now() or pilot.last_t_s, "tracking ended")
                 if pilot.state == PilotState.LANDING:

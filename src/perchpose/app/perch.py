@@ -16,6 +16,7 @@ from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write
 from perchpose.sim.campaign import campaign_jobs, execute
 from perchpose.sim.disturbances import Disturbances
 from perchpose.sim.firmware import FLIGHT_CONTROLLERS, check_flight_controller, load_firmware
+from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
 from perchpose.sim.perch import ESTIMATORS, PerchResult, PerchSetup
 from perchpose.sim.sensing import ODOMETRY_ERRORS, Sensing
 from perchpose.sim.wind import WIND_LEVELS
@@ -23,6 +24,7 @@ from perchpose.target import TargetSpec
 
 TRAJECTORIES = 5
 TIME_OFFSETS = ("correct", "report")  # what the controller does with its time-offset estimate
+POSITION_FIXES = ("send", "off")  # whether the pilot hands its fixes to the vehicle's estimator
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,8 @@ class PerchCampaign:
         flight_controller: str = "model",
         latency_error_ms: float = 10.0,
         time_offset: str = "correct",
+        onboard_estimator: str = "model",
+        position_fixes: str = "send",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -68,20 +72,12 @@ class PerchCampaign:
             raise PerchposeError(f"--estimator: {estimators!r} names an estimator twice")
         if runs < 1:
             raise PerchposeError(f"--runs must be >= 1, got {runs}")
-        if flight_controller not in FLIGHT_CONTROLLERS:
+        check_vehicle_options(flight_controller, onboard_estimator, sensing, odometry)
+        if position_fixes not in POSITION_FIXES:
             raise PerchposeError(
-                f"--flight-controller: unknown {flight_controller!r} "
-                f"(choose {', '.join(FLIGHT_CONTROLLERS)})"
+                f"--position-fixes: unknown {position_fixes!r} "
+                f"(choose {' or '.join(POSITION_FIXES)})"
             )
-        try:
-            check_flight_controller(flight_controller)
-        except PerchposeError as exc:
-            raise PerchposeError(f"--flight-controller: {exc}") from exc
-        if flight_controller != "model":
-            try:
-                load_firmware()
-            except PerchposeError as exc:
-                raise PerchposeError(f"--flight-controller {flight_controller}: {exc}") from exc
         if odometry not in ODOMETRY_ERRORS:
             raise PerchposeError(
                 f"--odometry: unknown {odometry!r} (choose {' or '.join(ODOMETRY_ERRORS)})"
@@ -106,13 +102,17 @@ class PerchCampaign:
             stamps=stamps,
             duration_s=FAULT_RUN_S if injected else PerchSetup.duration_s,
             flight_controller=flight_controller,
+            onboard_estimator=onboard_estimator,
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
         timed = [
-            offset_setup(
-                replace(timed_setup(base, sensing, fps, ms, odometry), faults=injected),
-                latency_error_ms,
-                time_offset,
+            fixes_setup(
+                offset_setup(
+                    replace(timed_setup(base, sensing, fps, ms, odometry), faults=injected),
+                    latency_error_ms,
+                    time_offset,
+                ),
+                position_fixes,
             )
             for ms in latencies
         ]
@@ -163,6 +163,11 @@ class PerchCampaign:
                 if base.flight_controller == "model"
                 else f"; the Crazyflie firmware's {base.flight_controller} controller flies it"
             )
+            if base.onboard_estimator == "crazyflie-kalman":
+                flown += (
+                    "; the firmware's Kalman filter estimates its state from a simulated IMU, "
+                    "Flow deck and range sensor"
+                )
             say(
                 f"{len(jobs)} runs: {cells} cell{plural} of {self.runs} runs; {senses(base)}{flown}"
             )
@@ -213,6 +218,8 @@ class PerchOptions:
     flight_controller: str = "model"
     latency_error_ms: float = 10.0
     time_offset: str = "correct"
+    onboard_estimator: str = "model"
+    position_fixes: str = "send"
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -236,6 +243,8 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         flight_controller=options.flight_controller,
         latency_error_ms=options.latency_error_ms,
         time_offset=options.time_offset,
+        onboard_estimator=options.onboard_estimator,
+        position_fixes=options.position_fixes,
     )
     content = campaign.fly(
         options.out,
@@ -290,6 +299,55 @@ def offset_setup(setup: PerchSetup, latency_error_ms: float, time_offset: str) -
     return replace(setup, sensing=sensing, controller=controller)
 
 
+def check_vehicle_options(
+    flight_controller: str, onboard_estimator: str, sensing: str, odometry: str
+) -> None:
+    """Check the vehicle's onboard loops and estimator as the user named them (the
+    firmware's need its module); raise ``PerchposeError`` naming the option at fault."""
+    if flight_controller not in FLIGHT_CONTROLLERS:
+        raise PerchposeError(
+            f"--flight-controller: unknown {flight_controller!r} "
+            f"(choose {', '.join(FLIGHT_CONTROLLERS)})"
+        )
+    try:
+        check_flight_controller(flight_controller)
+    except PerchposeError as exc:
+        raise PerchposeError(f"--flight-controller: {exc}") from exc
+    if flight_controller != "model":
+        try:
+            load_firmware()
+        except PerchposeError as exc:
+            raise PerchposeError(f"--flight-controller {flight_controller}: {exc}") from exc
+    if onboard_estimator not in ONBOARD_ESTIMATORS:
+        raise PerchposeError(
+            f"--onboard-estimator: unknown {onboard_estimator!r} "
+            f"(choose {', '.join(ONBOARD_ESTIMATORS)})"
+        )
+    if onboard_estimator != "model":
+        if sensing == "ideal":
+            raise PerchposeError(
+                f"--onboard-estimator {onboard_estimator} flies on realistic senses: "
+                "drop --sensing ideal"
+            )
+        if odometry != "white":
+            raise PerchposeError(
+                f"--odometry {odometry} is the model estimator's error; with "
+                f"--onboard-estimator {onboard_estimator} the odometry is the filter's own: "
+                "drop --odometry"
+            )
+        try:
+            load_firmware()
+        except PerchposeError as exc:
+            raise PerchposeError(f"--onboard-estimator {onboard_estimator}: {exc}") from exc
+
+
+def fixes_setup(setup: PerchSetup, position_fixes: str) -> PerchSetup:
+    """``setup`` with the pilot handing its fixes to the vehicle's estimator (``send``; only
+    a Kalman filter in the loop takes them) or not (``off``)."""
+    fixes = replace(setup.controller.position_fixes, send=position_fixes == "send")
+    return replace(setup, controller=replace(setup.controller, position_fixes=fixes))
+
+
 def senses(setup: PerchSetup) -> str:
     """The campaign's senses in words."""
     if setup.sensing.is_ideal:
@@ -301,6 +359,9 @@ def senses(setup: PerchSetup) -> str:
     low, high = (v * 1000.0 for v in setup.latency_range_s)
     latency = f"{low:.0f} ms" if low == high else f"{low:.0f}-{high:.0f} ms"
     odometry = "flow-deck (correlated)" if setup.sensing.odometry == "flow-deck" else "white-noise"
+    if setup.onboard_estimator == "crazyflie-kalman":
+        fused = ", the camera's fixes fused" if setup.controller.position_fixes.send else ""
+        odometry = f"Kalman-filter (the firmware's{fused})"
     error_ms = setup.sensing.latency_error_s * 1000.0
     stamps = (
         "frames stamped as live sources stamp them, the latency set off by up to "

@@ -7,6 +7,7 @@ import click
 from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress
 from perchpose.cli.group import group
 from perchpose.sim.firmware import FLIGHT_CONTROLLERS
+from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
 
 
 @group.command()
@@ -77,6 +78,24 @@ from perchpose.sim.firmware import FLIGHT_CONTROLLERS
     help="The vehicle's onboard loops: model (this package's) or the Crazyflie firmware's own "
     "controller (needs its Python module cffirmware: ../shared/firmware/install-cffirmware, "
     "GPL-3.0).",
+)
+@click.option(
+    "--onboard-estimator",
+    type=click.Choice(list(ONBOARD_ESTIMATORS)),
+    default="model",
+    show_default=True,
+    help="The vehicle's own state estimate: model (the truth with the --odometry error) or "
+    "the Crazyflie firmware's Kalman filter fed by a simulated IMU, Flow deck and range "
+    "sensor (needs cffirmware, as --flight-controller does).",
+)
+@click.option(
+    "--position-fixes",
+    type=click.Choice(["send", "off"]),
+    default="send",
+    show_default=True,
+    help="Hand each camera fix to the vehicle's own estimator as an external position (as "
+    "cflib's send_extpos does on a Crazyflie); only --onboard-estimator crazyflie-kalman "
+    "takes them.",
 )
 @click.option(
     "--odometry",
@@ -164,6 +183,8 @@ def perch(
     stamps: str,
     odometry: str,
     flight_controller: str,
+    onboard_estimator: str,
+    position_fixes: str,
     latency_error_ms: float,
     time_offset: str,
     faults: str,
@@ -201,6 +222,8 @@ def perch(
         stamps=stamps,
         odometry=odometry,
         flight_controller=flight_controller,
+        onboard_estimator=onboard_estimator,
+        position_fixes=position_fixes,
         overwrite=overwrite,
         faults=faults,
         latency_error_ms=latency_error_ms,

@@ -114,6 +114,14 @@ if TYPE_CHECKING:
     "radio://0/80/2M/E7E7E7E7E7.",
 )
 @click.option(
+    "--position-fixes/--no-position-fixes",
+    default=True,
+    show_default=True,
+    help="The flying pilot hands each camera fix to the vehicle's own estimator as an "
+    "external position (a Crazyflie's Kalman filter: cflib's send_extpos), which corrects a "
+    "Flow deck's drifting velocity; MAVLink autopilots take none.",
+)
+@click.option(
     "--mount",
     "mount_file",
     default=None,
@@ -195,6 +203,7 @@ def track(
     target_system: int | None,
     crazyflie_uri: str | None,
     mount_file: str | None,
+    position_fixes: bool,
     sigmas_file: str | None,
     budget_ms: float | None,
     image_topic: str | None,
@@ -227,6 +236,7 @@ def track(
         target_system,
         crazyflie_uri,
         mount_file,
+        position_fixes,
     )
     options = TrackOptions(
         source,
@@ -268,6 +278,7 @@ def _link_options(
     target_system: int | None,
     crazyflie_uri: str | None,
     mount_file: str | None,
+    position_fixes: bool = True,
 ) -> LinkOptions:
     """The vehicle links asked for; a MAVLink flag without ``--mavlink`` is a usage error."""
     from perchpose.app.links import LinkOptions
@@ -290,6 +301,7 @@ def _link_options(
         target_system=target_system,
         crazyflie_uri=crazyflie_uri,
         mount=mount_file,
+        position_fixes=position_fixes,
     )
 
 

@@ -61,6 +61,7 @@ from numpy.typing import NDArray
 from perchpose.control.disturbance import DisturbanceObserver
 from perchpose.control.history import newest_at
 from perchpose.control.mount import default_T_body_camera
+from perchpose.control.position_fix import PositionFixes, PositionFixSettings
 from perchpose.control.time_offset import TimeOffset, TimeOffsetEstimator, TimeOffsetSettings
 from perchpose.errors import ControllerConfigError, require_non_negative, require_positive
 from perchpose.geometry import angle_diff_rad, wrap_angle_rad, yaw_rad
@@ -156,6 +157,9 @@ class ControllerSettings:
     from the motion both see). correct_time_offset : place each fix at its stamp plus that
     offset while the estimate is trusted (without it the offset is only estimated and
     reported).
+
+    position_fixes : the camera's fixes as the vehicle's position in its odometry frame, for
+    its own estimator (``control.position_fix``; ``Command.position_fix_m``).
     """
 
     k_xy: float = 2.5
@@ -205,6 +209,7 @@ class ControllerSettings:
     T_body_camera: Array = field(default_factory=default_T_body_camera)
     time_offset: TimeOffsetSettings = field(default_factory=TimeOffsetSettings)
     correct_time_offset: bool = True
+    position_fixes: PositionFixSettings = field(default_factory=PositionFixSettings)
 
     def __post_init__(self) -> None:
         positive = (
@@ -348,6 +353,9 @@ class Command:
     yaw_rate_rad_s: float
     phase: Phase
     error_m: Array | None = None
+    # the vehicle's position now as this frame's fix says it (odometry frame), for the
+    # vehicle's own estimator; None: none to send
+    position_fix_m: Array | None = None
 
 
 def _carried(odometry: Odometry, t_s: float) -> Array:
@@ -406,6 +414,8 @@ class PerchingController:
         self._frame_command: Command | None = None
         self._frame_t = -math.inf
         self._offset = TimeOffsetEstimator(self.settings.time_offset)
+        self.position_fixes = PositionFixes(self.settings.position_fixes)
+        self._position_fix: Array | None = None  # this frame's, for its command
 
     def use_velocity_gain(self, gain_per_s: float) -> None:
         """The vehicle's velocity loop now has this gain (the pilot set it): the observer and
@@ -525,13 +535,16 @@ class PerchingController:
             previous = sample
         return self._track[-1][1]
 
-    def _hold_fix(self, t_capture_s: float, d: Array, R_world_body: Array) -> None:
+    def _hold_fix(self, t_capture_s: float, d: Array, R_world_body: Array, p_now_m: Array) -> None:
         """Hold the target's odometry-frame position from a fresh fix captured at
-        ``t_capture_s``."""
+        ``t_capture_s``; the vehicle's position it implies now (``p_now_m``: the odometry's)
+        for the vehicle's estimator."""
         p_capture = self._position_at(t_capture_s)
         if p_capture is None:
             return
         fix = self._magnet_odom(p_capture, R_world_body) + d
+        if self.settings.position_fixes.send:
+            self._position_fix = self.position_fixes.fix(fix, p_now_m)
         if self._target_odom is None:
             self._target_odom = fix
         else:
@@ -613,6 +626,7 @@ class PerchingController:
         self._remember_attitude(t_s - attitude_age_s, R_world_body)
         if odometry is not None:
             self._offset.position(odometry.t_s, odometry.p_m)
+        self._position_fix = None
         command = self._command(estimate, t_s, R_world_body, odometry)
         steered = command.phase in STEERED and command.error_m is not None
         self._frame_command = command if steered else None
@@ -624,6 +638,7 @@ class PerchingController:
             command.yaw_rate_rad_s,
             command.phase,
             command.error_m,
+            self._position_fix,
         )
 
     def between_frames(
@@ -697,7 +712,7 @@ class PerchingController:
             if measured:
                 self._recent.append(d)
                 if odometry is not None:
-                    self._hold_fix(t_capture, d, R_capture)
+                    self._hold_fix(t_capture, d, R_capture, _carried(odometry, t_s))
             held = self._held_error(t_s, R_world_body, odometry, s.hold_target_s)
             error = held if held is not None else d
             return self._steer(error, yaw_rate, t_s, odometry)

@@ -141,6 +141,16 @@ class VelocityGainSetter(Protocol):
         ...
 
 
+@runtime_checkable
+class PositionFixSender(Protocol):
+    """A commander that hands the vehicle's own state estimator an external position (world
+    frame of its odometry, m), as a motion-capture system does."""
+
+    def send_position_fix(self, p_world_m: tuple[float, float, float]) -> bool:
+        """Send it; False where the vehicle takes none (nothing was sent)."""
+        ...
+
+
 @dataclass(frozen=True)
 class PilotStep:
     """What the pilot did for one frame or tick: its state and the setpoint sent (None: nothing)."""
@@ -200,6 +210,7 @@ class PerchingPilot:
         self.report = report or log.warning
         self.state = PilotState.WAITING
         self._gain_raised = False
+        self._fixes_taken = True  # until the commander says its vehicle takes none
         self.transitions: list[tuple[float, PilotState, PilotState]] = []
         self.replaced_setpoints = 0
         self.silences = 0  # times the camera's watchdog fired
@@ -583,7 +594,23 @@ class PerchingPilot:
         command: Command = self.controller.update(
             estimate, t_s, R_world_body, odometry, self._age("attitude")
         )
+        self._send_fix(command)
         return self._follow(command, t_s)
+
+    def _send_fix(self, command: Command) -> None:
+        """Hand the vehicle's estimator the position this frame's fix says, where it takes
+        them (said once where it does not)."""
+        fix = command.position_fix_m
+        if (
+            fix is None
+            or not self._fixes_taken
+            or not isinstance(self.commander, PositionFixSender)
+        ):
+            return
+        x, y, z = (float(v) for v in fix)
+        if not self.commander.send_position_fix((x, y, z)):
+            self._fixes_taken = False
+            self.report("pilot: the vehicle takes no position fixes: its estimator flies alone")
 
     def _follow(self, command: Command, t_s: float) -> PilotStep:
         """The state the controller's command leads to, and the setpoint sent in it."""

@@ -369,6 +369,7 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "stamps": setup.stamps,
         "faults": list(setup.faults),
         "flight_controller": setup.flight_controller,
+        "onboard_estimator": setup.onboard_estimator,
         "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
     }
 
@@ -626,7 +627,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "sensing": setup.sensing.name,
         "odometry": None if setup.sensing.is_ideal else setup.sensing.odometry,
         "flight_controller": setup.flight_controller,
-        "onboard_estimator": "model",
+        "onboard_estimator": setup.onboard_estimator,
         "stamps": setup.stamps,
         "faults": list(setup.faults),
         "fps": setup.fps,

@@ -33,15 +33,22 @@ class CflibCommander:
     frame of the Crazyflie's state estimator (z up, m/s) with the yaw rate in deg/s
     (``send_velocity_world_setpoint``); a stop cuts the motors and hands the setpoint priority
     back to the high-level commander (``send_stop_setpoint``, ``send_notify_setpoint_stop``).
+    With cflib's ``Extpos`` (``extpos``) it hands the Kalman filter the camera's fixes as an
+    external position.
 
     With cflib's ``Param`` (``param``) it sets the firmware's horizontal velocity gains
     (``velCtlPid.vxKp``, ``vyKp``: degrees of tilt per m/s of error; g tan(kp) per m/s is the
     loop's gain, so 25 is about 4.3 /s) and gives back the values it read before."""
 
     def __init__(
-        self, commander: Any, param: Any = None, own_gains: dict[str, str] | None = None
+        self,
+        commander: Any,
+        param: Any = None,
+        own_gains: dict[str, str] | None = None,
+        extpos: Any = None,
     ) -> None:
         self.commander = commander
+        self.extpos = extpos
         self.param = param
         self.own_gains = own_gains or {}  # the vehicle's velocity gains, read at connection
 
@@ -76,6 +83,16 @@ class CflibCommander:
     def send_land(self) -> bool:
         """The Crazyflie's low-level setpoints have no landing of their own to hand over to."""
         return False
+
+    def send_position_fix(self, p_world_m: tuple[float, float, float]) -> bool:
+        """The camera's fix to the Crazyflie's Kalman filter as an external position
+        (``send_extpos``, fused with ``locSrv.extPosStdDev``); False without cflib's
+        ``Extpos``."""
+        if self.extpos is None:
+            return False
+        x, y, z = p_world_m
+        self.extpos.send_extpos(x, y, z)
+        return True
 
 
 class CrazyflieConnection:
@@ -243,7 +260,7 @@ class CrazyflieConnection:
     def pilot(self, **kwargs: Any) -> PerchingPilot:
         """A pilot on this link, told about a link loss."""
         pilot = PerchingPilot(
-            CflibCommander(self.cf.commander, self.cf.param, self.own_gains),
+            CflibCommander(self.cf.commander, self.cf.param, self.own_gains, self.cf.extpos),
             self.attitude,
             height_m=self.height_m,
             odometry=self.odometry,

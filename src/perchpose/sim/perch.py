@@ -38,8 +38,9 @@ from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad
 from perchpose.sim.contact import Contact, ContactRules, PlateContact, tilt_deg
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.faults import LEVEL_AFTER_S, MOTORS_OFF_AFTER_S, Fault, check_faults
-from perchpose.sim.firmware import FirmwareQuadrotor, check_flight_controller
+from perchpose.sim.firmware import FirmwareQuadrotor, check_flight_controller, load_firmware
 from perchpose.sim.flow_deck import FlowDeckError
+from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses, check_onboard_estimator
 from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
@@ -130,9 +131,11 @@ class PerchSetup:
     stamps: str = "live"
     faults: tuple[str, ...] = ()
     flight_controller: str = "model"
+    onboard_estimator: str = "model"
 
     def __post_init__(self) -> None:
         check_flight_controller(self.flight_controller)
+        check_onboard_estimator(self.onboard_estimator)
         if self.stamps not in STAMPS:
             raise VehicleConfigError(f"unknown stamps {self.stamps!r} (choose live or exact)")
         check_faults(self.faults)
@@ -296,7 +299,8 @@ class HeldSetpoint:
     reaches the vehicle ``delay_s`` later (the radio uplink); ``deliver`` hands over what has
     arrived by now, ``next_arrival_s`` says when the next will. ``velocity_gain`` sets the
     vehicle's horizontal velocity gain (None: its own back) and says whether it could, as a
-    parameter set over the link does."""
+    parameter set over the link does. ``position_fix`` hands the vehicle's estimator an
+    external position as it arrives (None: the vehicle's estimator takes none)."""
 
     def __init__(
         self,
@@ -304,8 +308,11 @@ class HeldSetpoint:
         link_up: Callable[[], bool] = lambda: True,
         delay_s: float = 0.0,
         velocity_gain: Callable[[float | None], bool] = lambda _gain: False,
+        position_fix: Callable[[Array], None] | None = None,
     ) -> None:
         self.velocity_gain = velocity_gain
+        self.position_fix = position_fix
+        self._fixes: deque[tuple[float, Array]] = deque()  # on their way: (arrival, position)
         self.v_mps = np.zeros(3)
         self.yaw_rate_rad_s = 0.0
         self.clock = clock
@@ -332,9 +339,23 @@ class HeldSetpoint:
             self.received_s = arrived_s
             self.v_mps, self.yaw_rate_rad_s = v_mps, yaw_rate
             self.stopped = self.stopped or stop
+        while self._fixes and self._fixes[0][0] <= now + 1e-12:
+            _, p_m = self._fixes.popleft()
+            if self.position_fix is not None:
+                self.position_fix(p_m)
 
     def next_arrival_s(self) -> float | None:
-        return self._pending[0][0] if self._pending else None
+        heads = [q[0][0] for q in (self._pending, self._fixes) if q]
+        return min(heads) if heads else None
+
+    def send_position_fix(self, p_world_m: tuple[float, float, float]) -> bool:
+        """An external position for the vehicle's estimator, over the same uplink."""
+        if self.position_fix is None:
+            return False
+        if self.link_up():
+            self._fixes.append((self.clock() + self.delay_s, np.array(p_world_m, np.float64)))
+            self.deliver()
+        return True
 
     def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
         self._send(np.array(v_world_mps, np.float64), yaw_rate_rad_s, False)
@@ -426,6 +447,25 @@ def _draw_senses(
     )
 
 
+def _onboard_kalman(
+    setup: PerchSetup, vehicle: Quadrotor, seed: np.random.SeedSequence
+) -> CrazyflieKalman | None:
+    """The firmware's Kalman filter flying ``vehicle`` (settled on it), where the setup asks
+    for it; None: the model's estimate."""
+    if setup.onboard_estimator != "crazyflie-kalman":
+        return None
+    kalman = CrazyflieKalman(
+        load_firmware(),
+        KalmanSenses(),
+        setup.sensing.flow_deck,
+        np.random.default_rng(seed),
+        vehicle,
+    )
+    kalman.settle(vehicle)
+    vehicle.estimator = kalman
+    return kalman
+
+
 def set_on_floor(vehicle: Quadrotor) -> bool:
     """Stand a vehicle whose feet met the floor on it, still; True if it came down softly,
     False if it fell (faster than ``FLOOR_CRASH_MPS`` or tilted over 30 degrees)."""
@@ -460,11 +500,10 @@ class _Flight:
         renderer: Renderer[TargetSpec],
         plant: Plant = Quadrotor.hovering,
     ) -> None:
-        self.setup = setup
-        self.seed = seed
+        self.setup, self.seed = setup, seed
         # the senses draw from a third generator: ideal senses fly the worlds they always did;
         # the latency the user measured from a fourth (exact stamps fly what they always did)
-        seeds = np.random.SeedSequence(seed).spawn(9)
+        seeds = np.random.SeedSequence(seed).spawn(10)
         world_seq, camera_seq, senses_seq, stamps_seq, faults_seq, range_seq, flow_seq = seeds[:7]
         self.fault = Fault.draw(setup.faults, np.random.default_rng(faults_seq))
         self.range_rng = np.random.default_rng(range_seq)
@@ -482,6 +521,7 @@ class _Flight:
         self.vehicle.attitude_bias = self.draw.attitude_bias
         self.vehicle.thrust_scale = self.draw.thrust_scale(0.0)
         self.vehicle.settle()
+        self.kalman = _onboard_kalman(setup, self.vehicle, seeds[9])
         self.senses: SensingDraw | None = None
         self.T_body_camera = np.asarray(setup.controller.T_body_camera, np.float64)
         flow_noise = 0.0
@@ -497,12 +537,7 @@ class _Flight:
         self.estimator = _estimator_for(
             setup, self.senses.camera if self.senses is not None else setup.camera
         )
-        self.commander = HeldSetpoint(
-            lambda: self.now_s,
-            lambda: not self.faulty("link-loss", self.now_s),
-            0.0 if self.senses is None else self.senses.uplink_delay_s,
-            self.vehicle.set_velocity_gain,
-        )
+        self.commander = self._commander()
         self.resting = False  # on the floor, its weight on its feet
         self.motor_stop_height_m = math.nan  # above what it rests on, once the motors stop
         self.motors_stopped = False
@@ -539,6 +574,22 @@ class _Flight:
         self.stamp_errors: list[tuple[float, float]] = []
         self.offset_at: OffsetReport | None = None  # the estimate after OFFSET_AT_S
 
+    def _commander(self) -> HeldSetpoint:
+        """The vehicle's end of the link: setpoints (and position fixes, where its Kalman
+        filter takes them) after the uplink's delay, none while the link is lost."""
+        return HeldSetpoint(
+            lambda: self.now_s,
+            lambda: not self.faulty("link-loss", self.now_s),
+            0.0 if self.senses is None else self.senses.uplink_delay_s,
+            self.vehicle.set_velocity_gain,
+            None if self.kalman is None else self._position_fix,
+        )
+
+    def _position_fix(self, p_m: Array) -> None:
+        """An external position reaches the vehicle's Kalman filter."""
+        assert self.kalman is not None
+        self.kalman.external_position(p_m, self.setup.controller.position_fixes.std_m)
+
     def faulty(self, kind: str, t_s: float) -> bool:
         """The run's fault is ``kind`` and is on at ``t_s``."""
         return self.fault is not None and self.fault.kind == kind and self.fault.active(t_s)
@@ -559,8 +610,15 @@ class _Flight:
     def motion(self) -> tuple[Array, Array]:
         """The odometry the pilot has now (position, velocity), as it arrives."""
         if self.sensed is None:
-            return self.odometry.p_m, self.odometry.v_mps
+            return self._odometry_now()
         return self.sensed.odometry(self._through("odometry"))
+
+    def _odometry_now(self) -> tuple[Array, Array]:
+        """The flight controller's position and velocity estimate now: its Kalman filter's,
+        or the odometry model's."""
+        if self.kalman is not None:
+            return self.kalman.position_m, self.kalman.velocity_mps
+        return self.odometry.p_m, self.odometry.v_mps
 
     def specific_force(self) -> Array | None:
         """The accelerometer's sample the pilot has now (body frame), as it arrives."""
@@ -576,6 +634,8 @@ class _Flight:
         before faults were flown."""
         if not self.setup.to_motor_stop:
             return float(self.motion()[0][2])
+        if self.kalman is not None:
+            return float(self.kalman.position[2]) - REST_Z_M
         h = float(self.vehicle.p_m[2]) - REST_Z_M
         if self.sensed is None:
             return h
@@ -593,12 +653,12 @@ class _Flight:
         """The flight controller makes a sample of its state now (realistic senses only)."""
         if self.sensed is None:
             return
-        R = noisy_attitude(
-            self.vehicle.R_estimate, self.setup.sensing.attitude_noise_deg, self.senses_rng
-        )
+        R = self.vehicle.R_estimate
+        if self.kalman is None:  # the model's estimate has no noise of its own
+            R = noisy_attitude(R, self.setup.sensing.attitude_noise_deg, self.senses_rng)
         assert self.accelerometer is not None
         f_body = self.accelerometer.read(self.vehicle.specific_force_body_mps2)
-        self.sensed.record(t_s, R, self.odometry.p_m, self.odometry.v_mps, f_body)
+        self.sensed.record(t_s, R, *self._odometry_now(), f_body)
 
     def frames_late(self) -> int:
         """How many frame periods after its capture this frame reaches the pilot: the
@@ -705,9 +765,13 @@ class _Flight:
         if s.to_motor_stop and not self.motors_stopped and stops:
             self.motors_stopped = True  # the pilot's stop, or the vehicle's own watchdog
             self.motor_stop_height_m = 0.0 if self.resting else float(v.p_m[2]) - REST_Z_M
+            if self.kalman is not None:
+                self.kalman.flying = False
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
         if self.resting and (self.motors_stopped or v_sp[2] <= 0.0):
             self._follow(dt_s * steps)  # on the floor, still
+            if self.kalman is not None:
+                self.kalman.advance(dt_s * steps, v)
             return None
         self.resting = False
         v.thrust_scale = (0.0,) * 4 if self.motors_stopped else self.draw.thrust_scale(t_s)
@@ -723,7 +787,10 @@ class _Flight:
         return contact
 
     def _follow(self, dt_s: float) -> None:
-        """The odometry follows the vehicle through ``dt_s``."""
+        """The odometry model follows the vehicle through ``dt_s`` (a Kalman filter in the
+        loop follows it step by step in ``Quadrotor.fly``)."""
+        if self.kalman is not None:
+            return
         v = self.vehicle
         self.odometry.update(v.p_m, v.v_mps, dt_s, v.R_world_body, v.omega_rad_s)
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -149,6 +150,16 @@ Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, Vec3, Vec3]
 
 
+class OnboardEstimate(Protocol):
+    """A flight controller's state estimator in the loop (``sim.onboard_kalman``): what the
+    onboard loops fly, advanced after each physics step with the vehicle's true state."""
+
+    velocity: Vec3  # world frame, m/s
+    attitude: Mat3  # R_world_body
+
+    def advance(self, dt_s: float, vehicle: Quadrotor) -> None: ...
+
+
 class Quadrotor:
     """The vehicle's state and its integration. ``p_m``, ``v_mps`` in the world frame;
     ``R_world_body``; ``omega_rad_s`` in the body frame; ``rotor_speed_rad_s`` per rotor.
@@ -185,6 +196,9 @@ class Quadrotor:
         self.wind_mps: Vec3 = (0.0, 0.0, 0.0)
         self.thrust_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
         self._bias: Mat3 | None = None
+        # the flight controller's own estimator (None: the truth, ``attitude_bias`` and the
+        # velocity estimate ``fly`` is given)
+        self.estimator: OnboardEstimate | None = None
         self._vi: Vec3 = (0.0, 0.0, 0.0)  # the onboard velocity integral, m/s^2
         self._k_xy = self.gains.k_velocity  # the horizontal velocity gain (a parameter), 1/s
         self._f_body: Vec3 = (0.0, 0.0, GRAVITY_MPS2)  # the accelerometer, low-passed
@@ -268,8 +282,14 @@ class Quadrotor:
 
     @property
     def R_estimate(self) -> Array:
-        """The flight controller's attitude estimate: ``R_world_body @ attitude_bias``."""
-        return self.R_world_body @ self.attitude_bias
+        """The flight controller's attitude estimate: its ``estimator``'s, or
+        ``R_world_body @ attitude_bias``."""
+        return np.array(self._attitude_estimate())
+
+    def _attitude_estimate(self) -> Mat3:
+        if self.estimator is not None:
+            return self.estimator.attitude
+        return self._R if self._bias is None else _product(self._R, self._bias)
 
     @property
     def yaw_rad(self) -> float:
@@ -344,13 +364,18 @@ class Quadrotor:
         touched: Callable[[Quadrotor], bool] | None = None,
     ) -> int | None:
         """``n_steps`` steps of the onboard loops and the dynamics with the same setpoint and
-        velocity estimate. Stops after the step on which ``touched`` says the vehicle touched
-        something (``perchpose.sim.contact``) and returns that step's index; otherwise returns
-        None."""
+        velocity estimate (with an ``estimator``: its velocity, step by step). Stops after the
+        step on which ``touched`` says the vehicle touched something (``perchpose.sim.contact``)
+        and returns that step's index; otherwise returns None."""
         v_sp, v_est, yaw_rate = _vec3(v_sp_mps), _vec3(v_estimate_mps), float(yaw_rate_sp)
+        estimator = self.estimator
         for i in range(n_steps):
+            if estimator is not None:
+                v_est = estimator.velocity
             self._integrate_velocity_error(dt_s, v_sp, v_est)
             self._advance(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
+            if estimator is not None:
+                estimator.advance(dt_s, self)
             if touched is not None and touched(self):
                 return i
         return None
@@ -398,8 +423,7 @@ class Quadrotor:
             fy *= max_h / horizontal
         norm = math.sqrt(fx * fx + fy * fy + fz * fz)
         zx, zy, zz = fx / norm, fy / norm, fz / norm
-        R = self._R if self._bias is None else _product(self._R, self._bias)
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._attitude_estimate()
         yaw = math.atan2(r10, r00)
         cx, cy = math.cos(yaw), math.sin(yaw)
         # y_b = z_b x x_c, normalised; x_b = y_b x z_b: the columns of R_des

@@ -1,0 +1,87 @@
+"""The camera's fixes handed to the vehicle's own state estimator as an external position.
+
+A vehicle's own estimator (the Crazyflie's Kalman filter on a Flow deck) flies its velocity
+loop on a velocity whose error is correlated over a tenth of a second or more and, in wind,
+biased (its model has no drag): the vehicle moves, its odometry does not see it, and only the
+camera does, a latency later. The target does not move, so each fix says where the vehicle
+is: the target's place in the odometry frame, anchored once from the first fixes, less the
+vector the fix measured. Fused by the vehicle's filter (cflib's ``send_extpos``, what a
+motion-capture system sends), that corrects the velocity where the vehicle's loop runs.
+
+Each fix is the odometry's position now, moved by how far the target seems to have moved in
+the odometry frame since it was anchored: ``p_now + (anchor - target_from_fix)``; the fix was
+placed with the odometry's position at its capture time, so the latency does not enter. A fix
+further than ``max_jump_m`` from the vehicle's own estimate is not sent (an outlier); after
+``reanchor_after`` of those in a row (the odometry drifted while the target was out of
+sight), the target's place is anchored afresh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perchpose.errors import ControllerConfigError
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PositionFixSettings:
+    """send : hand each measured fix to the vehicle's estimator where the link can.
+    anchor_fixes : fixes averaged into the target's place before the first is sent.
+    max_jump_m : a fix further than this from the vehicle's own estimate is not sent.
+    reanchor_after : that many refused in a row anchor the target afresh. std_m : the spread
+    the vehicle's filter is told a fix has (the Crazyflie's ``locSrv.extPosStdDev`` default)."""
+
+    send: bool = True
+    anchor_fixes: int = 10
+    max_jump_m: float = 0.1
+    reanchor_after: int = 10
+    std_m: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.anchor_fixes < 1 or self.reanchor_after < 1:
+            raise ControllerConfigError("anchor_fixes and reanchor_after must be >= 1")
+        if not (self.max_jump_m > 0 and self.std_m > 0):
+            raise ControllerConfigError("max_jump_m and std_m must be positive")
+
+
+class PositionFixes:
+    """The vehicle's position from each fix, in its odometry frame (``fix``)."""
+
+    def __init__(self, settings: PositionFixSettings | None = None) -> None:
+        self.settings = settings or PositionFixSettings()
+        self.anchor_m: Array | None = None
+        self._first: list[Array] = []
+        self._refused = 0
+        self.sent = 0
+        self.refused = 0
+
+    def fix(self, target_odom_m: Array, p_now_m: Array) -> Array | None:
+        """The vehicle's position now as a fix says it: ``target_odom_m`` is the target's
+        place in the odometry frame from this fix (placed with the odometry at its capture),
+        ``p_now_m`` the odometry's position now. None while anchoring or for an outlier."""
+        s = self.settings
+        target = np.asarray(target_odom_m, np.float64)
+        if not (np.all(np.isfinite(target)) and np.all(np.isfinite(p_now_m))):
+            return None
+        if self.anchor_m is None:
+            self._first.append(target)
+            if len(self._first) >= s.anchor_fixes:
+                self.anchor_m = np.mean(self._first, axis=0)
+                self._first = []
+            return None
+        shift = self.anchor_m - target
+        if float(np.linalg.norm(shift)) > s.max_jump_m:
+            self.refused += 1
+            self._refused += 1
+            if self._refused >= s.reanchor_after:
+                self.anchor_m, self._refused = None, 0
+            return None
+        self._refused = 0
+        self.sent += 1
+        position: Array = np.asarray(p_now_m, np.float64) + shift
+        return position
