@@ -1,4 +1,3 @@
-import importlib
 import json
 import math
 from pathlib import Path
@@ -14,17 +13,8 @@ from perchpose.sim.quadrotor import QuadrotorParams
 DT = 1 / 500
 
 
-def test_without_the_firmware_module_the_error_says_how_to_build_it(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
-    real = importlib.import_module
-
-    def missing(name: str, package: str | None = None) -> object:
-        if name == "cffirmware":
-            raise ImportError("No module named 'cffirmware'")
-        return real(name, package)
-
-    monkeypatch.setattr(importlib, "import_module", missing)
+@pytest.mark.usefixtures("without_cffirmware")
+def test_without_the_firmware_module_the_error_says_how_to_build_it(tmp_path: Path) -> None:
     with pytest.raises(VehicleConfigError, match="install-cffirmware"):
         firmware.load_firmware()
     options = PerchOptions(

@@ -1,4 +1,3 @@
-import importlib
 import json
 import math
 from pathlib import Path
@@ -87,17 +86,8 @@ def test_bad_senses_and_estimators_are_refused(tmp_path: Path) -> None:
         run(PerchOptions(str(tmp_path), runs=1, onboard_estimator=kalman, odometry="flow-deck"))
 
 
-def test_without_the_firmware_module_the_estimator_says_how_to_build_it(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
-    real = importlib.import_module
-
-    def missing(name: str, package: str | None = None) -> object:
-        if name == "cffirmware":
-            raise ImportError("No module named 'cffirmware'")
-        return real(name, package)
-
-    monkeypatch.setattr(importlib, "import_module", missing)
+@pytest.mark.usefixtures("without_cffirmware")
+def test_without_the_firmware_module_the_estimator_says_how_to_build_it(tmp_path: Path) -> None:
     options = PerchOptions(
         str(tmp_path), estimators="truth", runs=1, onboard_estimator="crazyflie-kalman"
     )
