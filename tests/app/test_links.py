@@ -54,3 +54,25 @@ def test_landing_target_goes_out_and_the_link_closes(udp_port: int) -> None:
         assert received[0].distance == pytest.approx(0.5, abs=0.01)
     finally:
         vehicle.close()
+
+
+def test_the_end_of_a_flight_says_the_fixes_given_to_the_vehicle() -> None:
+    import numpy as np
+
+    from perchpose.app.links import VehicleLinks
+    from perchpose.control import ControllerSettings, PerchingController
+    from perchpose.control.position_fix import PositionFixSettings
+
+    said: list[str] = []
+    quiet = VehicleLinks(controllers=[PerchingController()])
+    quiet.say_fixes(said.append)
+    assert said == []  # nothing made, nothing said
+    settings = ControllerSettings(position_fixes=PositionFixSettings(anchor_fixes=1))
+    controller = PerchingController(settings)
+    for target in ([0.0, 0.0, 2.0], [0.01, 0.0, 2.0], [0.5, 0.0, 2.0]):
+        controller.position_fixes.fix(np.array(target), np.zeros(3))
+    VehicleLinks(controllers=[controller]).say_fixes(said.append)
+    assert said == [
+        "position fixes for the vehicle's estimator: 1 made, 1 held back as over 0.1 m from "
+        "its own estimate"
+    ]
