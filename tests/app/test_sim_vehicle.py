@@ -131,6 +131,7 @@ def test_bad_options_are_one_line_each():
         serve(SimVehicleOptions(fps=math.nan), print)
 
 
+@pytest.mark.slow
 def test_track_perches_on_it_end_to_end(tmp_path: Path, udp_port: int):
     """Its stream tracked and its link flown by ``track --mavlink-pilot``: the pilot takes
     over in GUIDED and the vehicle climbs to the plate (on this loaded machine, real time)."""

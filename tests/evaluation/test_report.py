@@ -67,6 +67,7 @@ def test_table1_rows_in_view_meet_the_papers_bound(quick_run: Path) -> None:
         assert abs(row["max_abs_error"][3]) <= 3.0
 
 
+@pytest.mark.slow
 def test_same_seed_same_numbers(quick_run: Path, tmp_path: Path) -> None:
     from perchpose.evaluation.report import run_paper_evaluation
 

@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 _SCRIPT = """
 import sys
 sys.modules["scipy"] = None  # as on a plain install (scipy comes only with the dev extras)
@@ -23,6 +25,7 @@ assert estimate.valid
 """
 
 
+@pytest.mark.slow
 def test_the_kernels_compile_and_run_without_scipy(tmp_path: Path) -> None:
     """numba's matrix products and linear algebra call scipy's BLAS, which ``pip install .``
     does not bring: every kernel a frame runs through (the fisheye lens, the edge fit, the

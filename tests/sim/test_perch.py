@@ -276,6 +276,7 @@ def test_perch_scheduler_that_is_another_service(
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_moderate_wind_needs_the_disturbance_rejection() -> None:
     """The same eight moderate-wind runs (true pose): the controller as built perches them;
     without any of its disturbance rejection (the observer, the accelerometer's push fed
@@ -300,6 +301,7 @@ def test_moderate_wind_needs_the_disturbance_rejection() -> None:
             assert r.contact_speed_mps < 0.3
 
 
+@pytest.mark.slow
 def test_latency_is_flown_with_the_attitude_at_capture(monkeypatch: pytest.MonkeyPatch) -> None:
     """167 ms of camera latency (5 frames), still air, the true pose: each fix placed in the
     world with the attitude the vehicle had when its frame was captured perches every run;
