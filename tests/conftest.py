@@ -21,6 +21,7 @@ from perchpose.sim.render import Renderer
 from perchpose.sim.scenarios import approach
 from perchpose.sim.sequence import write_sequence
 
+
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: a worker more than the cores. Several tests wait on real time (loopback
     links, flights paced by the clock) while holding their worker; the extra one keeps the
