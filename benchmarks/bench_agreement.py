@@ -1,0 +1,115 @@
+"""The model's onboard loops against the Crazyflie firmware's, side by side: a velocity step
+and a gust.
+
+    .venv/bin/python benchmarks/bench_agreement.py [--out docs/agreement.png]
+
+Three vehicles hover 1.9 m up (where the plate is): this package's model of the flight
+controller (``sim.quadrotor``, stock velocity gain 4.3 /s), the firmware's PID
+(``sim.firmware``, ``crazyflie-pid``, its stock gains), both flying the true velocity and
+attitude, and the firmware's PID flying its own Kalman filter on a simulated IMU, Flow deck
+and range sensor (``sim.onboard_kalman``). Each is asked for 0.3 m/s along x (cflib's world
+velocity setpoint) for 2 s; then, hovering afresh, a 3 m/s wind along x starts at once and
+blows for 3 s (the moderate level's mean, with no turbulence). The figure shows the velocity
+in the step and the drift in the gust; the lines say the step's time to 63 % and its
+overshoot, and the gust's largest drift and where it settles. Needs ``cffirmware``
+(``../shared/firmware/install-cffirmware``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from perchpose.sim.firmware import FirmwareQuadrotor, load_firmware  # noqa: E402
+from perchpose.sim.flow_deck import FlowDeck  # noqa: E402
+from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses  # noqa: E402
+from perchpose.sim.quadrotor import Quadrotor, QuadrotorParams  # noqa: E402
+
+DT = 1 / 500
+START = np.array([0.0, 0.0, 1.9])
+STEP_MPS = 0.3
+STEP_S = 2.0
+WIND_MPS = 3.0
+GUST_S = 3.0
+
+
+def model() -> Quadrotor:
+    return Quadrotor.hovering(QuadrotorParams(), START, 0.0)
+
+
+def firmware() -> Quadrotor:
+    q = FirmwareQuadrotor.hovering_on_firmware(
+        "crazyflie-pid", 500.0, QuadrotorParams(), START, 0.0
+    )
+    q.settle()
+    return q
+
+
+def firmware_on_kalman() -> Quadrotor:
+    q = firmware()
+    kalman = CrazyflieKalman(
+        load_firmware(), KalmanSenses(), FlowDeck(), np.random.default_rng(1), q
+    )
+    kalman.settle(q)
+    q.estimator = kalman
+    return q
+
+
+VEHICLES: dict[str, Callable[[], Quadrotor]] = {
+    "model": model,
+    "firmware PID": firmware,
+    "firmware PID on its Kalman filter": firmware_on_kalman,
+}
+
+
+def fly(q: Quadrotor, seconds: float, v_sp: tuple[float, float, float]) -> np.ndarray:
+    """(t, x, vx) at each step."""
+    rows = []
+    for i in range(round(seconds / DT)):
+        q.fly(DT, 1, np.array(v_sp), 0.0, q.v_mps)
+        rows.append((i * DT, float(q.p_m[0]), float(q.v_mps[0])))
+    return np.array(rows)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="docs/agreement.png")
+    args = parser.parse_args()
+    fig, (ax_step, ax_gust) = plt.subplots(1, 2, figsize=(10, 3.8))
+    for name, make in VEHICLES.items():
+        step = fly(make(), STEP_S, (STEP_MPS, 0.0, 0.0))
+        t, vx = step[:, 0], step[:, 2]
+        rise_s = float(t[np.argmax(vx >= 0.63 * STEP_MPS)])
+        overshoot = max(0.0, float(vx.max()) / STEP_MPS - 1.0)
+        q = make()
+        q.wind_mps = (WIND_MPS, 0.0, 0.0)
+        gust = fly(q, GUST_S, (0.0, 0.0, 0.0))
+        drift_mm = 1000.0 * (gust[:, 1] - START[0])
+        print(
+            f"{name}: step 63 % in {rise_s:.3f} s, overshoot {100 * overshoot:.0f} %; "
+            f"gust drift max {np.abs(drift_mm).max():.0f} mm, after {GUST_S:g} s "
+            f"{drift_mm[-1]:.0f} mm"
+        )
+        ax_step.plot(t, vx, label=name)
+        ax_gust.plot(gust[:, 0], drift_mm, label=name)
+    ax_step.axhline(STEP_MPS, color="grey", lw=0.8, ls="--")
+    ax_step.set(xlabel="time (s)", ylabel="velocity x (m/s)", title=f"{STEP_MPS} m/s asked along x")
+    ax_gust.set(
+        xlabel="time (s)",
+        ylabel="drift x (mm)",
+        title=f"a {WIND_MPS:g} m/s wind starts, hover asked",
+    )
+    ax_step.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
