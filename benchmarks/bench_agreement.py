@@ -23,13 +23,13 @@ from collections.abc import Callable
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from perchpose.sim.firmware import FirmwareQuadrotor, load_firmware  # noqa: E402
-from perchpose.sim.flow_deck import FlowDeck  # noqa: E402
-from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses  # noqa: E402
-from perchpose.sim.quadrotor import Quadrotor, QuadrotorParams  # noqa: E402
+from perchpose.sim.firmware import FirmwareQuadrotor, load_firmware
+from perchpose.sim.flow_deck import FlowDeck
+from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses
+from perchpose.sim.quadrotor import Quadrotor, QuadrotorParams
 
 DT = 1 / 500
 START = np.array([0.0, 0.0, 1.9])
