@@ -21,9 +21,11 @@ from perchpose.control.pilot import (
     PilotSettings,
     PilotState,
     PilotStep,
+    PositionFixSender,
     SenseAges,
     VehicleCommander,
 )
+from perchpose.control.position_fix import PositionFixSettings
 from perchpose.control.setpoint import Setpoint, SetpointLimits, safe_setpoint
 from perchpose.errors import ControllerConfigError
 
@@ -39,6 +41,8 @@ __all__ = [
     "PilotSettings",
     "PilotState",
     "PilotStep",
+    "PositionFixSender",
+    "PositionFixSettings",
     "SenseAges",
     "Setpoint",
     "SetpointLimits",
