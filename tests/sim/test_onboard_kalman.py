@@ -1,15 +1,18 @@
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from perchpose.app.perch import PerchOptions, run
+from perchpose.app.inputs import load_camera
+from perchpose.app.perch import PerchCampaign, PerchOptions, run
 from perchpose.errors import PerchposeError, SensingConfigError
 from perchpose.sim import onboard_kalman
 from perchpose.sim.flow_deck import FlowDeck
 from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses, range_std_m
+from perchpose.sim.perch import run_perch
 from perchpose.sim.quadrotor import Quadrotor, QuadrotorParams
 
 DT = 1 / 500
@@ -112,3 +115,21 @@ def test_a_campaign_on_the_firmware_kalman_says_so(tmp_path: Path) -> None:
     assert "Kalman-filter (the firmware's, the camera's fixes fused) odometry" in said[-1]
     setup = json.loads((tmp_path / "perch.json").read_text())["setup"]
     assert setup["onboard_estimator"] == "crazyflie-kalman"
+
+
+def test_the_fixes_fused_by_the_filter_are_what_lets_it_perch() -> None:
+    """Still air, the true pose, realistic senses: on the firmware's filter the pilot perches
+    when its fixes reach the filter and, the same run without them, never meets the capture
+    cone (the filter's drift, which only the camera sees)."""
+    pytest.importorskip("cffirmware")
+    campaign = PerchCampaign.from_options(
+        load_camera("preset:fpv"), estimators="truth", runs=1, onboard_estimator="crazyflie-kalman"
+    )
+    setup = campaign.setups[0]
+    fused = run_perch(setup, 960002)
+    assert fused.success, fused.reason
+    off = replace(setup.controller.position_fixes, send=False)
+    alone = run_perch(
+        replace(setup, controller=replace(setup.controller, position_fixes=off)), 960002
+    )
+    assert alone.reason == "timeout"
