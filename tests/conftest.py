@@ -21,14 +21,6 @@ from perchpose.sim.render import Renderer
 from perchpose.sim.scenarios import approach
 from perchpose.sim.sequence import write_sequence
 
-
-def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """``-n auto``: a worker more than the cores. Several tests wait on real time (loopback
-    links, flights paced by the clock) while holding their worker; the extra one keeps the
-    cores busy meanwhile (2 cores: 4 min 27 s against 5 min 2 s with two workers)."""
-    return (os.cpu_count() or 1) + 1
-
-
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv_charuco"
 
 
