@@ -38,7 +38,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,7 +45,7 @@ from numpy.typing import NDArray
 from perchpose.errors import SensingConfigError, require_non_negative
 from perchpose.geometry import rotation_from_quaternion
 from perchpose.sim.flow_deck import APERTURE_RAD, EDGE_PX, WINDOW_PX, FlowDeck
-from perchpose.sim.quadrotor import GRAVITY_MPS2, Quadrotor
+from perchpose.sim.quadrotor import GRAVITY_MPS2, Quadrotor, mat3
 
 Array = NDArray[np.float64]
 Vec3 = tuple[float, float, float]
@@ -171,7 +170,7 @@ class CrazyflieKalman:
         self._pending_s = 0.0
         self.velocity: Vec3 = (0.0, 0.0, 0.0)
         self.position: Vec3 = (float(p[0]), float(p[1]), float(p[2]))
-        self.attitude: Mat3 = _mat3(vehicle.R_world_body)
+        self.attitude: Mat3 = mat3(vehicle.R_world_body)
         self.flow_reads = 0  # reads fused
         self.range_reads = 0
         self._externalize()
@@ -203,7 +202,7 @@ class CrazyflieKalman:
                 self._next_predict_ms = now + PREDICT_EVERY_MS
             fw.kalmanCoreAddProcessNoise(self._core, self._params, now)
             if now % FLOW_EVERY_MS == 0:
-                self._flow_read(vehicle)
+                self._flow_read()
             if now % RANGE_EVERY_MS == 0:
                 self._range_read(vehicle)
             fw.kalmanCoreFinalize(self._core)
@@ -247,7 +246,7 @@ class CrazyflieKalman:
         smear_px = EDGE_PX * abs(wz) * dt_s
         self._flow_blur_px2 += (self.deck.rotation_blur * smear_px) ** 2
 
-    def _flow_read(self, vehicle: Quadrotor) -> None:
+    def _flow_read(self) -> None:
         sigma_px = math.sqrt(self.deck.pixel_noise_px**2 + self._flow_blur_px2)
         counts = []
         for axis in range(2):
@@ -305,15 +304,6 @@ class CrazyflieKalman:
         p, v, q = st.position, st.velocity, st.attitudeQuaternion
         self.position = (float(p.x), float(p.y), float(p.z))
         self.velocity = (float(v.x), float(v.y), float(v.z))
-        self.attitude = _mat3(rotation_from_quaternion(q.w, q.x, q.y, q.z))
+        self.attitude = mat3(rotation_from_quaternion(q.w, q.x, q.y, q.z))
         if not all(math.isfinite(x) for x in self.position + self.velocity):
             raise SensingConfigError("the firmware's Kalman estimate is not finite")
-
-
-def _mat3(R: Array | Any) -> Mat3:
-    rows = np.asarray(R, np.float64).reshape(3, 3).tolist()
-    return (
-        (rows[0][0], rows[0][1], rows[0][2]),
-        (rows[1][0], rows[1][1], rows[1][2]),
-        (rows[2][0], rows[2][1], rows[2][2]),
-    )

@@ -240,8 +240,7 @@ class Quadrotor:
 
     @R_world_body.setter
     def R_world_body(self, value: Array) -> None:
-        rows = np.asarray(value, np.float64).reshape(3, 3).tolist()
-        self._R = (_vec3(rows[0]), _vec3(rows[1]), _vec3(rows[2]))
+        self._R = mat3(value)
 
     @property
     def omega_rad_s(self) -> Array:
@@ -277,8 +276,7 @@ class Quadrotor:
 
     @attitude_bias.setter
     def attitude_bias(self, value: Array) -> None:
-        rows = np.asarray(value, np.float64).reshape(3, 3).tolist()
-        self._bias = (_vec3(rows[0]), _vec3(rows[1]), _vec3(rows[2]))
+        self._bias = mat3(value)
 
     @property
     def R_estimate(self) -> Array:
@@ -552,6 +550,12 @@ def _product(A: Mat3, B: Mat3) -> Mat3:
 def _vec3(value: Array | Sequence[float]) -> Vec3:
     x, y, z = (float(c) for c in np.asarray(value, np.float64).reshape(3))
     return (x, y, z)
+
+
+def mat3(value: Array) -> Mat3:
+    """A 3x3 matrix as rows of Python floats, the form the loops run on."""
+    rows = np.asarray(value, np.float64).reshape(3, 3).tolist()
+    return (_vec3(rows[0]), _vec3(rows[1]), _vec3(rows[2]))
 
 
 def _rotated(R: Mat3, axis: Vec3, angle: float) -> Mat3:
