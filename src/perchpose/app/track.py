@@ -119,7 +119,11 @@ STALE = "stale: dropped unprocessed for a newer frame"
 
 
 class FrameView(Protocol):
-    """Something that shows each frame as it is tracked (``perchpose.io.view.LiveView``)."""
+    """Something that shows each frame as it is tracked (``perchpose.io.view.LiveView``);
+    ``wants_overlay`` whether it would show an overlay drawn now."""
+
+    @property
+    def wants_overlay(self) -> bool: ...
 
     def publish(
         self, stamp: Stamp, estimate: Estimate | None, overlay: NDArray[np.uint8] | None
@@ -268,7 +272,7 @@ def track(
     video = _Overlay(overlay, frames.fps)
     writer = open_track_writer(out, target, target_frame)
     # the overlay is drawn once a frame, for whichever of its users there are
-    draw = overlay is not None or writer.wants_overlay or view is not None
+    draw = overlay is not None or writer.wants_overlay
     tally = _Tally()
     first_good = True
     damaged_before = False
@@ -290,7 +294,7 @@ def track(
                 print(f"warning: {error}{more}", file=sys.stderr)
             damaged_before = frame.damaged
             picture = None
-            if draw and frame.image is not None:
+            if frame.image is not None and (draw or (view is not None and view.wants_overlay)):
                 note = f"t {frame.t_s:.2f} s" + "  damaged: not measured" * frame.damaged
                 picture = draw_overlay(frame.image, estimate, camera, note=note)
             row = estimate_row(frame.index, frame.t_s, estimate, target, error, frame.file)

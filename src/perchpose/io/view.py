@@ -1,5 +1,6 @@
 """A live view in Foxglove (``perchpose track ... --view``; the ``[view]`` extra): a Foxglove
-WebSocket server (``foxglove-sdk``) that Foxglove connects to at ``ws://HOST:PORT``.
+WebSocket server that Foxglove connects to at ``ws://HOST:PORT``, one port behind its Origin gate
+(``perchpose.io.view_server``); foxglove-sdk encodes the messages and gives their schemas.
 
 Channels, per frame, stamped with the frame's own stamp (``io.frames.Stamp``: a bag's or ROS
 message's integer nanoseconds, exactly; else its capture time), in the camera's frame
@@ -34,7 +35,7 @@ from perchpose.errors import PerchposeError
 from perchpose.geometry import quaternion_xyzw
 from perchpose.io.frames import TARGET_FRAME, Stamp
 from perchpose.io.overlay import encode_jpeg
-from perchpose.io.view_gate import OriginGate
+from perchpose.io.view_server import FoxgloveServer, ViewChannel
 from perchpose.target import TargetSpec
 from perchpose.values import Estimate
 
@@ -76,11 +77,34 @@ def _finite(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
+OVERLAY, POSE, TF, SCENE, ESTIMATE = range(1, 6)  # the channels' ids
+
+
+def _channels(m: Any) -> list[ViewChannel]:
+    def protobuf(channel_id: int, topic: str, message: Any) -> ViewChannel:
+        schema = message.get_schema()
+        return ViewChannel(channel_id, topic, schema.encoding, schema.name, bytes(schema.data))
+
+    return [
+        protobuf(OVERLAY, "/perchpose/overlay", m.CompressedImage),
+        protobuf(POSE, "/perchpose/pose", m.PoseInFrame),
+        protobuf(TF, "/tf", m.FrameTransforms),
+        protobuf(SCENE, "/perchpose/scene", m.SceneUpdate),
+        ViewChannel(
+            ESTIMATE,
+            "/perchpose/estimate",
+            "json",
+            "perchpose.Estimate",
+            json.dumps(ESTIMATE_SCHEMA).encode(),
+        ),
+    ]
+
+
 class LiveView:
-    """A Foxglove WebSocket server publishing each frame (``publish``); ``port`` 0 picks a free
-    one (``self.port`` says which). Clients reach it through an ``OriginGate``
-    (``perchpose.io.view_gate``): no Origin, or ``allowed_origins`` (the Foxglove web app's by
-    default); ``report`` says each refusal once."""
+    """A Foxglove WebSocket server publishing each frame (``publish``) on ``host:port`` (0: a
+    free one, ``self.port`` says which): clients with no Origin, or with one of
+    ``allowed_origins`` (the Foxglove web app's by default); ``report`` says each refusal once.
+    A message is encoded only while someone subscribes to its channel."""
 
     def __init__(
         self,
@@ -91,28 +115,19 @@ class LiveView:
         report: Callable[[str], None] | None = None,
         target_frame: str = TARGET_FRAME,
     ) -> None:
-        fox = _foxglove()
+        _foxglove()
         self.target = target
         self.target_frame = target_frame
         self.m = importlib.import_module("foxglove.messages")
-        channels = importlib.import_module("foxglove.channels")
-        try:  # on loopback only: every client comes through the gate
-            self.server = fox.start_server(name="perchpose", host="127.0.0.1", port=0)
-        except Exception as exc:  # the SDK reports its own error kinds
-            raise PerchposeError(f"--view: cannot start the Foxglove server ({exc})") from exc
-        try:
-            self.gate = OriginGate(host, port, int(self.server.port), allowed_origins, report)
-        except PerchposeError:
-            self.server.stop()
-            raise
-        self.port = self.gate.port
-        self.image = channels.CompressedImageChannel("/perchpose/overlay")
-        self.pose = channels.PoseInFrameChannel("/perchpose/pose")
-        self.tf = channels.FrameTransformsChannel("/tf")
-        self.scene = channels.SceneUpdateChannel("/perchpose/scene")
-        self.estimate = fox.Channel(
-            "/perchpose/estimate", schema=ESTIMATE_SCHEMA, message_encoding="json"
+        self.server = FoxgloveServer(
+            host, port, _channels(self.m), allowed_origins=allowed_origins, report=report
         )
+        self.port = self.server.port
+
+    @property
+    def wants_overlay(self) -> bool:
+        """Whether a client subscribes to the overlay now."""
+        return self.server.subscribed(OVERLAY)
 
     def publish(
         self, stamp: Stamp, estimate: Estimate | None, overlay: NDArray[np.uint8] | None
@@ -121,12 +136,15 @@ class LiveView:
         when valid."""
         m = self.m
         sec, nsec = stamp.sec_nanosec
+        t_ns = sec * 1_000_000_000 + nsec
         time = m.Timestamp(sec=sec, nsec=nsec)
-        jpeg = None if overlay is None else encode_jpeg(overlay, 80)
-        if jpeg is not None:
-            self.image.log(
-                m.CompressedImage(timestamp=time, frame_id=stamp.frame_id, data=jpeg, format="jpeg")
-            )
+        if overlay is not None and self.server.subscribed(OVERLAY):
+            jpeg = encode_jpeg(overlay, 80)
+            if jpeg is not None:
+                image = m.CompressedImage(
+                    timestamp=time, frame_id=stamp.frame_id, data=jpeg, format="jpeg"
+                )
+                self.server.log(OVERLAY, image.encode(), t_ns)
         valid = estimate is not None and estimate.valid
         row: dict[str, Any] = {"t_s": stamp.t_s, "valid": valid}
         if estimate is not None:
@@ -136,7 +154,7 @@ class LiveView:
                 "measured": estimate.measured_label,
             }
         if estimate is not None and valid:
-            self._pose(estimate, time, stamp.frame_id)
+            self._pose(estimate, time, stamp.frame_id, t_ns)
             row |= {
                 "stage": estimate.stage,
                 "x_cm": _finite(estimate.x_cm),
@@ -147,9 +165,9 @@ class LiveView:
                 "pitch_deg": _finite(math.degrees(estimate.pitch_rad)),
                 "latency_ms": _finite(estimate.latency_s * 1e3),
             }
-        self.estimate.log(json.dumps(row).encode())
+        self.server.log(ESTIMATE, json.dumps(row).encode(), t_ns)
 
-    def _pose(self, estimate: Estimate, stamp: Any, camera_frame: str) -> None:
+    def _pose(self, estimate: Estimate, stamp: Any, camera_frame: str, t_ns: int) -> None:
         m = self.m
         T = estimate.T_camera_target
         qx, qy, qz, qw = quaternion_xyzw(T[:3, :3])
@@ -157,7 +175,8 @@ class LiveView:
         pose = m.Pose(
             position=m.Vector3(x=x, y=y, z=z), orientation=m.Quaternion(x=qx, y=qy, z=qz, w=qw)
         )
-        self.pose.log(m.PoseInFrame(timestamp=stamp, frame_id=camera_frame, pose=pose))
+        pose_message = m.PoseInFrame(timestamp=stamp, frame_id=camera_frame, pose=pose)
+        self.server.log(POSE, pose_message.encode(), t_ns)
         transform = m.FrameTransform(
             timestamp=stamp,
             parent_frame_id=camera_frame,
@@ -165,7 +184,9 @@ class LiveView:
             translation=m.Vector3(x=x, y=y, z=z),
             rotation=m.Quaternion(x=qx, y=qy, z=qz, w=qw),
         )
-        self.tf.log(m.FrameTransforms(transforms=[transform]))
+        self.server.log(TF, m.FrameTransforms(transforms=[transform]).encode(), t_ns)
+        if not self.server.subscribed(SCENE):
+            return
         sheet = 2.0 * self.target.sheet_half_extent_m
         side = self.target.markers[0].side_m
         centre = m.Pose(
@@ -187,9 +208,8 @@ class LiveView:
         entity = m.SceneEntity(
             timestamp=stamp, frame_id=self.target_frame, id="target", cubes=cubes
         )
-        self.scene.log(m.SceneUpdate(entities=[entity]))
+        self.server.log(SCENE, m.SceneUpdate(entities=[entity]).encode(), t_ns)
 
     def close(self) -> None:
         """Stop serving."""
-        self.gate.close()
-        self.server.stop()
+        self.server.close()
