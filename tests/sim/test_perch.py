@@ -282,7 +282,7 @@ def test_moderate_wind_needs_the_disturbance_rejection() -> None:
     without any of its disturbance rejection (the observer, the accelerometer's push fed
     forward, the stiffer velocity loop it sets), most miss or never get there. (The observer
     alone perched 7 or 8 of them, as did the feed-forward with the stiffer loop alone; strong
-    wind needs both: docs/simulation.md.)"""
+    wind needs both: benchmarks/notes/simulation.md.)"""
     base = PerchSetup(
         CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth", wind="moderate"
     )

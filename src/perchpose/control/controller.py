@@ -125,7 +125,7 @@ class ControllerSettings:
     later than that first-order loop the vehicle answers a setpoint (the observer's model;
     ``control.disturbance``): 0.1 s. On the Crazyflie firmware's PID an observer without it
     rings and never perches, with 0.03 s half the runs do and from 0.06 s on nearly all; 0.1 s
-    keeps a margin above that (docs/simulation.md). observer_rate : the
+    keeps a margin above that (benchmarks/notes/simulation.md). observer_rate : the
     observer's poles, rad/s (0: no observer). commit_observer_rate : its poles during the
     final climb (0: observer_rate): faster there, where a gust has a few tenths of a second to
     push the magnet aside, and the climb ends before the oscillation that a fast observer
