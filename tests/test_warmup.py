@@ -13,6 +13,7 @@ _SCRIPT = """
 import json, sys
 from pathlib import Path
 import cv2
+import numpy as np
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.numeric.jit import KERNELS
 from perchpose.warmup import warm_up
@@ -28,6 +29,10 @@ for folder in sys.argv[1:]:
         estimator = PerchingEstimator.configured(camera, target, budget_ms=budget_ms)
         for i, path in enumerate(sorted(Path(folder).glob("frame_*.png"))):
             image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if i % 3 == 1:  # a ROS message's buffer is read-only
+                image.setflags(write=False)
+            elif i % 3 == 2:  # a strided view of the same pixels
+                image = np.repeat(image, 2, axis=1)[:, ::2]
             measured += estimator.update(image, i / 30.0).valid
 grown = [k.py_func.__qualname__ for k in KERNELS if len(k.overloads) != before[id(k)]]
 print(json.dumps({"grown": grown, "measured": measured, "again": again.already,
@@ -40,7 +45,8 @@ def test_no_kernel_is_built_after_the_warm_up(
 ) -> None:
     """In a fresh process: after ``warm_up``, tracking the rendered approaches through both
     lens models (far, near, the inner marker alone, a dropout), with and without a budget,
-    builds or loads no kernel's machine code; a second warm-up has nothing to do."""
+    from writable, read-only and strided frames alike, builds or loads no kernel's machine
+    code; a second warm-up has nothing to do."""
     done = subprocess.run(
         [sys.executable, "-c", _SCRIPT, str(approach_webcam_dir), str(approach_fpv_dir)],
         check=False,

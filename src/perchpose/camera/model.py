@@ -207,7 +207,8 @@ class CameraModel:
 
     # ------------------------------------------------------------------ checks
     def check_image(self, image: object, name: str = "image") -> NDArray[np.uint8]:
-        """Return ``image`` as a grey uint8 (H, W) array, or raise ImageError naming ``name``.
+        """Return ``image`` as a grey, C-ordered, writable uint8 (H, W) array (a copy where it
+        is not one), or raise ImageError naming ``name``.
 
         Accepts grey (H, W) or BGR (H, W, 3) / BGRA (H, W, 4) uint8 arrays whose size is the
         calibration's.
@@ -229,7 +230,9 @@ class CameraModel:
                 f"{name}: image is {w}x{h} but camera {self.name!r} is calibrated for "
                 f"{self.width_px}x{self.height_px}"
             )
-        return np.asarray(grey, dtype=np.uint8)
+        # the kernels are built for C-ordered, writable pixels: a read-only frame (a ROS
+        # message's buffer) or a strided view would build another machine code mid-run
+        return np.require(grey, np.uint8, ("C_CONTIGUOUS", "WRITEABLE"))
 
     # ------------------------------------------------------------------ presets
     @staticmethod
