@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import socket
 import struct
@@ -65,10 +66,25 @@ def charuco_dir() -> Path:
 
 
 def _short_approach_dir(tmp_path_factory: pytest.TempPathFactory, camera_name: str) -> Path:
-    out = tmp_path_factory.mktemp(f"approach_{camera_name}")
-    scenario = approach(duration_s=3.0, start_z_m=0.9, dropouts=((1.0, 0.4),))
-    camera = CameraModel.preset(camera_name)
-    return write_sequence(scenario, camera, TargetSpec.paper(), out, seed=1, progress=False)
+    """The approach rendered once per test run: pytest-xdist's workers share the folder (the
+    first to need it renders it under a lock, the others wait and read it)."""
+    name = f"approach_{camera_name}"
+
+    def render(out: Path) -> Path:
+        scenario = approach(duration_s=3.0, start_z_m=0.9, dropouts=((1.0, 0.4),))
+        camera = CameraModel.preset(camera_name)
+        return write_sequence(scenario, camera, TargetSpec.paper(), out, seed=1, progress=False)
+
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        return render(tmp_path_factory.mktemp(name))
+    shared = tmp_path_factory.getbasetemp().parent  # this run's, shared by its workers
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        out, done = shared / name, shared / f"{name}.done"
+        if not done.exists():
+            render(out)
+            done.touch()
+    return out
 
 
 @pytest.fixture(scope="session")

@@ -12,6 +12,8 @@ from perchpose.fusion.paper import FusionSigmas
 from perchpose.io.sinks import read_track_csv
 
 
+# the paper's whole evaluation, flown once for the checks that read it (all ``slow``: they run
+# after the suite, in CI and with ``pytest -m slow``)
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("evaluate")
@@ -19,6 +21,7 @@ def quick_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.slow  # the paper's evaluation, flown whole (about 25 s)
 def test_quick_run_writes_report_figures_and_results(quick_run: Path) -> None:
     for name in (
         "report.md",
@@ -57,6 +60,7 @@ def test_quick_run_writes_report_figures_and_results(quick_run: Path) -> None:
     assert "(10, 12, 7)" in report
 
 
+@pytest.mark.slow  # the paper's evaluation, flown whole (about 25 s)
 def test_table1_rows_in_view_meet_the_papers_bound(quick_run: Path) -> None:
     results = json.loads((quick_run / "results.json").read_text())
     measured = [r for r in results["table1"] if r["valid_frames"]]
@@ -77,6 +81,7 @@ def test_same_seed_same_numbers(quick_run: Path, tmp_path: Path) -> None:
         assert again.results[key] == first[key]
 
 
+@pytest.mark.slow  # the paper's evaluation, flown whole (about 25 s)
 def test_fit_fusion_reads_the_evaluation_data(
     quick_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -96,6 +101,7 @@ def test_fit_fusion_reads_the_evaluation_data(
     assert all(0.0 <= v <= 1.0 for v in sigmas.to_dict().values())
 
 
+@pytest.mark.slow  # the paper's evaluation, flown whole (about 25 s)
 def test_fitted_weights_fly_in_track(
     quick_run: Path, approach_fpv_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

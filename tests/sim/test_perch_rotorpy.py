@@ -14,6 +14,7 @@ from perchpose.sim.rotorpy_plant import RotorpyQuadrotor, rotorpy_crazyflie
 pytest.importorskip("rotorpy.vehicles.multirotor")
 
 
+@pytest.mark.slow
 def test_perching_on_rotorpy_agrees_with_our_vehicle_model() -> None:
     """Two runs in moderate wind with the true pose (RotorPy's Crazyflie in both, no ceiling
     effect or motor mismatch, which RotorPy does not model): both plants perch, the contact
