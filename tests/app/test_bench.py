@@ -16,7 +16,7 @@ from perchpose.app.bench import (
     write_figure,
 )
 from perchpose.errors import PerchposeError, SourceError
-from perchpose.values import Timings
+from perchpose.values import Estimate, Timings
 
 
 @pytest.fixture(scope="module")
@@ -135,3 +135,58 @@ def test_the_figure_has_a_panel_per_measure(report: BenchReport, tmp_path: Path)
     drawn = {line.get_label(): line.get_ydata() for line in fig.axes[0].get_lines()}
     for name, result in report.methods.items():
         np.testing.assert_allclose(drawn[name], result.ms)
+
+
+def test_frames_over_three_medians_are_named_and_a_search_after_a_loss_is_told_apart(
+    report: BenchReport,
+) -> None:
+    """A frame over 3x the median whose previous frame found no marker is a search after a
+    loss; any other is a stall, named with its time."""
+    from dataclasses import replace
+
+    from perchpose.app.bench import MethodResult
+
+    tracked = report.methods["perchpose"].estimates[1]
+    assert tracked is not None
+    assert any(m.detection is not None for m in tracked.markers)
+    lost = Estimate.none(0.0)
+    ms = np.full(10, 2.0)
+    ms[[3, 6, 8]] = [7.0, 5.0, 9.0]  # 6.0 is the limit: frames 3 and 8 are over it
+    estimates: list[Estimate | None] = [tracked] * 10
+    estimates[2] = lost  # frame 3 follows a frame that found nothing
+    result = MethodResult("perchpose", "synthetic", ms, estimates)
+    synthetic = replace(report, methods={**report.methods, "perchpose": result})
+    slow = synthetic.slow_frames("perchpose")
+    assert slow["limit_ms"] == pytest.approx(6.0)
+    assert slow["after_loss"] == [{"frame": 3, "ms": 7.0}]
+    assert slow["stalls"] == [{"frame": 8, "ms": 9.0}]
+    text = format_report(synthetic)
+    assert (
+        "perchpose over 3x its median (6.0 ms): 1 searches after a loss, 1 other: 8 (9.0 ms)"
+        in (text)
+    )
+    data = synthetic.to_json()
+    assert "over_3x_median" in data["methods"]["perchpose"]
+    assert "over_3x_median" not in data["methods"]["perchpose-cold"]  # every frame a search
+    assert "over_3x_median" not in data["methods"]["paper"]
+
+
+def test_the_kernels_are_ready_before_the_first_timed_frame(report: BenchReport) -> None:
+    """bench builds (or loads) the compiled kernels first, as a live track does, so no frame's
+    time is a compile, and says how long that took."""
+    assert math.isfinite(report.warm_up_s)
+    assert report.to_json()["warm_up_s"] == report.warm_up_s
+    assert f"kernels ready in {report.warm_up_s:.1f} s" in format_report(report)
+
+
+def test_startup_to_the_first_pose_in_a_fresh_process(
+    webcam: CameraModel, paper_target: TargetSpec
+) -> None:
+    from perchpose.app.startup import measure_startup
+
+    frames = rendered_frames(webcam, paper_target, 2)
+    warm = measure_startup(webcam, paper_target, frames.images[0], cold=False)
+    assert warm.valid
+    assert 0 < warm.warm_up_s < warm.first_pose_s
+    assert warm.describe().startswith("warm: ")
+    assert "kernels loaded from the disk cache" in warm.describe()

@@ -18,7 +18,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from perchpose.app.inputs import load_camera, load_target
+from perchpose.app.startup import StartupTime, measure_startup
 from perchpose.camera import CameraModel
 from perchpose.errors import PerchposeError, SourceError
 from perchpose.estimator import PerchingEstimator
@@ -38,6 +39,7 @@ from perchpose.sim.scenarios import approach, markers_in_view
 from perchpose.sim.sequence import rendered_frames as rendered_sequence
 from perchpose.target import TargetSpec, aruco_dictionary
 from perchpose.values import Estimate, Timings
+from perchpose.warmup import warm_up
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -48,6 +50,9 @@ BASELINE = "opencv"
 PERCENTILES = (50, 95, 99, 100)
 # how many of its slowest frames (against the baseline) the report names per method
 WORST_FRAMES = 5
+# a tracking method's frame over this many times its median is a stall, unless it searched the
+# whole frame because the frame before it measured nothing (the first frame, after a loss)
+STALL_OVER_MEDIAN = 3.0
 
 
 @dataclass(frozen=True)
@@ -210,12 +215,16 @@ class FrameErrors:
 @dataclass(frozen=True)
 class BenchReport:
     """What ``bench`` measured. ``stages_ms``: the default pipeline's per-frame time in each
-    stage (``Timings.STAGES``), the least of the repeats."""
+    stage (``Timings.STAGES``), the least of the repeats; ``warm_up_s``: building or loading
+    the compiled kernels before the first frame, as a live ``track`` does; ``startup``: a fresh
+    process's time to its first pose, cold and warm (``--startup``)."""
 
     frames: BenchFrames
     repeat: int
     methods: dict[str, MethodResult]
     stages_ms: dict[str, Array] = field(repr=False)
+    warm_up_s: float = math.nan
+    startup: tuple[StartupTime, ...] = ()
 
     def percentiles(self, name: str) -> dict[str, float]:
         ms = self.methods[name].ms
@@ -237,6 +246,22 @@ class BenchReport:
         ratio = mine / base
         order = np.argsort(-ratio, kind="stable")[:count]
         return [{"frame": int(k), "ms": float(mine[k]), "ratio": float(ratio[k])} for k in order]
+
+    def slow_frames(self, name: str) -> dict[str, Any]:
+        """The method's frames over ``STALL_OVER_MEDIAN`` times its median: ``after_loss``
+        those whose previous frame found no marker (the first frame, a dropout's end: nothing
+        to track, so the whole frame is searched), ``stalls`` the others (each frame's index
+        and ms)."""
+        result = self.methods[name]
+        limit_ms = STALL_OVER_MEDIAN * float(np.median(result.ms))
+        after_loss: list[dict[str, float]] = []
+        stalls: list[dict[str, float]] = []
+        for k in np.nonzero(result.ms > limit_ms)[0]:
+            before = result.estimates[k - 1] if k > 0 else None
+            lost = before is None or all(m.detection is None for m in before.markers)
+            frame = {"frame": int(k), "ms": float(result.ms[k])}
+            (after_loss if lost else stalls).append(frame)
+        return {"limit_ms": limit_ms, "after_loss": after_loss, "stalls": stalls}
 
     def errors(self, name: str) -> FrameErrors | None:
         """Each frame's error against the rendered truth (``FrameErrors``); None for the
@@ -291,6 +316,8 @@ class BenchReport:
             if name != BASELINE:
                 entry["ratio_to_opencv"] = self.ratios(name)
                 entry["worst_frames"] = self.worst_frames(name)
+                if name.startswith("perchpose") and not name.endswith("-cold"):
+                    entry["over_3x_median"] = self.slow_frames(name)
                 entry["frames_with_pose"] = sum(
                     1 for e in result.estimates if e is not None and e.valid
                 )
@@ -301,6 +328,7 @@ class BenchReport:
                 if accuracy is not None:
                     entry["accuracy"] = accuracy
             methods[name] = entry
+        startup = {("cold" if t.cold else "warm"): t.to_json() for t in self.startup}
         return {
             "source": self.frames.description,
             "frames": len(self.frames.images),
@@ -308,6 +336,8 @@ class BenchReport:
             "threads": 1,
             "baseline": BASELINE,
             "times": "wall-clock ms from the frame in memory to the answer, least of the repeats",
+            "warm_up_s": self.warm_up_s,
+            "startup": startup,
             "methods": methods,
             "stages_ms": {
                 stage: {_label(q): float(np.percentile(ms, q)) for q in PERCENTILES}
@@ -349,6 +379,8 @@ def bench(
         raise PerchposeError(f"--repeat must be at least 1, got {repeat}")
     n = len(frames.images)
     names = list(methods(camera, target))
+    # as a live track: the kernels built (or loaded) before the first frame, not in it
+    warm_up_s = warm_up(target, [camera]).seconds
     best = {name: np.full(n, np.inf) for name in names}
     stages = {stage: np.full(n, np.inf) for stage in Timings.STAGES}
     last: dict[str, list[Estimate | None]] = {}
@@ -380,6 +412,7 @@ def bench(
         repeat,
         {name: MethodResult(name, descriptions[name], best[name], last[name]) for name in names},
         stages,
+        warm_up_s,
     )
 
 
@@ -387,7 +420,8 @@ def format_report(report: BenchReport) -> str:
     """The report as text: a table of the methods, then the default pipeline's stages."""
     data = report.to_json()
     lines = [
-        f"{data['source']}; one thread, least of {report.repeat} runs per frame",
+        f"{data['source']}; one thread, least of {report.repeat} runs per frame "
+        f"(kernels ready in {report.warm_up_s:.1f} s before the first)",
         "",
         f"{'method':16s} {'p50 ms':>8s} {'p95 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} "
         f"{'p50 x':>7s} {'p99 x':>7s} {'worst x':>8s} {'poses':>6s}",
@@ -409,10 +443,22 @@ def format_report(report: BenchReport) -> str:
         if name.startswith("perchpose") and "worst_frames" in entry:
             worst = ", ".join(f"{w['frame']} ({w['ratio']:.1f}x)" for w in entry["worst_frames"])
             lines.append(f"  {name} worst frames: {worst}")
+    for name, entry in data["methods"].items():
+        if "over_3x_median" in entry:
+            slow = entry["over_3x_median"]
+            stalls = ", ".join(f"{f['frame']} ({f['ms']:.1f} ms)" for f in slow["stalls"])
+            lines.append(
+                f"  {name} over 3x its median ({slow['limit_ms']:.1f} ms): "
+                f"{len(slow['after_loss'])} searches after a loss, "
+                f"{len(slow['stalls'])} other" + (f": {stalls}" if stalls else "")
+            )
     if "perchpose" in report.methods:
         lines += ["", f"perchpose by stage {'p50 ms':>10s} {'p95 ms':>8s} {'max ms':>8s}"]
         for stage, ms in data["stages_ms"].items():
             lines.append(f"  {stage:22s} {ms['p50']:8.2f} {ms['p95']:8.2f} {ms['max']:8.2f}")
+    if report.startup:
+        lines += ["", "from a fresh process's start to its first pose, as a live track starts:"]
+        lines += [f"  {t.describe()}" for t in report.startup]
     accurate = {n: e["accuracy"] for n, e in data["methods"].items() if "accuracy" in e}
     if accurate:
         lines += [
@@ -463,6 +509,7 @@ class BenchOptions:
     plot_out: str | None = None
     budget_ms: float | None = None
     progress: bool = False
+    startup: bool = False
 
 
 def run(options: BenchOptions) -> BenchReport:
@@ -491,6 +538,10 @@ def run(options: BenchOptions) -> BenchReport:
         options.progress,
         lambda cam, spec: default_methods(cam, spec, budget),
     )
+    if options.startup:  # warm first: the run above filled the disk cache
+        first = data.images[0]
+        timed = tuple(measure_startup(camera, target, first, cold) for cold in (False, True))
+        report = replace(report, startup=timed)
     if options.json_out is not None:
         path = Path(options.json_out)
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -62,6 +62,13 @@ QUALITIES = ("default", "clean", "analog_fpv", "harsh")
     help="Also draw it frame by frame: times, stages, errors (.png, .svg or .pdf).",
 )
 @budget_option("Also time perchpose within this budget per frame (perchpose-budget).")
+@click.option(
+    "--startup",
+    is_flag=True,
+    help="Also time a fresh process from its start to its first pose, as a live track "
+    "starts, with the compiled kernels warm (from the disk cache) and cold (compiled: "
+    "about 2 minutes on 2 cores).",
+)
 @quiet_option
 def bench(
     source: str | None,
@@ -74,11 +81,13 @@ def bench(
     json_out: str | None,
     plot_out: str | None,
     budget_ms: float | None,
+    startup: bool,
     quiet: bool,
 ) -> None:
     """Time perchpose per frame and per stage against OpenCV's detectMarkers and the paper's
     pipeline, on one thread, on SOURCE (a folder, glob, video or camera) or a rendered
-    approach."""
+    approach; name tracking's frames over 3x its median that no loss explains; with
+    --startup, the time from a process's start to its first pose."""
     from perchpose.app.bench import BenchOptions, format_report, run
 
     options = BenchOptions(
@@ -93,6 +102,7 @@ def bench(
         plot_out,
         budget_ms,
         progress=show_progress(quiet),
+        startup=startup,
     )
     report = run(options)
     click.echo(format_report(report))
