@@ -105,11 +105,13 @@ class _Client:
         return dropped
 
     async def drain(self) -> None:
-        while True:
-            await self.ready.wait()
-            self.ready.clear()
-            while self.outgoing:
-                await self.connection.send(self.outgoing.popleft())
+        """Send what is queued as it comes, until the connection closes."""
+        with contextlib.suppress(Exception):  # a closed connection ends only its sender
+            while True:
+                await self.ready.wait()
+                self.ready.clear()
+                while self.outgoing:
+                    await self.connection.send(self.outgoing.popleft())
 
 
 class FoxgloveServer:
