@@ -136,7 +136,7 @@ class LiveView:
         when valid."""
         m = self.m
         sec, nsec = stamp.sec_nanosec
-        t_ns = sec * 1_000_000_000 + nsec
+        t_ns = stamp.t_ns
         time = m.Timestamp(sec=sec, nsec=nsec)
         if overlay is not None and self.server.subscribed(OVERLAY):
             jpeg = encode_jpeg(overlay, 80)

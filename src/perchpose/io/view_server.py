@@ -88,21 +88,18 @@ class _Client:
     subscriptions: dict[int, int] = field(default_factory=dict)
     outgoing: collections.deque[bytes | str] = field(default_factory=collections.deque)
     ready: asyncio.Event = field(default_factory=asyncio.Event)
-    dropped: int = 0
 
-    def put(self, frame: bytes | str) -> int:
-        """Queue a frame; 1 when the oldest message was dropped for it, else 0 (the JSON
-        control frames are never dropped)."""
-        dropped = 0
+    def put(self, frame: bytes | str) -> bool:
+        """Queue a frame; whether the oldest message was dropped for it (the JSON control
+        frames are never dropped)."""
+        oldest = None
         if len(self.outgoing) >= self.backlog:
             oldest = next((f for f in self.outgoing if isinstance(f, bytes)), None)
             if oldest is not None:
                 self.outgoing.remove(oldest)
-                self.dropped += 1
-                dropped = 1
         self.outgoing.append(frame)
         self.ready.set()
-        return dropped
+        return oldest is not None
 
     async def drain(self) -> None:
         """Send what is queued as it comes, until the connection closes."""
@@ -178,7 +175,7 @@ class FoxgloveServer:
             for subscription, channel in client.subscriptions.items():
                 if channel == channel_id:
                     header = struct.pack("<BIQ", MESSAGE_DATA, subscription, log_time_ns)
-                    self.dropped += client.put(header + payload)
+                    self.dropped += int(client.put(header + payload))
 
     def _refuse(self, connection: Any, status: HTTPStatus, key: str, why: str) -> Any:
         self.refused += 1
