@@ -348,7 +348,7 @@ def test_sigterm_and_sighup_end_a_run_as_ctrl_c_does(
     assert proc.poll() is None, "the run ended before the signal"
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == code
+    assert proc.returncode == code, err[-2000:]
     assert err.strip() == f"perchpose: terminated ({signal.Signals(signum).name})"
     rows = read_track_csv(out)
     assert 5 <= len(rows) < 90
