@@ -318,3 +318,25 @@ def test_the_command_runs_as_a_library_call(approach_webcam_dir: Path, tmp_path:
     assert said == []
     with pytest.raises(PerchposeError, match="give --camera"):
         run(TrackOptions(str(frames), str(tmp_path / "q.csv"), progress=False), said.append)
+
+
+def test_a_frame_is_dated_from_its_sources_own_stamp_where_it_has_one() -> None:
+    """The camera latency counts back from the source's stamp (a V4L2 buffer's, a stream's
+    presentation time), else from the grab; the estimate keeps the grab and the latency
+    before it, so that its capture time is the same either way it is read."""
+    from perchpose.app.track import _with_latency
+    from perchpose.io.frames import Frame
+    from perchpose.values import Estimate
+
+    grabbed = time.monotonic() - 0.2
+    plain = Frame(3, 0.1, None, "frame 3", grabbed_s=grabbed)
+    stamped = Frame(
+        3, 0.1, None, "frame 3", grabbed_s=grabbed, stamped_s=grabbed - 0.05, clock="v4l2"
+    )
+    by_grab = _with_latency(Estimate.none(0.1), plain, 0.03)
+    by_stamp = _with_latency(Estimate.none(0.1), stamped, 0.03)
+    assert by_grab.captured_s == pytest.approx(grabbed - 0.03)
+    assert by_stamp.captured_s == pytest.approx(grabbed - 0.08)
+    assert by_stamp.grabbed_s == grabbed
+    assert by_stamp.camera_latency_s == pytest.approx(0.08)
+    assert by_stamp.latency_s == pytest.approx(by_grab.latency_s + 0.05, abs=0.01)

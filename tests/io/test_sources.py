@@ -1,3 +1,4 @@
+import math
 import time
 from pathlib import Path
 
@@ -233,12 +234,13 @@ def test_a_slow_consumer_does_not_queue_frames(tmp_path: Path) -> None:
     taken = []
     for item in grabber:
         taken.append(item)
-        if item[2] is not None:
+        if item[3] is not None:
             break
     grabber.close()
     *stale, first = taken
-    assert first[2] is not None
-    assert all(image is None and index < first[0] for index, _, image, _ in stale)
+    assert first[3] is not None
+    assert all(image is None and index < first[0] for index, _, _, image, _ in stale)
+    assert all(math.isnan(stamp) for _, _, stamp, _, _ in taken)  # no clock: no stamps
     assert not grabber.running
 
 
@@ -390,3 +392,132 @@ def test_a_udp_stream_that_loses_datagrams_flags_what_it_spoils(
         assert f.damaged or nearest == 0, f.index
     # the stream mends at the next key frame: whole frames come after each flagged run
     assert not shown[-1].damaged
+
+
+class _V4l2Camera:
+    """A V4L2 camera as OpenCV's V4L2 backend shows it, standing in for the device: a real
+    capture's frames, and after each grab ``CAP_PROP_POS_MSEC`` is the buffer's stamp, in ms
+    on the kernel's monotonic clock (``delay_s`` before the grab), or on the wall clock where
+    ``wall_clock`` (a driver that stamps with it)."""
+
+    def __init__(self, capture: cv2.VideoCapture, delay_s: float, wall_clock: bool) -> None:
+        self._capture = capture
+        self.delay_s = delay_s
+        self.wall_clock = wall_clock
+        self.stamps_s: list[float] = []
+
+    def getBackendName(self) -> str:  # OpenCV's names
+        return "V4L2"
+
+    def isOpened(self) -> bool:
+        return self._capture.isOpened()
+
+    def grab(self) -> bool:
+        time.sleep(0.01)  # a frame every 10 ms at most
+        ok = self._capture.grab()
+        clock = time.time if self.wall_clock else time.monotonic
+        self.stamps_s.append(clock() - self.delay_s)
+        return ok
+
+    def retrieve(self) -> tuple[bool, object]:
+        return self._capture.retrieve()
+
+    def get(self, prop: int) -> float:
+        if prop == cv2.CAP_PROP_POS_MSEC:
+            return self.stamps_s[-1] * 1000.0 if self.stamps_s else 0.0
+        return float(self._capture.get(prop))
+
+    def set(self, prop: int, value: float) -> bool:
+        return True
+
+    def release(self) -> None:
+        self._capture.release()
+
+
+@pytest.mark.parametrize("wall_clock", [False, True])
+def test_a_v4l2_camera_is_dated_by_its_buffer_stamps(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, wall_clock: bool
+) -> None:
+    """A camera on OpenCV's V4L2 backend is dated by the kernel's buffer stamp (the camera
+    latency then counts back from it); stamps on another clock are refused, and the grab
+    dates those frames."""
+    _numbered_video(tmp_path / "v.avi", 20)
+    cameras: list[_V4l2Camera] = []
+    real = cv2.VideoCapture
+
+    def open_camera(index: object) -> _V4l2Camera:
+        cameras.append(_V4l2Camera(real(str(tmp_path / "v.avi")), 0.025, wall_clock))
+        return cameras[-1]
+
+    monkeypatch.setattr(cv2, "VideoCapture", open_camera)
+    source = open_source("0")
+    frames = []
+    with pytest.raises(SourceError, match="stopped delivering"):
+        frames.extend(f for f in source if not f.stale)
+    assert len(frames) >= 5
+    assert source.clock is not None
+    assert source.clock.name == "v4l2"
+    if wall_clock:
+        assert all(f.clock == "" and f.dated_s == f.grabbed_s for f in frames)
+        assert source.clock.refused >= len(frames)
+        return
+    stamps_s = cameras[0].stamps_s  # by grab, as the frames' indices count them
+    for f in frames:
+        assert f.clock == "v4l2"
+        assert f.stamped_s == pytest.approx(stamps_s[f.index], abs=1e-6)
+        assert f.dated_s == f.stamped_s
+        assert 0.02 < f.grabbed_s - f.stamped_s < 1.0
+
+
+def test_a_stream_is_dated_by_its_presentation_times(udp_port: int) -> None:
+    """A live H.264 stream over UDP whose frames leave the sender up to 60 ms late (a network
+    and an encoder that jitter; every tenth on time): each frame's stamp is its presentation
+    time mapped to this host's clock by the smallest delay seen, so once an on-time frame has
+    come the stamps keep the sender's 1/30 s spacing, where the grabs keep the jitter."""
+    import threading
+
+    from perchpose.io.video_stream import H264Stream
+
+    url = f"udp://127.0.0.1:{udp_port}"
+    stream = H264Stream(url, 30.0, (160, 120))
+    jitter_s = np.random.default_rng(2).uniform(0.0, 0.060, 300)
+    jitter_s[::10] = 0.0
+    start = time.monotonic() + 0.3
+    stop = threading.Event()
+
+    def send() -> None:
+        for k in range(300):  # 10 s: the reader (which takes a while to join) stops first
+            if stop.wait(max(0.0, start + k / 30.0 + jitter_s[k] - time.monotonic())):
+                return
+            image = np.full((120, 160), 8 + 8 * (k % 30), np.uint8)
+            image[:, 80:] = 8 + 8 * (k // 30)  # the frame's number, in two halves
+            stream.send(k, image)
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    frames = []
+    try:
+        for frame in open_source(url, 30.0):
+            if frame.image is not None:
+                frames.append(frame)
+            if len(frames) >= 90:
+                break
+    finally:
+        stop.set()
+        sender.join()
+        stream.close()
+    assert all(f.clock == "stream" and f.stamped_s <= f.grabbed_s for f in frames)
+    sent = np.array(
+        [
+            round(f.image[:, 8:72].mean() / 8 - 1) + 30 * round(f.image[:, 88:152].mean() / 8 - 1)
+            for f in frames
+            if f.image is not None
+        ]
+    )
+    stamped = np.array([f.stamped_s for f in frames]) - sent / 30.0
+    grabbed = np.array([f.grabbed_s for f in frames]) - sent / 30.0
+    # the reader joins with a backlog (what FFmpeg read while it probed the stream), which it
+    # drains faster than real time; in the last second the stamps' spacing is the sender's to
+    # within a few ms of this machine's own scheduling
+    assert np.ptp(stamped[-30:]) < 0.010
+    assert np.std(grabbed[-30:]) > 0.010

@@ -115,7 +115,8 @@ def measure(
                     continue
                 count = count_of(reader.ids(frame.image))
                 with lock:
-                    meter.seen(count, frame.grabbed_s)
+                    meter.clock = frame.clock
+                    meter.seen(count, frame.dated_s)
         except Exception as exc:  # handed to the caller's thread
             failed.append(exc)
 

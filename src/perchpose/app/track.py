@@ -47,6 +47,8 @@ class TrackSummary:
     budget_frames: int = 0
     p95_latency_ms: float = math.nan
     damaged_frames: int = 0
+    # the frames with an image each clock dated (``Frame.clock``: "" the grab), live sources only
+    dated: dict[str, int] = field(default_factory=dict)
 
 
 class _Tally:
@@ -57,12 +59,15 @@ class _Tally:
         self.stage_counts = {0: 0, 1: 0, 2: 0, 3: 0}
         self.total_ms = 0.0
         self.latencies_ms: list[float] = []
+        self.dated: dict[str, int] = {}
 
     def add(self, estimate: Estimate | None, error: str, frame: Frame) -> None:
         self.frames += 1
         self.stale += int(frame.stale)
         self.damaged += int(frame.damaged)
         self.bad += int(bool(error) and not frame.stale and not frame.damaged)
+        if frame.image is not None and math.isfinite(frame.grabbed_s):
+            self.dated[frame.clock] = self.dated.get(frame.clock, 0) + 1
         if estimate is not None:
             self.valid += int(estimate.valid)
             self.stage_counts[estimate.stage] += 1
@@ -92,6 +97,7 @@ class _Tally:
             self.budget,
             p95,
             self.damaged,
+            dict(self.dated),
         )
 
 
@@ -156,16 +162,17 @@ MAX_CAMERA_LATENCY_S = 2.0  # beyond this no camera chain perches a vehicle
 
 
 def _with_latency(estimate: Estimate, frame: Frame, camera_latency_s: float) -> Estimate:
-    """``estimate`` with the moment its frame was grabbed, the camera's glass-to-grab latency
-    before that (so its capture time), and the time from the capture to now."""
+    """``estimate`` with the moment its frame was grabbed, its capture time (the camera
+    latency before the source's own stamp, or before the grab where it has none:
+    ``Frame.dated_s``) as the latency before the grab, and the time from the capture to now."""
     if not math.isfinite(frame.grabbed_s):
         return estimate
-    captured_s = frame.grabbed_s - camera_latency_s
+    captured_s = frame.dated_s - camera_latency_s
     return replace(
         estimate,
         latency_s=time.monotonic() - captured_s,
         grabbed_s=frame.grabbed_s,
-        camera_latency_s=camera_latency_s,
+        camera_latency_s=frame.grabbed_s - captured_s,
     )
 
 
@@ -232,8 +239,10 @@ def track(
     overlay. ``rate``: replay a recording at this many times the speed of its time stamps
     (``Pacer``; None: as fast as it decodes). ``camera_frame``: the camera's frame id in bags
     and the live view (default: the image's own, else ``camera``); ``target_frame``: the
-    target's. ``camera_latency_s``: a live source's glass-to-grab latency (measured by the
-    user): each frame was captured that long before its grab (``Estimate.captured_s``).
+    target's. ``camera_latency_s``: a live source's latency (measured by the user with
+    ``perchpose latency``): each frame was captured that long before its source's own stamp
+    (a V4L2 buffer's, a stream's presentation time: ``Frame.dated_s``), or before its grab
+    where it has none (``Estimate.captured_s``).
     A live camera is grabbed on a thread of its own and the estimator always takes the newest
     frame: a frame overtaken before it was taken gets an invalid row saying it was stale (no
     warning each; the summary counts them).

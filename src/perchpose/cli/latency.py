@@ -28,9 +28,10 @@ def latency(
 ) -> None:
     """Measure a live camera's (or stream's) glass-to-grab latency: a full-screen window shows
     two time-coded markers, which the camera SOURCE films (point it at the screen, the markers
-    filling a good part of its view); each frame's grab time less the time its markers were
-    shown is one sample. Give the mean to track, the node and the pilots as
-    --camera-latency-ms."""
+    filling a good part of its view); each frame's stamp less the time its markers were
+    shown is one sample. The stamp is the source's own where it has one (a V4L2 camera's
+    buffer stamp, a stream's presentation time on this host's clock), else the grab, as track
+    dates frames. Give the mean to track, the node and the pilots as --camera-latency-ms."""
     from perchpose.app.latency import LatencyOptions, run
 
     click.echo(run(LatencyOptions(source, seconds, display_hz, display_lag_ms, fps)).describe())

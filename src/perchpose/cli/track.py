@@ -156,8 +156,10 @@ if TYPE_CHECKING:
     default=0.0,
     type=float,
     show_default=True,
-    help="A live camera's glass-to-grab latency (measure it): each frame was captured this "
-    "long before it was grabbed. The pilots and LANDING_TARGET date poses from the capture.",
+    help="A live camera's latency, as `perchpose latency` measures it: each frame was "
+    "captured this long before its source's own stamp (a V4L2 camera's buffer stamp, a "
+    "stream's presentation time), or before its grab where it has none. The pilots and "
+    "LANDING_TARGET date poses from the capture.",
 )
 @click.option(
     "--realtime",
@@ -314,6 +316,12 @@ def _print_summary(summary: TrackSummary) -> None:
         extra += f", {summary.damaged_frames} damaged (decoded from damaged data, not measured)"
     if summary.budget_frames:
         extra += f", {summary.budget_frames} over budget (see 'skipped')"
+    if any(summary.dated):  # a live source with a clock of its own
+        from perchpose.io.capture_clock import CLOCK_NAMES
+
+        extra += "; dated by " + ", ".join(
+            f"{CLOCK_NAMES.get(clock, clock)} ({n})" for clock, n in summary.dated.items()
+        )
     click.echo(
         f"{summary.frames} frames, {summary.valid} valid ({stages}), "
         f"{summary.bad_frames} unreadable{extra}; {summary.mean_ms:.1f} ms per frame, "

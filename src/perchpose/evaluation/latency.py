@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.io.capture_clock import CLOCK_NAMES
 from perchpose.target import aruco_dictionary
 
 DIGITS = 25  # ids per marker: the fine marker is 0-24, the coarse one 25-49
@@ -78,7 +79,9 @@ class LatencySummary:
     of them, those further than ``INLIER_S`` from the median (a frame that caught the change
     from one count to the next and read one marker of each); unread : camera frames in which
     no count was read. mean, std, p5, p95 : of the inliers, the display's lag taken off.
-    display_period_s, display_lag_s : the display's, as run."""
+    display_period_s, display_lag_s : the display's, as run. clock : what dated the camera's
+    frames, which the latency runs to (``Frame.clock``: "" the grab, "v4l2" the driver's
+    buffer stamp, "stream" the stream's presentation time)."""
 
     samples: int
     misread: int
@@ -90,6 +93,7 @@ class LatencySummary:
     p95_s: float
     display_period_s: float
     display_lag_s: float
+    clock: str = ""
 
     def describe(self) -> str:
         if self.samples == 0:
@@ -103,8 +107,9 @@ class LatencySummary:
             else "the display's own lag (compositor and panel, often 10-50 ms) included: give "
             "it with --display-lag-ms where it is known"
         )
+        to = CLOCK_NAMES.get(self.clock, self.clock)
         return (
-            f"glass-to-grab latency {self.mean_s * 1000:.1f} ms mean "
+            f"latency from the glass to {to}: {self.mean_s * 1000:.1f} ms mean "
             f"(median {self.median_s * 1000:.1f}, std {self.std_s * 1000:.1f}, "
             f"p5-p95 {self.p5_s * 1000:.1f}-{self.p95_s * 1000:.1f}) over "
             f"{self.samples - self.misread} frames ({self.misread} misread, "
@@ -123,6 +128,7 @@ class LatencyMeter:
         self._shown: dict[int, float] = {}  # count modulo CYCLE -> when it was last shown
         self.samples_s: list[float] = []
         self.unread = 0
+        self.clock = ""  # what dated the frames seen (``Frame.clock``)
 
     def shown(self, count: int, t_s: float) -> None:
         """Display count ``count`` was handed to the screen at ``t_s``."""
@@ -158,6 +164,7 @@ class LatencyMeter:
                 nan,
                 self.display_period_s,
                 self.display_lag_s,
+                self.clock,
             )
         median = float(np.median(values))
         inliers = values[np.abs(values - median) <= INLIER_S]
@@ -172,4 +179,5 @@ class LatencyMeter:
             p95_s=float(np.percentile(inliers, 95)),
             display_period_s=self.display_period_s,
             display_lag_s=self.display_lag_s,
+            clock=self.clock,
         )

@@ -255,6 +255,14 @@ class AvCapture:
         self.index, self._frame, self.damage = item
         return True
 
+    @property
+    def pts_s(self) -> float | None:
+        """The presentation time of the frame just grabbed, in seconds on the stream's own
+        clock (None where it has none)."""
+        if self._frame is None or self._frame.pts is None or self._time_base is None:
+            return None
+        return float(self._frame.pts * self._time_base)
+
     def retrieve(self) -> tuple[bool, NDArray[np.uint8] | None]:
         """The frame just grabbed as a BGR image."""
         if self._frame is None:

@@ -35,6 +35,11 @@ class Frame:
         header), which outputs carry exactly; None where the source has none (``t_s`` then
         gives it, ``stamp_ns``).
     frame_id : the camera's frame id as the source names it (a ROS header's), or "".
+    stamped_s : a live frame's stamp by its source's own clock, on the clock of ``grabbed_s``
+        (a V4L2 buffer's, a stream's presentation time mapped to the host:
+        ``perchpose.io.capture_clock``); NaN where the source gave none. ``clock`` names it
+        ("v4l2", "stream"; "" for none). ``dated_s`` is what the camera latency counts back
+        from: this stamp where there is one, else the grab.
     damaged : the image decoded but rests on damaged data: a video frame that decoded with
         errors, or one predicted from such a frame or from a missing one (``error`` says
         which). Its pixels are wrong wherever the damage moved, in ways that look like a
@@ -53,6 +58,14 @@ class Frame:
     stamp_ns: int | None = None
     frame_id: str = ""
     damaged: bool = False
+    stamped_s: float = math.nan
+    clock: str = ""
+
+    @property
+    def dated_s(self) -> float:
+        """The time the camera latency counts back from: the source's own stamp, or the
+        grab (NaN where neither is known)."""
+        return self.stamped_s if math.isfinite(self.stamped_s) else self.grabbed_s
 
 
 class FrameSource:

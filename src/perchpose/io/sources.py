@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import SourceError
+from perchpose.io.capture_clock import DeviceClock, SourceClock, StreamClock
 from perchpose.io.decoding import AvCapture
 from perchpose.io.frames import IMAGE_SUFFIXES, Frame, FrameSource, natural_key
 from perchpose.io.native import native_stderr_silenced, opencv_reason
@@ -62,7 +63,9 @@ class VideoSource(FrameSource):
 
     Files: t_s = index / fps; cameras and streams: seconds since the first frame. A frame that
     decoded but rests on damaged data (``AvCapture.damage``) comes with its image, ``damaged``
-    set and the reason in ``error``.
+    set and the reason in ``error``. ``clock``: a live source's own clock
+    (``perchpose.io.capture_clock``), which dates its frames where it can (``Frame.stamped_s``);
+    None: the grab dates them.
     """
 
     def __init__(
@@ -73,10 +76,12 @@ class VideoSource(FrameSource):
         live: bool,
         reopen: Callable[[], Capture | None] | None = None,
         reconnect_for_s: float = RECONNECT_FOR_S,
+        clock: SourceClock | None = None,
     ) -> None:
         super().__init__(description, None if live else _frame_count(capture), fps)
         self.capture = capture
         self.live = live
+        self.clock = clock
         self.reopen = reopen
         self.reconnect_for_s = reconnect_for_s
         self.reconnects = 0
@@ -126,10 +131,11 @@ class VideoSource(FrameSource):
         """A camera's frames, grabbed on a thread of their own (``LatestFrame``): each is the
         newest when the caller asks; those a newer one overtook come as stale frames, without
         an image. t_s: seconds from the first frame's grab to this one's."""
-        grabber = LatestFrame(self.capture, self._reconnect if self.reopen else None)
+        grabber = LatestFrame(self.capture, self._reconnect if self.reopen else None, self.clock)
         t0: float | None = None
+        clock = "" if self.clock is None else self.clock.name
         try:
-            for index, grabbed, image, damage in grabber:
+            for index, grabbed, stamped, image, damage in grabber:
                 t0 = grabbed if t0 is None else t0
                 name, file = f"frame {index}", f"{self.description}#{index}"
                 if image is None:
@@ -138,6 +144,7 @@ class VideoSource(FrameSource):
                         index, grabbed - t0, None, name, file=file, grabbed_s=grabbed, stale=True
                     )
                     continue
+                dated = clock if math.isfinite(stamped) else ""
                 why = self._damage_note(damage)
                 self.damaged += bool(damage)
                 yield Frame(
@@ -149,6 +156,8 @@ class VideoSource(FrameSource):
                     file=file,
                     grabbed_s=grabbed,
                     damaged=bool(damage),
+                    stamped_s=stamped,
+                    clock=dated,
                 )
         finally:
             grabber.close()
@@ -203,22 +212,26 @@ class VideoSource(FrameSource):
 class LatestFrame:
     """A live capture read on a thread of its own, so that grabbing never waits for the
     estimator and the estimator never works on an old frame: iterating gives (index, grab
-    time, image, damage) for the newest frame, and (index, grab time, None, '') first for each
-    frame a newer one overtook before it was taken (stale: dropped, not queued). ``damage``:
-    why the frame rests on damaged data (``AvCapture.damage``; '' when whole). Grab times are
-    ``time.monotonic()`` just after ``grab()``, before the frame is decoded. Ends when the
-    capture stops delivering (and ``reconnect``, when given, cannot open it again) or ``close``
-    is called."""
+    time, stamp, image, damage) for the newest frame, and (index, grab time, NaN, None, '')
+    first for each frame a newer one overtook before it was taken (stale: dropped, not
+    queued). ``damage``: why the frame rests on damaged data (``AvCapture.damage``; '' when
+    whole). Grab times are ``time.monotonic()`` just after ``grab()``, before the frame is
+    decoded. The stamp: with a ``clock``, the source's own stamp of the frame on the clock of
+    the grab times (``SourceClock.stamp``: NaN where it has none; the clock is reset at a
+    reconnection); without one, NaN. Ends when the capture stops delivering (and
+    ``reconnect``, when given, cannot open it again) or ``close`` is called."""
 
     def __init__(
         self,
         capture: Capture,
         reconnect: Callable[[], Capture | None] | None = None,
+        clock: SourceClock | None = None,
     ) -> None:
         self.capture = capture
         self.reconnect = reconnect
+        self.clock = clock
         self._ready = threading.Condition()
-        self._newest: tuple[int, float, NDArray[Any], str] | None = None
+        self._newest: tuple[int, float, float, NDArray[Any], str] | None = None
         self._overtaken: list[tuple[int, float]] = []
         self._ended = False
         self._closing = threading.Event()
@@ -232,6 +245,7 @@ class LatestFrame:
             while not self._closing.is_set():
                 ok = self.capture.grab()
                 grabbed = time.monotonic()
+                stamped = self._stamp(grabbed) if ok else math.nan
                 image = self.capture.retrieve()[1] if ok else None
                 if image is None:
                     if self._closing.is_set():
@@ -244,12 +258,14 @@ class LatestFrame:
                     if capture is None:
                         break
                     self.capture = capture
+                    if self.clock is not None:
+                        self.clock.reset()
                     continue
                 damage = self.capture.damage if isinstance(self.capture, AvCapture) else ""
                 with self._ready:
                     if self._newest is not None:
                         self._overtaken.append(self._newest[:2])
-                    self._newest = (index, grabbed, image, damage)
+                    self._newest = (index, grabbed, stamped, image, damage)
                     self._ready.notify()
                 index += 1
         finally:
@@ -257,7 +273,17 @@ class LatestFrame:
                 self._ended = True
                 self._ready.notify()
 
-    def __iter__(self) -> Iterator[tuple[int, float, NDArray[Any] | None, str]]:
+    def _stamp(self, grabbed_s: float) -> float:
+        """The source's own stamp of the frame just grabbed, on the host's clock (NaN)."""
+        if self.clock is None:
+            return math.nan
+        if isinstance(self.capture, AvCapture):
+            source_s = self.capture.pts_s
+        else:
+            source_s = self.capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+        return self.clock.stamp(source_s, grabbed_s)
+
+    def __iter__(self) -> Iterator[tuple[int, float, float, NDArray[Any] | None, str]]:
         while True:
             with self._ready:
                 while self._newest is None and not self._ended:
@@ -265,7 +291,7 @@ class LatestFrame:
                 overtaken, self._overtaken = self._overtaken, []
                 newest, self._newest = self._newest, None
             for index, grabbed in overtaken:
-                yield index, grabbed, None, ""
+                yield index, grabbed, math.nan, None, ""
             if newest is None:
                 return
             yield newest
@@ -321,7 +347,8 @@ def _camera(index: str, rate: float, size: tuple[int, int] | None) -> VideoSourc
     if size is not None:
         capture.set(cv2.CAP_PROP_FRAME_WIDTH, float(size[0]))
         capture.set(cv2.CAP_PROP_FRAME_HEIGHT, float(size[1]))
-    return VideoSource(capture, rate, f"camera {index}", live=True)
+    clock = DeviceClock() if capture.getBackendName() == "V4L2" else None
+    return VideoSource(capture, rate, f"camera {index}", live=True, clock=clock)
 
 
 def _open_stream(url: str) -> AvCapture | None:
@@ -339,7 +366,9 @@ def _stream(url: str, rate: float) -> VideoSource:
             f"{url}: cannot open the stream (nothing answers, or FFmpeg cannot read it) "
             f"within {STREAM_TIMEOUT_MS / 1000:g} s"
         )
-    return VideoSource(capture, rate, url, live=True, reopen=lambda: _open_stream(url))
+    return VideoSource(
+        capture, rate, url, live=True, reopen=lambda: _open_stream(url), clock=StreamClock()
+    )
 
 
 def _image_files(source: str) -> list[Path] | None:

@@ -100,7 +100,7 @@ class LandingTargetSink:
     ``control.default_T_body_camera()``. target : sets the angular size fields.
     time_offset_s : added to the frame times for ``time_usec`` until TIMESYNC has mapped this
     computer's clock to the autopilot's (or for estimates without ``grabbed_s``); then
-    ``time_usec`` is ``Estimate.captured_s`` (the grab less the camera's latency) on the
+    ``time_usec`` is ``Estimate.captured_s`` (the frame's date less the camera's latency) on the
     autopilot's clock. timesync_period_s : how
     often a TIMESYNC request is sent (0: never; requests from the vehicle are answered all the
     same). attitude_max_age_s, position_max_age_s : the vehicle's ATTITUDE and
