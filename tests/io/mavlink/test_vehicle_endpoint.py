@@ -41,8 +41,8 @@ class Served:
     p = np.array([0.2, 0.1, 1.0])
     v = np.array([0.0, 0.0, 0.1])
 
-    def __init__(self, port: int) -> None:
-        self.endpoint = VehicleEndpoint(f"udpin:127.0.0.1:{port}", autopilot=3)
+    def __init__(self, port: int, autopilot: int = 3) -> None:
+        self.endpoint = VehicleEndpoint(f"udpin:127.0.0.1:{port}", autopilot=autopilot)
         self.endpoint.interval_s["ATTITUDE"] = math.inf
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, daemon=True)
@@ -103,3 +103,38 @@ def test_a_companion_hears_the_autopilot_its_state_in_ned_and_its_clock(
         assert served.endpoint.received["HEARTBEAT"] > 0
     finally:
         link.close()
+
+
+@pytest.mark.parametrize("autopilot", [3, 12])
+def test_the_vehicles_heartbeat_is_asked_for_at_ten_hertz(
+    udp_port: int, autopilot: int, monkeypatch: pytest.MonkeyPatch
+):
+    """The HEARTBEAT is the only message that says the vehicle's mode: the link asks for it at
+    10 Hz. ArduPilot sends it so (a mode change is heard within 0.1 s); PX4 keeps 1 Hz, and
+    after three tries the link says so, once."""
+    from perchpose.io.mavlink import link as link_module
+
+    monkeypatch.setattr(link_module, "STREAM_RETRY_S", 1.2)  # a 1 s HEARTBEAT comes in it
+    served = Served(udp_port, autopilot)
+    said: list[str] = []
+    link = MavlinkLink(f"udpout:127.0.0.1:{udp_port}", heartbeat_hz=10.0, report=said.append)
+    try:
+        vehicle = link.vehicle
+        if autopilot == 3:
+            assert _until(lambda: served.endpoint.interval_s["HEARTBEAT"] == pytest.approx(0.1))
+            assert _until(lambda: vehicle.heartbeat_period_s < 0.15)
+            time.sleep(1.5)
+            assert vehicle.heartbeat_period_s < 0.15
+            assert link.heartbeat_requests == 1
+            assert not said
+        else:
+            assert _until(lambda: any("keeps its HEARTBEAT" in line for line in said))
+            assert link.heartbeat_requests == 3
+            assert served.endpoint.interval_s["HEARTBEAT"] == 1.0
+            time.sleep(1.0)
+            assert link.heartbeat_requests == 3  # no more asking
+    finally:
+        link.close()
+        served.stop()
+    with pytest.raises(link_module.LinkError, match="HEARTBEAT rate must be 1 to 50 Hz"):
+        MavlinkLink(f"udpout:127.0.0.1:{udp_port}", heartbeat_hz=0.0)

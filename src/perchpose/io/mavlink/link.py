@@ -53,6 +53,7 @@ MAV_MODE_FLAG_SAFETY_ARMED = 128
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 STREAM_IDS = {"ATTITUDE": 30, "LOCAL_POSITION_NED": 32}
+HEARTBEAT_ID = 0
 MAV_LANDED_STATE_ON_GROUND = 1
 STREAM_RETRY_S = 2.0  # a stream not arriving this long after it was asked for is asked again
 STREAM_TRIES = 3
@@ -146,6 +147,7 @@ class VehicleState:
     system_id: int | None = None
     component_id: int | None = None
     heartbeat_t_s: float = float("nan")
+    heartbeat_period_s: float = math.inf  # between the last two
     landed_state: int = 0
     landed_state_t_s: float = float("nan")
     rejected: int = 0
@@ -191,6 +193,8 @@ class VehicleState:
             self.autopilot = int(msg.autopilot)
             self.custom_mode = int(msg.custom_mode)
             self.base_mode = int(msg.base_mode)
+            if math.isfinite(self.heartbeat_t_s):
+                self.heartbeat_period_s = now - self.heartbeat_t_s
             self.heartbeat_t_s = now
         elif kind == "ATTITUDE":
             t_ms = int(msg.time_boot_ms)
@@ -230,9 +234,13 @@ class MavlinkLink:
     once). streams : the vehicle's messages the link asks for (``ATTITUDE``,
     ``LOCAL_POSITION_NED``) with MAV_CMD_SET_MESSAGE_INTERVAL at ``stream_hz`` once it knows
     the vehicle, again while one does not arrive (3 tries, 2 s apart), then says which never
-    came. timesync_period_s : how often a TIMESYNC request is sent (0: never; requests from
-    the vehicle are answered all the same). report : receives the one-line link reports
-    (default: this module's logger).
+    came. heartbeat_hz : the rate the link asks of the vehicle's HEARTBEAT, the only message
+    that says its flight mode, so that a mode change by its pilot is heard within a tenth of a
+    second rather than a second (None: the vehicle's own 1 Hz); ArduPilot honours it, PX4
+    keeps 1 Hz: asked again while it does not come at half that rate (3 tries, 2 s apart),
+    then said once. timesync_period_s : how often a TIMESYNC request is sent (0: never;
+    requests from the vehicle are answered all the same). report : receives the one-line link
+    reports (default: this module's logger).
 
     No packet ends the link's thread: a message that cannot be packed is dropped, one that
     cannot be used is ignored, and an error in a listener or poller is caught; each kind of
@@ -251,6 +259,7 @@ class MavlinkLink:
         target_system: int | None = None,
         streams: tuple[str, ...] = (),
         stream_hz: float = 50.0,
+        heartbeat_hz: float | None = None,
         report: Callable[[str], None] | None = None,
     ) -> None:
         self.url = check_url(url)
@@ -264,6 +273,12 @@ class MavlinkLink:
         self.stream_requests = 0
         self._stream_tries = 0
         self._next_stream_request = 0.0
+        if heartbeat_hz is not None and not 1.0 <= heartbeat_hz <= 50.0:
+            raise LinkError(f"MAVLink HEARTBEAT rate must be 1 to 50 Hz, got {heartbeat_hz}")
+        self.heartbeat_hz = heartbeat_hz
+        self.heartbeat_requests = 0
+        self._heartbeat_tries = 0
+        self._next_heartbeat_request = 0.0
         if target_system is not None and not 1 <= target_system <= 255:
             raise LinkError(f"MAVLink target system {target_system}: expected 1 to 255")
         self.source_system = source_system
@@ -345,8 +360,10 @@ class MavlinkLink:
             self._down_reported = True
 
     def _rebooted(self, why: str) -> None:
-        """The autopilot rebooted: its clock's offset is measured anew."""
+        """The autopilot rebooted: its clock's offset is measured anew, and its HEARTBEAT's
+        rate asked for again."""
         self.timesync.reset()
+        self._heartbeat_tries, self._next_heartbeat_request = 0, 0.0
         self.report(f"MAVLink {self.url}: the autopilot rebooted ({why}); TIMESYNC starts over")
 
     def say_once(self, key: str, line: str) -> None:
@@ -422,6 +439,7 @@ class MavlinkLink:
             self._next_heartbeat = now + self.heartbeat_period_s
             self._send(self._heartbeat, "HEARTBEAT")
         self._ask_for_streams(now)
+        self._ask_for_heartbeats(now)
         if self.timesync_period_s > 0 and now >= self._next_timesync:
             self._next_timesync = now + self.timesync_period_s
             tc1, ts1 = self.timesync.request()
@@ -465,6 +483,38 @@ class MavlinkLink:
             )
             if self._send(send, "COMMAND_LONG"):
                 self.stream_requests += 1
+
+    def _ask_for_heartbeats(self, now: float) -> None:
+        """SET_MESSAGE_INTERVAL for the vehicle's HEARTBEAT at ``heartbeat_hz``, again while
+        it does not come at half that rate; said once if it never does."""
+        system, component = self.vehicle.system_id, self.vehicle.component_id
+        if self.heartbeat_hz is None or system is None or component is None:
+            return
+        if now < self._next_heartbeat_request or not now - self.vehicle.heartbeat_t_s < 1.5:
+            return
+        if self.vehicle.heartbeat_period_s < 2.0 / self.heartbeat_hz:
+            self._next_heartbeat_request = math.inf  # it comes at the rate asked
+            return
+        if self._heartbeat_tries >= STREAM_TRIES:  # asked, and the period stayed long
+            self.say_once(
+                "heartbeat rate",
+                f"MAVLink {self.url}: the vehicle keeps its HEARTBEAT at its own rate though "
+                f"asked for {self.heartbeat_hz:g} Hz (PX4 does): a mode change by its pilot is "
+                "heard up to a HEARTBEAT period late",
+            )
+            self._next_heartbeat_request = math.inf
+            return
+        self._heartbeat_tries += 1
+        self._next_heartbeat_request = now + STREAM_RETRY_S
+        send = partial(
+            _interval_send,
+            system=system,
+            component=component,
+            message_id=HEARTBEAT_ID,
+            interval_us=round(1e6 / self.heartbeat_hz),
+        )
+        if self._send(send, "COMMAND_LONG"):
+            self.heartbeat_requests += 1
 
     def _heartbeat(self, mav: Any) -> None:
         mav.heartbeat_send(

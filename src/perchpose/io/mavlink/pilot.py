@@ -15,7 +15,9 @@ The autopilot stays in charge:
 - it flies one vehicle: ``target_system``, or the first autopilot heard; nothing from another
   system reaches its state, its setpoints or its release logic (``perchpose.io.mavlink.link``);
 - it stops (state ``released``, nothing more sent, said once) when the vehicle leaves that
-  mode, disarms, its HEARTBEAT stops for ``heartbeat_timeout_s``, or its ATTITUDE or
+  mode (its HEARTBEAT is asked for at ``HEARTBEAT_HZ``, so that a mode change is heard within
+  0.1 s where the autopilot honours it: ArduPilot does, PX4 keeps 1 Hz), disarms, its
+  HEARTBEAT stops for ``heartbeat_timeout_s``, or its ATTITUDE or
   LOCAL_POSITION_NED is older than ``PilotSettings.senses_lost_after_s`` (older than
   ``stale_after_s``, the pilot only hovers until they are fresh): the autopilot's own mode or
   failsafe then flies the vehicle; a non-finite sample is dropped, never flown on;
@@ -67,6 +69,9 @@ MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
 COPTER_MODE_LAND = 9
 PX4_MAIN_MODE_AUTO, PX4_AUTO_LAND = 4, 6
 FORCE_DISARM = 21196.0
+# the rate asked of the vehicle's HEARTBEAT, the one message that says its mode: a mode change
+# by its pilot is heard within 0.1 s where the autopilot honours it (ArduPilot; PX4 keeps 1 Hz)
+HEARTBEAT_HZ = 10.0
 F = np.diag([1.0, -1.0, -1.0])  # NED <-> NWU and FRD <-> FLU
 
 
@@ -243,6 +248,7 @@ class MavlinkPilot:
             url,
             target_system=target_system,
             streams=("ATTITUDE", "LOCAL_POSITION_NED"),
+            heartbeat_hz=HEARTBEAT_HZ,
             report=report or log.warning,
         )
         self.report = self.link.report

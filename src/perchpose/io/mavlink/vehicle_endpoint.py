@@ -37,8 +37,19 @@ MAV_STATE_STANDBY, MAV_STATE_ACTIVE = 3, 4
 MAV_LANDED_STATE_ON_GROUND, MAV_LANDED_STATE_IN_AIR = 1, 2
 MAV_RESULT_ACCEPTED, MAV_RESULT_DENIED, MAV_RESULT_UNSUPPORTED = 0, 2, 3
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
-STREAMS = {30: "ATTITUDE", 32: "LOCAL_POSITION_NED", 245: "EXTENDED_SYS_STATE"}
-DEFAULT_INTERVAL_S = {"ATTITUDE": 0.02, "LOCAL_POSITION_NED": 0.02, "EXTENDED_SYS_STATE": 0.2}
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+STREAMS = {
+    0: "HEARTBEAT",
+    30: "ATTITUDE",
+    32: "LOCAL_POSITION_NED",
+    245: "EXTENDED_SYS_STATE",
+}
+DEFAULT_INTERVAL_S = {
+    "HEARTBEAT": 1.0,
+    "ATTITUDE": 0.02,
+    "LOCAL_POSITION_NED": 0.02,
+    "EXTENDED_SYS_STATE": 0.2,
+}
 
 
 def euler_ned_frd(R_world_body: Array) -> tuple[float, float, float]:
@@ -106,7 +117,9 @@ class VehicleEndpoint:
 
     def _interval(self, msg: Any) -> None:
         name = STREAMS.get(int(msg.param1))
-        if name is None:
+        # ArduPilot sets its HEARTBEAT's rate as any message's; PX4 keeps it at 1 Hz
+        px4_heartbeat = name == "HEARTBEAT" and self.autopilot != MAV_AUTOPILOT_ARDUPILOTMEGA
+        if name is None or px4_heartbeat:
             self.ack(MAV_CMD_SET_MESSAGE_INTERVAL, MAV_RESULT_UNSUPPORTED)
             return
         interval_us = float(msg.param2)
@@ -132,10 +145,11 @@ class VehicleEndpoint:
         return True
 
     def heartbeat(self, now_s: float, custom_mode: int, armed: bool, at_once: bool = False) -> None:
-        """A HEARTBEAT once a second, and ``at_once`` (a mode or arming that changed)."""
+        """A HEARTBEAT at its interval (a second unless asked otherwise; never, asked so), and
+        ``at_once`` (a mode or arming that changed)."""
         if not self.peer or (now_s < self._next_heartbeat_s and not at_once):
             return
-        self._next_heartbeat_s = now_s + 1.0
+        self._next_heartbeat_s = now_s + self.interval_s["HEARTBEAT"]
         base = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
         state = MAV_STATE_ACTIVE if armed else MAV_STATE_STANDBY
         self._conn.mav.heartbeat_send(MAV_TYPE_QUADROTOR, self.autopilot, base, custom_mode, state)
