@@ -126,10 +126,10 @@ def test_the_fixes_fused_by_the_filter_are_what_lets_it_perch() -> None:
         load_camera("preset:fpv"), estimators="truth", runs=1, onboard_estimator="crazyflie-kalman"
     )
     setup = campaign.setups[0]
-    fused = run_perch(setup, 960002)
+    fused = run_perch(setup, 960000)
     assert fused.success, fused.reason
     off = replace(setup.controller.position_fixes, send=False)
     alone = run_perch(
-        replace(setup, controller=replace(setup.controller, position_fixes=off)), 960002
+        replace(setup, controller=replace(setup.controller, position_fixes=off)), 960000
     )
     assert alone.reason == "timeout"

@@ -76,6 +76,39 @@ def test_ceiling_effect_pushes_up_near_the_plate() -> None:
     assert q.ceiling_factor() == pytest.approx(1.0, abs=1e-3)
 
 
+def test_the_ceiling_effect_acts_only_under_the_plate() -> None:
+    """Beside a 20 cm plate, 1 cm below its plane, the rotors get nothing from it; under its
+    edge, the rotors under it get the whole gain and those beyond it none; and the vehicle's
+    climb follows: it climbs under the plate, holds beside it."""
+    params = QuadrotorParams()
+
+    def beside(x_m: float) -> Quadrotor:
+        q = Quadrotor.hovering(params, np.array([x_m, 0.0, 1.99 - params.rotor_plane_m]), 0.0)
+        q.ceiling_z_m, q.ceiling_half_size_m = 2.0, 0.10
+        return q
+
+    assert beside(0.0).ceiling_factor() > 1.05
+    assert beside(0.30).ceiling_factor() == 1.0
+    edge = beside(0.10)  # the hubs at x = 0.10 +- the arm: two under the plate, two beyond
+    gains = [edge.ceiling_factor(i) for i in range(4)]
+    inside = [
+        g for i, g in enumerate(gains) if edge.point_in_world((*edge.hubs_m[i], 0.0))[0] < 0.1
+    ]
+    assert len(inside) == 2
+    assert all(g > 1.05 for g in inside)
+    assert sorted(gains)[:2] == [1.0, 1.0]
+    rises = []
+    for x_m in (0.0, 0.30):
+        q = beside(x_m)
+        # the motors held at the hover's thrust: only the ceiling's share moves the vehicle
+        hover = np.full(4, params.weight_n / 4)
+        for _ in range(50):
+            q.step(0.001, hover)
+        rises.append(float(q.v_mps[2]))
+    assert rises[0] > 0.01
+    assert abs(rises[1]) < 1e-6
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [

@@ -512,7 +512,10 @@ class _Flight:
         self.senses_rng = np.random.default_rng(senses_seq)
         start, heading_rad = draw_start(setup, world)
         self.vehicle = _plant_for(setup, plant)(setup.vehicle, start, heading_rad, setup.onboard)
-        self.vehicle.ceiling_z_m = setup.plate_z_m if setup.ceiling_effect else None
+        self.vehicle.ceiling_z_m, self.vehicle.ceiling_half_size_m = (
+            setup.plate_z_m if setup.ceiling_effect else None,
+            setup.contact.plate_half_size_m,
+        )
         self.wind_direction_rad = float(world.uniform(-math.pi, math.pi))
         self.wind = DrydenWind(
             setup.wind_level, 1.0 / setup.fps, world, self.wind_direction_rad, setup.plate_z_m

@@ -14,7 +14,8 @@ wind) and ``a_i = a + omega x r_i`` its value at rotor ``i`` (hub position ``r_i
   and in rotor speed, as identified for the Crazyflie 2.0 by Forster (2015, ETH Zurich,
   "System Identification of the Crazyflie 2.0 Nano Quadrocopter");
 - body (parasitic) drag ``-|a| diag(c_xy, c_xy, c_z) a`` at the centre of mass;
-- the ceiling effect near the plate (thrust gain ``1 / (1 - (r / 4d)^2)``).
+- the ceiling effect under the plate (thrust gain ``1 / (1 - (r / 4d)^2)`` for the share of
+  each rotor's disc the plate covers).
 
 This is the wrench of RotorPy's ``Multirotor`` (Folk et al., 2023) without flapping and
 translational lift, which RotorPy's own Crazyflie parameters leave at zero; a test flies both
@@ -180,10 +181,13 @@ class Quadrotor:
         gains: OnboardGains | None = None,
         p_m: Array | None = None,
         ceiling_z_m: float | None = None,
+        ceiling_half_size_m: float | None = None,
     ) -> None:
         self.params = params or QuadrotorParams()
         self.gains = gains or OnboardGains()
         self.ceiling_z_m = ceiling_z_m
+        # the ceiling is a square of this half size about x = y = 0 (the plate); None: endless
+        self.ceiling_half_size_m = ceiling_half_size_m
         mix = mixer(self.params)
         self._mix_rows: list[list[float]] = mix.tolist()
         self._unmix_rows: list[list[float]] = np.linalg.inv(mix).tolist()
@@ -297,14 +301,48 @@ class Quadrotor:
     def ceiling_factor(self, rotor: int | None = None) -> float:
         """Thrust gain near a ceiling: 1 / (1 - (r / 4d)^2), capped at 1.5, with ``d`` the
         distance from the ceiling to the rotor's hub in the rotor plane (``rotor`` None: to
-        the centre of the rotor plane)."""
+        the centre of the rotor plane), for the share of the rotor's disc under the ceiling
+        (``_under_ceiling``)."""
         if self.ceiling_z_m is None:
             return 1.0
         hx, hy = (0.0, 0.0) if rotor is None else self._hubs[rotor]
-        return _ceiling_gain(
-            self.ceiling_z_m - self.point_in_world((hx, hy, self.params.rotor_plane_m))[2],
-            self.params.prop_radius_m,
-        )
+        x, y, z = self.point_in_world((hx, hy, self.params.rotor_plane_m))
+        gain = _ceiling_gain(self.ceiling_z_m - z, self.params.prop_radius_m)
+        return 1.0 + (gain - 1.0) * self._under_ceiling(x, y)
+
+    def _ceiling_gains(self, R: Mat3) -> tuple[float, ...]:
+        """``ceiling_factor`` of each rotor for the attitude ``R``, written out in scalars (it
+        runs at the physics rate)."""
+        ceiling, half = self.ceiling_z_m, self.ceiling_half_size_m
+        if ceiling is None:
+            return (1.0, 1.0, 1.0, 1.0)
+        r, plane = self.params.prop_radius_m, self.params.rotor_plane_m
+        px, py, pz = self._p
+        cx, cy, cz = px + R[0][2] * plane, py + R[1][2] * plane, pz + R[2][2] * plane
+        gains = []
+        for hx, hy in self._hubs:
+            gain = _ceiling_gain(ceiling - (cz + R[2][0] * hx + R[2][1] * hy), r)
+            if half is not None:
+                x = abs(cx + R[0][0] * hx + R[0][1] * hy)
+                y = abs(cy + R[1][0] * hx + R[1][1] * hy)
+                if x > half - r or y > half - r:  # the disc reaches past the plate's edge
+                    share_x = min(1.0, max(0.0, (half - x + r) / (2.0 * r)))
+                    share_y = min(1.0, max(0.0, (half - y + r) / (2.0 * r)))
+                    gain = 1.0 + (gain - 1.0) * share_x * share_y
+            gains.append(gain)
+        return tuple(gains)
+
+    def _under_ceiling(self, x_m: float, y_m: float) -> float:
+        """The share of a rotor's disc centred at (``x_m``, ``y_m``) that the ceiling covers,
+        taken as the product of the covered shares of the disc's square along x and y (1 for
+        an endless ceiling): the ceiling effect acts only under the plate."""
+        half = self.ceiling_half_size_m
+        if half is None:
+            return 1.0
+        r = self.params.prop_radius_m
+        share_x = min(1.0, max(0.0, (half - abs(x_m) + r) / (2.0 * r)))
+        share_y = min(1.0, max(0.0, (half - abs(y_m) + r) / (2.0 * r)))
+        return share_x * share_y
 
     def point_in_world(self, p_body_m: Vec3) -> Vec3:
         """A point fixed to the body (body frame, metres) in the world frame."""
@@ -469,18 +507,10 @@ class Quadrotor:
         kd, kz = p.rotor_drag_kg_per_rad, p.inflow_drag_kg_per_rad
         fx = fy = fz = 0.0
         tau_x = tau_y = tau_z = 0.0
-        ceiling = self.ceiling_z_m
-        plane_z = self._p[2] + R[2][2] * p.rotor_plane_m
-        for (hx, hy), spin, scale, w in zip(
-            self._hubs, self._spin, self.thrust_scale, rotor, strict=True
+        gains = self._ceiling_gains(R)
+        for (hx, hy), spin, scale, w, gain in zip(
+            self._hubs, self._spin, self.thrust_scale, rotor, gains, strict=True
         ):
-            gain = (
-                1.0
-                if ceiling is None
-                else _ceiling_gain(
-                    ceiling - (plane_z + R[2][0] * hx + R[2][1] * hy), p.prop_radius_m
-                )
-            )
             thrust = gain * scale * k_thrust * w * w
             # H-force from the air at this hub (body velocity plus omega x r)
             h_x = -w * kd * (ax - wz * hy)
