@@ -34,3 +34,20 @@ def test_an_unknown_estimator_is_named(tmp_path: Path) -> None:
     with pytest.raises(PerchposeError, match=r"--estimator: unknown.*nope"):
         run(PerchOptions(str(tmp_path), estimators="truth,nope", runs=1))
     assert not (tmp_path / "runs.csv").exists()
+
+
+def test_a_campaign_flown_on_full_state_setpoints_says_so(tmp_path: Path) -> None:
+    """``command="full-state"``: the pilot sends positions the vehicle's position loop holds;
+    the runs perch in still air with the true pose, and the reports say which command flew."""
+    out = tmp_path / "perch"
+    said: list[str] = []
+    options = PerchOptions(
+        str(out), estimators="truth", runs=2, seed=3, workers=1, command="full-state"
+    )
+    content = run(options, say=said.append)
+    assert content["command"] == "full-state"
+    assert content["setup"]["command"] == "full-state"
+    assert content["success_rate"] == 1.0
+    assert any("full-state setpoints" in line for line in said)
+    with pytest.raises(PerchposeError, match="--command: unknown 'attitude'"):
+        run(PerchOptions(str(tmp_path / "other"), estimators="truth", runs=1, command="attitude"))

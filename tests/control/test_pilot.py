@@ -516,3 +516,63 @@ def test_a_vehicle_that_takes_no_fixes_is_said_once_and_asked_no_more() -> None:
         pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.1 * k), 0.1 * k)
     said = [r for r in reports if "takes no position fixes" in r]
     assert len(said) == 1
+
+
+class FullState(Recorder):
+    """A commander whose vehicle takes full-state setpoints: each kept as (position,
+    velocity, yaw, yaw rate)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.full: list[tuple[tuple[float, ...], tuple[float, ...], float, float]] = []
+
+    def send_full_state(
+        self,
+        p_world_m: tuple[float, float, float],
+        v_world_mps: tuple[float, float, float],
+        yaw_rad: float,
+        yaw_rate_rad_s: float,
+    ) -> None:
+        self.full.append((p_world_m, v_world_mps, yaw_rad, yaw_rate_rad_s))
+
+
+def test_full_state_setpoints_lead_the_estimate_by_what_the_vehicles_loops_fly() -> None:
+    """With ``command="full-state"`` each setpoint is a position and a yaw that the vehicle's
+    position and yaw loops (2 /s and 6 /s) turn into the controller's velocity and yaw rate,
+    from the vehicle's own estimate; the same frames flown with velocity setpoints give those
+    velocities. A vehicle whose link takes velocities only is sent them, said once."""
+    settings = PilotSettings(command="full-state")
+    commander = FullState()
+    vehicle = Vehicle(commander, 1.0)
+    vehicle.p_m = np.array([0.3, -0.2, 1.0])
+    yaw = 0.4
+    pilot = PerchingPilot(
+        commander,
+        lambda: np.array(
+            [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]
+        ),
+        controller=PerchingController(ControllerSettings(observer_rate=0.0)),
+        settings=settings,
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        clock=lambda: vehicle.t_s,
+    )
+    c = pilot.controller.settings
+    steps = [pilot.update(_seen(c, [0.05, -0.03, 0.6], 0.1 * k), 0.1 * k) for k in range(5)]
+    assert commander.sent == []  # no velocity setpoint
+    assert len(commander.full) == len(steps) == 5
+    for step, (p, v, yaw_sp, rate) in zip(steps, commander.full, strict=True):
+        assert step.v_mps is not None
+        assert v == pytest.approx(step.v_mps)
+        assert np.array(p) == pytest.approx(vehicle.p_m + np.array(step.v_mps) / 2.0)
+        assert yaw_sp == pytest.approx(yaw + rate / 6.0)
+    assert any(abs(v[0]) > 0.01 for _, v, _, _ in commander.full)  # it steers
+    reports: list[str] = []
+    plain = Recorder()
+    velocity_only = _pilot(Vehicle(plain, 1.0), settings=settings, reports=reports)
+    for k in range(3):
+        velocity_only.update(_seen(c, [0.05, -0.03, 0.6], 0.1 * k), 0.1 * k)
+    assert len(plain.sent) == 3
+    assert sum("velocity setpoints only" in r for r in reports) == 1
+    with pytest.raises(ControllerConfigError, match="command 'attitude'"):
+        PilotSettings(command="attitude")

@@ -638,3 +638,41 @@ def test_a_position_fix_goes_out_as_cflibs_external_position(
     ((port, channel, data),) = link.sent
     assert (port, channel) == (CRTPPort.LOCALIZATION, cf.loc.POSITION_CH)
     assert struct.unpack("<fff", data) == pytest.approx((0.1, -0.2, 1.5))
+
+
+def _decompressed_quaternion(packed: int) -> tuple[float, ...]:
+    """The Crazyflie's "smallest three" quaternion (x, y, z, w): the largest component's index
+    in the top two bits, the others in 10 bits each (a sign and 9 bits of magnitude up to
+    1/sqrt(2)), the last component in the lowest bits."""
+    largest = packed >> 30
+    q = [0.0, 0.0, 0.0, 0.0]
+    squares = 0.0
+    for i in (3, 2, 1, 0):
+        if i == largest:
+            continue
+        magnitude, negative = packed & 511, (packed >> 9) & 1
+        packed >>= 10
+        q[i] = (magnitude / 511) / math.sqrt(2.0) * (-1.0 if negative else 1.0)
+        squares += q[i] ** 2
+    q[largest] = math.sqrt(max(0.0, 1.0 - squares))
+    return tuple(q)
+
+
+def test_a_full_state_setpoint_goes_out_as_the_firmware_decodes_it(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """cflib's own packet (TYPE_FULL_STATE): position in mm, velocity in mm/s, no
+    acceleration, the yaw as the orientation's quaternion, no body rates (their units differ
+    between cflib and the firmware; the yaw is in the orientation)."""
+    cf, link = crazyflie
+    CflibCommander(cf.commander).send_full_state((0.1, -0.2, 1.5), (0.05, 0.0, 0.1), 0.3, 0.2)
+    ((port, _channel, data),) = link.sent
+    assert port == CRTPPort.COMMANDER_GENERIC
+    kind, *values, packed, rate_roll, rate_pitch, rate_yaw = struct.unpack("<BhhhhhhhhhIhhh", data)
+    assert kind == 6  # TYPE_FULL_STATE
+    assert values == [100, -200, 1500, 50, 0, 100, 0, 0, 0]
+    x, y, z, w = _decompressed_quaternion(packed)
+    assert abs(x) < 0.01
+    assert abs(y) < 0.01
+    assert 2.0 * math.atan2(z, w) == pytest.approx(0.3, abs=0.01)
+    assert (rate_roll, rate_pitch, rate_yaw) == (0, 0, 0)

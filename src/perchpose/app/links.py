@@ -33,7 +33,9 @@ class LinkOptions:
     target_system : the autopilot's system id (None: the first heard). crazyflie_uri : a cflib
     URI (None: no Crazyflie). mount : ``up``, ``down`` or a mount YAML (None: upward).
     position_fixes : the flying pilot hands each fix to the vehicle's estimator where its link
-    can (the Crazyflie's Kalman filter, as an external position)."""
+    can (the Crazyflie's Kalman filter, as an external position). command : what the flying
+    pilot sends (``PilotSettings.command``: ``velocity`` or ``full-state``; a MAVLink
+    autopilot is sent velocities)."""
 
     mavlink_url: str | None = None
     mavlink_frame: str = "body_frd"
@@ -44,6 +46,7 @@ class LinkOptions:
     crazyflie_uri: str | None = None
     mount: str | None = None
     position_fixes: bool = True
+    command: str = "velocity"
 
     @property
     def flies(self) -> str | None:
@@ -120,7 +123,7 @@ def vehicle_links(
 ) -> Iterator[VehicleLinks]:
     """The links ``options`` asks for; at the end a Crazyflie is landed and every link
     closed, newest first."""
-    from perchpose.control import PerchingController
+    from perchpose.control import PerchingController, PilotSettings
     from perchpose.control.pilot import PilotState
     from perchpose.control.pilot_clock import PilotClock
 
@@ -137,6 +140,7 @@ def vehicle_links(
             autopilot = MavlinkPilot(
                 o.mavlink_url,
                 controller=links.controllers[-1],
+                settings=PilotSettings(on_senses_lost="release", command=o.command),
                 target_system=o.target_system,
                 report=report,
             )
@@ -166,7 +170,9 @@ def vehicle_links(
             link = connect(o.crazyflie_uri, report=report)
             closers.append(link.close)
             links.controllers.append(PerchingController(settings))
-            pilot = link.pilot(controller=links.controllers[-1])
+            pilot = link.pilot(
+                controller=links.controllers[-1], settings=PilotSettings(command=o.command)
+            )
             links.hooks.append(pilot)
             clock = PilotClock(pilot).start()  # the pilot's watchdogs tick without frames
             closers.append(clock.stop)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from perchpose.app.inputs import load_camera
 from perchpose.camera import CameraModel
+from perchpose.control.pilot_settings import COMMANDS
 from perchpose.errors import PerchposeError
 from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write_reports
 from perchpose.sim.campaign import campaign_jobs, execute
@@ -58,6 +59,7 @@ class PerchCampaign:
         time_offset: str = "correct",
         onboard_estimator: str = "model",
         position_fixes: str = "send",
+        command: str = "velocity",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -78,6 +80,8 @@ class PerchCampaign:
                 f"--position-fixes: unknown {position_fixes!r} "
                 f"(choose {' or '.join(POSITION_FIXES)})"
             )
+        if command not in COMMANDS:
+            raise PerchposeError(f"--command: unknown {command!r} (choose {' or '.join(COMMANDS)})")
         if odometry not in ODOMETRY_ERRORS:
             raise PerchposeError(
                 f"--odometry: unknown {odometry!r} (choose {' or '.join(ODOMETRY_ERRORS)})"
@@ -104,6 +108,7 @@ class PerchCampaign:
             flight_controller=flight_controller,
             onboard_estimator=onboard_estimator,
         )
+        base = replace(base, pilot=replace(base.pilot, command=command))
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
         timed = [
             fixes_setup(
@@ -168,6 +173,11 @@ class PerchCampaign:
                     "; the firmware's Kalman filter estimates its state from a simulated IMU, "
                     "Flow deck and range sensor"
                 )
+            if base.pilot.command == "full-state":
+                flown += (
+                    "; the pilot sends full-state setpoints, which the vehicle's position loop "
+                    "holds"
+                )
             say(
                 f"{len(jobs)} runs: {cells} cell{plural} of {self.runs} runs; {senses(base)}{flown}"
             )
@@ -220,6 +230,7 @@ class PerchOptions:
     time_offset: str = "correct"
     onboard_estimator: str = "model"
     position_fixes: str = "send"
+    command: str = "velocity"
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -245,6 +256,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         time_offset=options.time_offset,
         onboard_estimator=options.onboard_estimator,
         position_fixes=options.position_fixes,
+        command=options.command,
     )
     content = campaign.fly(
         options.out,

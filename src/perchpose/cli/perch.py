@@ -89,6 +89,15 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
     "sensor (needs cffirmware, as --flight-controller does).",
 )
 @click.option(
+    "--command",
+    type=click.Choice(["velocity", "full-state"]),
+    default="velocity",
+    show_default=True,
+    help="What the pilot sends the vehicle: velocity (cflib's send_velocity_world_setpoint) "
+    "or full-state (send_full_state_setpoint: a position and yaw its own position loop holds "
+    "on its own estimate). Attitude setpoints are not built.",
+)
+@click.option(
     "--position-fixes",
     type=click.Choice(["send", "off"]),
     default="send",
@@ -184,6 +193,7 @@ def perch(
     odometry: str,
     flight_controller: str,
     onboard_estimator: str,
+    command: str,
     position_fixes: str,
     latency_error_ms: float,
     time_offset: str,
@@ -224,6 +234,7 @@ def perch(
         flight_controller=flight_controller,
         onboard_estimator=onboard_estimator,
         position_fixes=position_fixes,
+        command=command,
         overwrite=overwrite,
         faults=faults,
         latency_error_ms=latency_error_ms,

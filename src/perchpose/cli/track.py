@@ -114,6 +114,16 @@ if TYPE_CHECKING:
     "radio://0/80/2M/E7E7E7E7E7.",
 )
 @click.option(
+    "--command",
+    "pilot_command",
+    type=click.Choice(["velocity", "full-state"]),
+    default="velocity",
+    show_default=True,
+    help="What the flying pilot sends: velocity setpoints, or full-state ones (a position and "
+    "yaw the Crazyflie's own position loop holds on its estimate: cflib's "
+    "send_full_state_setpoint; a MAVLink autopilot is sent velocities).",
+)
+@click.option(
     "--position-fixes/--no-position-fixes",
     default=True,
     show_default=True,
@@ -205,6 +215,7 @@ def track(
     target_system: int | None,
     crazyflie_uri: str | None,
     mount_file: str | None,
+    pilot_command: str,
     position_fixes: bool,
     sigmas_file: str | None,
     budget_ms: float | None,
@@ -239,6 +250,7 @@ def track(
         crazyflie_uri,
         mount_file,
         position_fixes,
+        pilot_command,
     )
     options = TrackOptions(
         source,
@@ -281,6 +293,7 @@ def _link_options(
     crazyflie_uri: str | None,
     mount_file: str | None,
     position_fixes: bool = True,
+    command: str = "velocity",
 ) -> LinkOptions:
     """The vehicle links asked for; a MAVLink flag without ``--mavlink`` is a usage error."""
     from perchpose.app.links import LinkOptions
@@ -304,6 +317,7 @@ def _link_options(
         crazyflie_uri=crazyflie_uri,
         mount=mount_file,
         position_fixes=position_fixes,
+        command=command,
     )
 
 

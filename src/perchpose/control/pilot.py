@@ -62,10 +62,17 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.control.controller import Command, Odometry, PerchingController, Phase, usable
+from perchpose.control.controller import (
+    MAX_CARRY_S,
+    Command,
+    Odometry,
+    PerchingController,
+    Phase,
+    usable,
+)
 from perchpose.control.evidence import ContactDetector, TouchdownDetector
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
-from perchpose.control.setpoint import safe_setpoint
+from perchpose.control.setpoint import Setpoint, safe_setpoint
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -142,6 +149,21 @@ class VelocityGainSetter(Protocol):
 
 
 @runtime_checkable
+class FullStateSender(Protocol):
+    """A commander that sends full-state setpoints (``PilotSettings.command``): a position
+    (world frame of the vehicle's odometry, m), a velocity (m/s), a yaw (rad) and a yaw rate
+    (rad/s), which the vehicle's own position loop holds."""
+
+    def send_full_state(
+        self,
+        p_world_m: tuple[float, float, float],
+        v_world_mps: tuple[float, float, float],
+        yaw_rad: float,
+        yaw_rate_rad_s: float,
+    ) -> None: ...
+
+
+@runtime_checkable
 class PositionFixSender(Protocol):
     """A commander that hands the vehicle's own state estimator an external position (world
     frame of its odometry, m), as a motion-capture system does."""
@@ -211,6 +233,7 @@ class PerchingPilot:
         self.state = PilotState.WAITING
         self._gain_raised = False
         self._fixes_taken = True  # until the commander says its vehicle takes none
+        self._velocity_only_said = False
         self.transitions: list[tuple[float, PilotState, PilotState]] = []
         self.replaced_setpoints = 0
         self.silences = 0  # times the camera's watchdog fired
@@ -309,9 +332,36 @@ class PerchingPilot:
                     f"pilot: a non-finite setpoint at t = {t_s:.2f} s was replaced by a hover "
                     "(reported once)"
                 )
-        self.commander.send_velocity(sp.v_mps, sp.yaw_rate_rad_s)
+        if not (self.settings.command == "full-state" and self._send_full_state(sp)):
+            self.commander.send_velocity(sp.v_mps, sp.yaw_rate_rad_s)
         self.last_sent_clock_s = self.clock()
         return PilotStep(t_s, self.state, sp.v_mps, sp.yaw_rate_rad_s, phase)
+
+    def _send_full_state(self, sp: Setpoint) -> bool:
+        """``sp`` as a full-state setpoint (``PilotSettings.command``): the position and yaw
+        that the vehicle's own loops, holding them from its estimate, fly at ``sp``'s velocity
+        and yaw rate. False where it cannot be sent (the velocity is sent instead): a vehicle
+        link that takes none (said once), or no odometry yet."""
+        if not isinstance(self.commander, FullStateSender):
+            if not self._velocity_only_said:
+                self._velocity_only_said = True
+                self.report(
+                    "pilot: this vehicle's link takes velocity setpoints only: full-state "
+                    "setpoints are sent as velocities"
+                )
+            return False
+        motion = self._motion()
+        if motion is None:
+            return False
+        s = self.settings
+        # the odometry's position carried to now by its velocity (it is a sample old)
+        p_now = motion[0] + min(MAX_CARRY_S, self._age("position")) * motion[1]
+        p_sp = p_now + np.asarray(sp.v_mps, np.float64) / s.position_gain_per_s
+        R = np.asarray(self.attitude(), np.float64)
+        yaw_sp = math.atan2(R[1, 0], R[0, 0]) + sp.yaw_rate_rad_s / s.yaw_gain_per_s
+        p = (float(p_sp[0]), float(p_sp[1]), float(p_sp[2]))
+        self.commander.send_full_state(p, sp.v_mps, yaw_sp, sp.yaw_rate_rad_s)
+        return True
 
     def _stop(self, t_s: float, state: PilotState, why: str) -> PilotStep:
         self._enter(state, t_s, why)  # first: a commander may ask which stop this is

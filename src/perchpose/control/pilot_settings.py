@@ -9,6 +9,7 @@ from perchpose.control.setpoint import SetpointLimits
 from perchpose.errors import ControllerConfigError, require_positive
 
 ON_SENSES_LOST = ("land", "release")
+COMMANDS = ("velocity", "full-state")
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,17 @@ class PilotSettings:
     holds the magnet against gusts; the stock Crazyflie's 25 deg per m/s is about 4.3 /s, 6 /s
     is 35 deg per m/s. Where it cannot be set, the controller keeps modelling the vehicle's
     own gain (``ControllerSettings.onboard_velocity_gain``).
+
+    command : what the pilot sends: ``velocity`` (a world velocity and a yaw rate: cflib's
+    ``send_velocity_world_setpoint``, the vehicle's velocity loop flies it) or ``full-state``
+    (a position and a yaw in the frame of the vehicle's own estimate, with the velocity:
+    cflib's ``send_full_state_setpoint``; the vehicle's position loop then holds it between
+    setpoints, on its own estimate at its own rate). The position leads the vehicle's estimate
+    by the velocity over position_gain_per_s, and the yaw by the yaw rate over yaw_gain_per_s
+    (the vehicle's position and yaw gains: the Crazyflie firmware's ``posCtlPid.xKp`` 2 /s and
+    ``pidYaw.kp`` 6 /s), so that its loops fly the pilot's velocity and yaw rate. A vehicle
+    whose link takes velocity setpoints only (a MAVLink autopilot's, here) is sent those, and
+    the pilot says so once.
     """
 
     land_after_lost_s: float = 4.0
@@ -73,6 +85,9 @@ class PilotSettings:
     on_senses_lost: str = "land"
     limits: SetpointLimits = field(default_factory=SetpointLimits)
     velocity_gain_per_s: float | None = 6.0
+    command: str = "velocity"
+    position_gain_per_s: float = 2.0
+    yaw_gain_per_s: float = 6.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -91,8 +106,14 @@ class PilotSettings:
             "stale_after_s",
             "senses_lost_after_s",
             "live_height_s",
+            "position_gain_per_s",
+            "yaw_gain_per_s",
         )
         require_positive(self, positive, ControllerConfigError, "pilot setting ")
+        if self.command not in COMMANDS:
+            raise ControllerConfigError(
+                f"pilot setting command {self.command!r}: choose {' or '.join(COMMANDS)}"
+            )
         gain = self.velocity_gain_per_s
         if gain is not None and not 0.5 <= gain <= 12.0:
             raise ControllerConfigError(

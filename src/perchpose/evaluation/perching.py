@@ -370,6 +370,7 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "faults": list(setup.faults),
         "flight_controller": setup.flight_controller,
         "onboard_estimator": setup.onboard_estimator,
+        "command": setup.pilot.command,
         "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
     }
 
@@ -628,6 +629,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "odometry": None if setup.sensing.is_ideal else setup.sensing.odometry,
         "flight_controller": setup.flight_controller,
         "onboard_estimator": setup.onboard_estimator,
+        "command": setup.pilot.command,
         "stamps": setup.stamps,
         "faults": list(setup.faults),
         "fps": setup.fps,

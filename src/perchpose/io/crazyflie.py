@@ -31,8 +31,10 @@ log = logging.getLogger(__name__)
 class CflibCommander:
     """The pilot's ``VehicleCommander`` on cflib's ``Commander``: a velocity in the world
     frame of the Crazyflie's state estimator (z up, m/s) with the yaw rate in deg/s
-    (``send_velocity_world_setpoint``); a stop cuts the motors and hands the setpoint priority
-    back to the high-level commander (``send_stop_setpoint``, ``send_notify_setpoint_stop``).
+    (``send_velocity_world_setpoint``), or a full state (``send_full_state_setpoint``: the
+    position the firmware's position loop holds on its own estimate); a stop cuts the motors
+    and hands the setpoint priority back to the high-level commander (``send_stop_setpoint``,
+    ``send_notify_setpoint_stop``).
     With cflib's ``Extpos`` (``extpos``) it hands the Kalman filter the camera's fixes as an
     external position.
 
@@ -75,6 +77,22 @@ class CflibCommander:
     def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
         vx, vy, vz = v_world_mps
         self.commander.send_velocity_world_setpoint(vx, vy, vz, math.degrees(yaw_rate_rad_s))
+
+    def send_full_state(
+        self,
+        p_world_m: tuple[float, float, float],
+        v_world_mps: tuple[float, float, float],
+        yaw_rad: float,
+        yaw_rate_rad_s: float,
+    ) -> None:
+        """``send_full_state_setpoint``: the position and velocity, no acceleration, the yaw
+        as the orientation's quaternion (about up), and no body rates: the yaw is in the
+        orientation, and the rates' units are not settled (cflib says deg/s and packs them
+        times 1000; the firmware's decoder reads mrad/s), so ``yaw_rate_rad_s`` is not sent."""
+        orientation = (0.0, 0.0, math.sin(yaw_rad / 2.0), math.cos(yaw_rad / 2.0))
+        self.commander.send_full_state_setpoint(
+            p_world_m, v_world_mps, (0.0, 0.0, 0.0), orientation, 0.0, 0.0, 0.0
+        )
 
     def send_stop(self) -> None:
         self.commander.send_stop_setpoint()

@@ -12,11 +12,14 @@ attitude loop every second tick, 500 Hz, and the position loop every tenth, 100 
 
 - the setpoint as the Crazyflie's commander decodes cflib's ``send_velocity_world_setpoint``
   (``TYPE_VELOCITY_WORLD``: world velocity in m/s on x, y and z, the yaw rate in deg/s,
-  counter-clockwise positive, in velocity mode on every axis);
+  counter-clockwise positive, in velocity mode on every axis), or, while the vehicle holds a
+  full-state setpoint (``Quadrotor.hold``), ``send_full_state_setpoint`` (``TYPE_FULL_STATE``:
+  absolute position, the yaw from the orientation's quaternion);
 - the state estimate: the attitude as the firmware keeps it (roll, pitch and yaw in degrees,
   the pitch's sign flipped as the firmware's legacy convention has it, and the quaternion),
-  the velocity the odometry gives (world frame), the true position (no velocity-mode
-  controller reads it) and the gyro (body rates in deg/s, as the IMU gives them);
+  the velocity the odometry gives (world frame), the position (the vehicle's own estimate
+  under a full-state setpoint; otherwise the true one, which no velocity-mode controller
+  reads) and the gyro (body rates in deg/s, as the IMU gives them);
 
 then its power distribution (``powerDistribution`` and ``powerDistributionCap``) turns the
 controller's output into four motor commands of 0-65535. Motors: the firmware's battery
@@ -39,7 +42,14 @@ from numpy.typing import NDArray
 
 from perchpose.errors import VehicleConfigError
 from perchpose.geometry import quaternion_xyzw, roll_pitch_rad, rot_z, yaw_rad
-from perchpose.sim.quadrotor import GRAVITY_MPS2, OnboardGains, Quadrotor, QuadrotorParams
+from perchpose.sim.quadrotor import (
+    GRAVITY_MPS2,
+    OnboardGains,
+    PositionHold,
+    Quadrotor,
+    QuadrotorParams,
+    Vec3,
+)
 
 Array = NDArray[np.float64]
 
@@ -196,10 +206,14 @@ class FirmwareQuadrotor(Quadrotor):
     ) -> tuple[float, float, float, float]:
         fw = self.fw
         sp = self._setpoint
-        sp.mode.x = sp.mode.y = sp.mode.z = fw.modeVelocity
-        sp.velocity.x, sp.velocity.y, sp.velocity.z = (float(v) for v in v_sp)
-        sp.mode.yaw = fw.modeVelocity
-        sp.attitudeRate.yaw = math.degrees(yaw_rate_sp)
+        if self.hold is None:
+            sp.mode.x = sp.mode.y = sp.mode.z = fw.modeVelocity
+            sp.velocity.x, sp.velocity.y, sp.velocity.z = (float(v) for v in v_sp)
+            sp.mode.yaw = fw.modeVelocity
+            sp.mode.quat = fw.modeDisable
+            sp.attitudeRate.yaw = math.degrees(yaw_rate_sp)
+        else:
+            self._full_state(self.hold)
         sp.velocity_body = False
         self._fill_state(v_est)
         for _ in range(self.ticks_per_step):
@@ -214,6 +228,29 @@ class FirmwareQuadrotor(Quadrotor):
             thrust[rotor] = self.motor_command[motor] / FULL_COMMAND * FULL_THRUST_N
         return (thrust[0], thrust[1], thrust[2], thrust[3])
 
+    def _position_loop(self, hold: PositionHold) -> tuple[Vec3, float]:
+        """The firmware runs its own position loop on the full-state setpoint
+        (``_full_state``): nothing for the model's loops to fly."""
+        return (0.0, 0.0, 0.0), 0.0
+
+    def _full_state(self, hold: PositionHold) -> None:
+        """The setpoint as the commander decodes cflib's ``send_full_state_setpoint``
+        (``TYPE_FULL_STATE``): position, velocity and acceleration absolute on every axis, the
+        yaw from the orientation's quaternion, roll, pitch and yaw modes disabled. The firmware's
+        PID flies the position (its velocity setpoint is the position loop's output)."""
+        fw = self.fw
+        sp = self._setpoint
+        sp.mode.x = sp.mode.y = sp.mode.z = fw.modeAbs
+        sp.position.x, sp.position.y, sp.position.z = hold.p_m
+        sp.velocity.x = sp.velocity.y = sp.velocity.z = 0.0
+        sp.acceleration.x = sp.acceleration.y = sp.acceleration.z = 0.0
+        sp.mode.roll = sp.mode.pitch = sp.mode.yaw = fw.modeDisable
+        sp.mode.quat = fw.modeAbs
+        q = sp.attitudeQuaternion
+        q.x, q.y = 0.0, 0.0
+        q.z, q.w = math.sin(hold.yaw_rad / 2.0), math.cos(hold.yaw_rad / 2.0)
+        sp.attitudeRate.roll = sp.attitudeRate.pitch = sp.attitudeRate.yaw = 0.0
+
     def _fill_state(self, v_est: Any) -> None:
         """The state estimate and the gyro as the firmware's controllers read them."""
         R = self.R_estimate
@@ -225,7 +262,10 @@ class FirmwareQuadrotor(Quadrotor):
         qx, qy, qz, qw = quaternion_xyzw(R)
         q = st.attitudeQuaternion
         q.x, q.y, q.z, q.w = float(qx), float(qy), float(qz), float(qw)
-        st.position.x, st.position.y, st.position.z = (float(v) for v in self.p_m)
+        # a full-state setpoint is flown on the vehicle's own position estimate; velocity
+        # setpoints never read it (the true position keeps the state whole)
+        p_m = self.p_m if self.hold is None else self._p_estimate
+        st.position.x, st.position.y, st.position.z = (float(v) for v in p_m)
         st.velocity.x, st.velocity.y, st.velocity.z = (float(v) for v in v_est)
         wx, wy, wz = (math.degrees(float(w)) for w in self.omega_rad_s)
         g = self._sensors.gyro

@@ -41,7 +41,7 @@ from perchpose.sim.faults import LEVEL_AFTER_S, MOTORS_OFF_AFTER_S, Fault, check
 from perchpose.sim.firmware import FirmwareQuadrotor, check_flight_controller, load_firmware
 from perchpose.sim.flow_deck import FlowDeckError
 from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses, check_onboard_estimator
-from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
+from perchpose.sim.quadrotor import OnboardGains, PositionHold, Quadrotor, QuadrotorParams
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
 from perchpose.sim.sensing import (
@@ -315,29 +315,40 @@ class HeldSetpoint:
         self._fixes: deque[tuple[float, Array]] = deque()  # on their way: (arrival, position)
         self.v_mps = np.zeros(3)
         self.yaw_rate_rad_s = 0.0
+        # a full-state setpoint's position (world frame of the vehicle's estimate) and yaw;
+        # None while the last setpoint is a velocity
+        self.position_m: Array | None = None
+        self.yaw_rad = 0.0
         self.clock = clock
         self.link_up = link_up
         self.delay_s = delay_s
         self.stopped = False
         self.received_s: float | None = None  # the vehicle's watchdog starts at the first
         self.sent_s: list[float] = []  # when the pilot sent each command
-        # on their way: (arrival time, velocity, yaw rate, stop)
-        self._pending: deque[tuple[float, Array, float, bool]] = deque()
+        # on their way: (arrival time, velocity, yaw rate, stop, full state's position and yaw)
+        self._pending: deque[tuple[float, Array, float, bool, tuple[Array, float] | None]] = deque()
 
-    def _send(self, v_mps: Array, yaw_rate_rad_s: float, stop: bool) -> None:
+    def _send(
+        self,
+        v_mps: Array,
+        yaw_rate_rad_s: float,
+        stop: bool,
+        full_state: tuple[Array, float] | None = None,
+    ) -> None:
         now = self.clock()
         self.sent_s.append(now)
         if self.link_up():
-            self._pending.append((now + self.delay_s, v_mps, yaw_rate_rad_s, stop))
+            self._pending.append((now + self.delay_s, v_mps, yaw_rate_rad_s, stop, full_state))
             self.deliver()
 
     def deliver(self) -> None:
         """Take every setpoint that has arrived by now."""
         now = self.clock()
         while self._pending and self._pending[0][0] <= now + 1e-12:
-            arrived_s, v_mps, yaw_rate, stop = self._pending.popleft()
+            arrived_s, v_mps, yaw_rate, stop, full_state = self._pending.popleft()
             self.received_s = arrived_s
             self.v_mps, self.yaw_rate_rad_s = v_mps, yaw_rate
+            self.position_m, self.yaw_rad = full_state or (None, 0.0)
             self.stopped = self.stopped or stop
         while self._fixes and self._fixes[0][0] <= now + 1e-12:
             _, p_m = self._fixes.popleft()
@@ -360,6 +371,17 @@ class HeldSetpoint:
     def send_velocity(self, v_world_mps: tuple[float, float, float], yaw_rate_rad_s: float) -> None:
         self._send(np.array(v_world_mps, np.float64), yaw_rate_rad_s, False)
 
+    def send_full_state(
+        self,
+        p_world_m: tuple[float, float, float],
+        v_world_mps: tuple[float, float, float],
+        yaw_rad: float,
+        yaw_rate_rad_s: float,
+    ) -> None:
+        """A full-state setpoint: the vehicle holds the position and yaw with its own loops."""
+        full = (np.array(p_world_m, np.float64), float(yaw_rad))
+        self._send(np.array(v_world_mps, np.float64), yaw_rate_rad_s, False, full)
+
     def send_stop(self) -> None:
         self._send(np.zeros(3), 0.0, True)
 
@@ -373,6 +395,10 @@ class HeldSetpoint:
     def restore_velocity_gain(self) -> None:
         if self.link_up():
             self.velocity_gain(None)
+
+
+def _xyz(v: Array) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 def truth_estimate(
@@ -771,6 +797,8 @@ class _Flight:
             if self.kalman is not None:
                 self.kalman.flying = False
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
+        if c.position_m is not None and silent_s < LEVEL_AFTER_S:  # a full state to hold
+            v_sp = c.position_m - self._odometry_now()[0]
         if self.resting and (self.motors_stopped or v_sp[2] <= 0.0):
             self._follow(dt_s * steps)  # on the floor, still
             if self.kalman is not None:
@@ -778,6 +806,10 @@ class _Flight:
             return None
         self.resting = False
         v.thrust_scale = (0.0,) * 4 if self.motors_stopped else self.draw.thrust_scale(t_s)
+        v.hold = None
+        if c.position_m is not None and silent_s < LEVEL_AFTER_S:
+            p_est = self._odometry_now()[0]
+            v.hold = PositionHold(_xyz(c.position_m), c.yaw_rad, _xyz(p_est))
         contact = v.fly(
             dt_s,
             steps,

@@ -130,6 +130,12 @@ class OnboardGains:
     k_rate: float = 0.004  # N m / (rad/s) per unit inertia scale
     k_yaw_rate: float = 0.0008
     max_rate_rad_s: float = 6.0
+    # a full-state setpoint's position loop, as the Crazyflie firmware's PID flies it
+    # (``posCtlPid.xKp`` 2 /s, its output capped at 1.1 x 1 m/s; the yaw held with the attitude
+    # loop's ``pidYaw.kp`` 6 /s)
+    k_position: float = 2.0  # 1/s
+    max_position_speed_mps: float = 1.1
+    k_yaw: float = 6.0  # 1/s
 
 
 def mixer(params: QuadrotorParams) -> Array:
@@ -151,11 +157,24 @@ Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, Vec3, Vec3]
 
 
+@dataclass(frozen=True)
+class PositionHold:
+    """A full-state setpoint as the vehicle flies it: the position to hold (the world frame
+    of its own estimate, m), the yaw (rad), and its own position estimate when the setpoint's
+    block of steps began (carried by its velocity estimate through the block, where its
+    estimator does not give one step by step)."""
+
+    p_m: Vec3
+    yaw_rad: float
+    p_estimate_m: Vec3
+
+
 class OnboardEstimate(Protocol):
     """A flight controller's state estimator in the loop (``sim.onboard_kalman``): what the
     onboard loops fly, advanced after each physics step with the vehicle's true state."""
 
     velocity: Vec3  # world frame, m/s
+    position: Vec3  # world frame, m
     attitude: Mat3  # R_world_body
 
     def advance(self, dt_s: float, vehicle: Quadrotor) -> None: ...
@@ -204,6 +223,10 @@ class Quadrotor:
         # velocity estimate ``fly`` is given)
         self.estimator: OnboardEstimate | None = None
         self._vi: Vec3 = (0.0, 0.0, 0.0)  # the onboard velocity integral, m/s^2
+        # a full-state setpoint the vehicle holds (None: it flies the velocity ``fly`` is
+        # given), and its position estimate at this step
+        self.hold: PositionHold | None = None
+        self._p_estimate: Vec3 = (0.0, 0.0, 0.0)
         self._k_xy = self.gains.k_velocity  # the horizontal velocity gain (a parameter), 1/s
         self._f_body: Vec3 = (0.0, 0.0, GRAVITY_MPS2)  # the accelerometer, low-passed
         a = self.params.arm_m
@@ -400,14 +423,23 @@ class Quadrotor:
         touched: Callable[[Quadrotor], bool] | None = None,
     ) -> int | None:
         """``n_steps`` steps of the onboard loops and the dynamics with the same setpoint and
-        velocity estimate (with an ``estimator``: its velocity, step by step). Stops after the
+        velocity estimate (with an ``estimator``: its velocity, step by step); while ``hold``
+        is set, the setpoint is its position and yaw (``_position_loop``), and the velocity
+        and yaw rate given are not flown. Stops after the
         step on which ``touched`` says the vehicle touched something (``perchpose.sim.contact``)
         and returns that step's index; otherwise returns None."""
         v_sp, v_est, yaw_rate = _vec3(v_sp_mps), _vec3(v_estimate_mps), float(yaw_rate_sp)
-        estimator = self.estimator
+        estimator, hold = self.estimator, self.hold
         for i in range(n_steps):
             if estimator is not None:
                 v_est = estimator.velocity
+            if hold is not None:
+                self._p_estimate = (
+                    estimator.position
+                    if estimator is not None
+                    else _carried(hold.p_estimate_m, v_est, i * dt_s)
+                )
+                v_sp, yaw_rate = self._position_loop(hold)
             self._integrate_velocity_error(dt_s, v_sp, v_est)
             self._advance(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
             if estimator is not None:
@@ -415,6 +447,21 @@ class Quadrotor:
             if touched is not None and touched(self):
                 return i
         return None
+
+    def _position_loop(self, hold: PositionHold) -> tuple[Vec3, float]:
+        """The velocity and yaw rate that hold ``hold``'s position and yaw from the position
+        estimate: the firmware's PID position loop (proportional, capped)."""
+        g = self.gains
+        top = g.max_position_speed_mps
+        ex, ey, ez = (s - e for s, e in zip(hold.p_m, self._p_estimate, strict=True))
+        v_sp = (
+            max(-top, min(top, g.k_position * ex)),
+            max(-top, min(top, g.k_position * ey)),
+            max(-top, min(top, g.k_position * ez)),
+        )
+        R = self._attitude_estimate()
+        yaw_error = math.remainder(hold.yaw_rad - math.atan2(R[1][0], R[0][0]), math.tau)
+        return v_sp, g.k_yaw * yaw_error
 
     def set_velocity_gain(self, gain_per_s: float | None) -> bool:
         """Set the onboard loops' horizontal velocity gain, 1/s, as a pilot sets the flight
@@ -546,6 +593,11 @@ class Quadrotor:
         angle = dt_s * math.sqrt(wx * wx + wy * wy + wz * wz)
         if angle > 0:
             self._R = _rotated(R, (dt_s * wx / angle, dt_s * wy / angle, dt_s * wz / angle), angle)
+
+
+def _carried(p_m: Vec3, v_mps: Vec3, t_s: float) -> Vec3:
+    """A position moved ``t_s`` along a velocity."""
+    return (p_m[0] + v_mps[0] * t_s, p_m[1] + v_mps[1] * t_s, p_m[2] + v_mps[2] * t_s)
 
 
 def _ceiling_gain(distance_m: float, prop_radius_m: float) -> float:
