@@ -11,7 +11,7 @@ from pathlib import Path
 
 from perchpose.app.inputs import load_camera
 from perchpose.camera import CameraModel
-from perchpose.control.pilot_settings import COMMANDS
+from perchpose.control.pilot_settings import COMMANDS, PilotSettings
 from perchpose.errors import PerchposeError
 from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write_reports
 from perchpose.sim.campaign import campaign_jobs, execute
@@ -107,8 +107,8 @@ class PerchCampaign:
             duration_s=FAULT_RUN_S if injected else PerchSetup.duration_s,
             flight_controller=flight_controller,
             onboard_estimator=onboard_estimator,
+            pilot=PilotSettings(command=command),
         )
-        base = replace(base, pilot=replace(base.pilot, command=command))
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
         timed = [
             fixes_setup(

@@ -67,7 +67,7 @@ SETTLE_S = 10.0  # hovering before a run, for the firmware's integrators to find
 # Quadrotor's rotor (front left, front right, back right, back left) driven by m1..m4
 ROTOR_OF_MOTOR = (1, 2, 3, 0)
 INSTALL = "../shared/firmware/install-cffirmware .venv/bin/python"
-# the controllers that fly velocity setpoints; Mellinger and Lee hold thrust only on a
+# the controllers the pilot flies; Mellinger and Lee hold thrust only on a
 # position setpoint (modeAbs), Brescianini is not verified on velocity ones: they need the
 # full-state commands the pilot does not send yet
 VELOCITY_CONTROLLERS = ("model", "crazyflie-pid")
@@ -86,16 +86,16 @@ def load_firmware() -> ModuleType:
 
 
 def check_flight_controller(name: str) -> None:
-    """Refuse a controller that is not the firmware's, or that cannot fly the pilot's
-    velocity setpoints."""
+    """Refuse a controller that is not the firmware's, or that the pilot cannot fly."""
     if name not in FLIGHT_CONTROLLERS:
         raise VehicleConfigError(
             f"unknown flight controller {name!r} (choose {', '.join(FLIGHT_CONTROLLERS)})"
         )
     if name not in VELOCITY_CONTROLLERS:
         raise VehicleConfigError(
-            f"{name} holds thrust only on position (full-state) setpoints, and the pilot sends "
-            "velocity ones: fly crazyflie-pid, the firmware's default controller"
+            f"{name} holds thrust only on position setpoints (--command full-state), and on "
+            "them it does not hold this 39 g vehicle's height (its thrust feed-forward takes "
+            "the firmware's own mass): fly crazyflie-pid, the firmware's default controller"
         )
 
 
@@ -187,8 +187,10 @@ class FirmwareQuadrotor(Quadrotor):
         vehicle sinks until the integral has made up the rest, which takes seconds)."""
         p_m, R = self.p_m, rot_z(self.yaw_rad)
         dt_s = 1.0 / (MAIN_LOOP_HZ / self.ticks_per_step)
+        hold, self.hold = self.hold, None
         for _ in range(round(SETTLE_S / dt_s)):
             self.fly(dt_s, 1, np.zeros(3), 0.0, self.v_mps)
+        self.hold = hold
         self.p_m, self.R_world_body = p_m, R
         self.v_mps, self.omega_rad_s = np.zeros(3), np.zeros(3)
 
@@ -235,14 +237,15 @@ class FirmwareQuadrotor(Quadrotor):
 
     def _full_state(self, hold: PositionHold) -> None:
         """The setpoint as the commander decodes cflib's ``send_full_state_setpoint``
-        (``TYPE_FULL_STATE``): position, velocity and acceleration absolute on every axis, the
-        yaw from the orientation's quaternion, roll, pitch and yaw modes disabled. The firmware's
-        PID flies the position (its velocity setpoint is the position loop's output)."""
+        (``TYPE_FULL_STATE``): position, velocity and acceleration (none) absolute on every
+        axis, the yaw from the orientation's quaternion, roll, pitch and yaw modes disabled.
+        The firmware's PID flies the position (its velocity setpoint is the position loop's
+        output); Mellinger and Lee also take the velocity as a feed-forward."""
         fw = self.fw
         sp = self._setpoint
         sp.mode.x = sp.mode.y = sp.mode.z = fw.modeAbs
         sp.position.x, sp.position.y, sp.position.z = hold.p_m
-        sp.velocity.x = sp.velocity.y = sp.velocity.z = 0.0
+        sp.velocity.x, sp.velocity.y, sp.velocity.z = hold.v_mps
         sp.acceleration.x = sp.acceleration.y = sp.acceleration.z = 0.0
         sp.mode.roll = sp.mode.pitch = sp.mode.yaw = fw.modeDisable
         sp.mode.quat = fw.modeAbs

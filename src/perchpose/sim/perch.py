@@ -797,8 +797,10 @@ class _Flight:
             if self.kalman is not None:
                 self.kalman.flying = False
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
-        if c.position_m is not None and silent_s < LEVEL_AFTER_S:  # a full state to hold
-            v_sp = c.position_m - self._odometry_now()[0]
+        # a full state to hold (a silent link levels the vehicle: no more holding)
+        held = c.position_m if silent_s < LEVEL_AFTER_S else None
+        if held is not None:
+            v_sp = held - self._odometry_now()[0]
         if self.resting and (self.motors_stopped or v_sp[2] <= 0.0):
             self._follow(dt_s * steps)  # on the floor, still
             if self.kalman is not None:
@@ -807,9 +809,9 @@ class _Flight:
         self.resting = False
         v.thrust_scale = (0.0,) * 4 if self.motors_stopped else self.draw.thrust_scale(t_s)
         v.hold = None
-        if c.position_m is not None and silent_s < LEVEL_AFTER_S:
+        if held is not None:
             p_est = self._odometry_now()[0]
-            v.hold = PositionHold(_xyz(c.position_m), c.yaw_rad, _xyz(p_est))
+            v.hold = PositionHold(_xyz(held), c.yaw_rad, _xyz(p_est), _xyz(c.v_mps))
         contact = v.fly(
             dt_s,
             steps,

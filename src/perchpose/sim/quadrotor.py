@@ -160,13 +160,14 @@ Mat3 = tuple[Vec3, Vec3, Vec3]
 @dataclass(frozen=True)
 class PositionHold:
     """A full-state setpoint as the vehicle flies it: the position to hold (the world frame
-    of its own estimate, m), the yaw (rad), and its own position estimate when the setpoint's
+    of its own estimate, m), the yaw (rad), its own position estimate when the setpoint's
     block of steps began (carried by its velocity estimate through the block, where its
-    estimator does not give one step by step)."""
+    estimator does not give one step by step), and the velocity sent with them."""
 
     p_m: Vec3
     yaw_rad: float
     p_estimate_m: Vec3
+    v_mps: Vec3 = (0.0, 0.0, 0.0)  # the setpoint's velocity (a feed-forward some loops take)
 
 
 class OnboardEstimate(Protocol):
