@@ -540,7 +540,8 @@ def test_full_state_setpoints_lead_the_estimate_by_what_the_vehicles_loops_fly()
     """With ``command="full-state"`` each setpoint is a position and a yaw that the vehicle's
     position and yaw loops (2 /s and 6 /s) turn into the controller's velocity and yaw rate,
     from the vehicle's own estimate; the same frames flown with velocity setpoints give those
-    velocities. A vehicle whose link takes velocities only is sent them, said once."""
+    velocities. A vehicle whose link takes velocities only is sent them, said once; so is a
+    vehicle whose odometry is too old to place a position by."""
     settings = PilotSettings(command="full-state")
     commander = FullState()
     vehicle = Vehicle(commander, 1.0)
@@ -574,5 +575,20 @@ def test_full_state_setpoints_lead_the_estimate_by_what_the_vehicles_loops_fly()
         velocity_only.update(_seen(c, [0.05, -0.03, 0.6], 0.1 * k), 0.1 * k)
     assert len(plain.sent) == 3
     assert sum("velocity setpoints only" in r for r in reports) == 1
+    # odometry too old to place a position by: a velocity (a hover stays a hover)
+    stale = FullState()
+    old = PerchingPilot(
+        stale,
+        lambda: np.eye(3),
+        controller=PerchingController(ControllerSettings(observer_rate=0.0)),
+        settings=settings,
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        ages=lambda: SenseAges(0.0, 0.3, 0.0),
+        clock=lambda: vehicle.t_s,
+    )
+    old.update(_seen(c, [0.05, -0.03, 0.6], 0.0), 0.0)
+    assert stale.full == []
+    assert len(stale.sent) == 1
     with pytest.raises(ControllerConfigError, match="command 'attitude'"):
         PilotSettings(command="attitude")

@@ -341,7 +341,9 @@ class PerchingPilot:
         """``sp`` as a full-state setpoint (``PilotSettings.command``): the position and yaw
         that the vehicle's own loops, holding them from its estimate, fly at ``sp``'s velocity
         and yaw rate. False where it cannot be sent (the velocity is sent instead): a vehicle
-        link that takes none (said once), or no odometry yet."""
+        link that takes none (said once), no odometry yet, or odometry too old to place a
+        position by (older than ``stale_after_s``: a hover is then a zero velocity, not a
+        return to where the vehicle was)."""
         if not isinstance(self.commander, FullStateSender):
             if not self._velocity_only_said:
                 self._velocity_only_said = True
@@ -351,9 +353,9 @@ class PerchingPilot:
                 )
             return False
         motion = self._motion()
-        if motion is None:
-            return False
         s = self.settings
+        if motion is None or not self._age("position") < s.stale_after_s:
+            return False
         # the odometry's position carried to now by its velocity (it is a sample old)
         p_now = motion[0] + min(MAX_CARRY_S, self._age("position")) * motion[1]
         p_sp = p_now + np.asarray(sp.v_mps, np.float64) / s.position_gain_per_s
