@@ -38,11 +38,11 @@ def test_an_unknown_estimator_is_named(tmp_path: Path) -> None:
 
 def test_a_campaign_flown_on_full_state_setpoints_says_so(tmp_path: Path) -> None:
     """``command="full-state"``: the pilot sends positions the vehicle's position loop holds;
-    the runs perch in still air with the true pose, and the reports say which command flew."""
+    a run perches in still air with the true pose, and the reports say which command flew."""
     out = tmp_path / "perch"
     said: list[str] = []
     options = PerchOptions(
-        str(out), estimators="truth", runs=2, seed=3, workers=1, command="full-state"
+        str(out), estimators="truth", runs=1, seed=3, workers=1, command="full-state"
     )
     content = run(options, say=said.append)
     assert content["command"] == "full-state"
