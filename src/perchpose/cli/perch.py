@@ -6,6 +6,7 @@ import click
 
 from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress
 from perchpose.cli.group import group
+from perchpose.control.pilot_settings import COMMANDS
 from perchpose.sim.firmware import FLIGHT_CONTROLLERS
 from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
 
@@ -90,7 +91,7 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
 )
 @click.option(
     "--command",
-    type=click.Choice(["velocity", "full-state"]),
+    type=click.Choice(list(COMMANDS)),
     default="velocity",
     show_default=True,
     help="What the pilot sends the vehicle: velocity (cflib's send_velocity_world_setpoint) "

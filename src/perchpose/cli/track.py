@@ -16,6 +16,7 @@ from perchpose.cli.common import (
     warn,
 )
 from perchpose.cli.group import group
+from perchpose.control.pilot_settings import COMMANDS
 from perchpose.errors import SourceError
 
 if TYPE_CHECKING:
@@ -116,7 +117,7 @@ if TYPE_CHECKING:
 @click.option(
     "--command",
     "pilot_command",
-    type=click.Choice(["velocity", "full-state"]),
+    type=click.Choice(list(COMMANDS)),
     default="velocity",
     show_default=True,
     help="What the flying pilot sends: velocity setpoints, or full-state ones (a position and "

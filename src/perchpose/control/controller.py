@@ -358,7 +358,7 @@ class Command:
     position_fix_m: Array | None = None
 
 
-def _carried(odometry: Odometry, t_s: float) -> Array:
+def carried(odometry: Odometry, t_s: float) -> Array:
     """The odometry's position carried from its own time to ``t_s`` by its velocity (a
     sample that arrives late describes the vehicle as it was; at most ``MAX_CARRY_S``)."""
     age = min(MAX_CARRY_S, max(0.0, t_s - odometry.t_s))
@@ -572,7 +572,7 @@ class PerchingController:
             return None
         if t_s - self._target_t > limit_s:
             return None
-        return self._target_odom - self._magnet_odom(_carried(odometry, t_s), R_world_body)
+        return self._target_odom - self._magnet_odom(carried(odometry, t_s), R_world_body)
 
     def _reject(self, v_cmd: Array, t_s: float, odometry: Odometry | None) -> Array:
         """The velocity setpoint with the disturbance observer's offset added."""
@@ -712,7 +712,7 @@ class PerchingController:
             if measured:
                 self._recent.append(d)
                 if odometry is not None:
-                    self._hold_fix(t_capture, d, R_capture, _carried(odometry, t_s))
+                    self._hold_fix(t_capture, d, R_capture, carried(odometry, t_s))
             held = self._held_error(t_s, R_world_body, odometry, s.hold_target_s)
             error = held if held is not None else d
             return self._steer(error, yaw_rate, t_s, odometry)

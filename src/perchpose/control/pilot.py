@@ -63,16 +63,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.control.controller import (
-    MAX_CARRY_S,
     Command,
     Odometry,
     PerchingController,
     Phase,
+    carried,
     usable,
 )
 from perchpose.control.evidence import ContactDetector, TouchdownDetector
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
+from perchpose.geometry import yaw_rad
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -357,10 +358,10 @@ class PerchingPilot:
         if motion is None or not self._age("position") < s.stale_after_s:
             return False
         # the odometry's position carried to now by its velocity (it is a sample old)
-        p_now = motion[0] + min(MAX_CARRY_S, self._age("position")) * motion[1]
+        age_s = self._age("position")
+        p_now = carried(Odometry(-age_s, motion[0], motion[1]), 0.0)
         p_sp = p_now + np.asarray(sp.v_mps, np.float64) / s.position_gain_per_s
-        R = np.asarray(self.attitude(), np.float64)
-        yaw_sp = math.atan2(R[1, 0], R[0, 0]) + sp.yaw_rate_rad_s / s.yaw_gain_per_s
+        yaw_sp = yaw_rad(np.asarray(self.attitude())) + sp.yaw_rate_rad_s / s.yaw_gain_per_s
         p = (float(p_sp[0]), float(p_sp[1]), float(p_sp[2]))
         self.commander.send_full_state(p, sp.v_mps, yaw_sp, sp.yaw_rate_rad_s)
         return True

@@ -187,10 +187,8 @@ class FirmwareQuadrotor(Quadrotor):
         vehicle sinks until the integral has made up the rest, which takes seconds)."""
         p_m, R = self.p_m, rot_z(self.yaw_rad)
         dt_s = 1.0 / (MAIN_LOOP_HZ / self.ticks_per_step)
-        hold, self.hold = self.hold, None
         for _ in range(round(SETTLE_S / dt_s)):
             self.fly(dt_s, 1, np.zeros(3), 0.0, self.v_mps)
-        self.hold = hold
         self.p_m, self.R_world_body = p_m, R
         self.v_mps, self.omega_rad_s = np.zeros(3), np.zeros(3)
 

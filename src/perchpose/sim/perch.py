@@ -41,7 +41,13 @@ from perchpose.sim.faults import LEVEL_AFTER_S, MOTORS_OFF_AFTER_S, Fault, check
 from perchpose.sim.firmware import FirmwareQuadrotor, check_flight_controller, load_firmware
 from perchpose.sim.flow_deck import FlowDeckError
 from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses, check_onboard_estimator
-from perchpose.sim.quadrotor import OnboardGains, PositionHold, Quadrotor, QuadrotorParams
+from perchpose.sim.quadrotor import (
+    OnboardGains,
+    PositionHold,
+    Quadrotor,
+    QuadrotorParams,
+    vec3,
+)
 from perchpose.sim.render import ImageQuality, Renderer
 from perchpose.sim.scenarios import markers_in_view
 from perchpose.sim.sensing import (
@@ -395,10 +401,6 @@ class HeldSetpoint:
     def restore_velocity_gain(self) -> None:
         if self.link_up():
             self.velocity_gain(None)
-
-
-def _xyz(v: Array) -> tuple[float, float, float]:
-    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 def truth_estimate(
@@ -797,10 +799,13 @@ class _Flight:
             if self.kalman is not None:
                 self.kalman.flying = False
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
-        # a full state to hold (a silent link levels the vehicle: no more holding)
-        held = c.position_m if silent_s < LEVEL_AFTER_S else None
-        if held is not None:
-            v_sp = held - self._odometry_now()[0]
+        # a full state to hold, from the vehicle's own estimate (a silent link levels the
+        # vehicle: no more holding)
+        hold: PositionHold | None = None
+        if c.position_m is not None and silent_s < LEVEL_AFTER_S:
+            p_est = vec3(self._odometry_now()[0])
+            hold = PositionHold(vec3(c.position_m), c.yaw_rad, p_est, vec3(c.v_mps))
+            v_sp = c.position_m - np.array(p_est)
         if self.resting and (self.motors_stopped or v_sp[2] <= 0.0):
             self._follow(dt_s * steps)  # on the floor, still
             if self.kalman is not None:
@@ -808,10 +813,7 @@ class _Flight:
             return None
         self.resting = False
         v.thrust_scale = (0.0,) * 4 if self.motors_stopped else self.draw.thrust_scale(t_s)
-        v.hold = None
-        if held is not None:
-            p_est = self._odometry_now()[0]
-            v.hold = PositionHold(_xyz(held), c.yaw_rad, _xyz(p_est), _xyz(c.v_mps))
+        v.hold = hold
         contact = v.fly(
             dt_s,
             steps,

@@ -211,7 +211,7 @@ class Quadrotor:
         mix = mixer(self.params)
         self._mix_rows: list[list[float]] = mix.tolist()
         self._unmix_rows: list[list[float]] = np.linalg.inv(mix).tolist()
-        self._p: Vec3 = _vec3(np.zeros(3) if p_m is None else p_m)
+        self._p: Vec3 = vec3(np.zeros(3) if p_m is None else p_m)
         self._v: Vec3 = (0.0, 0.0, 0.0)
         self._R: Mat3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
         self._w: Vec3 = (0.0, 0.0, 0.0)
@@ -250,7 +250,7 @@ class Quadrotor:
 
     @p_m.setter
     def p_m(self, value: Array) -> None:
-        self._p = _vec3(value)
+        self._p = vec3(value)
 
     @property
     def v_mps(self) -> Array:
@@ -259,7 +259,7 @@ class Quadrotor:
 
     @v_mps.setter
     def v_mps(self, value: Array) -> None:
-        self._v = _vec3(value)
+        self._v = vec3(value)
 
     @property
     def R_world_body(self) -> Array:
@@ -277,7 +277,7 @@ class Quadrotor:
 
     @omega_rad_s.setter
     def omega_rad_s(self, value: Array) -> None:
-        self._w = _vec3(value)
+        self._w = vec3(value)
 
     @property
     def rotor_speed_rad_s(self) -> Array:
@@ -382,7 +382,7 @@ class Quadrotor:
     def motor_commands(self, v_sp_mps: Array, yaw_rate_sp: float, v_estimate_mps: Array) -> Array:
         """The onboard loops: world velocity setpoint and yaw rate -> motor thrust commands."""
         return np.array(
-            self._motor_commands(_vec3(v_sp_mps), float(yaw_rate_sp), _vec3(v_estimate_mps))
+            self._motor_commands(vec3(v_sp_mps), float(yaw_rate_sp), vec3(v_estimate_mps))
         )
 
     def step(self, dt_s: float, motor_cmd_n: Array) -> None:
@@ -429,7 +429,7 @@ class Quadrotor:
         and yaw rate given are not flown. Stops after the
         step on which ``touched`` says the vehicle touched something (``perchpose.sim.contact``)
         and returns that step's index; otherwise returns None."""
-        v_sp, v_est, yaw_rate = _vec3(v_sp_mps), _vec3(v_estimate_mps), float(yaw_rate_sp)
+        v_sp, v_est, yaw_rate = vec3(v_sp_mps), vec3(v_estimate_mps), float(yaw_rate_sp)
         estimator, hold = self.estimator, self.hold
         for i in range(n_steps):
             if estimator is not None:
@@ -630,7 +630,8 @@ def _product(A: Mat3, B: Mat3) -> Mat3:
     return (rows[0], rows[1], rows[2])
 
 
-def _vec3(value: Array | Sequence[float]) -> Vec3:
+def vec3(value: Array | Sequence[float]) -> Vec3:
+    """A 3-vector as a tuple of Python floats (the form the scalar loops take)."""
     x, y, z = (float(c) for c in np.asarray(value, np.float64).reshape(3))
     return (x, y, z)
 
@@ -638,7 +639,7 @@ def _vec3(value: Array | Sequence[float]) -> Vec3:
 def mat3(value: Array) -> Mat3:
     """A 3x3 matrix as rows of Python floats, the form the loops run on."""
     rows = np.asarray(value, np.float64).reshape(3, 3).tolist()
-    return (_vec3(rows[0]), _vec3(rows[1]), _vec3(rows[2]))
+    return (vec3(rows[0]), vec3(rows[1]), vec3(rows[2]))
 
 
 def _rotated(R: Mat3, axis: Vec3, angle: float) -> Mat3:

@@ -474,14 +474,7 @@ class MavlinkLink:
         self._stream_tries += 1
         self._next_stream_request = now + STREAM_RETRY_S
         for name in missing:
-            send = partial(
-                _interval_send,
-                system=system,
-                component=component,
-                message_id=STREAM_IDS[name],
-                interval_us=self.stream_interval_us,
-            )
-            if self._send(send, "COMMAND_LONG"):
+            if self._ask_interval(system, component, STREAM_IDS[name], self.stream_interval_us):
                 self.stream_requests += 1
 
     def _ask_for_heartbeats(self, now: float) -> None:
@@ -490,6 +483,7 @@ class MavlinkLink:
         system, component = self.vehicle.system_id, self.vehicle.component_id
         if self.heartbeat_hz is None or system is None or component is None:
             return
+        # the last HEARTBEAT must be recent: a vehicle falling silent is not asked for a rate
         if now < self._next_heartbeat_request or not now - self.vehicle.heartbeat_t_s < 1.5:
             return
         if self.vehicle.heartbeat_period_s < 2.0 / self.heartbeat_hz:
@@ -506,15 +500,20 @@ class MavlinkLink:
             return
         self._heartbeat_tries += 1
         self._next_heartbeat_request = now + STREAM_RETRY_S
+        if self._ask_interval(system, component, HEARTBEAT_ID, round(1e6 / self.heartbeat_hz)):
+            self.heartbeat_requests += 1
+
+    def _ask_interval(self, system: int, component: int, message_id: int, interval_us: int) -> bool:
+        """MAV_CMD_SET_MESSAGE_INTERVAL for one of the vehicle's messages; False if the link
+        could not send it."""
         send = partial(
             _interval_send,
             system=system,
             component=component,
-            message_id=HEARTBEAT_ID,
-            interval_us=round(1e6 / self.heartbeat_hz),
+            message_id=message_id,
+            interval_us=interval_us,
         )
-        if self._send(send, "COMMAND_LONG"):
-            self.heartbeat_requests += 1
+        return self._send(send, "COMMAND_LONG")
 
     def _heartbeat(self, mav: Any) -> None:
         mav.heartbeat_send(
