@@ -421,6 +421,7 @@ STILL = {
     **{f"stateEstimate.{a}": 0.0 for a in ("x", "y", "vx", "vy", "vz")},
     "acc.x": 0.0,
     "acc.y": 0.0,
+    "acc.z": 1.0,
 }
 
 
@@ -604,7 +605,7 @@ def test_the_commander_sets_the_firmware_s_velocity_gains_and_gives_back_its_own
 def test_the_accelerometer_is_logged_with_the_odometry_and_leant_against(
     crazyflie: tuple[Crazyflie, FakeRadioLink],
 ) -> None:
-    """``acc.x`` (g, body frame) comes with the odometry block: a push of 0.1 g along the
+    """``acc.x/y/z`` (g, body frame) come with the odometry block: a push of 0.1 g along the
     body's x on a vehicle yawed 90 deg is a push along the world's y, and the setpoint leans
     against it."""
     cf, link = crazyflie
@@ -621,7 +622,7 @@ def test_the_accelerometer_is_logged_with_the_odometry_and_leant_against(
         connection._moved(20 * k, {**STILL, "acc.x": 0.1}, None)
     f = connection.specific_force()
     assert f is not None
-    np.testing.assert_allclose(f, [0.981, 0.0])
+    np.testing.assert_allclose(f, [0.981, 0.0, 9.81], rtol=1e-3)
     _kind, vx, vy, _vz, _yaw_rate = decode(link.sent[-1])
     assert vy < -0.1  # against the push, along world y
     assert abs(vx) < 0.05

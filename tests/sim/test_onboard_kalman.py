@@ -119,8 +119,9 @@ def test_a_campaign_on_the_firmware_kalman_says_so(tmp_path: Path) -> None:
 
 def test_the_fixes_fused_by_the_filter_are_what_lets_it_perch() -> None:
     """Still air, the true pose, realistic senses: on the firmware's filter the pilot perches
-    when its fixes reach the filter and, the same run without them, never meets the capture
-    cone (the filter's drift, which only the camera sees)."""
+    when its fixes reach the filter and, the same run without them, does not (the filter's
+    drift, which only the camera sees: the run never meets the capture cone, or meets it
+    and the magnet misses the centre in the last centimetres)."""
     pytest.importorskip("cffirmware")
     campaign = PerchCampaign.from_options(
         load_camera("preset:fpv"), estimators="truth", runs=1, onboard_estimator="crazyflie-kalman"
@@ -132,4 +133,4 @@ def test_the_fixes_fused_by_the_filter_are_what_lets_it_perch() -> None:
     alone = run_perch(
         replace(setup, controller=replace(setup.controller, position_fixes=off)), 960000
     )
-    assert alone.reason == "timeout"
+    assert alone.reason in ("timeout", "off-centre")

@@ -114,7 +114,7 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
     show_default=True,
     help="The realistic odometry's horizontal error: white (3 cm/s per sample) or flow-deck "
     "(a PMW3901 flow deck under a Kalman filter: correlated over 50-250 ms, growing with "
-    "height and yaw rate; the pilot does not perch on it yet, see the README).",
+    "height and yaw rate; the pilot's inertial filter corrects for it).",
 )
 @click.option(
     "--stamps",

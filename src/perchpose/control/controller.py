@@ -34,6 +34,12 @@ controller's state estimate, in its own drifting world frame), the controller al
   the frame's capture time (so the camera's latency does not lag the loop), and steers on it
   between fixes: the last centimetres, where the camera is too close to see, are flown
   closed-loop on odometry (for at most ``hold_target_s``);
+- where the odometry comes with all three axes of the accelerometer, runs the inertial filter
+  (``control.inertial``: the fixes and the accelerometer): its position of the vehicle now
+  replaces the held target's odometry position along x and y, and the odometry's correlated
+  velocity error it estimates is added to each setpoint, so that a vehicle whose own loop
+  flies a Flow deck's estimate flies the velocity asked for (its disturbance observer then
+  works on the filter's velocity, and the capture cone's speed is the filter's);
 - rejects disturbances with an observer on the velocity loop (``control.disturbance``: the gap
   between the velocity it asks for and the one the vehicle flies, beyond the loop's own lag:
   wind, a sagging battery, an attitude bias) and an
@@ -60,6 +66,7 @@ from numpy.typing import NDArray
 
 from perchpose.control.disturbance import DisturbanceObserver
 from perchpose.control.history import newest_at
+from perchpose.control.inertial import InertialSettings, InertialTracker
 from perchpose.control.mount import default_T_body_camera
 from perchpose.control.position_fix import PositionFixes, PositionFixSettings
 from perchpose.control.time_offset import TimeOffset, TimeOffsetEstimator, TimeOffsetSettings
@@ -160,6 +167,9 @@ class ControllerSettings:
 
     position_fixes : the camera's fixes as the vehicle's position in its odometry frame, for
     its own estimator (``control.position_fix``; ``Command.position_fix_m``).
+
+    inertial : the inertial filter's settings (``control.inertial``; ``enabled`` off: the
+    odometry is flown as it comes).
     """
 
     k_xy: float = 2.5
@@ -210,6 +220,7 @@ class ControllerSettings:
     time_offset: TimeOffsetSettings = field(default_factory=TimeOffsetSettings)
     correct_time_offset: bool = True
     position_fixes: PositionFixSettings = field(default_factory=PositionFixSettings)
+    inertial: InertialSettings = field(default_factory=InertialSettings)
 
     def __post_init__(self) -> None:
         positive = (
@@ -343,6 +354,9 @@ class Odometry:
     # the aerodynamic push the accelerometer measures (its body x and y specific force, turned
     # into the world frame; z is 0), m/s^2, or None where the link does not stream it
     push_mps2: Array | None = None
+    # the accelerometer's sample with it (body frame, all three axes: at rest +g along z),
+    # m/s^2, or None where the link does not stream all three
+    f_body_mps2: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -416,6 +430,7 @@ class PerchingController:
         self._offset = TimeOffsetEstimator(self.settings.time_offset)
         self.position_fixes = PositionFixes(self.settings.position_fixes)
         self._position_fix: Array | None = None  # this frame's, for its command
+        self.inertial = InertialTracker(self.settings.inertial)
 
     def use_velocity_gain(self, gain_per_s: float) -> None:
         """The vehicle's velocity loop now has this gain (the pilot set it): the observer and
@@ -507,8 +522,35 @@ class PerchingController:
         return magnet
 
     def _remember(self, odometry: Odometry) -> None:
-        """Add an odometry sample to the history fixes are matched against."""
+        """Add an odometry sample to the history fixes are matched against, and its
+        accelerometer's sample to the inertial filter (turned into the world frame by the
+        attitude of the sample's time)."""
         self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
+        f_body = odometry.f_body_mps2
+        if not self.settings.inertial.enabled or f_body is None or not self._attitudes:
+            return
+        R = newest_at(self._attitudes, odometry.t_s)
+        a_world = R @ np.asarray(f_body, np.float64)
+        self.inertial.sample(odometry.t_s, a_world[:2], np.asarray(odometry.v_mps)[:2])
+
+    def _inertial_state(self, t_s: float) -> tuple[Array, Array] | None:
+        """The inertial filter's position of the body's centre relative to the target and
+        its velocity at ``t_s`` (horizontal), or None where it is off or not ready."""
+        if not self.settings.inertial.enabled:
+            return None
+        return self.inertial.state_at(t_s)
+
+    def _velocity_correction(self, odometry: Odometry, t_s: float) -> Array:
+        """What the vehicle's own velocity estimate is off by, as the inertial filter sees
+        it, carried to ``t_s`` (horizontal; zero where the filter is off or not ready)."""
+        s = self.settings.inertial
+        error = self.inertial.odometry_error(t_s) if s.enabled else None
+        if error is None:
+            return np.zeros(2)
+        size = float(np.hypot(error[0], error[1]))
+        if size > s.max_correction_mps:
+            error = error * (s.max_correction_mps / size)
+        return error
 
     def _target_in_body(self, estimate: Estimate) -> Array:
         """The target's centre in the body frame (m), through the camera's mount."""
@@ -539,6 +581,9 @@ class PerchingController:
         """Hold the target's odometry-frame position from a fresh fix captured at
         ``t_capture_s``; the vehicle's position it implies now (``p_now_m``: the odometry's)
         for the vehicle's estimator."""
+        if self.settings.inertial.enabled:
+            offset = R_world_body @ np.asarray(self.settings.p_body_magnet_m, np.float64)
+            self.inertial.fix(t_capture_s, -(d + offset)[:2], float(np.linalg.norm(d)))
         p_capture = self._position_at(t_capture_s)
         if p_capture is None:
             return
@@ -558,6 +603,9 @@ class PerchingController:
         ``speed_window_s`` (the position integrates the velocity, so the difference averages out
         the velocity's own noise); the odometry's velocity before there is such a history."""
         s = self.settings
+        known = self.inertial.velocity_at(odometry.t_s) if s.inertial.enabled else None
+        if known is not None:
+            return float(np.hypot(known[0], known[1]))
         then = self._position_at(odometry.t_s - s.speed_window_s)
         if then is None:
             return float(np.hypot(odometry.v_mps[0], odometry.v_mps[1]))
@@ -572,7 +620,12 @@ class PerchingController:
             return None
         if t_s - self._target_t > limit_s:
             return None
-        return self._target_odom - self._magnet_odom(carried(odometry, t_s), R_world_body)
+        held = self._target_odom - self._magnet_odom(carried(odometry, t_s), R_world_body)
+        state = self._inertial_state(t_s)
+        if state is not None:
+            offset = R_world_body @ np.asarray(self.settings.p_body_magnet_m, np.float64)
+            held[:2] = -(state[0] + offset[:2])
+        return held
 
     def _reject(self, v_cmd: Array, t_s: float, odometry: Odometry | None) -> Array:
         """The velocity setpoint with the disturbance observer's offset added."""
@@ -581,17 +634,27 @@ class PerchingController:
         self._last_t = t_s
         if odometry is None:
             return v_cmd
+        # the vehicle's loop flies its own velocity estimate: where the inertial filter knows
+        # that estimate's error, the setpoint carries it (so that the vehicle flies the
+        # velocity asked for), and the observer works on the filter's velocity: the
+        # estimate's error, and what it does to the loop, are then no disturbance to it
+        correction = np.zeros(3)
+        correction[:2] = self._velocity_correction(odometry, t_s)
+        v_flown = np.array(odometry.v_mps, np.float64)
+        known = self.inertial.velocity_at(odometry.t_s) if s.inertial.enabled else None
+        if known is not None:
+            v_flown[:2] = known
         push = self._filtered_push(odometry, dt)
         v_sp = v_cmd - push / s.onboard_velocity_gain
         if s.observer_rate == 0:
-            return v_sp
+            return v_sp + correction
         previous = self._last_sp if self._last_sp is not None else np.zeros(3)
         fast = self.phase == Phase.COMMIT and s.commit_observer_rate > 0
         self._observer.rate = s.commit_observer_rate if fast else s.observer_rate
-        self._observer.update(previous, odometry.v_mps, dt, max(0.0, t_s - odometry.t_s), push)
+        self._observer.update(previous, v_flown, dt, max(0.0, t_s - odometry.t_s), push)
         v_sp = v_sp + self._observer.offset_mps
         self._last_sp = v_sp
-        return v_sp
+        return v_sp + correction
 
     def _filtered_push(self, odometry: Odometry, dt_s: float) -> Array:
         """The push to cancel now: the accelerometer's, low-passed and clamped (zero without

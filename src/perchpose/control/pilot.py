@@ -407,7 +407,10 @@ class PerchingPilot:
             f_xy = np.array([f_body[0], f_body[1], 0.0], np.float64)
             push = np.asarray(R_world_body, np.float64) @ f_xy
             push[2] = 0.0
-        return Odometry(t_s - self._age("position"), motion[0], motion[1], push)
+        full = None
+        if f_body is not None and len(f_body) == 3 and np.all(np.isfinite(f_body)):
+            full = np.asarray(f_body, np.float64)
+        return Odometry(t_s - self._age("position"), motion[0], motion[1], push, full)
 
     def _age(self, sense: str) -> float:
         """How old the vehicle's latest ``attitude`` or ``position`` sample is (0 without

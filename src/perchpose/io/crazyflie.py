@@ -116,8 +116,8 @@ class CflibCommander:
 class CrazyflieConnection:
     """An open cflib link with the vehicle's attitude, height, position and velocity streamed
     from its state estimate (``stateEstimate.qw/qx/qy/qz`` and ``.z`` in one log block,
-    ``stateEstimate.x/y/vx/vy/vz`` with the accelerometer's ``acc.x/y`` (g, half floats) in a
-    second: a block holds at most 26 bytes; 50 Hz). Each
+    ``stateEstimate.x/y/vx/vy/vz`` with the accelerometer's ``acc.x/y/z`` (g, half floats) in
+    a second: 26 bytes, all a block holds; 50 Hz). Each
     odometry sample ticks the pilots it handed out (``PerchingPilot.tick_now``): their lateral
     loop closes at 50 Hz on odometry between camera frames.
 
@@ -166,7 +166,7 @@ class CrazyflieConnection:
         self._motion = LogConfig(name="perchpose-odometry", period_in_ms=20)
         for axis in ("x", "y", "vx", "vy", "vz"):
             self._motion.add_variable(f"stateEstimate.{axis}", "float")
-        for axis in ("x", "y"):  # the body's specific force: the aerodynamic push
+        for axis in ("x", "y", "z"):  # the body's specific force (x, y: the aerodynamic push)
             self._motion.add_variable(f"acc.{axis}", "FP16")
         self._motion.data_received_cb.add_callback(self._moved)
         try:
@@ -249,7 +249,9 @@ class CrazyflieConnection:
             return
         self._motion_t_s = now
         self._odometry = (p, v)
-        self._f_body_mps2 = GRAVITY_MPS2 * np.array([data["acc.x"], data["acc.y"]], np.float64)
+        self._f_body_mps2 = GRAVITY_MPS2 * np.array(
+            [data["acc.x"], data["acc.y"], data["acc.z"]], np.float64
+        )
         for pilot in self._pilots:  # the lateral loop closes at the state estimate's rate
             pilot.tick_now()
 
@@ -264,7 +266,8 @@ class CrazyflieConnection:
         return self._height_m
 
     def specific_force(self) -> Array | None:
-        """The accelerometer's body x and y (m/s^2) logged with the odometry, or None."""
+        """The accelerometer's body x, y and z (m/s^2; at rest +g along z) logged with the
+        odometry, or None."""
         return self._f_body_mps2
 
     def ages(self) -> SenseAges:

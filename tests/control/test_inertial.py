@@ -1,0 +1,155 @@
+"""The inertial filter: the vehicle's true velocity from late fixes and the accelerometer,
+and what its own velocity estimate is off by."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from perchpose.control.inertial import InertialSettings, InertialTracker
+from perchpose.errors import ControllerConfigError
+
+Array = NDArray[np.float64]
+ODOMETRY_HZ = 100.0
+CAMERA_HZ = 30.0
+
+
+def flight(
+    seed: int,
+    *,
+    error_mps: float,
+    error_s: float,
+    white_mps: float = 0.0,
+    accel_noise_mps2: float = 0.2,
+    accel_bias_mps2: float = 0.08,
+    latency_s: float = 0.1,
+    duration_s: float = 8.0,
+) -> tuple[InertialTracker, dict[str, list[float]]]:
+    """A vehicle swaying along x and y (sines of a few cm), an odometry velocity with a
+    correlated error (first order, ``error_s``) and white noise, an accelerometer with noise
+    and a bias, fixes of its position (0.5 mm of noise) ``latency_s`` late. Returns the
+    filter and, per odometry sample after the first 3 s, the odometry's velocity error and
+    the filter's (x axis), and the correlated error against the filter's estimate of it."""
+    rng = np.random.default_rng(seed)
+    tracker = InertialTracker()
+    dt = 1.0 / ODOMETRY_HZ
+    decay = math.exp(-dt / error_s)
+    e = np.zeros(2)
+    fixes: list[tuple[float, float, Array]] = []  # (arrival, capture, position)
+    out: dict[str, list[float]] = {"odometry": [], "filter": [], "error": [], "estimate": []}
+    next_frame = 0.0
+    for k in range(int(duration_s * ODOMETRY_HZ)):
+        t = k * dt
+        w = np.array([2.1, 1.3])
+        p = np.array([0.03 * math.sin(w[0] * t), 0.02 * math.sin(w[1] * t + 1.0)])
+        v = np.array([0.03 * w[0] * math.cos(w[0] * t), 0.02 * w[1] * math.cos(w[1] * t + 1.0)])
+        a = -(w**2) * p
+        e = decay * e + error_mps * math.sqrt(1.0 - decay * decay) * rng.normal(size=2)
+        v_odometry = v + e + white_mps * rng.normal(size=2)
+        a_read = a + accel_bias_mps2 + accel_noise_mps2 * rng.normal(size=2)
+        tracker.sample(t, a_read, v_odometry)
+        if t >= next_frame:
+            fixes.append((t + latency_s, t, p + 0.0005 * rng.normal(size=2)))
+            next_frame += 1.0 / CAMERA_HZ
+        while fixes and fixes[0][0] <= t:
+            _, captured, r = fixes.pop(0)
+            tracker.fix(captured, r, 0.3)
+        if t >= 3.0:
+            state = tracker.state_at(t)
+            assert state is not None
+            estimate = tracker.odometry_error(t)
+            assert estimate is not None
+            out["odometry"].append(float(v_odometry[0] - v[0]))
+            out["filter"].append(float(state[1][0] - v[0]))
+            out["error"].append(float(e[0]))
+            out["estimate"].append(float(estimate[0]))
+    return tracker, out
+
+
+def rms(values: list[float]) -> float:
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+def test_a_correlated_odometry_error_is_seen_through_and_estimated() -> None:
+    """A Flow deck's error at 2 m (6 cm/s over 0.15 s): the filter's velocity is off by under
+    a third of that, and its estimate of the error takes out most of it."""
+    tracker, out = flight(0, error_mps=0.06, error_s=0.15)
+    assert rms(out["odometry"]) > 0.04
+    assert rms(out["filter"]) < rms(out["odometry"]) / 3
+    residual = np.subtract(out["error"], out["estimate"])
+    assert rms(list(residual)) < 0.5 * rms(out["error"])
+    assert tracker.error_var > 0.03**2  # learnt as correlated
+    assert tracker.resets == 0
+
+
+def test_a_white_odometry_error_is_learnt_as_white() -> None:
+    """White noise (3 cm/s per sample) is no error to correct: its correlated share is
+    learnt near the floor, so the correction stays small."""
+    tracker, out = flight(1, error_mps=0.0, error_s=0.15, white_mps=0.03)
+    assert tracker.error_var < 0.015**2
+    assert rms(out["estimate"]) < 0.01
+    assert rms(out["filter"]) < 0.015
+
+
+def test_nothing_is_said_before_the_first_fixes() -> None:
+    tracker = InertialTracker()
+    for k in range(20):
+        tracker.sample(k * 0.01, np.zeros(2), np.zeros(2))
+    assert not tracker.ready
+    assert tracker.state_at(0.2) is None
+    assert tracker.odometry_error(0.2) is None
+    assert tracker.velocity_at(0.19) is None
+
+
+def test_a_late_fix_is_replayed_from_its_capture_time() -> None:
+    """A fix given 50 ms late, after the samples that followed its capture, leaves the state
+    the same fix leaves given at its capture (the filter is linear; only the slow learning of
+    the odometry's error sees the order)."""
+    settings = InertialSettings()
+
+    def run_pairs(late: bool) -> Array:
+        tracker = InertialTracker(settings)
+        rng = np.random.default_rng(5)
+        pending: list[tuple[float, float]] = []
+        for k in range(60):
+            t = k * 0.01
+            tracker.sample(t, rng.normal(0, 0.1, 2), rng.normal(0, 0.02, 2))
+            if k % 3 == 0 and t <= 0.5:
+                pending.append((t + (0.05 if late else 0.0), t))
+            while pending and pending[0][0] <= t + 1e-9:
+                _, captured = pending.pop(0)
+                tracker.fix(captured, np.array([0.01, -0.02]), 0.3)
+        state = tracker.state_at(0.6)
+        assert state is not None
+        return np.concatenate(state)
+
+    on_time = run_pairs(late=False)
+    late = run_pairs(late=True)
+    np.testing.assert_allclose(late, on_time, atol=2e-3)
+
+
+def test_a_fix_far_from_the_prediction_starts_afresh() -> None:
+    """The camera finds the target again 20 cm from where the filter had it: it restarts
+    there rather than dragging its estimate across."""
+    tracker = InertialTracker()
+    for k in range(100):
+        t = k * 0.01
+        tracker.sample(t, np.zeros(2), np.zeros(2))
+        if k % 3 == 0:
+            tracker.fix(t, np.zeros(2), 0.3)
+    assert tracker.ready
+    tracker.sample(1.0, np.zeros(2), np.zeros(2))
+    tracker.fix(1.0, np.array([0.2, 0.0]), 0.3)
+    assert tracker.resets == 1
+    assert not tracker.ready  # its velocity is no longer known
+    assert tracker.odometry_error(1.0) is None
+
+
+def test_settings_are_checked() -> None:
+    with pytest.raises(ControllerConfigError, match="accel_noise_mps2"):
+        InertialSettings(accel_noise_mps2=0.0)
+    with pytest.raises(ControllerConfigError, match="fix_std_per_m"):
+        InertialSettings(fix_std_per_m=-1.0)
