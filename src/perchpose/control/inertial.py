@@ -27,9 +27,10 @@ measured by each fix (``r``, at its capture time) and by each of the flight cont
 velocities (``v + e`` plus white noise). How large ``e`` is, and how much of the odometry's
 error is white, is learnt from the odometry's residuals as they come (covariance matching:
 only a correlated error survives from one sample to the next): a white error (the odometry
-model's default) is left to the vehicle's loop, which averages it, and is not corrected; a
-Flow deck's is. A fix arrives a latency after its capture: the filter keeps its states and
-samples of the last ``history_s`` and replays them from the fix's time.
+model's default) is left to the vehicle's loop, which averages it: the filter is then not
+used at all (``in_use``), and the controller flies the odometry as it did without it; a
+Flow deck's error is corrected. A fix arrives a latency after its capture: the filter keeps
+its states and samples of the last ``history_s`` and replays them from the fix's time.
 
 It says nothing until its velocity is known to ``ready_velocity_std_mps`` (a few fixes); a
 fix that disagrees by more than ``reset_m`` and ``gate_sigma`` spreads starts it afresh (the
@@ -62,16 +63,21 @@ class InertialSettings:
     accelerometer's 30 Hz filter and the attitude sampled a few ms apart). bias_walk_mps3 :
     how fast the acceleration's bias may wander, m/s^2/sqrt(s) (the yaw turns the
     accelerometer's own bias in the world). odometry_error_mps, odometry_error_s : the
-    vehicle's velocity estimate's correlated error, its spread and time constant (a Flow
-    deck's at 1-2 m, as ``sim.flow_deck`` models it); odometry_noise_mps : its white noise
-    per sample. initial_velocity_std_mps, initial_bias_std_mps2 : the spreads the filter
-    starts with (the odometry's velocity, a bias of up to 0.1 m/s^2 and an attitude 0.5 deg
-    off). fix_std_m, fix_std_per_m : a fix's spread, a floor plus a share of the distance to
-    the target. history_s : how far back a late fix is replayed from.
-    ready_velocity_std_mps : the velocity's spread under which the filter is used.
+    vehicle's velocity estimate's correlated error, its spread at a restart and its time
+    constant (a Flow deck's at 1-2 m, as ``sim.flow_deck`` models it); odometry_noise_mps :
+    its white noise per sample at the start. learn_s : the time constant over which both are
+    learnt from the odometry's residuals, the correlated one within min_odometry_error_mps
+    and max_odometry_error_mps. initial_velocity_std_mps, initial_bias_std_mps2 : the
+    spreads the filter starts with (the odometry's velocity, a bias of up to 0.1 m/s^2 and an
+    attitude 0.5 deg off). fix_std_m, fix_std_per_m : a fix's spread, a floor plus a share
+    of the distance to the target. history_s : how far back a late fix is replayed from.
+    ready_velocity_std_mps : the velocity's spread under which the filter is ready.
     gate_sigma, reset_m : a fix further than both from the prediction starts the filter
     afresh. max_correction_mps : the largest correction of the vehicle's velocity estimate
-    the controller adds to a setpoint."""
+    the controller adds to a setpoint. use_above_mps, use_below_mps : the filter is used
+    once the odometry's correlated error is learnt above the first, and left (the odometry
+    flown as it comes) once it falls below the second: a white error is better averaged by
+    the vehicle's own loop than corrected."""
 
     enabled: bool = True
     accel_noise_mps2: float = 0.02
@@ -91,6 +97,8 @@ class InertialSettings:
     gate_sigma: float = 6.0
     reset_m: float = 0.05
     max_correction_mps: float = 0.3
+    use_above_mps: float = 0.025
+    use_below_mps: float = 0.02
 
     def __post_init__(self) -> None:
         names = (
@@ -110,6 +118,8 @@ class InertialSettings:
             "gate_sigma",
             "reset_m",
             "max_correction_mps",
+            "use_above_mps",
+            "use_below_mps",
         )
         require_positive(self, names, ControllerConfigError, "inertial ")
         if not (math.isfinite(self.fix_std_per_m) and self.fix_std_per_m >= 0):
@@ -147,11 +157,18 @@ class InertialTracker:
         self._fix_t_s = -math.inf
         self.resets = 0
         s = self.settings
-        # the odometry's error as learnt from its residuals: correlated, white (variances)
-        self.error_var = s.odometry_error_mps**2
+        # the odometry's error as learnt from its residuals: correlated, white (variances);
+        # taken as white until its residuals say otherwise (the filter is then not used)
+        self.error_var = s.min_odometry_error_mps**2
         self.noise_var = s.odometry_noise_mps**2
         self._moments = np.array([self.error_var + self.noise_var, self.error_var])
         self._last_residual: Array | None = None
+        self.correlated = False  # the odometry's error is worth correcting (``in_use``)
+
+    @property
+    def in_use(self) -> bool:
+        """``ready``, and the odometry's error learnt as correlated enough to correct."""
+        return self.correlated and self.ready
 
     @property
     def ready(self) -> bool:
@@ -237,6 +254,11 @@ class InertialTracker:
             np.clip(error_var, s.min_odometry_error_mps**2, s.max_odometry_error_mps**2)
         )
         self.noise_var = max(s.min_odometry_error_mps**2, float(self._moments[0]) - self.error_var)
+        size = math.sqrt(self.error_var)
+        if size > s.use_above_mps:
+            self.correlated = True
+        elif size < s.use_below_mps:
+            self.correlated = False
 
     def fix(self, t_capture_s: float, r_m: Array, distance_m: float) -> None:
         """A fix: the body's centre relative to the target (world frame, horizontal) when the
@@ -307,25 +329,25 @@ class InertialTracker:
 
     def state_at(self, t_s: float) -> tuple[Array, Array] | None:
         """The body's centre relative to the target and its velocity (world frame,
-        horizontal) at ``t_s``, predicted from the last sample; None until ``ready``."""
-        if not self.ready:
+        horizontal) at ``t_s``, predicted from the last sample; None unless ``in_use``."""
+        if not self.in_use:
             return None
         last = self._steps[-1]
         x, _ = self._predict(last.x, last.P, last.a_mps2, max(0.0, t_s - last.t_s))
         return x[R].copy(), x[V].copy()
 
     def velocity_at(self, t_s: float) -> Array | None:
-        """The velocity at the last sample, if that was at ``t_s``; None otherwise or until
-        ``ready``."""
-        if not self.ready or abs(self._steps[-1].t_s - t_s) > 1e-6:
+        """The velocity at the last sample, if that was at ``t_s``; None otherwise or unless
+        ``in_use``."""
+        if not self.in_use or abs(self._steps[-1].t_s - t_s) > 1e-6:
             return None
         velocity: Array = self._steps[-1].x[V].copy()
         return velocity
 
     def odometry_error(self, t_s: float) -> Array | None:
         """What the flight controller's velocity estimate is off by at ``t_s`` (its
-        correlated error at the last sample, decayed to ``t_s``); None until ``ready``."""
-        if not self.ready:
+        correlated error at the last sample, decayed to ``t_s``); None unless ``in_use``."""
+        if not self.in_use:
             return None
         last = self._steps[-1]
         decay = math.exp(-max(0.0, t_s - last.t_s) / self.settings.odometry_error_s)
