@@ -515,10 +515,13 @@ class PerchingController:
 
     # -- odometry ---------------------------------------------------------------------------
 
+    def _magnet_offset(self, R_world_body: Array) -> Array:
+        """The magnet from the body's centre, world frame."""
+        offset: Array = R_world_body @ np.asarray(self.settings.p_body_magnet_m, np.float64)
+        return offset
+
     def _magnet_odom(self, p_m: Array, R_world_body: Array) -> Array:
-        magnet: Array = np.asarray(p_m, np.float64) + R_world_body @ np.asarray(
-            self.settings.p_body_magnet_m, np.float64
-        )
+        magnet: Array = np.asarray(p_m, np.float64) + self._magnet_offset(R_world_body)
         return magnet
 
     def _remember(self, odometry: Odometry) -> None:
@@ -527,24 +530,17 @@ class PerchingController:
         attitude of the sample's time)."""
         self._track.append((odometry.t_s, np.asarray(odometry.p_m, np.float64)))
         f_body = odometry.f_body_mps2
-        if not self.settings.inertial.enabled or f_body is None or not self._attitudes:
+        if f_body is None or not self._attitudes:
             return
         R = newest_at(self._attitudes, odometry.t_s)
         a_world = R @ np.asarray(f_body, np.float64)
         self.inertial.sample(odometry.t_s, a_world[:2], np.asarray(odometry.v_mps)[:2])
 
-    def _inertial_state(self, t_s: float) -> tuple[Array, Array] | None:
-        """The inertial filter's position of the body's centre relative to the target and
-        its velocity at ``t_s`` (horizontal), or None where it is off or not ready."""
-        if not self.settings.inertial.enabled:
-            return None
-        return self.inertial.state_at(t_s)
-
-    def _velocity_correction(self, odometry: Odometry, t_s: float) -> Array:
+    def _velocity_correction(self, t_s: float) -> Array:
         """What the vehicle's own velocity estimate is off by, as the inertial filter sees
-        it, carried to ``t_s`` (horizontal; zero where the filter is off or not ready)."""
+        it, carried to ``t_s`` (horizontal; zero where the filter is not in use)."""
         s = self.settings.inertial
-        error = self.inertial.odometry_error(t_s) if s.enabled else None
+        error = self.inertial.odometry_error(t_s)
         if error is None:
             return np.zeros(2)
         size = float(np.hypot(error[0], error[1]))
@@ -581,9 +577,8 @@ class PerchingController:
         """Hold the target's odometry-frame position from a fresh fix captured at
         ``t_capture_s``; the vehicle's position it implies now (``p_now_m``: the odometry's)
         for the vehicle's estimator."""
-        if self.settings.inertial.enabled:
-            offset = R_world_body @ np.asarray(self.settings.p_body_magnet_m, np.float64)
-            self.inertial.fix(t_capture_s, -(d + offset)[:2], float(np.linalg.norm(d)))
+        r_m = -(d + self._magnet_offset(R_world_body))  # the body's centre from the target
+        self.inertial.fix(t_capture_s, r_m[:2], float(np.linalg.norm(d)))
         p_capture = self._position_at(t_capture_s)
         if p_capture is None:
             return
@@ -603,7 +598,7 @@ class PerchingController:
         ``speed_window_s`` (the position integrates the velocity, so the difference averages out
         the velocity's own noise); the odometry's velocity before there is such a history."""
         s = self.settings
-        known = self.inertial.velocity_at(odometry.t_s) if s.inertial.enabled else None
+        known = self.inertial.velocity_at(odometry.t_s)
         if known is not None:
             return float(np.hypot(known[0], known[1]))
         then = self._position_at(odometry.t_s - s.speed_window_s)
@@ -621,10 +616,9 @@ class PerchingController:
         if t_s - self._target_t > limit_s:
             return None
         held = self._target_odom - self._magnet_odom(carried(odometry, t_s), R_world_body)
-        state = self._inertial_state(t_s)
+        state = self.inertial.state_at(t_s)
         if state is not None:
-            offset = R_world_body @ np.asarray(self.settings.p_body_magnet_m, np.float64)
-            held[:2] = -(state[0] + offset[:2])
+            held[:2] = -(state[0] + self._magnet_offset(R_world_body)[:2])
         return held
 
     def _reject(self, v_cmd: Array, t_s: float, odometry: Odometry | None) -> Array:
@@ -639,9 +633,9 @@ class PerchingController:
         # velocity asked for), and the observer works on the filter's velocity: the
         # estimate's error, and what it does to the loop, are then no disturbance to it
         correction = np.zeros(3)
-        correction[:2] = self._velocity_correction(odometry, t_s)
+        correction[:2] = self._velocity_correction(t_s)
         v_flown = np.array(odometry.v_mps, np.float64)
-        known = self.inertial.velocity_at(odometry.t_s) if s.inertial.enabled else None
+        known = self.inertial.velocity_at(odometry.t_s)
         if known is not None:
             v_flown[:2] = known
         push = self._filtered_push(odometry, dt)

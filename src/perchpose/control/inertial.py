@@ -49,6 +49,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.control.history import index_at
 from perchpose.errors import ControllerConfigError, require_positive
 
 Array = NDArray[np.float64]
@@ -168,7 +169,7 @@ class InertialTracker:
     @property
     def in_use(self) -> bool:
         """``ready``, and the odometry's error learnt as correlated enough to correct."""
-        return self.correlated and self.ready
+        return self.settings.enabled and self.correlated and self.ready
 
     @property
     def ready(self) -> bool:
@@ -218,7 +219,7 @@ class InertialTracker:
         or not finite are ignored."""
         a = np.asarray(a_mps2, np.float64)[:2]
         v = np.asarray(v_mps, np.float64)[:2]
-        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(v))):
+        if not (self.settings.enabled and np.all(np.isfinite(a)) and np.all(np.isfinite(v))):
             return
         if self._steps and t_s <= self._steps[-1].t_s:
             return
@@ -267,8 +268,8 @@ class InertialTracker:
         r = np.asarray(r_m, np.float64)[:2]
         if not self._steps or not np.all(np.isfinite(r)) or t_capture_s <= self._fix_t_s:
             return  # nothing to place it with, or older than a fix already taken
-        i = self._index_at(t_capture_s)
-        if i is None:
+        i = index_at(self._steps, t_capture_s)
+        if i < 0:
             return  # older than the history
         self._fix_t_s = t_capture_s
         std = s.fix_std_m + s.fix_std_per_m * max(0.0, distance_m)
@@ -303,15 +304,6 @@ class InertialTracker:
         )
         self._started = True
         self._replay(i, t_s, x, P)
-
-    def _index_at(self, t_s: float) -> int | None:
-        """The newest kept sample at or before ``t_s``."""
-        found = None
-        for i, step in enumerate(self._steps):
-            if step.t_s > t_s + 1e-9:
-                break
-            found = i
-        return found
 
     def _replay(self, i: int, t_s: float, x: Array, P: Array) -> None:
         """From the state at ``t_s`` (after sample ``i``), predict and update again through
