@@ -299,6 +299,34 @@ def test_a_landing_without_a_live_height() -> None:
     assert vehicle.motor_stop_height_m == 0.0
 
 
+def test_a_landing_descends_through_a_short_gap_in_the_height() -> None:
+    """An autopilot's height 0.5 s old (a busy link, under ``senses_lost_after_s``): the
+    descent goes on, the touchdown unsensed; only once it is lost is the landing handed to
+    the autopilot's LAND."""
+    vehicle = Vehicle(Recorder(has_land=True), height_m=1.0)
+    height_age = {"s": 0.0}
+    pilot = PerchingPilot(
+        vehicle.commander,
+        lambda: np.eye(3),
+        settings=PilotSettings(stale_after_s=0.25, senses_lost_after_s=1.0),
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        ages=lambda: SenseAges(0.0, 0.0, height_age["s"]),
+        clock=lambda: vehicle.t_s,
+    )
+    pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.6), 0.0), 0.0)
+    pilot.abort(0.0)
+    height_age["s"] = 0.5
+    _tick_for(pilot, vehicle, 0.5, [])
+    assert pilot.state == "landing"
+    assert vehicle.commander.sent[-1][2] < 0.0  # still descending
+    assert ("land",) not in vehicle.commander.sent
+    height_age["s"] = 1.0
+    _tick_for(pilot, vehicle, 0.1, [])
+    assert pilot.state == "released"
+    assert vehicle.commander.sent[-1] == ("land",)
+
+
 def test_touchdown_needs_a_low_still_height_over_a_whole_window() -> None:
     d = TouchdownDetector(window_s=0.5, still_m=0.02, landed_height_m=0.05, speed_mps=0.05)
     t = np.arange(0.0, 2.0, 0.02)

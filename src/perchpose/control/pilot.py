@@ -45,7 +45,8 @@ setpoint, phase ``hold``, said once) until it is fresh again; one older than
 ``senses_lost_after_s`` lands the vehicle (the Crazyflie) or hands it back to its autopilot
 (MAVLink; while landing, to its LAND), saying why. Contact and touchdown need a live height: a
 sample younger than ``live_height_s``, so a height that stopped updating never reads as
-"stopped rising" or "on the ground".
+"stopped rising" or "on the ground"; a landing goes on descending through a shorter gap
+(touchdown unsensed until the height is live again).
 """
 
 from __future__ import annotations
@@ -389,6 +390,12 @@ class PerchingPilot:
         height = self.height_m()
         return height if height is not None and math.isfinite(height) else None
 
+    def _height_age(self) -> float:
+        """Seconds since the vehicle's last height sample (infinite without a height)."""
+        if self.height_m is None:
+            return math.inf
+        return 0.0 if self.ages is None else self.ages().height_s
+
     def _motion(self) -> tuple[Array, Array] | None:
         """The vehicle's position and velocity, None if unknown or not finite."""
         motion = self.odometry() if self.odometry is not None else None
@@ -487,7 +494,8 @@ class PerchingPilot:
         height = None if lost else self._height()
         if height is None:
             self._touchdown.reset()
-            if self.commander.send_land():
+            gap = not lost and self._height_age() < s.senses_lost_after_s
+            if not gap and self.commander.send_land():
                 why = self._old(*stale) if stale is not None else "no live height"
                 self._enter(PilotState.RELEASED, t_s, f"{why}: the autopilot's LAND lands it")
                 return PilotStep(t_s, self.state, None, None, None)
