@@ -259,6 +259,25 @@ def test_a_landing_whose_vehicle_does_not_descend_never_stops_the_motors() -> No
     assert _gaps_s(times) <= pilot.settings.setpoint_period_s + 1e-9
 
 
+def _aged_pilot(
+    vehicle: Vehicle,
+    settings: PilotSettings,
+    ages: Callable[[], SenseAges],
+    reports: list[str] | None = None,
+) -> PerchingPilot:
+    """A level pilot on ``vehicle`` whose senses are as old as ``ages`` says."""
+    return PerchingPilot(
+        vehicle.commander,
+        lambda: np.eye(3),
+        settings=settings,
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        ages=ages,
+        report=(reports.append if reports is not None else lambda _m: None),
+        clock=lambda: vehicle.t_s,
+    )
+
+
 def test_a_landing_without_a_live_height() -> None:
     """No live height to sense the touchdown: a vehicle with a landing of its own (an
     autopilot) is handed it; one without (the Crazyflie) keeps descending, said once, and
@@ -276,16 +295,8 @@ def test_a_landing_without_a_live_height() -> None:
     live = {"height": False}
     ages = lambda: SenseAges(0.0, 0.0, 0.0 if live["height"] else math.inf)  # noqa: E731
     reports: list[str] = []
-    pilot = PerchingPilot(
-        vehicle.commander,
-        lambda: np.eye(3),
-        settings=PilotSettings(senses_lost_after_s=1e9, stale_after_s=1e8),
-        height_m=vehicle.height,
-        odometry=vehicle.odometry,
-        ages=ages,
-        report=reports.append,
-        clock=lambda: vehicle.t_s,
-    )
+    settings = PilotSettings(senses_lost_after_s=1e9, stale_after_s=1e8)
+    pilot = _aged_pilot(vehicle, settings, ages, reports)
     pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.6), 0.0), 0.0)
     pilot.abort(0.0)
     times: list[float] = []
@@ -305,15 +316,8 @@ def test_a_landing_descends_through_a_short_gap_in_the_height() -> None:
     the autopilot's LAND."""
     vehicle = Vehicle(Recorder(has_land=True), height_m=1.0)
     height_age = {"s": 0.0}
-    pilot = PerchingPilot(
-        vehicle.commander,
-        lambda: np.eye(3),
-        settings=PilotSettings(stale_after_s=0.25, senses_lost_after_s=1.0),
-        height_m=vehicle.height,
-        odometry=vehicle.odometry,
-        ages=lambda: SenseAges(0.0, 0.0, height_age["s"]),
-        clock=lambda: vehicle.t_s,
-    )
+    settings = PilotSettings(stale_after_s=0.25, senses_lost_after_s=1.0)
+    pilot = _aged_pilot(vehicle, settings, lambda: SenseAges(0.0, 0.0, height_age["s"]))
     pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.6), 0.0), 0.0)
     pilot.abort(0.0)
     height_age["s"] = 0.5
