@@ -99,6 +99,15 @@ MAX_CARRY_S = 0.1  # the longest an odometry sample is carried forward by its ve
 MIN_PHASE_MARGIN_DEG = 30.0  # of each proportional loop (``phase_margin_deg``)
 
 
+def clip_norm(v: Array, limit: float) -> Array:
+    """``v`` scaled down to length ``limit`` where it is longer."""
+    size = float(np.linalg.norm(v))
+    if size > limit:
+        scaled: Array = v * (limit / size)
+        return scaled
+    return v
+
+
 @dataclass(frozen=True)
 class ControllerSettings:
     """Gains and limits (SI units).
@@ -539,14 +548,10 @@ class PerchingController:
     def _velocity_correction(self, t_s: float) -> Array:
         """What the vehicle's own velocity estimate is off by, as the inertial filter sees
         it, carried to ``t_s`` (horizontal; zero where the filter is not in use)."""
-        s = self.settings.inertial
         error = self.inertial.odometry_error(t_s)
         if error is None:
             return np.zeros(2)
-        size = float(np.hypot(error[0], error[1]))
-        if size > s.max_correction_mps:
-            error = error * (s.max_correction_mps / size)
-        return error
+        return clip_norm(error, self.settings.inertial.max_correction_mps)
 
     def _target_in_body(self, estimate: Estimate) -> Array:
         """The target's centre in the body frame (m), through the camera's mount."""
@@ -658,10 +663,7 @@ class PerchingController:
         if not s.push_feedforward or push is None or not np.all(np.isfinite(push)):
             self._push_mps2 = np.zeros(3)
             return self._push_mps2
-        measured = np.array([push[0], push[1], 0.0], np.float64)
-        size = float(np.linalg.norm(measured))
-        if size > s.max_push_mps2:
-            measured *= s.max_push_mps2 / size
+        measured = clip_norm(np.array([push[0], push[1], 0.0], np.float64), s.max_push_mps2)
         alpha = 1.0 if s.push_filter_s == 0 else 1.0 - math.exp(-dt_s / s.push_filter_s)
         self._push_mps2 = self._push_mps2 + alpha * (measured - self._push_mps2)
         return self._push_mps2
