@@ -624,3 +624,42 @@ def test_full_state_setpoints_lead_the_estimate_by_what_the_vehicles_loops_fly()
     assert len(stale.sent) == 1
     with pytest.raises(ControllerConfigError, match="command 'attitude'"):
         PilotSettings(command="attitude")
+
+
+def _backing_off_at_the_plate(held: bool) -> tuple[PerchingPilot, list[str], list[str]]:
+    """A vehicle whose final climb has just begun under a plate 2 mm above its magnet, when
+    the camera (a few centimetres from the target) puts the target 15 mm to the side: the
+    controller backs off. ``held``: the magnet holds the vehicle at the plate (it does not
+    descend); otherwise it descends as commanded. Two seconds of frames at 30 Hz."""
+    s = ControllerSettings(observer_rate=0.0)
+    commander = Recorder()
+    vehicle = Vehicle(commander, 1.0, stuck=held)
+    reports: list[str] = []
+    pilot = _pilot(vehicle, controller=s, reports=reports)
+    magnet_z = s.p_body_magnet_m[2]
+    phases: list[str] = []
+    for _ in range(60):
+        lateral = 0.015 if "commit" in phases else 0.0
+        seen = _seen(s, [lateral, 0.0, magnet_z + 0.002], vehicle.t_s)
+        pilot.update(seen, vehicle.t_s)
+        phases.append(pilot.controller.phase)
+        vehicle.fly(1 / 30)
+        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)  # the plate
+    return pilot, phases, reports
+
+
+def test_a_back_off_the_magnet_holds_at_the_plate_is_contact() -> None:
+    pilot, phases, reports = _backing_off_at_the_plate(held=True)
+    assert "retreat" in phases
+    assert pilot.state == "perched"
+    assert any("the magnet holds the vehicle" in r for r in reports)
+    # the height was still over the whole held window first
+    perched_at = next(t for t, _, after in pilot.transitions if after == "perched")
+    retreat_frames = phases.index("retreat")
+    assert perched_at - pilot.transitions[0][0] >= retreat_frames / 30 + 1.0 - 0.1
+
+
+def test_a_back_off_that_descends_is_not_contact() -> None:
+    pilot, phases, _ = _backing_off_at_the_plate(held=False)
+    assert "retreat" in phases
+    assert pilot.state == "perching"

@@ -1,5 +1,6 @@
 import csv
 import json
+import math
 import socket
 import threading
 from dataclasses import replace
@@ -13,6 +14,7 @@ from perchpose.cli import main
 from perchpose.control import PerchingController
 from perchpose.errors import VehicleConfigError, WindConfigError
 from perchpose.evaluation.perching import summarise
+from perchpose.geometry import rot_z
 from perchpose.sim.campaign import run_campaign
 from perchpose.sim.perch import (
     CONTACT_RADIUS_MM,
@@ -21,6 +23,7 @@ from perchpose.sim.perch import (
     event_steps,
     run_perch,
 )
+from perchpose.sim.quadrotor import OnboardGains, Quadrotor, QuadrotorParams
 from perchpose.sim.sensing import Sensing
 
 
@@ -30,13 +33,44 @@ def setup() -> PerchSetup:
 
 
 def test_perfect_estimator_perches(setup: PerchSetup) -> None:
+    """Flown through the contact: the pilot senses it and stops the motors against the
+    plate, and the magnet holds the vehicle seated for a second after."""
     results = run_campaign(setup, runs=6, seed=10)
     summary = summarise(results)
     assert summary.success_rate == 1.0
     assert summary.contact_offset_mm["max"] < CONTACT_RADIUS_MM / 2
     for r in results:
+        assert r.phase[-1] == "perched"
+        assert "perched@" in r.pilot_states
+        assert r.motor_stop_height_m == 0.0
+        assert 0.0 < r.stop_after_contact_s < 2.0
+        assert r.seated_offset_mm < CONTACT_RADIUS_MM
+
+
+def test_first_touch_scores_at_the_first_contact(setup: PerchSetup) -> None:
+    results = run_campaign(replace(setup, contact_mode="first-touch"), runs=6, seed=10)
+    assert summarise(results).success_rate == 1.0
+    for r in results:
         assert r.phase[-1] == "commit"
         assert 0.0 < r.contact_speed_mps < 0.3
+        assert math.isnan(r.stop_after_contact_s)
+        assert math.isnan(r.motor_stop_height_m)
+
+
+def test_a_plant_that_takes_no_plate_forces_flies_first_touch_only(setup: PerchSetup) -> None:
+    class Elsewhere(Quadrotor):
+        takes_plate_forces = False
+
+    def plant(
+        params: QuadrotorParams, p_m: np.ndarray, yaw_rad: float, gains: OnboardGains
+    ) -> Quadrotor:
+        vehicle = Elsewhere(params, gains, p_m)
+        vehicle.R_world_body = rot_z(yaw_rad)
+        return vehicle
+
+    with pytest.raises(VehicleConfigError, match="first-touch"):
+        run_perch(setup, 0, plant=plant)
+    assert run_perch(replace(setup, contact_mode="first-touch"), 0, plant=plant).success
 
 
 def test_same_seed_same_run(setup: PerchSetup) -> None:
@@ -336,8 +370,10 @@ def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
     for row in rows:  # what happened at contact, run by run
         assert row["contact_first"] == "magnet"
         assert 0.0 <= float(row["contact_tilt_deg"]) < 15.0
-        assert 0.0 <= float(row["contact_lateral_speed_mps"]) < 0.1
-        assert 0.0 < float(row["contact_vertical_speed_mps"]) < 0.3
+        assert float(row["contact_vertical_speed_mps"]) > 0.0
+        assert float(row["motor_stop_height_m"]) == 0.0  # stopped against the plate
+        assert float(row["seated_offset_mm"]) < 2 * CONTACT_RADIUS_MM  # the faces overlap
+        assert 0.0 < float(row["stop_after_contact_s"]) < 2.0
         assert float(row["latency_ms"]) == 133.0  # and the run's own draws of the rest
         assert 50.0 <= float(row["odometry_hz"]) <= 100.0
         assert 0.99 <= float(row["focal_scale"]) <= 1.01

@@ -34,6 +34,7 @@ def test_perching_on_rotorpy_agrees_with_our_vehicle_model() -> None:
         ceiling_effect=False,
         wind="moderate",
         controller=ControllerSettings(onboard_delay_s=0.0),
+        contact_mode="first-touch",  # RotorPy integrates its own vehicle: no plate forces
     )
 
     def rotorpy(

@@ -18,7 +18,7 @@ from perchpose.sim.campaign import campaign_jobs, execute
 from perchpose.sim.disturbances import Disturbances
 from perchpose.sim.firmware import FLIGHT_CONTROLLERS, check_flight_controller, load_firmware
 from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
-from perchpose.sim.perch import ESTIMATORS, PerchResult, PerchSetup
+from perchpose.sim.perch import CONTACT_MODES, ESTIMATORS, PerchResult, PerchSetup
 from perchpose.sim.sensing import ODOMETRY_ERRORS, Sensing
 from perchpose.sim.wind import WIND_LEVELS
 from perchpose.target import TargetSpec
@@ -60,6 +60,7 @@ class PerchCampaign:
         onboard_estimator: str = "model",
         position_fixes: str = "send",
         command: str = "velocity",
+        contact: str = "hold",
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault."""
@@ -82,6 +83,10 @@ class PerchCampaign:
             )
         if command not in COMMANDS:
             raise PerchposeError(f"--command: unknown {command!r} (choose {' or '.join(COMMANDS)})")
+        if contact not in CONTACT_MODES:
+            raise PerchposeError(
+                f"--contact: unknown {contact!r} (choose {' or '.join(CONTACT_MODES)})"
+            )
         if odometry not in ODOMETRY_ERRORS:
             raise PerchposeError(
                 f"--odometry: unknown {odometry!r} (choose {' or '.join(ODOMETRY_ERRORS)})"
@@ -108,6 +113,7 @@ class PerchCampaign:
             flight_controller=flight_controller,
             onboard_estimator=onboard_estimator,
             pilot=PilotSettings(command=command),
+            contact_mode=contact,
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)
         timed = [
@@ -231,6 +237,7 @@ class PerchOptions:
     onboard_estimator: str = "model"
     position_fixes: str = "send"
     command: str = "velocity"
+    contact: str = "hold"
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -257,6 +264,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         onboard_estimator=options.onboard_estimator,
         position_fixes=options.position_fixes,
         command=options.command,
+        contact=options.contact,
     )
     content = campaign.fly(
         options.out,

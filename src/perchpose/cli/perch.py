@@ -126,6 +126,16 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
     "for comparison).",
 )
 @click.option(
+    "--contact",
+    type=click.Choice(["hold", "first-touch"]),
+    default="hold",
+    show_default=True,
+    help="How a contact with the plate ends a run: hold (the flight goes on through it: the "
+    "plate's face, friction and the magnet's pull act, the pilot senses the contact and stops "
+    "the motors, and a perch is the magnet seated and holding 1 s later) or first-touch (scored "
+    "at the first touch by the contact rules, as campaigns before it were).",
+)
+@click.option(
     "--latency-error-ms",
     default=10.0,
     show_default=True,
@@ -191,6 +201,7 @@ def perch(
     fps: float,
     latency_ms: float | None,
     stamps: str,
+    contact: str,
     odometry: str,
     flight_controller: str,
     onboard_estimator: str,
@@ -231,6 +242,7 @@ def perch(
         resume,
         progress=show_progress(quiet),
         stamps=stamps,
+        contact=contact,
         odometry=odometry,
         flight_controller=flight_controller,
         onboard_estimator=onboard_estimator,

@@ -379,6 +379,14 @@ class Command:
     # the vehicle's position now as this frame's fix says it (odometry frame), for the
     # vehicle's own estimator; None: none to send
     position_fix_m: Array | None = None
+    # the vertical speed the phase asks for, before the disturbance rejection's offset
+    # (None: the setpoint's own)
+    asked_z_mps: float | None = None
+
+    @property
+    def climb_asked_mps(self) -> float:
+        """The vertical speed the controller asked for (up positive)."""
+        return float(self.v_mps[2]) if self.asked_z_mps is None else self.asked_z_mps
 
 
 def carried(odometry: Odometry, t_s: float) -> Array:
@@ -698,6 +706,7 @@ class PerchingController:
             command.phase,
             command.error_m,
             self._position_fix,
+            float(command.v_mps[2]),
         )
 
     def between_frames(
@@ -727,7 +736,8 @@ class PerchingController:
         v[:2] = self._lateral_mps(held, t_s)
         if self.phase != Phase.COMMIT and t_s - self._frame_t > STALL_FRAMES * s.camera_period_s:
             v[2] = 0.0  # the camera has stalled mid-approach: hold height, stay aligned
-        return Command(self._reject(v, t_s, odometry), last.yaw_rate_rad_s, last.phase, held)
+        rejected = self._reject(v, t_s, odometry)
+        return Command(rejected, last.yaw_rate_rad_s, last.phase, held, asked_z_mps=float(v[2]))
 
     def _lateral_mps(self, d: Array, t_s: float) -> Array:
         """The lateral velocity command for the magnet-to-target vector ``d``: proportional

@@ -36,10 +36,13 @@ class HeightWindow:
 
 class ContactDetector:
     """Contact evidence: during the final climb, the height stopped rising (it rose less than
-    ``rise_m`` over a whole ``window_s``)."""
+    ``rise_m`` over a whole ``window_s``); with ``either_way``, while backing off from the
+    plate, the height stopped moving at all (it stayed within ``rise_m``: the magnet holds
+    the vehicle against the plate)."""
 
-    def __init__(self, window_s: float, rise_m: float) -> None:
+    def __init__(self, window_s: float, rise_m: float, either_way: bool = False) -> None:
         self.rise_m = rise_m
+        self.either_way = either_way
         self._window = HeightWindow(window_s)
 
     def reset(self) -> None:
@@ -51,7 +54,8 @@ class ContactDetector:
         if not self._window.add(t_s, height_m):
             return False
         heights = self._window.heights()
-        return max(heights) - heights[0] < self.rise_m
+        low = min(heights) if self.either_way else heights[0]
+        return max(heights) - low < self.rise_m
 
 
 class TouchdownDetector:

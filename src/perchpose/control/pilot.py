@@ -246,6 +246,7 @@ class PerchingPilot:
         self._landing_said: tuple[float, str] | None = None  # (when, which news) last said
         s = self.settings
         self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
+        self._held = ContactDetector(s.held_window_s, s.held_still_m, either_way=True)
         self._climbing_since: float | None = None  # a climb that may meet the plate began
         self._touchdown = TouchdownDetector(
             s.touchdown_window_s, s.touchdown_still_m, s.landed_height_m, s.touchdown_speed_mps
@@ -458,6 +459,7 @@ class PerchingPilot:
         """A stale sense: hover (no climb) until it is fresh; land or release once lost."""
         s = self.settings
         self._contact.reset()
+        self._held.reset()
         if age_s >= s.senses_lost_after_s:
             old = self._old(name, age_s)
             if s.on_senses_lost == "release":
@@ -581,7 +583,25 @@ class PerchingPilot:
             return None
         if self._pressing(command, t_s) and self._contact.touched(t_s, self._height()):
             return self._stop(t_s, PilotState.PERCHED, _stopped_against(command))
+        if self._held_up(command, t_s):
+            return self._stop(t_s, PilotState.PERCHED, HELD_UP)
         return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
+
+    def _held_up(self, command: Command, t_s: float) -> bool:
+        """Contact evidence while descending from the plate: the controller backs off (its
+        evidence, the camera's at a few centimetres, said the climb was off) or steps down
+        out of its capture cone, with the plate within ``climb_contact_within_m``, and over
+        ``held_window_s`` of such commands the height has moved less than ``held_still_m``:
+        the magnet holds the vehicle against the plate (the motors cannot pull it off)."""
+        if not (
+            command.climb_asked_mps < 0.0
+            and command.phase in (Phase.RETREAT, Phase.ALIGN)
+            and command.error_m is not None
+            and float(command.error_m[2]) < self.settings.climb_contact_within_m
+        ):
+            self._held.reset()
+            return False
+        return self._held.touched(t_s, self._height())
 
     def _pressing(self, command: Command, t_s: float) -> bool:
         """The command climbs into the plate, so that a height that stops rising is contact:
@@ -686,6 +706,8 @@ class PerchingPilot:
         pressing = self._pressing(command, t_s)
         if pressing and self._contact.touched(t_s, self._height()):
             return self._stop(t_s, PilotState.PERCHED, _stopped_against(command))
+        if self._held_up(command, t_s):
+            return self._stop(t_s, PilotState.PERCHED, HELD_UP)
         if command.phase == Phase.COMMIT:
             self._enter(PilotState.PERCHING, t_s, "final climb")
         else:
@@ -719,6 +741,9 @@ class PerchingPilot:
         while self.state == PilotState.LANDING:
             self.tick(clock() - t0)
             sleep(self.settings.setpoint_period_s)
+
+
+HELD_UP = "the retreat did not leave the plate: the magnet holds the vehicle"
 
 
 def _stopped_against(command: Command) -> str:

@@ -45,7 +45,13 @@ class PilotSettings:
     and the magnet seats before the final climb begins). live_height_s : contact and touchdown
     count only height samples younger than this (a stream at 10 Hz or faster stays live between
     its samples); it must be shorter than the contact window, so that a height that froze never
-    makes a contact on its own. limits : the largest setpoint sent.
+    makes a contact on its own. held_window_s, held_still_m : contact is also a descent from
+    the plate (the controller's retreat, or its step down out of the capture cone, the plate
+    within climb_contact_within_m) whose height moved less than held_still_m over
+    held_window_s: the magnet holds the vehicle (a vehicle
+    in free air commanded down for that long moves several times as far; one turning from a
+    climb to the descent can hang still for a few tenths of a second, hence the longer
+    window). limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
     sets on the vehicle when it takes over, where its commander can
@@ -77,6 +83,8 @@ class PilotSettings:
     contact_window_s: float = 0.3
     contact_rise_m: float = 0.005
     climb_contact_within_m: float = 0.1
+    held_window_s: float = 1.0
+    held_still_m: float = 0.02
     setpoint_period_s: float = 0.05
     frame_timeout_s: float = 0.25
     stale_after_s: float = 0.25
@@ -101,6 +109,8 @@ class PilotSettings:
             "contact_window_s",
             "contact_rise_m",
             "climb_contact_within_m",
+            "held_window_s",
+            "held_still_m",
             "setpoint_period_s",
             "frame_timeout_s",
             "stale_after_s",

@@ -63,6 +63,8 @@ RUN_COLUMNS = (
     "time_offset_true_ms",
     "time_offset_end_ms",
     "time_offset_end_true_ms",
+    "seated_offset_mm",
+    "stop_after_contact_s",
     "latency_ms",
     "odometry_hz",
     "odometry_delay_ms",
@@ -130,6 +132,10 @@ class RunRecord:
     time_offset_true_ms: float = math.nan
     time_offset_end_ms: float = math.nan
     time_offset_end_true_ms: float = math.nan
+    # where the magnet's centre sat when the perch was judged; the first contact to the
+    # motors' stop (NaN: not flown through the contact, or no stop against the plate)
+    seated_offset_mm: float = math.nan
+    stop_after_contact_s: float = math.nan
     senses: tuple[float, ...] = ()  # SENSE_COLUMNS' values (empty: ideal senses)
 
     @staticmethod
@@ -166,6 +172,8 @@ class RunRecord:
             result.time_offset.true_s * 1000.0,
             result.time_offset_end.offset_s * 1000.0,
             result.time_offset_end.true_s * 1000.0,
+            result.seated_offset_mm,
+            result.stop_after_contact_s,
             sense_values(result.senses, setup),
         )
 
@@ -211,6 +219,8 @@ class RunRecord:
             f"{self.time_offset_true_ms:.3f}",
             f"{self.time_offset_end_ms:.3f}",
             f"{self.time_offset_end_true_ms:.3f}",
+            f"{self.seated_offset_mm:.3f}",
+            f"{self.stop_after_contact_s:.3f}",
             *(f"{v:.6g}" for v in (self.senses or (math.nan,) * len(SENSE_COLUMNS))),
         ]
 
@@ -246,6 +256,8 @@ class RunRecord:
                 float(row["time_offset_true_ms"]),
                 float(row["time_offset_end_ms"]),
                 float(row["time_offset_end_true_ms"]),
+                float(row.get("seated_offset_mm", "nan")),
+                float(row.get("stop_after_contact_s", "nan")),
                 tuple(float(row[name]) for name in SENSE_COLUMNS),
             )
         except (KeyError, ValueError, TypeError) as exc:
@@ -368,6 +380,9 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "sensing": asdict(setup.sensing),
         "stamps": setup.stamps,
         "faults": list(setup.faults),
+        "contact_mode": setup.contact_mode,
+        "magnet": asdict(setup.magnet),
+        "surface": asdict(setup.surface),
         "flight_controller": setup.flight_controller,
         "onboard_estimator": setup.onboard_estimator,
         "command": setup.pilot.command,
@@ -570,6 +585,8 @@ def _summary_dict(s: CampaignSummary, records: list[RunRecord]) -> dict[str, obj
             _percentiles(r.contact_lateral_speed_mps for r in records)
         ),
         "contact_first": dict(Counter(r.contact_first or "none" for r in records)),
+        "seated_offset_mm": _clean(_percentiles(r.seated_offset_mm for r in records)),
+        "stop_after_contact_s": _clean(_percentiles(r.stop_after_contact_s for r in records)),
         "time_offset": time_offset_summary(records),
     }
 
@@ -631,6 +648,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "onboard_estimator": setup.onboard_estimator,
         "command": setup.pilot.command,
         "stamps": setup.stamps,
+        "contact_mode": setup.contact_mode,
         "faults": list(setup.faults),
         "fps": setup.fps,
         "latency_ms": _latency_ms(setup),

@@ -35,7 +35,16 @@ from perchpose.errors import VehicleConfigError
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion.base import stage_of
 from perchpose.geometry import invert_transform, make_transform, rot_z, tilt_rad, yaw_rad
-from perchpose.sim.contact import Contact, ContactRules, PlateContact, tilt_deg
+from perchpose.sim.contact import (
+    MAGNET,
+    Contact,
+    ContactRules,
+    Magnet,
+    PlateContact,
+    PlateForces,
+    PlateSurface,
+    tilt_deg,
+)
 from perchpose.sim.disturbances import Disturbances, OdometryModel, VehicleDraw
 from perchpose.sim.faults import LEVEL_AFTER_S, MOTORS_OFF_AFTER_S, Fault, check_faults
 from perchpose.sim.firmware import FirmwareQuadrotor, check_flight_controller, load_firmware
@@ -69,6 +78,9 @@ ESTIMATORS = ("paper", "outer", "inner", "covariance", "truth")
 # how frames are stamped: as the live sources stamp them (the grab, less the camera latency
 # the user measured), or with their true capture time (the simulation's earlier clock)
 STAMPS = ("live", "exact")
+# how a contact ends a run: the flight goes on through it until the magnet holds the vehicle
+# with its motors stopped (or it does not), or the run is scored at the first touch by rules
+CONTACT_MODES = ("hold", "first-touch")
 # makes the simulated vehicle: parameters, start position, heading, onboard gains
 Plant = Callable[[QuadrotorParams, Array, float, OnboardGains], Quadrotor]
 REASONS = (
@@ -82,6 +94,9 @@ REASONS = (
     "lost",
     "gave-up",
     "crash",
+    "fell",
+    "not-seated",
+    "not-stopped",
 )
 CONTACT_RADIUS_MM = ContactRules().max_offset_mm  # the paper's 25 mm magnet
 MAX_TILT_DEG = 60.0  # beyond this the vehicle has flipped: a crash
@@ -90,6 +105,14 @@ FLOOR_CRASH_MPS = 1.0  # meeting the floor faster than this is a crash, not a la
 FALL_M = 0.05  # motors stopped higher than this above what the vehicle rests on: it falls
 R_WORLD_TARGET = np.diag([1.0, -1.0, -1.0])  # printed face down, x along world x
 OFFSET_AT_S = 3.0  # the flight time at which the time-offset estimate is scored
+HOLD_S = 1.0  # a perch is judged this long after the motors stopped against the plate
+AT_PLATE_M = 0.005  # motors stopped with the gear this near the plate: stopped against it
+FELL_M = 0.01  # the gear this far below the plate after the motors stopped there: it fell
+STILL_MPS = 0.02  # a held vehicle moves slower than this
+# the flight controller's fused height: its range readings (40 Hz) low-passed over this time,
+# which leaves sqrt(a / (2 - a)) of a reading's spread, a = 1 - exp(-0.025 s / tau)
+FUSED_HEIGHT_TAU_S = 0.2
+FUSED_HEIGHT_SHARE = 0.25
 
 
 class OffsetReport(NamedTuple):
@@ -138,6 +161,9 @@ class PerchSetup:
     faults: tuple[str, ...] = ()
     flight_controller: str = "model"
     onboard_estimator: str = "model"
+    contact_mode: str = "hold"
+    magnet: Magnet = field(default_factory=Magnet)
+    surface: PlateSurface = field(default_factory=PlateSurface)
 
     def __post_init__(self) -> None:
         check_flight_controller(self.flight_controller)
@@ -145,6 +171,10 @@ class PerchSetup:
         if self.stamps not in STAMPS:
             raise VehicleConfigError(f"unknown stamps {self.stamps!r} (choose live or exact)")
         check_faults(self.faults)
+        if self.contact_mode not in CONTACT_MODES:
+            raise VehicleConfigError(
+                f"unknown contact {self.contact_mode!r} (choose {' or '.join(CONTACT_MODES)})"
+            )
         stalls = [f for f in self.faults if f in ("odometry-stall", "attitude-stall")]
         if stalls and self.sensing.is_ideal:
             raise VehicleConfigError(
@@ -295,6 +325,8 @@ class PerchResult:
     max_setpoint_gap_s: float = math.nan
     time_offset: OffsetReport = field(default_factory=lambda: NO_OFFSET)
     time_offset_end: OffsetReport = field(default_factory=lambda: NO_OFFSET)
+    seated_offset_mm: float = math.nan
+    stop_after_contact_s: float = math.nan
 
 
 class HeldSetpoint:
@@ -518,6 +550,21 @@ def draw_start(setup: PerchSetup, world: np.random.Generator) -> tuple[Array, fl
     return start, float(world.uniform(-math.pi, math.pi))
 
 
+@dataclass
+class MotorStop:
+    """When and where a run's motors stopped, and what its end is judged on: the first
+    contact's time, whether the motors stopped with the gear against the plate, the height
+    above what the vehicle rests on (NaN until they stop), and where the gear sat when the
+    perch was judged."""
+
+    motors_stopped: bool = False
+    motor_stop_height_m: float = math.nan
+    stopped_at_s: float = math.nan
+    stopped_at_plate: bool = False
+    touched_at_s: float = math.nan
+    seated_offset_mm: float = math.nan
+
+
 class _Flight:
     """One run's world and vehicle, stepped frame by frame."""
 
@@ -535,6 +582,7 @@ class _Flight:
         world_seq, camera_seq, senses_seq, stamps_seq, faults_seq, range_seq, flow_seq = seeds[:7]
         self.fault = Fault.draw(setup.faults, np.random.default_rng(faults_seq))
         self.range_rng = np.random.default_rng(range_seq)
+        self._height_error = (0.0, 0.0)  # the fused height's error (m) and when it was drawn
         world = np.random.default_rng(world_seq)
         self.camera_rng = np.random.default_rng(camera_seq)
         self.senses_rng = np.random.default_rng(senses_seq)
@@ -570,20 +618,11 @@ class _Flight:
         )
         self.commander = self._commander()
         self.resting = False  # on the floor, its weight on its feet
-        self.motor_stop_height_m = math.nan  # above what it rests on, once the motors stop
-        self.motors_stopped = False
+        self.stop = MotorStop()
         self.controller = PerchingController(setup.controller)
         self.now_s = 0.0
-        self.sensed: SensedState | None = None
-        self.accelerometer: Accelerometer | None = None
-        if self.senses is not None:
-            self.sensed = SensedState(self.senses.attitude_delay_s, self.senses.odometry_delay_s)
-            self.accelerometer = Accelerometer(
-                setup.sensing.accel_noise_mps2,
-                setup.sensing.accel_bias_mps2,
-                np.random.default_rng(seeds[8]),
-            )
-            self.sense(0.0)
+        self.sensed, self.accelerometer = self._sense_chain(seeds[8])
+        self.sense(0.0)
         self.pilot = PerchingPilot(
             self.commander,
             self.attitude,
@@ -598,12 +637,45 @@ class _Flight:
         # frames on their way to the estimator: (arrival frame, stamp, true capture time,
         # image or pose)
         magnet = setup.controller.p_body_magnet_m
-        self.plate = PlateContact(setup.plate_z_m, magnet, setup.contact)
+        holds = setup.contact_mode == "hold"
+        self.plate = PlateContact(setup.plate_z_m, magnet, setup.contact, goes_on=holds)
+        # the plate's forces on the vehicle (the flight goes on through the contact)
+        self.forces = self._plate_forces() if holds else None
+        self._block = (0.0, 0)  # the block being flown: its start, and the steps flown of it
         self.pipeline: deque[tuple[int, float, float, Array | NDArray[np.uint8] | None]] = deque()
         self._last_arrival = 0
         # each frame the pilot got: its stamp, and how far its true capture time is from it (s)
         self.stamp_errors: list[tuple[float, float]] = []
         self.offset_at: OffsetReport | None = None  # the estimate after OFFSET_AT_S
+
+    def _sense_chain(
+        self, accel_seq: np.random.SeedSequence
+    ) -> tuple[SensedState | None, Accelerometer | None]:
+        """The flight controller's samples on their way to the pilot, and its accelerometer
+        (None, None: ideal senses, the pilot reads the vehicle's state as it is)."""
+        if self.senses is None:
+            return None, None
+        sensing = self.setup.sensing
+        return (
+            SensedState(self.senses.attitude_delay_s, self.senses.odometry_delay_s),
+            Accelerometer(
+                sensing.accel_noise_mps2, sensing.accel_bias_mps2, np.random.default_rng(accel_seq)
+            ),
+        )
+
+    def _plate_forces(self) -> PlateForces:
+        """The plate's face, friction and magnet, acting on the vehicle."""
+        s = self.setup
+        if not self.vehicle.takes_plate_forces:
+            raise VehicleConfigError(
+                f"{type(self.vehicle).__name__} takes no plate forces: fly it with "
+                "contact_mode='first-touch'"
+            )
+        forces = PlateForces(
+            s.plate_z_m, s.controller.p_body_magnet_m, s.contact, s.magnet, s.surface
+        )
+        self.vehicle.plate = forces
+        return forces
 
     def _commander(self) -> HeldSetpoint:
         """The vehicle's end of the link: setpoints (and position fixes, where its Kalman
@@ -660,9 +732,11 @@ class _Flight:
     def height_m(self) -> float:
         """The height the pilot has. With faults (runs that go on to a landing): above the
         floor (0 standing on it), as the flight controller's estimate gives it with a range
-        sensor under the vehicle (a Flow deck's VL53L1x: noise of 5 mm plus 1 % of the
-        range; exact with ideal senses); otherwise the odometry's, as the campaigns measured
-        before faults were flown."""
+        sensor under the vehicle (exact with ideal senses): a Flow deck's VL53L1x reads at
+        40 Hz with noise of 5 mm plus 1 % of the range, which the estimate fuses with the
+        accelerometer; its error is taken as the readings' low-passed over
+        ``FUSED_HEIGHT_TAU_S`` (a quarter of a reading's spread, correlated over that time).
+        Otherwise the odometry's, as the campaigns measured before faults were flown."""
         if not self.setup.to_motor_stop:
             return float(self.motion()[0][2])
         if self.kalman is not None:
@@ -670,7 +744,12 @@ class _Flight:
         h = float(self.vehicle.p_m[2]) - REST_Z_M
         if self.sensed is None:
             return h
-        return h + float(self.range_rng.normal(0.0, 0.005 + 0.01 * abs(h)))
+        error, drawn_s = self._height_error
+        keep = math.exp(-max(0.0, self.now_s - drawn_s) / FUSED_HEIGHT_TAU_S)
+        sigma = FUSED_HEIGHT_SHARE * (0.005 + 0.01 * abs(h))
+        error = keep * error + math.sqrt(1.0 - keep * keep) * sigma * self.range_rng.normal()
+        self._height_error = (error, self.now_s)
+        return h + error
 
     def sense_ages(self) -> SenseAges:
         """How old the attitude and odometry the pilot has now are (realistic senses)."""
@@ -793,9 +872,14 @@ class _Flight:
         c = self.commander
         silent_s = 0.0 if c.received_s is None else t_s - c.received_s
         stops = c.stopped or silent_s >= MOTORS_OFF_AFTER_S
-        if s.to_motor_stop and not self.motors_stopped and stops:
-            self.motors_stopped = True  # the pilot's stop, or the vehicle's own watchdog
-            self.motor_stop_height_m = 0.0 if self.resting else float(v.p_m[2]) - REST_Z_M
+        if (s.to_motor_stop or self.forces is not None) and not self.stop.motors_stopped and stops:
+            self.stop.motors_stopped = True  # the pilot's stop, or the vehicle's own watchdog
+            self.stop.stopped_at_s = t_s
+            self.stop.stopped_at_plate = (
+                self.forces is not None and self.forces.gap_m(v) < AT_PLATE_M
+            )
+            rests = self.resting or self.stop.stopped_at_plate
+            self.stop.motor_stop_height_m = 0.0 if rests else float(v.p_m[2]) - REST_Z_M
             if self.kalman is not None:
                 self.kalman.flying = False
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
@@ -806,14 +890,15 @@ class _Flight:
             p_est = vec3(self._odometry_now()[0])
             hold = PositionHold(vec3(c.position_m), c.yaw_rad, p_est, vec3(c.v_mps))
             v_sp = c.position_m - np.array(p_est)
-        if self.resting and (self.motors_stopped or v_sp[2] <= 0.0):
+        if self.resting and (self.stop.motors_stopped or v_sp[2] <= 0.0):
             self._follow(dt_s * steps)  # on the floor, still
             if self.kalman is not None:
                 self.kalman.advance(dt_s * steps, v)
             return None
         self.resting = False
-        v.thrust_scale = (0.0,) * 4 if self.motors_stopped else self.draw.thrust_scale(t_s)
+        v.thrust_scale = (0.0,) * 4 if self.stop.motors_stopped else self.draw.thrust_scale(t_s)
         v.hold = hold
+        self._block = (t_s, 0)
         contact = v.fly(
             dt_s,
             steps,
@@ -834,11 +919,89 @@ class _Flight:
         self.odometry.update(v.p_m, v.v_mps, dt_s, v.R_world_body, v.omega_rad_s)
 
     def _touched(self, vehicle: Quadrotor) -> bool:
-        """The vehicle touched the plate, or (with faults, whose runs go on to a landing) its
-        feet met the floor."""
+        """The vehicle touched the plate (at all with ``first-touch`` contacts; with a rotor
+        where the flight goes on through the contact), or (with faults, whose runs go on to a
+        landing) its feet met the floor."""
+        start_s, flown = self._block
+        self._block = (start_s, flown + 1)
+        first = self.plate.contact is None
         if self.plate(vehicle):
             return True
+        if first and self.plate.contact is not None:
+            self.stop.touched_at_s = start_s + (flown + 1) / self.setup.physics_hz
         return self.setup.to_motor_stop and vehicle.p_m[2] <= REST_Z_M and vehicle.v_mps[2] < 0.0
+
+    def ended(self, contact_step: int | None, t_s: float, now_s: float) -> Outcome | None:
+        """How the run ended, after the block flown from ``t_s`` to ``now_s`` (in which
+        ``fly`` stopped at ``contact_step``, or None); None while it goes on."""
+        touched = self._contact_outcome(contact_step, t_s)
+        if touched is not None:
+            return touched
+        if self.stop.stopped_at_plate:
+            return self._hold_outcome(now_s)
+        if (contact_step is not None and not self.on_floor()) or self.crashed():
+            return _no_perch("crash")
+        landing = self.pilot.state in (PilotState.LANDING, PilotState.LANDED)
+        goes_on = self.setup.to_motor_stop
+        stops = goes_on or self.forces is not None
+        if (landing and not goes_on) or (stops and self.stop.motors_stopped):
+            reason = "gave-up" if self.controller.phase == Phase.GIVE_UP else "lost"
+            if self.stop.motor_stop_height_m > FALL_M:  # stopped in the air: it falls
+                reason = "crash"
+            return _no_perch(reason)
+        return None
+
+    def _contact_outcome(self, contact_step: int | None, t_s: float) -> Outcome | None:
+        """A contact that ends the run: any first touch scored by the contact rules (with
+        ``first-touch``), or a rotor striking the plate."""
+        touch = self.plate.contact
+        if touch is None:
+            return None
+        dt_s = 1.0 / self.setup.physics_hz
+        if self.forces is None and contact_step is not None:
+            reason = touch.verdict(self.setup.contact)
+            if reason == "perched" and self.setup.to_motor_stop:
+                self.stop.motor_stop_height_m = 0.0  # the magnet holds it; the pilot stops them
+            t_contact = t_s + (contact_step + 1) * dt_s
+            return (reason == "perched", reason, touch.offset_mm, touch.v_mps[2], t_contact, touch)
+        if self.plate.struck is not None:
+            t_strike = t_s + (contact_step or 0) * dt_s
+            return (False, "rotor-strike", touch.offset_mm, touch.v_mps[2], t_strike, touch)
+        return None
+
+    def _hold_outcome(self, now_s: float) -> Outcome | None:
+        """The motors stopped against the plate: the perch judged ``HOLD_S`` later, or as
+        soon as the gear has fallen ``FELL_M`` from it (None until then)."""
+        assert self.forces is not None
+        touch = self.plate.contact
+        assert touch is not None
+        gap_m = self.forces.gap_m(self.vehicle)
+        if gap_m <= FELL_M and now_s - self.stop.stopped_at_s < HOLD_S:
+            return None
+        reason = self.hold_verdict(gap_m)
+        at = self.stop.stopped_at_s
+        return (reason == "perched", reason, touch.offset_mm, touch.v_mps[2], at, touch)
+
+    def timed_out(self) -> Outcome:
+        """The end of a run that lasted its whole duration."""
+        touch = self.plate.contact
+        if self.forces is not None and touch is not None and touch.part == MAGNET:
+            # against the plate with the motors running to the end
+            return (False, "not-stopped", touch.offset_mm, touch.v_mps[2], math.nan, touch)
+        return _no_perch("timeout")
+
+    def hold_verdict(self, gap_m: float) -> str:
+        """How a vehicle whose motors stopped against the plate ended: ``perched`` (the gear
+        seated and the vehicle still, held by the magnet), ``fell`` (the gear ``FELL_M``
+        below the plate), or ``not-seated`` (held, but not flat or still)."""
+        assert self.forces is not None
+        v = self.vehicle
+        x, y, _ = v.point_in_world(self.setup.controller.p_body_magnet_m)
+        self.stop.seated_offset_mm = 1000.0 * math.hypot(x, y)
+        if gap_m > FELL_M:
+            return "fell"
+        still = float(np.linalg.norm(v.v_mps)) < STILL_MPS
+        return "perched" if self.forces.seated(v) and still else "not-seated"
 
     def on_floor(self) -> bool:
         """The vehicle's feet met the floor: it rests there (True), or it fell on it (False:
@@ -849,6 +1012,15 @@ class _Flight:
     def crashed(self) -> bool:
         v = self.vehicle
         return bool(v.p_m[2] < 0.02 or tilt_deg(v) > MAX_TILT_DEG or not np.isfinite(v.p_m).all())
+
+
+# a run's end: success, reason, contact offset (mm), contact speed (m/s), time (s), the contact
+Outcome = tuple[bool, str, float, float, float, Contact | None]
+
+
+def _no_perch(reason: str) -> Outcome:
+    """A run that ended without a contact to tell of."""
+    return (False, reason, math.nan, math.nan, math.nan, None)
 
 
 def _step_of(n: int, rate_hz: float, physics_hz: float) -> int:
@@ -915,11 +1087,13 @@ class _Trace:
             contact,
             flight.senses,
             flight.fault,
-            flight.motor_stop_height_m,
+            flight.stop.motor_stop_height_m,
             states,
             _max_gap_s(flight.commander.sent_s, self.ts[-1] if self.ts else 0.0, pilot.flying),
             flight.offset_at or NO_OFFSET,
             flight.offset_report(),
+            flight.stop.seated_offset_mm,
+            flight.stop.stopped_at_s - flight.stop.touched_at_s,
         )
 
 
@@ -958,7 +1132,6 @@ def run_perch(
     senses = flight.senses
     events = event_steps(setup, senses.odometry_hz if senses is not None else None)
     dt_s = 1.0 / setup.physics_hz
-    goes_on = setup.to_motor_stop
     for n, (i, k) in enumerate(events):
         t = i * dt_s
         flight.now_s = t
@@ -982,22 +1155,7 @@ def run_perch(
             if k is None:  # contact between frames: its row
                 trace.frame(t, 0, flight.controller.phase)
             trace.magnets.append(magnet)
-        touch = flight.plate.contact
-        if contact is not None and touch is not None:
-            reason = touch.verdict(setup.contact)
-            t_contact = t + (contact + 1) * dt_s
-            speed = touch.v_mps[2]
-            if reason == "perched" and goes_on:
-                flight.motor_stop_height_m = 0.0  # the magnet holds it; the pilot stops them
-            return result(reason == "perched", reason, touch.offset_mm, speed, t_contact, touch)
-        if contact is not None and not flight.on_floor():
-            return result(False, "crash", math.nan, math.nan, math.nan)
-        if flight.crashed():
-            return result(False, "crash", math.nan, math.nan, math.nan)
-        landing = flight.pilot.state in (PilotState.LANDING, PilotState.LANDED)
-        if (landing and not goes_on) or (goes_on and flight.motors_stopped):
-            reason = "gave-up" if flight.controller.phase == Phase.GIVE_UP else "lost"
-            if flight.motor_stop_height_m > FALL_M:  # stopped in the air: it falls
-                reason = "crash"
-            return result(False, reason, math.nan, math.nan, math.nan)
-    return result(False, "timeout", math.nan, math.nan, math.nan)
+        outcome = flight.ended(contact, t, (i + steps) * dt_s)
+        if outcome is not None:
+            return result(*outcome)
+    return result(*flight.timed_out())

@@ -181,6 +181,14 @@ class OnboardEstimate(Protocol):
     def advance(self, dt_s: float, vehicle: Quadrotor) -> None: ...
 
 
+class PlateWrench(Protocol):
+    """What a surface near the vehicle adds to its dynamics (``perchpose.sim.contact``)."""
+
+    def substeps(self, p: Vec3, R: Mat3) -> int: ...
+
+    def wrench(self, p: Vec3, v: Vec3, R: Mat3, w: Vec3) -> tuple[Vec3, Vec3] | None: ...
+
+
 class Quadrotor:
     """The vehicle's state and its integration. ``p_m``, ``v_mps`` in the world frame;
     ``R_world_body``; ``omega_rad_s`` in the body frame; ``rotor_speed_rad_s`` per rotor.
@@ -194,6 +202,8 @@ class Quadrotor:
     the physics rate, where numpy's per-call overhead on 3-vectors costs more than the
     arithmetic. The properties give and take numpy arrays.
     """
+
+    takes_plate_forces = True  # ``plate`` acts on it (a plant integrated elsewhere: False)
 
     def __init__(
         self,
@@ -228,6 +238,9 @@ class Quadrotor:
         # given), and its position estimate at this step
         self.hold: PositionHold | None = None
         self._p_estimate: Vec3 = (0.0, 0.0, 0.0)
+        # the plate's forces (its face, friction and magnet) where it can reach (None: free
+        # flight; the contact is then only watched, ``perchpose.sim.contact.PlateContact``)
+        self.plate: PlateWrench | None = None
         self._k_xy = self.gains.k_velocity  # the horizontal velocity gain (a parameter), 1/s
         self._f_body: Vec3 = (0.0, 0.0, GRAVITY_MPS2)  # the accelerometer, low-passed
         a = self.params.arm_m
@@ -576,10 +589,33 @@ class Quadrotor:
         fx -= speed * c_xy * ax
         fy -= speed * c_xy * ay
         fz -= speed * c_z * az
+        plate = self.plate
+        n = 1 if plate is None else plate.substeps(self._p, R)
+        h = dt_s / n
+        for _ in range(n):
+            self._integrate(h, (fx, fy, fz), (tau_x, tau_y, tau_z), plate)
+
+    def _integrate(
+        self, dt_s: float, f_body: Vec3, tau_body: Vec3, plate: PlateWrench | None
+    ) -> None:
+        """Semi-implicit Euler through ``dt_s`` with the rotors' and the air's force and
+        torque (body frame) and what the plate adds (world force, body torque)."""
+        p = self.params
+        R = self._R
+        fx, fy, fz = f_body
+        tau_x, tau_y, tau_z = tau_body
+        vx, vy, vz = self._v
+        wx, wy, wz = self._w
+        ex = ey = ez = 0.0
+        if plate is not None:
+            extra = plate.wrench(self._p, self._v, R, self._w)
+            if extra is not None:
+                (ex, ey, ez), (tx, ty, tz) = extra
+                tau_x, tau_y, tau_z = tau_x + tx, tau_y + ty, tau_z + tz
         k = dt_s / p.mass_kg
-        vx += k * (R[0][0] * fx + R[0][1] * fy + R[0][2] * fz)
-        vy += k * (R[1][0] * fx + R[1][1] * fy + R[1][2] * fz)
-        vz += k * (R[2][0] * fx + R[2][1] * fy + R[2][2] * fz - p.weight_n)
+        vx += k * (R[0][0] * fx + R[0][1] * fy + R[0][2] * fz + ex)
+        vy += k * (R[1][0] * fx + R[1][1] * fy + R[1][2] * fz + ey)
+        vz += k * (R[2][0] * fx + R[2][1] * fy + R[2][2] * fz - p.weight_n + ez)
         px, py, pz = self._p
         self._p = (px + dt_s * vx, py + dt_s * vy, pz + dt_s * vz)
         self._v = (vx, vy, vz)

@@ -59,6 +59,8 @@ class RotorpyQuadrotor(Quadrotor):
     """Our flight controller on RotorPy's ``Multirotor`` (``rotorpy_params`` its vehicle,
     ``params`` the same one in our terms, as ``rotorpy_crazyflie`` gives them)."""
 
+    takes_plate_forces = False  # RotorPy integrates it: the plate is only watched
+
     def __init__(
         self,
         params: QuadrotorParams,
