@@ -373,7 +373,7 @@ def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
         assert float(row["contact_vertical_speed_mps"]) > 0.0
         assert float(row["motor_stop_height_m"]) == 0.0  # stopped against the plate
         assert float(row["seated_offset_mm"]) < 2 * CONTACT_RADIUS_MM  # the faces overlap
-        assert 0.0 < float(row["stop_after_contact_s"]) < 2.0
+        assert float(row["stop_after_contact_s"]) > 0.0
         assert float(row["latency_ms"]) == 133.0  # and the run's own draws of the rest
         assert 50.0 <= float(row["odometry_hz"]) <= 100.0
         assert 0.99 <= float(row["focal_scale"]) <= 1.01
