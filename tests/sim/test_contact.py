@@ -184,3 +184,14 @@ def test_a_plate_contact_that_goes_on_reports_a_rotor_strike_after_the_magnet() 
     assert plate.struck is not None
     assert plate.struck.startswith("rotor")
     assert plate.contact.part == MAGNET  # the first contact stays the first
+
+
+def test_a_hanging_vehicle_in_wind_sticks_where_it_seated() -> None:
+    """Seated 15 mm off the magnet's centre (a third of its pull) with its motors stopped,
+    in 5 m/s of wind for 3 s: friction holds the gear where it touched (it does not creep
+    off the magnet's edge)."""
+    q, forces = _on_the_plate(xy_m=(0.015, 0.0))
+    q.wind_mps = (0.0, 5.0, 0.0)
+    _hang(q, 3.0)
+    assert forces.seated(q)
+    assert np.linalg.norm(q.point_in_world((0.0, 0.0, 0.035))[:2] - np.array([0.015, 0.0])) < 5e-4

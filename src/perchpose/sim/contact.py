@@ -166,24 +166,34 @@ def shared_area_m2(r1_m: float, r2_m: float, apart_m: float) -> float:
 class PlateSurface:
     """How the plate takes the gear: a stiff face (``stiffness_n_per_m`` over the whole gear,
     with ``damping_n_s_per_m``; about 0.3 mm under the magnet's seated pull) and Coulomb
-    friction ``friction`` (steel on a printed plate), smoothed below ``slip_mps`` of sliding
-    so that the integration stays stable."""
+    friction ``friction`` (steel on a printed plate) at the gear's centre: the gear sticks
+    where it touched, held there by a stiff tangential spring (``stick_n_per_m``, with
+    ``stick_damping_n_s_per_m``: a twentieth of a millimetre under 0.1 N), until the force
+    needed passes the friction's limit, when it slides with the limit against it."""
 
     stiffness_n_per_m: float = 5.0e4
     damping_n_s_per_m: float = 80.0
     friction: float = 0.4
-    slip_mps: float = 0.1
+    stick_n_per_m: float = 2000.0
+    stick_damping_n_s_per_m: float = 8.0
 
     def __post_init__(self) -> None:
-        names = ("stiffness_n_per_m", "damping_n_s_per_m", "friction", "slip_mps")
+        names = (
+            "stiffness_n_per_m",
+            "damping_n_s_per_m",
+            "friction",
+            "stick_n_per_m",
+            "stick_damping_n_s_per_m",
+        )
         require_positive(self, names, VehicleConfigError, "plate ")
 
 
 class PlateForces:
     """The plate's forces on a vehicle near it (``Quadrotor.plate``): the magnet's pull at
-    the gear's centre, and at each of ``RIM_POINTS`` points on the gear's rim that is pressed
-    into the plate's face (within its square) the face's reaction and friction. World
-    forces and body torques about the centre of mass."""
+    the gear's centre, at each of ``RIM_POINTS`` points on the gear's rim that is pressed into
+    the plate's face (within its square) the face's reaction, and the friction of them all
+    at the gear's centre (``PlateSurface``; where the gear sticks is this object's state).
+    World forces and body torques about the centre of mass."""
 
     def __init__(
         self,
@@ -207,6 +217,7 @@ class PlateForces:
         )
         self.k_n_per_m = surface.stiffness_n_per_m / RIM_POINTS
         self.c_n_s_per_m = surface.damping_n_s_per_m / RIM_POINTS
+        self.stuck_at: tuple[float, float] | None = None  # where the gear sticks (world x, y)
 
     def _gap_m(self, p: Vec3, R: Mat3) -> float:
         cx, cy, cz = self.centre
@@ -231,38 +242,81 @@ class PlateForces:
         # the pull is along world z; in the body (R^T e_z) times the lever
         bx, by, bz = pull * R[2][0], pull * R[2][1], pull * R[2][2]
         Tx, Ty, Tz = cy * bz - cz * by, cz * bx - cx * bz, cx * by - cy * bx
-        if gap < self.radius_m + 0.001:
-            s = self.surface
-            wx, wy, wz = w
-            for qx, qy, qz in self.rim:
-                z = p[2] + R[2][0] * qx + R[2][1] * qy + R[2][2] * qz
-                pen = z - self.plate_z_m
-                if pen <= 0.0:
-                    continue
-                px = p[0] + R[0][0] * qx + R[0][1] * qy + R[0][2] * qz
-                py = p[1] + R[1][0] * qx + R[1][1] * qy + R[1][2] * qz
-                if abs(px) > self.half_m or abs(py) > self.half_m:
-                    continue
-                # the point's velocity: v + R (w x q)
-                ux, uy, uz = wy * qz - wz * qy, wz * qx - wx * qz, wx * qy - wy * qx
-                vx = v[0] + R[0][0] * ux + R[0][1] * uy + R[0][2] * uz
-                vy = v[1] + R[1][0] * ux + R[1][1] * uy + R[1][2] * uz
-                vz = v[2] + R[2][0] * ux + R[2][1] * uy + R[2][2] * uz
-                normal = self.k_n_per_m * pen + self.c_n_s_per_m * vz
-                if normal <= 0.0:
-                    continue
-                slide = math.sqrt(vx * vx + vy * vy + s.slip_mps * s.slip_mps)
-                fx = -s.friction * normal * vx / slide
-                fy = -s.friction * normal * vy / slide
-                fz = -normal
-                Fx, Fy, Fz = Fx + fx, Fy + fy, Fz + fz
-                bx = R[0][0] * fx + R[1][0] * fy + R[2][0] * fz
-                by = R[0][1] * fx + R[1][1] * fy + R[2][1] * fz
-                bz = R[0][2] * fx + R[1][2] * fy + R[2][2] * fz
-                Tx += qy * bz - qz * by
-                Ty += qz * bx - qx * bz
-                Tz += qx * by - qy * bx
+        normal = self._pressed(p, v, R, w) if gap < self.radius_m + 0.001 else None
+        if normal is None:
+            self.stuck_at = None
+            return (Fx, Fy, Fz), (Tx, Ty, Tz)
+        total, (nx, ny, nz) = normal
+        fx, fy = self._friction(total, (x, y), p, v, R, w)
+        Fx, Fy, Fz = Fx + fx, Fy + fy, Fz - total
+        # the face's reactions (their torque about the centre) and the friction at the centre
+        bx = R[0][0] * fx + R[1][0] * fy
+        by = R[0][1] * fx + R[1][1] * fy
+        bz = R[0][2] * fx + R[1][2] * fy
+        Tx += nx + cy * bz - cz * by
+        Ty += ny + cz * bx - cx * bz
+        Tz += nz + cx * by - cy * bx
         return (Fx, Fy, Fz), (Tx, Ty, Tz)
+
+    def _pressed(self, p: Vec3, v: Vec3, R: Mat3, w: Vec3) -> tuple[float, Vec3] | None:
+        """The face's reaction on the gear's rim points pressed into it: the total (N, down
+        on the vehicle) and its torque about the centre of mass (body frame); None where no
+        point presses."""
+        total = 0.0
+        Tx = Ty = Tz = 0.0
+        wx, wy, wz = w
+        for qx, qy, qz in self.rim:
+            pen = p[2] + R[2][0] * qx + R[2][1] * qy + R[2][2] * qz - self.plate_z_m
+            if pen <= 0.0:
+                continue
+            px = p[0] + R[0][0] * qx + R[0][1] * qy + R[0][2] * qz
+            py = p[1] + R[1][0] * qx + R[1][1] * qy + R[1][2] * qz
+            if abs(px) > self.half_m or abs(py) > self.half_m:
+                continue
+            # the point's vertical speed: v + R (w x q), its z
+            ux, uy, uz = wy * qz - wz * qy, wz * qx - wx * qz, wx * qy - wy * qx
+            vz = v[2] + R[2][0] * ux + R[2][1] * uy + R[2][2] * uz
+            normal = self.k_n_per_m * pen + self.c_n_s_per_m * vz
+            if normal <= 0.0:
+                continue
+            total += normal
+            bx, by, bz = -normal * R[2][0], -normal * R[2][1], -normal * R[2][2]
+            Tx += qy * bz - qz * by
+            Ty += qz * bx - qx * bz
+            Tz += qx * by - qy * bx
+        return (total, (Tx, Ty, Tz)) if total > 0.0 else None
+
+    def _friction(
+        self,
+        normal_n: float,
+        centre_xy: tuple[float, float],
+        p: Vec3,
+        v: Vec3,
+        R: Mat3,
+        w: Vec3,
+    ) -> tuple[float, float]:
+        """The friction on the gear's centre (world x, y, N) under ``normal_n`` of the face's
+        reaction: the sticking spring's pull back to where it stuck, or the sliding limit
+        (which moves the sticking point along)."""
+        s = self.surface
+        x, y = centre_xy
+        if self.stuck_at is None:
+            self.stuck_at = (x, y)
+        cx, cy, cz = self.centre
+        wx, wy, wz = w
+        ux, uy, uz = wy * cz - wz * cy, wz * cx - wx * cz, wx * cy - wy * cx
+        vx = v[0] + R[0][0] * ux + R[0][1] * uy + R[0][2] * uz
+        vy = v[1] + R[1][0] * ux + R[1][1] * uy + R[1][2] * uz
+        ax, ay = self.stuck_at
+        k, c = s.stick_n_per_m, s.stick_damping_n_s_per_m
+        fx = -k * (x - ax) - c * vx
+        fy = -k * (y - ay) - c * vy
+        limit = s.friction * normal_n
+        size = math.hypot(fx, fy)
+        if size > limit:  # sliding: the limit, and the sticking point follows the gear
+            fx, fy = fx * limit / size, fy * limit / size
+            self.stuck_at = (x + (fx + c * vx) / k, y + (fy + c * vy) / k)
+        return fx, fy
 
     def seated(self, vehicle: Quadrotor, within_m: float = 0.001) -> bool:
         """The gear's whole face is within ``within_m`` of the plate, under it."""
