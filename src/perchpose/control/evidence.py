@@ -36,13 +36,10 @@ class HeightWindow:
 
 class ContactDetector:
     """Contact evidence: during the final climb, the height stopped rising (it rose less than
-    ``rise_m`` over a whole ``window_s``); with ``either_way``, while backing off from the
-    plate, the height stopped moving at all (it stayed within ``rise_m``: the magnet holds
-    the vehicle against the plate)."""
+    ``rise_m`` over a whole ``window_s``)."""
 
-    def __init__(self, window_s: float, rise_m: float, either_way: bool = False) -> None:
+    def __init__(self, window_s: float, rise_m: float) -> None:
         self.rise_m = rise_m
-        self.either_way = either_way
         self._window = HeightWindow(window_s)
 
     def reset(self) -> None:
@@ -54,8 +51,45 @@ class ContactDetector:
         if not self._window.add(t_s, height_m):
             return False
         heights = self._window.heights()
-        low = min(heights) if self.either_way else heights[0]
-        return max(heights) - low < self.rise_m
+        return max(heights) - heights[0] < self.rise_m
+
+
+class HeldDetector:
+    """Contact evidence near the plate in any phase: over a whole ``window_s`` the vertical
+    speeds asked for would have moved the vehicle at least twice ``still_m`` one way, and
+    its height stayed within ``still_m``: something holds it (the magnet, against the
+    plate). A vehicle in free air follows what it is asked with a lag of a few tenths of a
+    second, so it moves at least ``2 still_m`` less that lag's worth."""
+
+    def __init__(self, window_s: float, still_m: float) -> None:
+        self.still_m = still_m
+        self._window = HeightWindow(window_s)
+        self._asked: deque[tuple[float, float]] = deque()  # (t_s, asked vertical speed)
+
+    def reset(self) -> None:
+        self._window.reset()
+        self._asked.clear()
+
+    def touched(self, t_s: float, height_m: float | None, asked_z_mps: float) -> bool:
+        """Add a height sample and the vertical speed asked for then; True once the
+        vehicle has held still against a whole window of asking."""
+        if not self._window.add(t_s, height_m):
+            if not self._window.samples:
+                self._asked.clear()
+            else:
+                self._asked.append((t_s, asked_z_mps))
+            return False
+        self._asked.append((t_s, asked_z_mps))
+        start = self._window.samples[0][0]
+        while len(self._asked) > 1 and self._asked[1][0] <= start:
+            self._asked.popleft()
+        asked = list(self._asked)
+        moved = sum(
+            v * (min(t1, t_s) - max(t0, start))
+            for (t0, v), (t1, _) in zip(asked, [*asked[1:], (t_s, 0.0)], strict=True)
+        )
+        heights = self._window.heights()
+        return abs(moved) >= 2.0 * self.still_m and max(heights) - min(heights) < self.still_m
 
 
 class TouchdownDetector:

@@ -71,7 +71,7 @@ from perchpose.control.controller import (
     carried,
     usable,
 )
-from perchpose.control.evidence import ContactDetector, TouchdownDetector
+from perchpose.control.evidence import ContactDetector, HeldDetector, TouchdownDetector
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
 from perchpose.geometry import yaw_rad
@@ -246,7 +246,7 @@ class PerchingPilot:
         self._landing_said: tuple[float, str] | None = None  # (when, which news) last said
         s = self.settings
         self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
-        self._held = ContactDetector(s.held_window_s, s.held_still_m, either_way=True)
+        self._held = HeldDetector(s.held_window_s, s.held_still_m)
         self._climbing_since: float | None = None  # a climb that may meet the plate began
         self._touchdown = TouchdownDetector(
             s.touchdown_window_s, s.touchdown_still_m, s.landed_height_m, s.touchdown_speed_mps
@@ -588,20 +588,18 @@ class PerchingPilot:
         return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
 
     def _held_up(self, command: Command, t_s: float) -> bool:
-        """Contact evidence while descending from the plate: the controller backs off (its
-        evidence, the camera's at a few centimetres, said the climb was off) or steps down
-        out of its capture cone, with the plate within ``climb_contact_within_m``, and over
-        ``held_window_s`` of such commands the height has moved less than ``held_still_m``:
-        the magnet holds the vehicle against the plate (the motors cannot pull it off)."""
-        if not (
-            command.climb_asked_mps < 0.0
-            and command.phase in (Phase.RETREAT, Phase.ALIGN)
-            and command.error_m is not None
-            and float(command.error_m[2]) < self.settings.climb_contact_within_m
+        """Contact evidence near the plate in any phase (a back-off, or steps down out of the
+        capture cone and climbs again, where the camera's evidence at a few centimetres says
+        the vehicle is off-centre): with the plate within ``climb_contact_within_m``, the
+        vertical speeds asked for over ``held_window_s`` would have moved the vehicle twice
+        ``held_still_m`` and its height has stayed within ``held_still_m``: the magnet holds
+        it against the plate (the motors cannot pull it off)."""
+        if command.error_m is None or not (
+            float(command.error_m[2]) < self.settings.climb_contact_within_m
         ):
             self._held.reset()
             return False
-        return self._held.touched(t_s, self._height())
+        return self._held.touched(t_s, self._height(), command.climb_asked_mps)
 
     def _pressing(self, command: Command, t_s: float) -> bool:
         """The command climbs into the plate, so that a height that stops rising is contact:
