@@ -1,0 +1,68 @@
+"""What the vehicle's own height says about contact: a vehicle the magnet holds against the
+plate, against one in free air that follows what it is asked with a lag."""
+
+import numpy as np
+
+from perchpose.control.evidence import ContactDetector, HeldDetector
+
+DT_S = 0.02  # odometry at 50 Hz
+
+
+def _fly(
+    asked_mps: list[float], held: bool, lag_s: float = 0.2, noise_m: float = 0.0
+) -> list[bool]:
+    """A vehicle 1.95 m up asked ``asked_mps`` (one per sample), following them through a
+    first-order lag, or held where it is; what ``HeldDetector`` says at each sample."""
+    detector = HeldDetector(1.0, 0.02)
+    rng = np.random.default_rng(0)
+    z, vz = 1.95, 0.0
+    said = []
+    for i, asked in enumerate(asked_mps):
+        if not held:
+            vz += (asked - vz) * DT_S / lag_s
+            z += vz * DT_S
+        said.append(detector.touched(i * DT_S, z + float(rng.normal(0.0, noise_m)), asked))
+    return said
+
+
+def test_a_vehicle_held_against_what_it_is_asked_is_contact() -> None:
+    said = _fly([-0.1] * 100, held=True, noise_m=0.002)
+    assert not any(said[:49])  # not before a whole window
+    assert said[-1]
+
+
+def test_a_held_vehicle_asked_down_and_up_in_turn_is_contact_once_the_asking_adds_up() -> None:
+    """Stepping down out of the capture cone and climbing again, unequally: the net asked
+    motion over a second passes 4 cm."""
+    asked = ([-0.1] * 10 + [0.05] * 5) * 10
+    assert _fly(asked, held=True)[-1]
+
+
+def test_a_free_vehicle_is_never_read_as_held() -> None:
+    for lag_s in (0.1, 0.3, 0.5):
+        assert not any(_fly([-0.1] * 150, held=False, lag_s=lag_s))
+        asked = ([-0.1] * 10 + [0.05] * 5) * 10
+        assert not any(_fly(asked, held=False, lag_s=lag_s))
+        assert not any(_fly(([-0.1] * 8 + [0.1] * 8) * 10, held=False, lag_s=lag_s))
+
+
+def test_a_vehicle_asked_to_hold_is_never_read_as_held() -> None:
+    """Hovering still is what a hovering vehicle does: no evidence."""
+    assert not any(_fly([0.0] * 150, held=True))
+    assert not any(_fly(([-0.1] * 8 + [0.1] * 8) * 10, held=True))  # nothing asked on net
+
+
+def test_a_gap_in_the_height_starts_the_window_again() -> None:
+    detector = HeldDetector(1.0, 0.02)
+    for i in range(40):
+        assert not detector.touched(i * DT_S, 1.95, -0.1)
+    assert not detector.touched(0.8, None, -0.1)
+    assert not any(detector.touched(0.8 + i * DT_S, 1.95, -0.1) for i in range(1, 45))
+
+
+def test_a_climb_that_stopped_rising_is_contact() -> None:
+    detector = ContactDetector(0.3, 0.005)
+    heights = [min(1.9 + 0.15 * i * DT_S, 1.95) for i in range(60)]  # the plate at 1.95 m
+    said = [detector.touched(i * DT_S, h) for i, h in enumerate(heights)]
+    assert not any(said[:30])  # still rising: 1.9 m to 1.95 m takes 0.33 s
+    assert said[-1]
