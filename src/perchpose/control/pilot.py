@@ -27,8 +27,10 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
   the landing speed until a live height senses the touchdown, and the pilot says so;
 - ``perched``: contact: during the final climb (or a climb at its speed with the plate
   within ``climb_contact_within_m``) the vehicle's height stopped rising (under
-  ``contact_rise_m`` over ``contact_window_s`` while climbing): a stop setpoint cuts the motors
-  and the magnet holds the vehicle. Time alone never stops the motors; without a height source
+  ``contact_rise_m`` over ``contact_window_s`` while climbing), or in any phase with the plate
+  that near, its height held still (within ``held_still_m`` over ``held_window_s``) against
+  vertical speeds asked that would have moved it twice that (the magnet caught it): a stop
+  setpoint cuts the motors and the magnet holds the vehicle. Time alone never stops the motors; without a height source
   there is no contact evidence, and a final climb that does not end backs off;
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
   Crazyflie's own commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s

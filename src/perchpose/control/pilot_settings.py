@@ -45,12 +45,12 @@ class PilotSettings:
     and the magnet seats before the final climb begins). live_height_s : contact and touchdown
     count only height samples younger than this (a stream at 10 Hz or faster stays live between
     its samples); it must be shorter than the contact window, so that a height that froze never
-    makes a contact on its own. held_window_s, held_still_m : contact is also a descent from
-    the plate (the controller's retreat, or its step down out of the capture cone, the plate
-    within climb_contact_within_m) whose height moved less than held_still_m over
-    held_window_s: the magnet holds the vehicle (a vehicle
-    in free air commanded down for that long moves several times as far; one turning from a
-    climb to the descent can hang still for a few tenths of a second, hence the longer
+    makes a contact on its own. held_window_s, held_still_m : contact is also, in any phase
+    with the plate within climb_contact_within_m, a height that stayed within held_still_m
+    over held_window_s while the vertical speeds asked for would have moved the vehicle twice
+    that: the magnet holds it (the controller backing off, or stepping down out of its capture
+    cone and climbing again, on the camera's evidence at a few centimetres; a vehicle in free
+    air follows what it is asked with a lag of a few tenths of a second, hence the longer
     window). limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
