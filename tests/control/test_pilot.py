@@ -466,23 +466,37 @@ def test_a_vehicle_that_refuses_the_gain_is_flown_on_its_own_and_said() -> None:
         PilotSettings(velocity_gain_per_s=40.0)
 
 
-def _against_the_plate(target_above_magnet_m: float) -> tuple[PerchingPilot, list[str]]:
-    """A vehicle under a plate that stops its climb, whose camera keeps seeing the target
-    ``target_above_magnet_m`` above the magnet, centred (a late pose: the plate looks further
-    than it is); one second of frames at 30 Hz."""
+def _under_the_plate(
+    frames: int, held: bool, target: Callable[[list[str]], tuple[float, float]]
+) -> tuple[PerchingPilot, list[tuple[float | str, ...]], list[str], list[str]]:
+    """A vehicle under a plate 1 m up (``held``: the magnet holds it there, it does not
+    descend), whose camera sees the target ``target(phases so far)`` = (to the side, above
+    the magnet) in metres; ``frames`` frames at 30 Hz. What was sent, the controller's
+    phases and what the pilot said."""
     s = ControllerSettings(observer_rate=0.0)
     commander = Recorder()
-    vehicle = Vehicle(commander, 1.0, stuck=False)
+    vehicle = Vehicle(commander, 1.0, stuck=held)
     reports: list[str] = []
     pilot = _pilot(vehicle, controller=s, reports=reports)
     magnet_z = s.p_body_magnet_m[2]
-    for _ in range(30):
-        pilot.update(
-            _seen(s, [0.0, 0.0, magnet_z + target_above_magnet_m], vehicle.t_s), vehicle.t_s
-        )
+    phases: list[str] = []
+    for _ in range(frames):
+        side_m, above_m = target(phases)
+        pilot.update(_seen(s, [side_m, 0.0, magnet_z + above_m], vehicle.t_s), vehicle.t_s)
+        phases.append(pilot.controller.phase)
         vehicle.fly(1 / 30)
         vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)  # the plate
-    return pilot, commander.sent
+    return pilot, commander.sent, phases, reports
+
+
+def _against_the_plate(
+    target_above_magnet_m: float,
+) -> tuple[PerchingPilot, list[tuple[float | str, ...]]]:
+    """A vehicle under a plate that stops its climb, whose camera keeps seeing the target
+    ``target_above_magnet_m`` above the magnet, centred (a late pose: the plate looks further
+    than it is); one second of frames at 30 Hz."""
+    pilot, sent, _, _ = _under_the_plate(30, False, lambda _: (0.0, target_above_magnet_m))
+    return pilot, sent
 
 
 def test_a_climb_stopped_by_the_plate_before_the_final_climb_is_contact() -> None:
@@ -631,20 +645,9 @@ def _backing_off_at_the_plate(held: bool) -> tuple[PerchingPilot, list[str], lis
     the camera (a few centimetres from the target) puts the target 15 mm to the side: the
     controller backs off. ``held``: the magnet holds the vehicle at the plate (it does not
     descend); otherwise it descends as commanded. Two seconds of frames at 30 Hz."""
-    s = ControllerSettings(observer_rate=0.0)
-    commander = Recorder()
-    vehicle = Vehicle(commander, 1.0, stuck=held)
-    reports: list[str] = []
-    pilot = _pilot(vehicle, controller=s, reports=reports)
-    magnet_z = s.p_body_magnet_m[2]
-    phases: list[str] = []
-    for _ in range(60):
-        lateral = 0.015 if "commit" in phases else 0.0
-        seen = _seen(s, [lateral, 0.0, magnet_z + 0.002], vehicle.t_s)
-        pilot.update(seen, vehicle.t_s)
-        phases.append(pilot.controller.phase)
-        vehicle.fly(1 / 30)
-        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)  # the plate
+    pilot, _, phases, reports = _under_the_plate(
+        60, held, lambda phases: (0.015 if "commit" in phases else 0.0, 0.002)
+    )
     return pilot, phases, reports
 
 
