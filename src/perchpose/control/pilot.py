@@ -27,11 +27,12 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
   the landing speed until a live height senses the touchdown, and the pilot says so;
 - ``perched``: contact: during the final climb (or a climb at its speed with the plate
   within ``climb_contact_within_m``) the vehicle's height stopped rising (under
-  ``contact_rise_m`` over ``contact_window_s`` while climbing), or in any phase with the plate
-  that near, its height held still (within ``held_still_m`` over ``held_window_s``) against
-  vertical speeds asked that would have moved it twice that (the magnet caught it): a stop
-  setpoint cuts the motors and the magnet holds the vehicle. Time alone never stops the motors; without a height source
-  there is no contact evidence, and a final climb that does not end backs off;
+  ``contact_rise_m`` over ``contact_window_s`` while climbing), or in any phase with the
+  plate within ``held_within_m``, its height held still (within ``held_still_m`` over
+  ``held_window_s``) against vertical speeds asked that would have moved it twice that (the
+  magnet caught it): a stop setpoint cuts the motors and the magnet holds the vehicle. Time
+  alone never stops the motors; without a height source there is no contact evidence, and a
+  final climb that does not end backs off;
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
   Crazyflie's own commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s
   and 2 s without setpoints); ``released`` is an autopilot taking control back (it left the
@@ -592,13 +593,11 @@ class PerchingPilot:
     def _held_up(self, command: Command, t_s: float) -> bool:
         """Contact evidence near the plate in any phase (a back-off, or steps down out of the
         capture cone and climbs again, where the camera's evidence at a few centimetres says
-        the vehicle is off-centre): with the plate within ``climb_contact_within_m``, the
+        the vehicle is off-centre): with the plate within ``held_within_m``, the
         vertical speeds asked for over ``held_window_s`` would have moved the vehicle twice
         ``held_still_m`` and its height has stayed within ``held_still_m``: the magnet holds
         it against the plate (the motors cannot pull it off)."""
-        if command.error_m is None or not (
-            float(command.error_m[2]) < self.settings.climb_contact_within_m
-        ):
+        if command.error_m is None or not (float(command.error_m[2]) < self.settings.held_within_m):
             self._held.reset()
             return False
         return self._held.touched(t_s, self._height(), command.climb_asked_mps)

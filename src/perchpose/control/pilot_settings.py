@@ -45,13 +45,15 @@ class PilotSettings:
     and the magnet seats before the final climb begins). live_height_s : contact and touchdown
     count only height samples younger than this (a stream at 10 Hz or faster stays live between
     its samples); it must be shorter than the contact window, so that a height that froze never
-    makes a contact on its own. held_window_s, held_still_m : contact is also, in any phase
-    with the plate within climb_contact_within_m, a height that stayed within held_still_m
+    makes a contact on its own. held_window_s, held_still_m, held_within_m : contact is also,
+    in any phase with the plate within held_within_m by the camera (the magnet reaches about
+    that far), a height that stayed within held_still_m
     over held_window_s while the vertical speeds asked for would have moved the vehicle twice
     that: the magnet holds it (the controller backing off, or stepping down out of its capture
     cone and climbing again, on the camera's evidence at a few centimetres; a vehicle in free
     air follows what it is asked with a lag of a few tenths of a second, hence the longer
-    window). limits : the largest setpoint sent.
+    window; a vehicle in strong turbulence can fail to follow for as long, but not with the
+    plate that near). limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
     sets on the vehicle when it takes over, where its commander can
@@ -85,6 +87,7 @@ class PilotSettings:
     climb_contact_within_m: float = 0.1
     held_window_s: float = 1.0
     held_still_m: float = 0.02
+    held_within_m: float = 0.03
     setpoint_period_s: float = 0.05
     frame_timeout_s: float = 0.25
     stale_after_s: float = 0.25
@@ -111,6 +114,7 @@ class PilotSettings:
             "climb_contact_within_m",
             "held_window_s",
             "held_still_m",
+            "held_within_m",
             "setpoint_period_s",
             "frame_timeout_s",
             "stale_after_s",
