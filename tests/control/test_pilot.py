@@ -666,3 +666,36 @@ def test_a_back_off_that_descends_is_not_contact() -> None:
     pilot, phases, _ = _backing_off_at_the_plate(held=False)
     assert "retreat" in phases
     assert pilot.state == "perching"
+
+
+def _landing_from_the_plate(held: bool) -> tuple[PerchingPilot, list[str]]:
+    """A vehicle whose camera puts the plate 2 mm above its magnet, 15 mm to the side, for a
+    third of a second before the user stops the flight; then two seconds of the landing's
+    ticks at 20 Hz. ``held``: the magnet holds it at the plate."""
+    s = ControllerSettings(observer_rate=0.0)
+    commander = Recorder()
+    vehicle = Vehicle(commander, 1.0, stuck=held)
+    reports: list[str] = []
+    pilot = _pilot(vehicle, controller=s, reports=reports)
+    magnet_z = s.p_body_magnet_m[2]
+    for _ in range(10):
+        pilot.update(_seen(s, [0.015, 0.0, magnet_z + 0.002], vehicle.t_s), vehicle.t_s)
+        vehicle.fly(1 / 30)
+        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)
+    pilot.abort(vehicle.t_s)
+    for _ in range(40):
+        pilot.tick(vehicle.t_s)
+        vehicle.fly(0.05)
+        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)
+    return pilot, reports
+
+
+def test_a_landing_the_magnet_holds_at_the_plate_ends_perched() -> None:
+    pilot, reports = _landing_from_the_plate(held=True)
+    assert pilot.state == "perched"
+    assert any("the magnet holds the vehicle" in r for r in reports)
+
+
+def test_a_landing_that_leaves_the_plate_goes_on() -> None:
+    pilot, _ = _landing_from_the_plate(held=False)
+    assert pilot.state == "landing"

@@ -250,6 +250,8 @@ class PerchingPilot:
         s = self.settings
         self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
         self._held = HeldDetector(s.held_window_s, s.held_still_m)
+        # the height where the camera last put the plate within held_within_m
+        self._plate_height_m: float | None = None
         self._climbing_since: float | None = None  # a climb that may meet the plate began
         self._touchdown = TouchdownDetector(
             s.touchdown_window_s, s.touchdown_still_m, s.landed_height_m, s.touchdown_speed_mps
@@ -381,6 +383,7 @@ class PerchingPilot:
         self._landing_since = t_s
         self._landing_said = None
         self._touchdown.reset()
+        self._held.reset()
         self._enter(PilotState.LANDING, t_s, why)
 
     # -- the vehicle's senses -------------------------------------------------------------
@@ -515,6 +518,8 @@ class PerchingPilot:
             vz = None if motion is None else float(motion[1][2])
             if self._touchdown.touched(t_s, height, vz):
                 return self._stop(t_s, PilotState.LANDED, f"touchdown sensed at {height:.2f} m")
+            if self._held_landing(t_s, height):
+                return self._stop(t_s, PilotState.PERCHED, HELD_UP)
             since = self._landing_since if self._landing_since is not None else t_s
             if t_s - since >= s.stuck_report_s:
                 self._say_landing(
@@ -600,7 +605,22 @@ class PerchingPilot:
         if command.error_m is None or not (float(command.error_m[2]) < self.settings.held_within_m):
             self._held.reset()
             return False
-        return self._held.touched(t_s, self._height(), command.climb_asked_mps)
+        height = self._height()
+        if height is not None:
+            self._plate_height_m = height
+        return self._held.touched(t_s, height, command.climb_asked_mps)
+
+    def _held_landing(self, t_s: float, height_m: float) -> bool:
+        """Contact evidence while landing: the landing began where the camera had put the
+        plate within ``held_within_m``, the height is still there (within ``held_still_m``)
+        and has held still against the descent for ``held_window_s``: the magnet caught the
+        vehicle before the landing, which it cannot leave."""
+        s = self.settings
+        up = self._plate_height_m
+        if up is None or abs(height_m - up) >= s.held_still_m:
+            self._held.reset()
+            return False
+        return self._held.touched(t_s, height_m, -s.land_speed_mps)
 
     def _pressing(self, command: Command, t_s: float) -> bool:
         """The command climbs into the plate, so that a height that stops rising is contact:
@@ -742,7 +762,9 @@ class PerchingPilot:
             sleep(self.settings.setpoint_period_s)
 
 
-HELD_UP = "the retreat did not leave the plate: the magnet holds the vehicle"
+HELD_UP = (
+    "near the plate the height held still against what was asked: the magnet holds the vehicle"
+)
 
 
 def _stopped_against(command: Command) -> str:

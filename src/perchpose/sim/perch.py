@@ -559,6 +559,7 @@ class MotorStop:
 
     motors_stopped: bool = False
     motor_stop_height_m: float = math.nan
+    floor_height_m: float = math.nan  # the body's height above its rest on the floor then
     stopped_at_s: float = math.nan
     stopped_at_plate: bool = False
     touched_at_s: float = math.nan
@@ -879,7 +880,8 @@ class _Flight:
                 self.forces is not None and self.forces.gap_m(v) < AT_PLATE_M
             )
             rests = self.resting or self.stop.stopped_at_plate
-            self.stop.motor_stop_height_m = 0.0 if rests else float(v.p_m[2]) - REST_Z_M
+            self.stop.floor_height_m = float(v.p_m[2]) - REST_Z_M
+            self.stop.motor_stop_height_m = 0.0 if rests else self.stop.floor_height_m
             if self.kalman is not None:
                 self.kalman.flying = False
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
@@ -998,7 +1000,8 @@ class _Flight:
         v = self.vehicle
         x, y, _ = v.point_in_world(self.setup.controller.p_body_magnet_m)
         self.stop.seated_offset_mm = 1000.0 * math.hypot(x, y)
-        if gap_m > FELL_M:
+        if gap_m > FELL_M:  # nothing held it: its motors stopped that high above the floor
+            self.stop.motor_stop_height_m = self.stop.floor_height_m
             return "fell"
         still = float(np.linalg.norm(v.v_mps)) < STILL_MPS
         return "perched" if self.forces.seated(v) and still else "not-seated"
