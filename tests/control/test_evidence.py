@@ -66,3 +66,12 @@ def test_a_climb_that_stopped_rising_is_contact() -> None:
     said = [detector.touched(i * DT_S, h) for i, h in enumerate(heights)]
     assert not any(said[:30])  # still rising: 1.9 m to 1.95 m takes 0.33 s
     assert said[-1]
+
+
+def test_a_held_vehicle_reads_held_through_a_centimetre_of_height_noise() -> None:
+    """A Kalman filter's height on a range sensor 2 m up scatters by about a centimetre:
+    the trend, not the spread, tells a held vehicle from a free one."""
+    said = _fly([-0.1] * 150, held=True, noise_m=0.01)
+    assert said[-1]
+    for lag_s in (0.1, 0.3, 0.5):
+        assert not any(_fly([-0.1] * 150, held=False, lag_s=lag_s, noise_m=0.01))

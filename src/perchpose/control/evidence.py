@@ -57,9 +57,12 @@ class ContactDetector:
 class HeldDetector:
     """Contact evidence near the plate in any phase: over a whole ``window_s`` the vertical
     speeds asked for would have moved the vehicle at least twice ``still_m`` one way, and
-    its height stayed within ``still_m``: something holds it (the magnet, against the
-    plate). A vehicle in free air follows what it is asked with a lag of a few tenths of a
-    second, so it moves at least ``2 still_m`` less that lag's worth."""
+    its height's trend (the least-squares line through the window's samples) moved less than
+    ``still_m``: something holds it (the magnet, against the plate). A vehicle in free air
+    follows what it is asked with a lag of a few tenths of a second, so its trend moves at
+    least ``2 still_m`` less that lag's worth. The trend, not the samples' spread, so that a
+    height estimate with a centimetre of noise (a Kalman filter's on a range sensor 2 m
+    from the floor) still reads a vehicle held still."""
 
     def __init__(self, window_s: float, still_m: float) -> None:
         self.still_m = still_m
@@ -88,8 +91,19 @@ class HeldDetector:
             v * (min(t1, t_s) - max(t0, start))
             for (t0, v), (t1, _) in zip(asked, [*asked[1:], (t_s, 0.0)], strict=True)
         )
-        heights = self._window.heights()
-        return abs(moved) >= 2.0 * self.still_m and max(heights) - min(heights) < self.still_m
+        return abs(moved) >= 2.0 * self.still_m and abs(self._trend_m()) < self.still_m
+
+    def _trend_m(self) -> float:
+        """How far the least-squares line through the window's heights moves across it."""
+        samples = self._window.samples
+        n = len(samples)
+        t_mean = sum(t for t, _ in samples) / n
+        h_mean = sum(h for _, h in samples) / n
+        spread = sum((t - t_mean) ** 2 for t, _ in samples)
+        if spread <= 0.0:
+            return 0.0
+        slope = sum((t - t_mean) * (h - h_mean) for t, h in samples) / spread
+        return slope * (samples[-1][0] - samples[0][0])
 
 
 class TouchdownDetector:
