@@ -121,19 +121,19 @@ def test_the_fixes_fused_by_the_filter_are_what_lets_it_perch() -> None:
     """Still air, the true pose, realistic senses: on the firmware's filter the pilot perches
     when its fixes reach the filter and, the same run without them, flying the filter's
     odometry as it comes, never meets the capture cone (the filter's drift, which only the
-    camera sees; the magnet may pull it onto the plate off any final climb, where the pilot
-    has no contact to sense). (The pilot's inertial filter, which corrects that drift itself,
-    is left out of the second run.)"""
+    camera sees). (The pilot's inertial filter, which corrects that drift itself, is left out
+    of the second run.)"""
     pytest.importorskip("cffirmware")
     campaign = PerchCampaign.from_options(
         load_camera("preset:fpv"), estimators="truth", runs=1, onboard_estimator="crazyflie-kalman"
     )
-    setup = campaign.setups[0]
+    # scored at the first touch: the magnet's pull forgives a touch 14 mm off-centre, which
+    # the run without fixes makes once the magnet catches it; the cone is what this is about
+    setup = replace(campaign.setups[0], contact_mode="first-touch")
     fused = run_perch(setup, 960000)
     assert fused.success, fused.reason
     off = replace(setup.controller.position_fixes, send=False)
     inertial_off = replace(setup.controller.inertial, enabled=False)
     controller = replace(setup.controller, position_fixes=off, inertial=inertial_off)
     alone = run_perch(replace(setup, controller=controller), 960000)
-    assert not alone.success
-    assert alone.reason in ("timeout", "not-stopped")  # the magnet may catch it unasked
+    assert alone.reason == "timeout"
