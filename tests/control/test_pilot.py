@@ -699,3 +699,29 @@ def test_a_landing_the_magnet_holds_at_the_plate_ends_perched() -> None:
 def test_a_landing_that_leaves_the_plate_goes_on() -> None:
     pilot, _ = _landing_from_the_plate(held=False)
     assert pilot.state == "landing"
+
+
+def test_a_camera_that_stalls_with_nothing_to_steer_on_keeps_the_setpoints_coming() -> None:
+    """The target lost (the pilot hovers on each frame), then no frame at all: until the
+    camera's watchdog acts (0.25 s), the ticks send the last setpoint again every
+    ``setpoint_period_s``, so the vehicle never waits longer than that and a tick."""
+    s = ControllerSettings(observer_rate=0.0)
+    commander = Recorder()
+    pilot = _level_pilot(commander, s, {"x": 0.0}, clock=lambda: 0.0)
+    pilot.update(_seen(s, [0.0, 0.0, 0.5], 0.0), 0.0)
+    k = 0
+    while pilot.state != "lost" and k < 90:  # frames without the target, until it is lost
+        k += 1
+        pilot.update(None, k / 30)
+    assert pilot.state == "lost"
+    sent_before = len(commander.sent)
+    times = [k / 30]
+    t = k / 30
+    while t < k / 30 + 0.24:  # the camera stalls: 50 Hz ticks only
+        t += 0.02
+        if pilot.tick(t) is not None:
+            times.append(t)
+    assert len(times) > 4
+    assert _gaps_s(times) <= pilot.settings.setpoint_period_s + 0.02 + 1e-9
+    assert len(commander.sent) - sent_before == len(times) - 1
+    assert commander.sent[-1] == commander.sent[sent_before - 1]  # the hover, again

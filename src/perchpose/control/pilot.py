@@ -258,6 +258,8 @@ class PerchingPilot:
         )
         self.last_t_s = 0.0
         self.last_sent_clock_s = -math.inf  # ``clock()`` when the last command went out
+        # the last setpoint sent (its time, velocity, yaw rate and phase), to send again
+        self._last_setpoint: tuple[float, Array, float, str | None] | None = None
         # frames, odometry samples and the pilot's clock arrive on different threads
         self._lock = threading.RLock()
         self._frame_clock: tuple[float, float] | None = None  # (frame t_s, clock() then)
@@ -343,6 +345,7 @@ class PerchingPilot:
         if not (self.settings.command == "full-state" and self._send_full_state(sp)):
             self.commander.send_velocity(sp.v_mps, sp.yaw_rate_rad_s)
         self.last_sent_clock_s = self.clock()
+        self._last_setpoint = (t_s, v, yaw_rate_rad_s, phase)
         return PilotStep(t_s, self.state, sp.v_mps, sp.yaw_rate_rad_s, phase)
 
     def _send_full_state(self, sp: Setpoint) -> bool:
@@ -561,8 +564,11 @@ class PerchingPilot:
     def tick(self, t_s: float) -> PilotStep | None:
         """The pilot's clock at ``t_s`` (the frames' clock), between frames: the watchdogs,
         the landing, and while perching a setpoint from the controller's odometry loop
-        (``PerchingController.between_frames``) with the contact check. None when nothing
-        was sent (waiting or done, or frames are coming and there is nothing to steer on)."""
+        (``PerchingController.between_frames``) with the contact check; where there is
+        nothing to steer on, the last setpoint again once it is ``setpoint_period_s`` old
+        (a camera that stalls leaves the vehicle hearing the pilot until the camera's
+        watchdog acts). None when nothing was sent (waiting or done, or a setpoint went out
+        within the period)."""
         with self._lock:
             if t_s < self.last_t_s or not self.flying:
                 return None
@@ -574,9 +580,15 @@ class PerchingPilot:
                 return self._hold(t_s, *stale)
             if self._frame_t is not None and t_s - self._frame_t > self.settings.frame_timeout_s:
                 return self._silent(t_s)
-            if self.state != PilotState.PERCHING:
-                return None
-            return self._between_frames(t_s)
+            step = self._between_frames(t_s) if self.state == PilotState.PERCHING else None
+            return step if step is not None else self._again(t_s)
+
+    def _again(self, t_s: float) -> PilotStep | None:
+        """The last setpoint again, where it is ``setpoint_period_s`` old or more."""
+        last = self._last_setpoint
+        if last is None or t_s - last[0] < self.settings.setpoint_period_s:
+            return None
+        return self._send(t_s, last[1], last[2], last[3])
 
     def _between_frames(self, t_s: float) -> PilotStep | None:
         """While perching with frames coming: the controller's odometry loop and the contact
