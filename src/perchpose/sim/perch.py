@@ -635,14 +635,14 @@ class _Flight:
             report=log.debug,
             specific_force=self.specific_force,
         )
-        # frames on their way to the estimator: (arrival frame, stamp, true capture time,
-        # image or pose)
         magnet = setup.controller.p_body_magnet_m
         holds = setup.contact_mode == "hold"
         self.plate = PlateContact(setup.plate_z_m, magnet, setup.contact, goes_on=holds)
         # the plate's forces on the vehicle (the flight goes on through the contact)
         self.forces = self._plate_forces() if holds else None
         self._block = (0.0, 0)  # the block being flown: its start, and the steps flown of it
+        # frames on their way to the estimator: (arrival frame, stamp, true capture time,
+        # image or pose)
         self.pipeline: deque[tuple[int, float, float, Array | NDArray[np.uint8] | None]] = deque()
         self._last_arrival = 0
         # each frame the pilot got: its stamp, and how far its true capture time is from it (s)
