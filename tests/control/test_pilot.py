@@ -668,18 +668,22 @@ def test_a_back_off_that_descends_is_not_contact() -> None:
     assert pilot.state == "perching"
 
 
-def _landing_from_the_plate(held: bool) -> tuple[PerchingPilot, list[str]]:
+def _landing_from_the_plate(
+    held: bool, then_above_m: float | None = None
+) -> tuple[PerchingPilot, list[str]]:
     """A vehicle whose camera puts the plate 2 mm above its magnet, 15 mm to the side, for a
-    third of a second before the user stops the flight; then two seconds of the landing's
-    ticks at 20 Hz. ``held``: the magnet holds it at the plate."""
+    third of a second (then, with ``then_above_m``, as far above for another third) before
+    the user stops the flight; then two seconds of the landing's ticks at 20 Hz. ``held``:
+    it does not descend (the magnet holds it at the plate, or an updraft)."""
     s = ControllerSettings(observer_rate=0.0)
     commander = Recorder()
     vehicle = Vehicle(commander, 1.0, stuck=held)
     reports: list[str] = []
     pilot = _pilot(vehicle, controller=s, reports=reports)
     magnet_z = s.p_body_magnet_m[2]
-    for _ in range(10):
-        pilot.update(_seen(s, [0.015, 0.0, magnet_z + 0.002], vehicle.t_s), vehicle.t_s)
+    above = [0.002] * 10 + ([then_above_m] * 10 if then_above_m is not None else [])
+    for above_m in above:
+        pilot.update(_seen(s, [0.015, 0.0, magnet_z + above_m], vehicle.t_s), vehicle.t_s)
         vehicle.fly(1 / 30)
         vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)
     pilot.abort(vehicle.t_s)
@@ -725,3 +729,10 @@ def test_a_camera_that_stalls_with_nothing_to_steer_on_keeps_the_setpoints_comin
     assert _gaps_s(times) <= pilot.settings.setpoint_period_s + 0.02 + 1e-9
     assert len(commander.sent) - sent_before == len(times) - 1
     assert commander.sent[-1] == commander.sent[sent_before - 1]  # the hover, again
+
+
+def test_a_landing_that_does_not_descend_away_from_the_plate_keeps_its_motors() -> None:
+    """The camera last put the plate 20 cm up: the magnet cannot hold the vehicle there, so
+    a landing that does not come down (an updraft) is no contact."""
+    pilot, _ = _landing_from_the_plate(held=True, then_above_m=0.2)
+    assert pilot.state == "landing"

@@ -615,6 +615,8 @@ class PerchingPilot:
         ``held_still_m`` and its height has stayed within ``held_still_m``: the magnet holds
         it against the plate (the motors cannot pull it off)."""
         if command.error_m is None or not (float(command.error_m[2]) < self.settings.held_within_m):
+            if command.error_m is not None:  # the camera puts the plate further: not held
+                self._plate_height_m = None
             self._held.reset()
             return False
         height = self._height()
