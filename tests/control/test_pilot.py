@@ -468,11 +468,11 @@ def test_a_vehicle_that_refuses_the_gain_is_flown_on_its_own_and_said() -> None:
 
 def _under_the_plate(
     frames: int, held: bool, target: Callable[[list[str]], tuple[float, float]]
-) -> tuple[PerchingPilot, list[tuple[float | str, ...]], list[str], list[str]]:
+) -> tuple[PerchingPilot, Vehicle, list[str], list[str]]:
     """A vehicle under a plate 1 m up (``held``: the magnet holds it there, it does not
     descend), whose camera sees the target ``target(phases so far)`` = (to the side, above
-    the magnet) in metres; ``frames`` frames at 30 Hz. What was sent, the controller's
-    phases and what the pilot said."""
+    the magnet) in metres; ``frames`` frames at 30 Hz. The vehicle (what was sent: its
+    commander's), the controller's phases and what the pilot said."""
     s = ControllerSettings(observer_rate=0.0)
     commander = Recorder()
     vehicle = Vehicle(commander, 1.0, stuck=held)
@@ -486,7 +486,7 @@ def _under_the_plate(
         phases.append(pilot.controller.phase)
         vehicle.fly(1 / 30)
         vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)  # the plate
-    return pilot, commander.sent, phases, reports
+    return pilot, vehicle, phases, reports
 
 
 def _against_the_plate(
@@ -495,8 +495,8 @@ def _against_the_plate(
     """A vehicle under a plate that stops its climb, whose camera keeps seeing the target
     ``target_above_magnet_m`` above the magnet, centred (a late pose: the plate looks further
     than it is); one second of frames at 30 Hz."""
-    pilot, sent, _, _ = _under_the_plate(30, False, lambda _: (0.0, target_above_magnet_m))
-    return pilot, sent
+    pilot, vehicle, _, _ = _under_the_plate(30, False, lambda _: (0.0, target_above_magnet_m))
+    return pilot, vehicle.commander.sent
 
 
 def test_a_climb_stopped_by_the_plate_before_the_final_climb_is_contact() -> None:
@@ -675,17 +675,10 @@ def _landing_from_the_plate(
     third of a second (then, with ``then_above_m``, as far above for another third) before
     the user stops the flight; then two seconds of the landing's ticks at 20 Hz. ``held``:
     it does not descend (the magnet holds it at the plate, or an updraft)."""
-    s = ControllerSettings(observer_rate=0.0)
-    commander = Recorder()
-    vehicle = Vehicle(commander, 1.0, stuck=held)
-    reports: list[str] = []
-    pilot = _pilot(vehicle, controller=s, reports=reports)
-    magnet_z = s.p_body_magnet_m[2]
-    above = [0.002] * 10 + ([then_above_m] * 10 if then_above_m is not None else [])
-    for above_m in above:
-        pilot.update(_seen(s, [0.015, 0.0, magnet_z + above_m], vehicle.t_s), vehicle.t_s)
-        vehicle.fly(1 / 30)
-        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)
+    near = [0.002] * 10 + ([then_above_m] * 10 if then_above_m is not None else [])
+    pilot, vehicle, _, reports = _under_the_plate(
+        len(near), held, lambda phases: (0.015, near[len(phases)])
+    )
     pilot.abort(vehicle.t_s)
     for _ in range(40):
         pilot.tick(vehicle.t_s)
