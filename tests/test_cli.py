@@ -1,3 +1,4 @@
+import contextlib
 import importlib
 import json
 import signal
@@ -486,3 +487,21 @@ def test_a_system_error_of_its_own_is_not_taken_for_a_signal(
     monkeypatch.setattr(main_module.group, "main", broken)
     with pytest.raises(SystemError, match="something else"):
         main(["track"])
+
+
+def test_a_signal_that_leaves_a_bare_system_error_still_ends_the_run_as_the_signal_does(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A compiled call that the handler interrupts may hand back a SystemError whose chain
+    no longer holds the interrupt: the signal the run received decides."""
+    main_module = importlib.import_module("perchpose.cli.main")
+
+    def compiled_call_interrupted(*args: object, **kwargs: object) -> None:
+        with contextlib.suppress(KeyboardInterrupt):
+            main_module._terminate(signal.SIGHUP, None)
+        raise SystemError("CPUDispatcher returned a result with an exception set")
+
+    monkeypatch.setattr(main_module.group, "main", compiled_call_interrupted)
+    code, _, err = _run(["track"], capsys)
+    assert code == 128 + signal.SIGHUP
+    assert err.strip() == "perchpose: terminated (SIGHUP)"

@@ -24,7 +24,13 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
+# the termination signals received during this run (a compiled call that a signal interrupts
+# may hand back a SystemError with the interrupt anywhere in its chain, or nowhere)
+_received: list[int] = []
+
+
 def _terminate(signum: int, _frame: object) -> None:
+    _received.append(signum)
     raise Terminated(signum)
 
 
@@ -54,6 +60,7 @@ def _interrupted(exc: BaseException | None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: run the command, turn library errors into one line and exit code 2."""
+    _received.clear()
     try:
         with _signals_as_interrupts():
             group.main(args=argv, prog_name="perchpose", standalone_mode=False)
@@ -75,6 +82,8 @@ def main(argv: list[str] | None = None) -> int:
         # raises there, and the calls return with it as the cause of a chain of SystemErrors;
         # they have unwound the command all the same (finally blocks run for any exception)
         interrupt = exc if isinstance(exc, KeyboardInterrupt) else _interrupt_behind(exc)
+        if interrupt is None and _received:
+            interrupt = Terminated(_received[-1])
         if interrupt is None:
             raise
         return _interrupted(interrupt)
@@ -83,11 +92,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _interrupt_behind(exc: SystemError) -> KeyboardInterrupt | None:
     """The interrupt (Ctrl-C, ``Terminated``) at the root of a chain of SystemErrors, each
-    the cause of the next, or None."""
-    cause = exc.__cause__
-    while isinstance(cause, SystemError):
-        cause = cause.__cause__
-    return cause if isinstance(cause, KeyboardInterrupt) else None
+    the cause of the next or raised while handling it (the interpreter links a compiled
+    call's pending exception either way), or None."""
+    seen: set[int] = set()
+    link: BaseException | None = exc
+    while isinstance(link, SystemError) and id(link) not in seen:
+        seen.add(id(link))
+        link = link.__cause__ if link.__cause__ is not None else link.__context__
+    return link if isinstance(link, KeyboardInterrupt) else None
 
 
 def run() -> None:
