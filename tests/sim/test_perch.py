@@ -440,3 +440,16 @@ def test_the_time_offset_of_live_stamps_is_found_in_flight(setup: PerchSetup) ->
     assert abs(early.offset_s - early.true_s) < 0.01
     assert 0.0 < early.sigma_s < 0.01
     assert abs(end.offset_s - end.true_s) < 0.01
+
+
+def test_perch_records_how_the_contact_was_scored(tmp_path: Path) -> None:
+    argv = ["perch", "--runs", "1", "--estimator", "truth", "--sensing", "ideal", "--quiet"]
+    for mode in ("hold", "first-touch"):
+        out = tmp_path / mode
+        assert main([*argv, "--contact", mode, "--out", str(out)]) == 0
+        summary = json.loads((out / "perch.json").read_text())
+        assert summary["contact_mode"] == mode
+        assert summary["setup"]["contact_mode"] == mode
+        row = next(csv.DictReader((out / "runs.csv").open()))
+        assert row["success"] == "1"
+        assert math.isfinite(float(row["stop_after_contact_s"])) == (mode == "hold")
