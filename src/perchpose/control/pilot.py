@@ -601,11 +601,17 @@ class PerchingPilot:
         command = self.controller.between_frames(t_s, R_world_body, odometry, self._age("attitude"))
         if command is None:
             return None
-        if self._pressing(command, t_s) and self._contact.touched(t_s, self._height()):
-            return self._stop(t_s, PilotState.PERCHED, _stopped_against(command))
-        if self._held_up(command, t_s):
-            return self._stop(t_s, PilotState.PERCHED, HELD_UP)
+        contact = self._contact_evidence(command, t_s, self._pressing(command, t_s))
+        if contact is not None:
+            return self._stop(t_s, PilotState.PERCHED, contact)
         return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
+
+    def _contact_evidence(self, command: Command, t_s: float, pressing: bool) -> str | None:
+        """What says the vehicle is against the plate (None: nothing): a climb, ``pressing``
+        into it, whose height stopped rising, or a height the magnet holds still."""
+        if pressing and self._contact.touched(t_s, self._height()):
+            return _stopped_against(command)
+        return HELD_UP if self._held_up(command, t_s) else None
 
     def _held_up(self, command: Command, t_s: float) -> bool:
         """Contact evidence near the plate in any phase (a back-off, or steps down out of the
@@ -737,10 +743,9 @@ class PerchingPilot:
             self._start_landing(t_s, f"gave up after {tries} final climbs without contact")
             return self._land_step(t_s)
         pressing = self._pressing(command, t_s)
-        if pressing and self._contact.touched(t_s, self._height()):
-            return self._stop(t_s, PilotState.PERCHED, _stopped_against(command))
-        if self._held_up(command, t_s):
-            return self._stop(t_s, PilotState.PERCHED, HELD_UP)
+        contact = self._contact_evidence(command, t_s, pressing)
+        if contact is not None:
+            return self._stop(t_s, PilotState.PERCHED, contact)
         if command.phase == Phase.COMMIT:
             self._enter(PilotState.PERCHING, t_s, "final climb")
         else:
