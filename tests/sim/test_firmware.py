@@ -123,3 +123,23 @@ def test_a_full_state_setpoint_is_held_on_the_vehicles_own_estimate(controller: 
     assert abs(q.p_m[2] - expected[2]) < 0.03
     assert abs(math.remainder(q.yaw_rad - 0.3, math.tau)) < 0.03
     assert np.linalg.norm(q.v_mps) < 0.03
+
+
+def test_a_vehicle_flies_as_the_first_in_its_process_whatever_flew_before_it() -> None:
+    """The firmware's PID keeps its integrators, filters and desired yaw in the module: a
+    vehicle after another that ended tilted, yawed and wound up (as a campaign's worker flies
+    run after run) starts from rest as the first one did, to the last bit."""
+    pytest.importorskip("cffirmware")
+
+    def flown(heading_rad: float, steps: int, v_sp: tuple[float, float, float]) -> np.ndarray:
+        q = firmware.FirmwareQuadrotor.hovering_on_firmware(
+            "crazyflie-pid", 500.0, QuadrotorParams(), np.array([0.0, 0.0, 1.0]), heading_rad
+        )
+        q.settle()
+        for _ in range(steps):
+            q.fly(DT, 1, np.array(v_sp), 0.8, q.v_mps)
+        return np.concatenate([q.p_m, q.v_mps, q.R_world_body.ravel()])
+
+    first = flown(0.4, 300, (0.2, -0.1, 0.05))
+    flown(-2.5, 400, (-0.6, 0.5, 0.4))  # a different heading, speed and yaw to leave behind
+    np.testing.assert_array_equal(flown(0.4, 300, (0.2, -0.1, 0.05)), first)

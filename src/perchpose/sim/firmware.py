@@ -64,6 +64,9 @@ MAIN_LOOP_HZ = 1000  # the firmware's stabilizer loop
 FULL_COMMAND = 65535  # a motor command at full
 FULL_THRUST_N = 0.060 * GRAVITY_MPS2 / 4  # per motor at FULL_COMMAND (60 g for the four)
 SETTLE_S = 10.0  # hovering before a run, for the firmware's integrators to find the hover
+# motors-off ticks before a vehicle's first step: the PID's filters, which keep their state in
+# the module between vehicles, run down to nothing on them
+RESTING_TICKS = 10_000
 # Quadrotor's rotor (front left, front right, back right, back left) driven by m1..m4
 ROTOR_OF_MOTOR = (1, 2, 3, 0)
 INSTALL = "../shared/firmware/install-cffirmware .venv/bin/python"
@@ -121,6 +124,23 @@ class _Controller:
             fw.controllerLeeInit(self._self)
         else:
             raise VehicleConfigError(f"{name!r} is not one of the firmware's controllers")
+
+    def start(self, state: Any) -> None:
+        """Start from rest, as after a power-up, whatever an earlier vehicle in this process
+        left in the module. The PID keeps its integrators, filters, desired attitude and last
+        setpoint mode in static variables that ``controllerPidInit`` does not reset after the
+        first call (Brescianini its last 100 Hz output): ``RESTING_TICKS`` with the motors off
+        (a zero setpoint: every mode off, no thrust) take the PID through its own motors-off
+        path, which resets its PIDs and takes the desired yaw from ``state`` on every tick,
+        while its filters run down on a still input; the first real setpoint then changes the
+        mode, which resets it once more on the vehicle's state. Mellinger's and Lee's state is
+        in their own struct, made afresh."""
+        if self._self is not None:
+            return
+        fw = self._fw
+        control, setpoint, sensors = fw.control_t(), fw.setpoint_t(), fw.sensorData_t()
+        for tick in range(1, RESTING_TICKS + 1):
+            self.run(control, setpoint, sensors, state, tick)
 
     def run(self, control: Any, setpoint: Any, sensors: Any, state: Any, tick: int) -> None:
         fw = self._fw
@@ -216,6 +236,8 @@ class FirmwareQuadrotor(Quadrotor):
             self._full_state(self.hold)
         sp.velocity_body = False
         self._fill_state(v_est)
+        if self._tick == 0:
+            self.controller.start(self._state)
         for _ in range(self.ticks_per_step):
             self._tick += 1
             self.controller.run(self._control, sp, self._sensors, self._state, self._tick)
