@@ -252,6 +252,9 @@ class PerchingPilot:
         self._held = HeldDetector(s.held_window_s, s.held_still_m)
         # the height where the camera last put the plate within held_within_m
         self._plate_height_m: float | None = None
+        # whether the camera's last word put the plate within held_within_m (between frames,
+        # and while it sees no target, that word stands: the odometry's guess does not move it)
+        self._plate_near = False
         self._climbing_since: float | None = None  # a climb that may meet the plate began
         self._touchdown = TouchdownDetector(
             s.touchdown_window_s, s.touchdown_still_m, s.landed_height_m, s.touchdown_speed_mps
@@ -601,32 +604,45 @@ class PerchingPilot:
         command = self.controller.between_frames(t_s, R_world_body, odometry, self._age("attitude"))
         if command is None:
             return None
-        contact = self._contact_evidence(command, t_s, self._pressing(command, t_s))
+        pressing = self._pressing(command, t_s)
+        contact = self._contact_evidence(command, t_s, pressing, seen=False)
         if contact is not None:
             return self._stop(t_s, PilotState.PERCHED, contact)
         return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
 
-    def _contact_evidence(self, command: Command, t_s: float, pressing: bool) -> str | None:
+    def _contact_evidence(
+        self, command: Command, t_s: float, pressing: bool, *, seen: bool
+    ) -> str | None:
         """What says the vehicle is against the plate (None: nothing): a climb, ``pressing``
-        into it, whose height stopped rising, or a height the magnet holds still."""
+        into it, whose height stopped rising, or a height the magnet holds still. ``seen``:
+        the command rests on a fresh camera estimate (not on the odometry alone)."""
         if pressing and self._contact.touched(t_s, self._height()):
             return _stopped_against(command)
-        return HELD_UP if self._held_up(command, t_s) else None
+        return HELD_UP if self._held_up(command, t_s, seen=seen) else None
 
-    def _held_up(self, command: Command, t_s: float) -> bool:
+    def _held_up(self, command: Command, t_s: float, *, seen: bool) -> bool:
         """Contact evidence near the plate in any phase (a back-off, or steps down out of the
         capture cone and climbs again, where the camera's evidence at a few centimetres says
-        the vehicle is off-centre): with the plate within ``held_within_m``, the
-        vertical speeds asked for over ``held_window_s`` would have moved the vehicle twice
-        ``held_still_m`` and its height has stayed within ``held_still_m``: the magnet holds
-        it against the plate (the motors cannot pull it off)."""
-        if command.error_m is None or not (float(command.error_m[2]) < self.settings.held_within_m):
-            if command.error_m is not None:  # the camera puts the plate further: not held
+        the vehicle is off-centre): with the plate within ``held_within_m`` by the camera's
+        last word, the vertical speeds asked for over ``held_window_s`` would have moved the
+        vehicle twice ``held_still_m`` and its height has stayed within ``held_still_m``: the
+        magnet holds it against the plate (the motors cannot pull it off). Only a fresh
+        estimate (``seen``) changes that word: against the plate the camera is too near to
+        see the target, and an odometry that drifts while the plate holds the vehicle (a
+        Kalman filter whose tilt is off, its flow 2 m from the floor) would carry the plate
+        away on paper."""
+        if seen:
+            near = command.error_m is not None and (
+                float(command.error_m[2]) < self.settings.held_within_m
+            )
+            if not near and command.error_m is not None:  # the camera puts it further
                 self._plate_height_m = None
+            self._plate_near = near
+        if not self._plate_near:
             self._held.reset()
             return False
         height = self._height()
-        if height is not None:
+        if height is not None and seen:
             self._plate_height_m = height
         return self._held.touched(t_s, height, command.climb_asked_mps)
 
@@ -718,7 +734,8 @@ class PerchingPilot:
             estimate, t_s, R_world_body, odometry, self._age("attitude")
         )
         self._send_fix(command)
-        return self._follow(command, t_s)
+        seen = usable(estimate, t_s, self.controller.settings.max_estimate_age_s)
+        return self._follow(command, t_s, seen=seen)
 
     def _send_fix(self, command: Command) -> None:
         """Hand the vehicle's estimator the position this frame's fix says, where it takes
@@ -735,15 +752,16 @@ class PerchingPilot:
             self._fixes_taken = False
             self.report("pilot: the vehicle takes no position fixes: its estimator flies alone")
 
-    def _follow(self, command: Command, t_s: float) -> PilotStep:
-        """The state the controller's command leads to, and the setpoint sent in it."""
+    def _follow(self, command: Command, t_s: float, *, seen: bool) -> PilotStep:
+        """The state the controller's command leads to, and the setpoint sent in it
+        (``seen``: it rests on a fresh camera estimate)."""
         s = self.settings
         if command.phase == Phase.GIVE_UP:
             tries = self.controller.tries
             self._start_landing(t_s, f"gave up after {tries} final climbs without contact")
             return self._land_step(t_s)
         pressing = self._pressing(command, t_s)
-        contact = self._contact_evidence(command, t_s, pressing)
+        contact = self._contact_evidence(command, t_s, pressing, seen=seen)
         if contact is not None:
             return self._stop(t_s, PilotState.PERCHED, contact)
         if command.phase == Phase.COMMIT:
