@@ -713,6 +713,30 @@ def test_a_vehicle_held_at_the_plate_is_perched_through_its_odometrys_height_noi
     assert any("the magnet holds the vehicle" in r for r in reports)
 
 
+def test_a_landing_whose_frames_put_the_plate_at_the_magnet_ends_perched_when_held() -> None:
+    """The camera put the plate 5 cm above the magnet when the landing began (the attitude
+    stream stalled as the magnet caught the vehicle, say); the landing's own frames put it
+    2 mm above, through the mount alone, and the height holds still against the descent:
+    perched, where the camera's word before the landing would have left the motors on."""
+    s = ControllerSettings(observer_rate=0.0)
+    commander = Recorder()
+    vehicle = HeldAtThePlate(commander, 1.0, dip_m=0.0)
+    reports: list[str] = []
+    pilot = _pilot(vehicle, controller=s, reports=reports)
+    magnet_z = s.p_body_magnet_m[2]
+    for _ in range(10):
+        pilot.update(_seen(s, [0.015, 0.0, magnet_z + 0.05], vehicle.t_s), vehicle.t_s)
+        vehicle.fly(1 / 30)
+    pilot.abort(vehicle.t_s)
+    for _ in range(60):
+        pilot.update(_seen(s, [0.015, 0.0, magnet_z + 0.002], vehicle.t_s), vehicle.t_s)
+        vehicle.fly(1 / 30)
+        if pilot.state == "perched":
+            break
+    assert pilot.state == "perched"
+    assert any("the magnet holds the vehicle" in r for r in reports)
+
+
 def _landing_from_the_plate(
     held: bool, then_above_m: float | None = None
 ) -> tuple[PerchingPilot, list[str]]:

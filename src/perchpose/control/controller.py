@@ -567,6 +567,12 @@ class PerchingController:
         p_body: Array = T[:3, :3] @ estimate.t_m + T[:3, 3]
         return p_body
 
+    def target_above_magnet_m(self, estimate: Estimate) -> float:
+        """How far above the magnet the camera puts the target's centre, along the body's z
+        axis (m): the plate's distance, from the frame and the mount alone (no attitude)."""
+        p_body = self._target_in_body(estimate) - np.asarray(self.settings.p_body_magnet_m)
+        return float(p_body[2])
+
     def _place(self, estimate: Estimate) -> None:
         """Give a measured fix to the time-offset estimate: its stamp, and the target in the
         body frame."""

@@ -28,11 +28,11 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
 - ``perched``: contact: during the final climb (or a climb at its speed with the plate
   within ``climb_contact_within_m``) the vehicle's height stopped rising (under
   ``contact_rise_m`` over ``contact_window_s`` while climbing), or in any phase with the
-  plate within ``held_within_m``, its height held still (within ``held_still_m`` over
-  ``held_window_s``) against vertical speeds asked that would have moved it twice that (the
-  magnet caught it): a stop setpoint cuts the motors and the magnet holds the vehicle. Time
-  alone never stops the motors; without a height source there is no contact evidence, and a
-  final climb that does not end backs off;
+  plate within ``held_within_m`` by the camera's last fresh estimate, its height held still
+  (within ``held_still_m`` over ``held_window_s``) against vertical speeds asked that would
+  have moved it twice that (the magnet caught it): a stop setpoint cuts the motors and the
+  magnet holds the vehicle. Time alone never stops the motors; without a height source there
+  is no contact evidence, and a final climb that does not end backs off;
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
   Crazyflie's own commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s
   and 2 s without setpoints); ``released`` is an autopilot taking control back (it left the
@@ -646,6 +646,14 @@ class PerchingPilot:
             self._plate_height_m = height
         return self._held.touched(t_s, height, command.climb_asked_mps)
 
+    def _landing_sees(self, estimate: Estimate) -> None:
+        """A fresh frame while landing: where it puts the plate within ``held_within_m`` of
+        the magnet (along the body's z, through the mount: no attitude needed, which may be
+        the sense that was lost), the height now is the plate's; further, there is none."""
+        near = self.controller.target_above_magnet_m(estimate) < self.settings.held_within_m
+        self._plate_height_m = self._height() if near else None
+        self._plate_near = near
+
     def _held_landing(self, t_s: float, height_m: float) -> bool:
         """Contact evidence while landing: the landing began where the camera had put the
         plate within ``held_within_m``, the height is still there (within ``held_still_m``)
@@ -714,6 +722,9 @@ class PerchingPilot:
         if self.state in DONE:
             return PilotStep(t_s, self.state, None, None, None)
         if self.state == PilotState.LANDING:
+            if fresh:
+                assert estimate is not None
+                self._landing_sees(estimate)
             return self._land_step(t_s)
         if fresh:
             self._last_valid_t = t_s
