@@ -688,18 +688,24 @@ class HeldAtThePlate(Vehicle):
         return p, np.zeros(3)
 
 
+def _held_at_the_plate(dip_m: float) -> tuple[PerchingPilot, HeldAtThePlate, list[str], float]:
+    """A pilot flying a ``HeldAtThePlate`` vehicle 1 m up: the pilot, the vehicle, what the
+    pilot said, and the magnet's height on the body (m)."""
+    s = ControllerSettings(observer_rate=0.0)
+    vehicle = HeldAtThePlate(Recorder(), 1.0, dip_m=dip_m)
+    reports: list[str] = []
+    pilot = _pilot(vehicle, controller=s, reports=reports)
+    return pilot, vehicle, reports, s.p_body_magnet_m[2]
+
+
 def test_a_vehicle_held_at_the_plate_is_perched_through_its_odometrys_height_noise() -> None:
     """The camera puts the plate 2 mm above the magnet, 15 mm to the side, then sees nothing
     (too near the target); the odometry's height dips 3.5 cm now and then: carried by the
     odometry alone, those samples would put the plate beyond ``held_within_m`` and start the
     held window afresh each time. The camera's last word stands, and the height held still
     against what was asked is contact."""
-    s = ControllerSettings(observer_rate=0.0)
-    commander = Recorder()
-    vehicle = HeldAtThePlate(commander, 1.0, dip_m=0.035)
-    reports: list[str] = []
-    pilot = _pilot(vehicle, controller=s, reports=reports)
-    magnet_z = s.p_body_magnet_m[2]
+    pilot, vehicle, reports, magnet_z = _held_at_the_plate(dip_m=0.035)
+    s = pilot.controller.settings
     for k in range(90):
         t = vehicle.t_s
         seen = _seen(s, [0.015, 0.0, magnet_z + 0.002], t) if k < 15 else None
@@ -718,12 +724,8 @@ def test_a_landing_whose_frames_put_the_plate_at_the_magnet_ends_perched_when_he
     stream stalled as the magnet caught the vehicle, say); the landing's own frames put it
     2 mm above, through the mount alone, and the height holds still against the descent:
     perched, where the camera's word before the landing would have left the motors on."""
-    s = ControllerSettings(observer_rate=0.0)
-    commander = Recorder()
-    vehicle = HeldAtThePlate(commander, 1.0, dip_m=0.0)
-    reports: list[str] = []
-    pilot = _pilot(vehicle, controller=s, reports=reports)
-    magnet_z = s.p_body_magnet_m[2]
+    pilot, vehicle, reports, magnet_z = _held_at_the_plate(dip_m=0.0)
+    s = pilot.controller.settings
     for _ in range(10):
         pilot.update(_seen(s, [0.015, 0.0, magnet_z + 0.05], vehicle.t_s), vehicle.t_s)
         vehicle.fly(1 / 30)
