@@ -512,6 +512,24 @@ def test_a_climb_far_from_the_plate_that_does_not_rise_is_not_contact() -> None:
     assert sent[-1] != ()
 
 
+def test_a_final_climb_that_stalls_while_the_camera_puts_the_plate_far_is_not_contact() -> None:
+    """The final climb begins with the plate 2 mm above the magnet; then the camera's fresh
+    frames put it 8 cm above (the climb stalled under it, as a vehicle flying a Kalman
+    filter's velocity can) while the height stops rising: no motor stop there; with the
+    frames at 2 mm it is contact."""
+
+    def flown(above_after_commit_m: float) -> PerchingPilot:
+        pilot, _, _, _ = _under_the_plate(
+            30, False, lambda ph: (0.0, above_after_commit_m if "commit" in ph else 0.002)
+        )
+        return pilot
+
+    far = flown(0.08)
+    assert far.controller.phase == "commit"
+    assert far.state == "perching"
+    assert flown(0.002).state == "perched"
+
+
 class Fixable(Recorder):
     """A commander whose vehicle's estimator takes external positions (``refuses``: none)."""
 

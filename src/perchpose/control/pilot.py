@@ -255,6 +255,8 @@ class PerchingPilot:
         # whether the camera's last word put the plate within held_within_m (between frames,
         # and while it sees no target, that word stands: the odometry's guess does not move it)
         self._plate_near = False
+        # when a fresh frame last put the plate further than contact_veto_m
+        self._far_seen_t: float | None = None
         self._climbing_since: float | None = None  # a climb that may meet the plate began
         self._touchdown = TouchdownDetector(
             s.touchdown_window_s, s.touchdown_still_m, s.landed_height_m, s.touchdown_speed_mps
@@ -614,9 +616,22 @@ class PerchingPilot:
         self, command: Command, t_s: float, pressing: bool, *, seen: bool
     ) -> str | None:
         """What says the vehicle is against the plate (None: nothing): a climb, ``pressing``
-        into it, whose height stopped rising, or a height the magnet holds still. ``seen``:
-        the command rests on a fresh camera estimate (not on the odometry alone)."""
-        if pressing and self._contact.touched(t_s, self._height()):
+        into it, whose height stopped rising (unless, in the final climb, a fresh frame of the
+        last contact window put the plate further than ``contact_veto_m``), or a height the
+        magnet holds still.
+        ``seen``: the command rests on a fresh camera estimate (not on the odometry alone)."""
+        error = command.error_m
+        if (
+            seen
+            and command.phase == Phase.COMMIT
+            and error is not None
+            and float(error[2]) > self.settings.contact_veto_m
+        ):
+            self._far_seen_t = t_s
+        far = self._far_seen_t is not None and (
+            t_s - self._far_seen_t < self.settings.contact_window_s
+        )
+        if pressing and self._contact.touched(t_s, self._height()) and not far:
             return _stopped_against(command)
         return HELD_UP if self._held_up(command, t_s, seen=seen) else None
 

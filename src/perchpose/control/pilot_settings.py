@@ -40,20 +40,22 @@ class PilotSettings:
 
     Contact: contact_window_s, contact_rise_m : contact is a final climb whose height rose less
     than contact_rise_m over the last contact_window_s; or a climb at the final climb's speed or
-    faster with the plate within climb_contact_within_m by the camera, once it has gone on for
-    a contact window (a pose whose latency is under-stated puts the plate further than it is,
-    and the magnet seats before the final climb begins). live_height_s : contact and touchdown
-    count only height samples younger than this (a stream at 10 Hz or faster stays live between
-    its samples); it must be shorter than the contact window, so that a height that froze never
-    makes a contact on its own. held_window_s, held_still_m, held_within_m : contact is also,
-    in any phase with the plate within held_within_m by the camera (the magnet reaches about
-    that far), a height that stayed within held_still_m
-    over held_window_s while the vertical speeds asked for would have moved the vehicle twice
-    that: the magnet holds it (the controller backing off, or stepping down out of its capture
-    cone and climbing again, on the camera's evidence at a few centimetres; a vehicle in free
-    air follows what it is asked with a lag of a few tenths of a second, hence the longer
-    window; a vehicle in strong turbulence can fail to follow for as long, but not with the
-    plate that near). limits : the largest setpoint sent.
+    faster with the plate within climb_contact_within_m by the camera, once it has gone on for a
+    contact window (a pose whose latency is under-stated puts the plate further than it is, and
+    the magnet seats before the final climb begins); not in the final climb while a fresh frame
+    of the last contact window put the plate further than contact_veto_m (a climb that stalls,
+    or a height that dips, centimetres under the plate is not against it). live_height_s :
+    contact and touchdown count only height samples younger than this (a stream at 10 Hz or
+    faster stays live between its samples); it must be shorter than the contact window, so that
+    a height that froze never makes a contact on its own. held_window_s, held_still_m,
+    held_within_m : contact is also, in any phase with the plate within held_within_m by the
+    camera (the magnet reaches about that far), a height that stayed within held_still_m over
+    held_window_s while the vertical speeds asked for would have moved the vehicle twice that:
+    the magnet holds it (the controller backing off, or stepping down out of its capture cone
+    and climbing again, on the camera's evidence at a few centimetres; a vehicle in free air
+    follows what it is asked with a lag of a few tenths of a second, hence the longer window; a
+    vehicle in strong turbulence can fail to follow for as long, but not with the plate that
+    near). limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
     sets on the vehicle when it takes over, where its commander can
@@ -85,6 +87,7 @@ class PilotSettings:
     contact_window_s: float = 0.3
     contact_rise_m: float = 0.005
     climb_contact_within_m: float = 0.1
+    contact_veto_m: float = 0.06
     held_window_s: float = 1.0
     held_still_m: float = 0.02
     held_within_m: float = 0.03
@@ -112,6 +115,7 @@ class PilotSettings:
             "contact_window_s",
             "contact_rise_m",
             "climb_contact_within_m",
+            "contact_veto_m",
             "held_window_s",
             "held_still_m",
             "held_within_m",
