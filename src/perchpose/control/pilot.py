@@ -714,7 +714,7 @@ class PerchingPilot:
                 f"(hold on odometry, then lost; landing {self.settings.land_after_lost_s:g} s "
                 "after the last sighting)"
             )
-        return self._fly(None, t_s)
+        return self._fly(None, t_s, seen=False)
 
     def _update(self, estimate: Estimate | None, t_s: float) -> PilotStep:
         if estimate is not None and math.isfinite(estimate.captured_s):
@@ -749,10 +749,11 @@ class PerchingPilot:
         if self._holding:
             self.report(f"pilot: the vehicle's samples are fresh again at t = {t_s:.2f} s")
             self._holding = False
-        return self._fly(estimate, t_s)
+        return self._fly(estimate, t_s, seen=fresh)
 
-    def _fly(self, estimate: Estimate | None, t_s: float) -> PilotStep:
-        """The controller's command for ``estimate`` (None: no target) at ``t_s``."""
+    def _fly(self, estimate: Estimate | None, t_s: float, *, seen: bool) -> PilotStep:
+        """The controller's command for ``estimate`` (None: no target) at ``t_s``; ``seen``:
+        the estimate is fresh (``usable``, as the frame's update found it)."""
         motion = self._motion()
         R_world_body = self.attitude()
         odometry = None if motion is None else self._odometry(t_s, motion, R_world_body)
@@ -760,7 +761,6 @@ class PerchingPilot:
             estimate, t_s, R_world_body, odometry, self._age("attitude")
         )
         self._send_fix(command)
-        seen = usable(estimate, t_s, self.controller.settings.max_estimate_age_s)
         return self._follow(command, t_s, seen=seen)
 
     def _send_fix(self, command: Command) -> None:
