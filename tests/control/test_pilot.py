@@ -818,3 +818,65 @@ def test_a_landing_that_does_not_descend_away_from_the_plate_keeps_its_motors() 
     a landing that does not come down (an updraft) is no contact."""
     pilot, _ = _landing_from_the_plate(held=True, then_above_m=0.2)
     assert pilot.state == "landing"
+
+
+def test_a_drag_free_estimate_has_the_pushs_lean_taken_out_and_held_within_reach_of_the_plate() -> (
+    None
+):
+    """``lean_lag_s``: the attitude the controller gets leans against the push the
+    accelerometer measures (the lean a drag-free filter misses); once the camera puts the
+    plate within ``held_within_m``, where the plate's touch and the magnet reach the
+    accelerometer too, the lean stays as it was."""
+    s = ControllerSettings(observer_rate=0.0)
+    vehicle = Vehicle(Recorder(), 1.0)
+    force = {"body": np.array([1.0, 0.0, 9.81])}
+    seen_R: list[np.ndarray] = []
+    controller = PerchingController(s)
+    update = controller.update
+
+    def recorded(estimate: Estimate | None, t_s: float, R: np.ndarray, *rest: object) -> object:
+        seen_R.append(R)
+        return update(estimate, t_s, R, *rest)  # type: ignore[arg-type]
+
+    controller.update = recorded  # type: ignore[method-assign]
+    pilot = PerchingPilot(
+        vehicle.commander,
+        lambda: np.eye(3),
+        controller=controller,
+        settings=PilotSettings(lean_lag_s=0.5),
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        clock=lambda: vehicle.t_s,
+        specific_force=lambda: force["body"],
+    )
+    magnet_z = s.p_body_magnet_m[2]
+    for _ in range(150):  # 5 s with the plate 40 cm up
+        pilot.update(_seen(s, [0.0, 0.0, magnet_z + 0.4], vehicle.t_s), vehicle.t_s)
+        vehicle.fly(1 / 30)
+    lean_deg = math.degrees(math.asin(-seen_R[-1][0, 2]))  # the body's z against the push
+    assert lean_deg == pytest.approx(math.degrees(0.9 / 9.81), abs=0.05)
+    force["body"] = np.array([-6.0, 4.0, 9.81])  # the plate's touch, say
+    for _ in range(60):
+        pilot.update(_seen(s, [0.0, 0.0, magnet_z + 0.02], vehicle.t_s), vehicle.t_s)
+        vehicle.fly(1 / 30)
+    np.testing.assert_allclose(seen_R[-1], seen_R[150], atol=1e-9)
+
+
+def test_a_vehicle_that_came_off_the_plate_and_hovers_unseen_below_it_is_not_held() -> None:
+    """The camera put the plate 2 mm above the magnet, then saw nothing; the vehicle came off
+    the plate and hovers 3 cm below it, still, not following the descent asked (which would
+    otherwise say the magnet holds it): without a fresh frame the camera's word stands, but
+    the height is no longer the plate's, so the motors stay on."""
+    pilot, vehicle, _reports, magnet_z = _held_at_the_plate(dip_m=0.0)
+    s = pilot.controller.settings
+    for k in range(90):
+        t = vehicle.t_s
+        if k == 15:
+            vehicle.p_m[2] -= 0.03
+        seen = _seen(s, [0.015, 0.0, magnet_z + 0.002], t) if k < 15 else None
+        pilot.update(seen, t)
+        vehicle.fly(1 / 60)
+        pilot.tick(vehicle.t_s)
+        vehicle.fly(1 / 60)
+    assert pilot.state != "perched"
+    assert vehicle.commander.sent[-1] != ()

@@ -75,6 +75,7 @@ from perchpose.control.controller import (
     usable,
 )
 from perchpose.control.evidence import ContactDetector, HeldDetector, TouchdownDetector
+from perchpose.control.lean import LeanCorrection
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
 from perchpose.geometry import yaw_rad
@@ -232,6 +233,8 @@ class PerchingPilot:
         self.attitude = attitude
         self.controller = controller or PerchingController()
         self.settings = settings or PilotSettings()
+        lag_s = self.settings.lean_lag_s
+        self.lean = LeanCorrection(lag_s) if lag_s > 0 else None
         self.height_m = height_m
         self.odometry = odometry
         self.report = report or log.warning
@@ -255,6 +258,7 @@ class PerchingPilot:
         # whether the camera's last word put the plate within held_within_m (between frames,
         # and while it sees no target, that word stands: the odometry's guess does not move it)
         self._plate_near = False
+        self._plate_above_m = math.inf  # the camera's last word on the plate's distance
         # when a fresh frame last put the plate further than contact_veto_m
         self._far_seen_t: float | None = None
         self._climbing_since: float | None = None  # a climb that may meet the plate began
@@ -419,6 +423,18 @@ class PerchingPilot:
         ):
             return None
         return motion
+
+    def _attitude(self, t_s: float) -> Array:
+        """The vehicle's attitude, with the lean its estimate misses taken out where it is
+        drag-free (``PilotSettings.lean_lag_s``)."""
+        R_world_body = np.asarray(self.attitude(), np.float64)
+        if self.lean is None or not np.all(np.isfinite(R_world_body)):
+            return R_world_body
+        f_body = None if self.specific_force is None else self.specific_force()
+        # with the plate within held_within_m its touch and the magnet's pull reach the
+        # accelerometer too: the lean is held as it was
+        reach = self._plate_above_m < self.settings.held_within_m
+        return self.lean.correct(R_world_body, None if reach else f_body, t_s)
 
     def _odometry(self, t_s: float, motion: tuple[Array, Array], R_world_body: Array) -> Odometry:
         """The odometry for the controller: the motion, and the accelerometer's push turned
@@ -601,7 +617,7 @@ class PerchingPilot:
         motion = self._motion()
         if motion is None:
             return None
-        R_world_body = self.attitude()
+        R_world_body = self._attitude(t_s)
         odometry = self._odometry(t_s, motion, R_world_body)
         command = self.controller.between_frames(t_s, R_world_body, odometry, self._age("attitude"))
         if command is None:
@@ -645,28 +661,41 @@ class PerchingPilot:
         estimate (``seen``) changes that word: against the plate the camera is too near to
         see the target, and an odometry that drifts while the plate holds the vehicle (a
         Kalman filter whose tilt is off, its flow 2 m from the floor) would carry the plate
-        away on paper."""
+        away on paper. The height must also be within ``held_still_m`` of where that word was
+        given."""
         if seen:
-            near = command.error_m is not None and (
-                float(command.error_m[2]) < self.settings.held_within_m
-            )
-            if not near and command.error_m is not None:  # the camera puts it further
-                self._plate_height_m = None
-            self._plate_near = near
+            error = command.error_m
+            self._camera_puts_plate(None if error is None else float(error[2]))
         if not self._plate_near:
             self._held.reset()
             return False
         height = self._height()
-        if height is not None and seen:
-            self._plate_height_m = height
-        return self._held.touched(t_s, height, command.climb_asked_mps)
+        held = self._held.touched(t_s, height, command.climb_asked_mps)
+        # and it is still where the camera put the plate: a vehicle that came off the plate
+        # and hovers unseen below it, not following the climb asked, is not held
+        up = self._plate_height_m
+        return held and (
+            up is None or height is None or abs(height - up) < self.settings.held_still_m
+        )
 
     def _landing_sees(self, estimate: Estimate) -> None:
-        """A fresh frame while landing: where it puts the plate within ``held_within_m`` of
-        the magnet (along the body's z, through the mount: no attitude needed, which may be
-        the sense that was lost), the height now is the plate's; further, there is none."""
-        near = self.controller.target_above_magnet_m(estimate) < self.settings.held_within_m
-        self._plate_height_m = self._height() if near else None
+        """A fresh frame while landing: how far it puts the plate from the magnet, along the
+        body's z through the mount (no attitude needed, which may be the sense that was
+        lost)."""
+        self._camera_puts_plate(self.controller.target_above_magnet_m(estimate))
+
+    def _camera_puts_plate(self, above_m: float | None) -> None:
+        """A fresh frame's word on the plate, ``above_m`` over the magnet (None: the frame
+        measured no distance): within ``held_within_m`` it is near, and the height now is the
+        plate's; further, it is not, and there is no plate's height; with no distance it is
+        not near, and the plate's height stays what it was."""
+        if above_m is not None:
+            self._plate_above_m = above_m
+        near = above_m is not None and above_m < self.settings.held_within_m
+        if near:
+            self._plate_height_m = self._height()
+        elif above_m is not None:
+            self._plate_height_m = None
         self._plate_near = near
 
     def _held_landing(self, t_s: float, height_m: float) -> bool:
@@ -755,7 +784,7 @@ class PerchingPilot:
         """The controller's command for ``estimate`` (None: no target) at ``t_s``; ``seen``:
         the estimate is fresh (``usable``, as the frame's update found it)."""
         motion = self._motion()
-        R_world_body = self.attitude()
+        R_world_body = self._attitude(t_s)
         odometry = None if motion is None else self._odometry(t_s, motion, R_world_body)
         command: Command = self.controller.update(
             estimate, t_s, R_world_body, odometry, self._age("attitude")

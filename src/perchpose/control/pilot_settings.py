@@ -3,6 +3,7 @@ counts as contact and as touchdown."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from perchpose.control.setpoint import SetpointLimits
@@ -75,6 +76,11 @@ class PilotSettings:
     ``pidYaw.kp`` 6 /s), so that its loops fly the pilot's velocity and yaw rate. A vehicle
     whose link takes velocity setpoints only (a MAVLink autopilot's, here) is sent those, and
     the pilot says so once.
+
+    lean_lag_s : the vehicle's attitude estimate is drag-free (a flying Crazyflie's Kalman
+    filter) and misses the lean a push needs, taken in over about this long: the pilot takes
+    that lean, predicted from the accelerometer's push, out of each attitude it uses
+    (``control.lean``); 0: the estimate knows its tilt.
     """
 
     land_after_lost_s: float = 4.0
@@ -102,6 +108,7 @@ class PilotSettings:
     command: str = "velocity"
     position_gain_per_s: float = 2.0
     yaw_gain_per_s: float = 6.0
+    lean_lag_s: float = 0.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -128,6 +135,10 @@ class PilotSettings:
             "yaw_gain_per_s",
         )
         require_positive(self, positive, ControllerConfigError, "pilot setting ")
+        if not (math.isfinite(self.lean_lag_s) and 0.0 <= self.lean_lag_s <= 10.0):
+            raise ControllerConfigError(
+                f"pilot setting lean_lag_s must be within 0-10 s, got {self.lean_lag_s}"
+            )
         if self.command not in COMMANDS:
             raise ControllerConfigError(
                 f"pilot setting command {self.command!r}: choose {' or '.join(COMMANDS)}"
