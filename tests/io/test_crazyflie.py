@@ -22,6 +22,7 @@ from cflib.crtp.crtpstack import CRTPPacket, CRTPPort
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.cli import main
 from perchpose.control import PerchingController, PerchingPilot, PilotSettings
+from perchpose.control.lean import CRAZYFLIE_KALMAN_LAG_S
 from perchpose.errors import ControllerConfigError, LinkError
 from perchpose.io.crazyflie import CflibCommander, connect
 from perchpose.io.samples import SampleGate
@@ -408,6 +409,7 @@ def bare_connection(
     connection._motion_t_s = math.nan
     connection._f_body_mps2 = None
     connection.own_gains = {}
+    connection.lean_lag_s = 0.0
     return connection
 
 
@@ -626,6 +628,50 @@ def test_the_accelerometer_is_logged_with_the_odometry_and_leant_against(
     _kind, vx, vy, _vz, _yaw_rate = decode(link.sent[-1])
     assert vy < -0.1  # against the push, along world y
     assert abs(vx) < 0.05
+
+
+class _Params:
+    """cflib's ``Param`` as far as the estimator's choice: ``value`` (None: unreadable)."""
+
+    def __init__(self, value: str | None) -> None:
+        self.value = value
+
+    def get_value(self, name: str) -> str:
+        assert name == "stabilizer.estimator"
+        if self.value is None:
+            raise KeyError(name)
+        return self.value
+
+
+@pytest.mark.parametrize(
+    ("value", "lag_s"), [("2", CRAZYFLIE_KALMAN_LAG_S), ("0", CRAZYFLIE_KALMAN_LAG_S), ("1", 0.0)]
+)
+def test_the_pilots_take_the_lean_out_of_a_kalman_filters_attitude(
+    crazyflie: tuple[Crazyflie, FakeRadioLink], value: str, lag_s: float
+) -> None:
+    """The Kalman filter (chosen, or the firmware's choice with a Flow deck) misses a push's
+    lean: the pilots correct it; the complementary filter's attitude needs nothing."""
+    cf, _link = crazyflie
+    said: list[str] = []
+    cf.param = _Params(value)
+    connection = bare_connection(cf, report=said.append)
+    connection.lean_lag_s = connection._read_estimator()
+    assert connection.lean_lag_s == lag_s
+    assert len(said) == (1 if lag_s else 0)
+    pilot = connection.pilot()
+    assert pilot.settings.lean_lag_s == lag_s
+    assert (pilot.lean is not None) == (lag_s > 0)
+    own = connection.pilot(settings=PilotSettings(lean_lag_s=0.4))
+    assert own.settings.lean_lag_s == 0.4
+
+
+def test_a_vehicle_that_does_not_say_its_estimator_is_taken_to_fly_the_kalman_filter(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    cf, _link = crazyflie
+    cf.param = _Params(None)
+    connection = bare_connection(cf)
+    assert connection._read_estimator() == CRAZYFLIE_KALMAN_LAG_S
 
 
 def test_a_position_fix_goes_out_as_cflibs_external_position(

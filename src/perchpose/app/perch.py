@@ -11,6 +11,7 @@ from pathlib import Path
 
 from perchpose.app.inputs import load_camera
 from perchpose.camera import CameraModel
+from perchpose.control.lean import CRAZYFLIE_KALMAN_LAG_S
 from perchpose.control.pilot_settings import COMMANDS, PilotSettings
 from perchpose.errors import PerchposeError
 from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write_reports
@@ -112,7 +113,12 @@ class PerchCampaign:
             duration_s=FAULT_RUN_S if injected else PerchSetup.duration_s,
             flight_controller=flight_controller,
             onboard_estimator=onboard_estimator,
-            pilot=PilotSettings(command=command),
+            pilot=PilotSettings(
+                command=command,
+                lean_lag_s=(
+                    CRAZYFLIE_KALMAN_LAG_S if onboard_estimator == "crazyflie-kalman" else 0.0
+                ),
+            ),
             contact_mode=contact,
         )
         latencies = SWEEP_LATENCIES_MS if sweep == "latency" else (latency_ms,)

@@ -647,6 +647,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "flight_controller": setup.flight_controller,
         "onboard_estimator": setup.onboard_estimator,
         "command": setup.pilot.command,
+        "lean_lag_s": setup.pilot.lean_lag_s,
         "stamps": setup.stamps,
         "contact_mode": setup.contact_mode,
         "faults": list(setup.faults),

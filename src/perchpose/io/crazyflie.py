@@ -12,12 +12,14 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.control.pilot import PerchingPilot, SenseAges
+from perchpose.control.lean import CRAZYFLIE_KALMAN_LAG_S
+from perchpose.control.pilot import PerchingPilot, PilotSettings, SenseAges
 from perchpose.errors import LinkError
 from perchpose.geometry import roll_pitch_rad, rotation_from_quaternion, yaw_rad
 from perchpose.io.samples import SampleGate
@@ -25,6 +27,8 @@ from perchpose.io.samples import SampleGate
 Array = NDArray[np.float64]
 GRAVITY_MPS2 = 9.81  # the firmware's g: its ``acc`` log group is in g
 VELOCITY_GAINS = ("velCtlPid.vxKp", "velCtlPid.vyKp")  # the firmware's, deg per m/s
+ESTIMATOR_PARAM = "stabilizer.estimator"  # 0 the firmware's choice, 1 complementary, 2 Kalman
+COMPLEMENTARY_ESTIMATOR, KALMAN_ESTIMATOR = 1, 2
 log = logging.getLogger(__name__)
 
 
@@ -177,6 +181,7 @@ class CrazyflieConnection:
             self._sync.close_link()
             raise LinkError(f"{uri}: the firmware does not log the state estimate: {exc}") from exc
         self.own_gains = self._read_velocity_gains()
+        self.lean_lag_s = self._read_estimator()
 
     def _read_velocity_gains(self) -> dict[str, str]:
         """The firmware's horizontal velocity gains as they are (the pilots set theirs at
@@ -189,6 +194,24 @@ class CrazyflieConnection:
                 "pilots fly the vehicle's own velocity gains"
             )
             return {}
+
+    def _read_estimator(self) -> float:
+        """How long the vehicle's attitude estimate takes to miss a push's lean
+        (``PilotSettings.lean_lag_s``): the Kalman filter's flying model has no drag (0 only
+        where the vehicle says it runs the complementary filter, whose accelerometer finds the
+        true vertical in a steady wind). A vehicle that does not say is taken to fly the
+        Kalman filter, which a Flow deck's odometry needs."""
+        try:
+            chosen = int(self.cf.param.get_value(ESTIMATOR_PARAM))
+        except Exception:  # cflib raises bare Exceptions; a missing name is a KeyError
+            chosen = KALMAN_ESTIMATOR
+        if chosen == COMPLEMENTARY_ESTIMATOR:
+            return 0.0
+        self.report(
+            f"Crazyflie {self.uri}: the Kalman filter's attitude misses the lean a wind's push "
+            f"needs; the pilots take it out over {CRAZYFLIE_KALMAN_LAG_S:g} s (control.lean)"
+        )
+        return CRAZYFLIE_KALMAN_LAG_S
 
     def _usable(self, data: dict[str, float]) -> bool:
         """All of a log block's values are finite; else it is dropped (said once)."""
@@ -278,8 +301,12 @@ class CrazyflieConnection:
         # the odometry's z is the first block's height: it is only as fresh as both
         return SenseAges(state_s, max(state_s, motion_s), state_s)
 
-    def pilot(self, **kwargs: Any) -> PerchingPilot:
-        """A pilot on this link, told about a link loss."""
+    def pilot(self, settings: PilotSettings | None = None, **kwargs: Any) -> PerchingPilot:
+        """A pilot on this link, told about a link loss; its settings take the vehicle's
+        estimator's lean (``lean_lag_s``) unless they set their own."""
+        settings = settings or PilotSettings()
+        if settings.lean_lag_s == 0:
+            settings = replace(settings, lean_lag_s=self.lean_lag_s)
         pilot = PerchingPilot(
             CflibCommander(self.cf.commander, self.cf.param, self.own_gains, self.cf.extpos),
             self.attitude,
@@ -288,6 +315,7 @@ class CrazyflieConnection:
             ages=self.ages,
             report=self.report,
             specific_force=self.specific_force,
+            settings=settings,
             **kwargs,
         )
         pilot.watch_link(self.cf)
