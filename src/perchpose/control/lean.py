@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -72,5 +71,16 @@ class LeanCorrection:
         beyond = self._push_mps2 * (max(0.0, size - self.offset_mps2) / size if size > 0 else 0.0)
         # the body's z leans against the push: about x by push_y / g, about y by -push_x / g
         self.lean_rad = np.array([beyond[1], -beyond[0]]) / GRAVITY_MPS2
-        tilt, _ = cv2.Rodrigues(np.array([self.lean_rad[0], self.lean_rad[1], 0.0]))
-        return np.asarray(tilt, np.float64) @ R
+        return _tilt_about(self.lean_rad) @ R
+
+
+def _tilt_about(angles_rad: Array) -> Array:
+    """The rotation by the rotation vector (x, y, 0) (Rodrigues' formula; the controller
+    imports no OpenCV)."""
+    angle = float(np.hypot(angles_rad[0], angles_rad[1]))
+    if angle < 1e-12:
+        return np.eye(3)
+    kx, ky = angles_rad[0] / angle, angles_rad[1] / angle
+    K = np.array([[0.0, 0.0, ky], [0.0, 0.0, -kx], [-ky, kx, 0.0]])
+    tilt: Array = np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+    return tilt
