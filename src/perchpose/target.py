@@ -160,6 +160,32 @@ def _check_nesting(big: MarkerSpec, small: MarkerSpec, target: str) -> None:
         )
 
 
+def _print_marker(
+    m: MarkerSpec, x_m: NDArray[np.float32], y_m: NDArray[np.float32], values: NDArray[np.float32]
+) -> None:
+    """Print marker ``m`` over ``values`` at target-frame points (float32 metres): its cell's
+    value (1 white, 0 black) where a point falls inside it, untouched elsewhere."""
+    T = m.T_target_marker
+    dx = x_m - np.float32(T[0, 3])
+    dy = y_m - np.float32(T[1, 3])
+    c, s = np.float32(T[0, 0]), np.float32(T[1, 0])
+    n = m.cells.shape[0]
+    scale = np.float32(n / m.side_m)
+    col = np.floor((c * dx + s * dy) * scale + np.float32(n / 2)).astype(np.int32)
+    row = np.floor(np.float32(n / 2) - (c * dy - s * dx) * scale).astype(np.int32)
+    inside = np.flatnonzero((col >= 0) & (col < n) & (row >= 0) & (row < n))
+    values[inside] = m.cells[row[inside], col[inside]]
+
+
+def _texel_span(centres_m: Array, low_m: float, high_m: float, texel_m: float) -> slice:
+    """The texels whose centres (monotonic) lie within [low_m, high_m], a texel more each
+    side."""
+    near = np.flatnonzero((centres_m >= low_m - texel_m) & (centres_m <= high_m + texel_m))
+    if near.size == 0:
+        return slice(0, 0)
+    return slice(int(near[0]), int(near[-1]) + 1)
+
+
 @dataclass(frozen=True)
 class TargetSpec:
     """A target made of square markers, the largest first.
@@ -267,16 +293,7 @@ class TargetSpec:
         ys = y.reshape(-1)[on_sheet]
         values = np.ones(on_sheet.size, dtype=np.float32)
         for m in self.markers:  # largest first; smaller markers are printed over it
-            T = m.T_target_marker
-            dx = xs - np.float32(T[0, 3])
-            dy = ys - np.float32(T[1, 3])
-            c, s = np.float32(T[0, 0]), np.float32(T[1, 0])
-            n = m.cells.shape[0]
-            scale = np.float32(n / m.side_m)
-            col = np.floor((c * dx + s * dy) * scale + np.float32(n / 2)).astype(np.int32)
-            row = np.floor(np.float32(n / 2) - (c * dy - s * dx) * scale).astype(np.int32)
-            inside = np.flatnonzero((col >= 0) & (col < n) & (row >= 0) & (row < n))
-            values[inside] = m.cells[row[inside], col[inside]]
+            _print_marker(m, xs, ys, values)
         out.reshape(-1)[on_sheet] = values
         return out
 
@@ -296,9 +313,22 @@ class TargetSpec:
             texel = 2.0 * half / 8192
             n = 8192
         centres = (np.arange(n) + 0.5 - n / 2) * texel
-        xx, yy = np.meshgrid(centres, -centres)
-        tex = self.albedo(xx, yy)
-        return np.where(np.isnan(tex), np.float32(-1.0), tex).astype(np.float32), texel
+        # the sheet white, then each marker printed over the texels of its bounding box (a
+        # texel more each side): the albedo's values, without evaluating a large sheet's
+        # quiet zone texel by texel
+        on_sheet = np.abs(centres.astype(np.float32)) <= np.float32(half)
+        tex = np.where(on_sheet[:, None] & on_sheet[None, :], np.float32(1.0), np.float32(-1.0))
+        for m in self.markers:
+            xy = m.corners_target_m[:, :2]
+            cols = _texel_span(centres, float(xy[:, 0].min()), float(xy[:, 0].max()), texel)
+            rows = _texel_span(-centres, float(xy[:, 1].min()), float(xy[:, 1].max()), texel)
+            xx, yy = np.meshgrid(centres[cols], -centres[rows])
+            block = tex[rows, cols]
+            values = block.reshape(-1).copy()
+            x = xx.reshape(-1).astype(np.float32)
+            _print_marker(m, x, yy.reshape(-1).astype(np.float32), values)
+            tex[rows, cols] = np.where(block >= 0.0, values.reshape(block.shape), block)
+        return tex.astype(np.float32), texel
 
     # ------------------------------------------------------------------ file I/O
     def to_dict(self) -> dict[str, Any]:
