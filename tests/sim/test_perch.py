@@ -47,6 +47,20 @@ def test_perfect_estimator_perches(setup: PerchSetup) -> None:
         assert r.seated_offset_mm < CONTACT_RADIUS_MM
 
 
+def test_motors_stopped_against_the_plate_near_the_end_are_judged_after_it(
+    setup: PerchSetup,
+) -> None:
+    """Motors stopped against the plate 0.08 s before the run's end: the magnet's hold is
+    still judged a second after the stop (the vehicle flying on, unpowered), not scored as
+    motors that never stopped."""
+    run = run_perch(replace(setup, duration_s=7.9), 10)
+    assert 7.9 - 1.0 < run.time_to_perch_s < 7.9  # the stop: within a second of the end
+    assert "perched@" in run.pilot_states
+    assert run.reason == "perched"
+    assert run.motor_stop_height_m == 0.0
+    assert run.seated_offset_mm < CONTACT_RADIUS_MM
+
+
 def test_first_touch_scores_at_the_first_contact(setup: PerchSetup) -> None:
     results = run_campaign(replace(setup, contact_mode="first-touch"), runs=6, seed=10)
     assert summarise(results).success_rate == 1.0

@@ -984,6 +984,23 @@ class _Flight:
         at = self.stop.stopped_at_s
         return (reason == "perched", reason, touch.offset_mm, touch.v_mps[2], at, touch)
 
+    def after_the_end(self, end_s: float) -> Outcome:
+        """The end of a run that lasted its whole duration. Motors stopped against the plate
+        in time are judged as ever, ``HOLD_S`` after the stop: the vehicle goes on, unpowered,
+        past the end until the magnet's hold is seen (or the gear falls)."""
+        hz = self.setup.physics_hz
+        t_s = end_s
+        while self.stop.stopped_at_plate and t_s < self.stop.stopped_at_s + HOLD_S + 1.0 / hz:
+            steps = max(1, math.ceil((self.stop.stopped_at_s + HOLD_S - t_s) * hz - 1e-9))
+            self.now_s = t_s
+            contact = self.fly(t_s, steps)
+            flown = steps if contact is None else contact + 1
+            outcome = self.ended(contact, t_s, t_s + flown / hz)
+            if outcome is not None:
+                return outcome
+            t_s += flown / hz
+        return self.timed_out()
+
     def timed_out(self) -> Outcome:
         """The end of a run that lasted its whole duration."""
         touch = self.plate.contact
@@ -1161,4 +1178,4 @@ def run_perch(
         outcome = flight.ended(contact, t, (i + steps) * dt_s)
         if outcome is not None:
             return result(*outcome)
-    return result(*flight.timed_out())
+    return result(*flight.after_the_end(setup.physics_steps * dt_s))
