@@ -328,7 +328,7 @@ class TargetSpec:
             x = xx.reshape(-1).astype(np.float32)
             _print_marker(m, x, yy.reshape(-1).astype(np.float32), values)
             tex[rows, cols] = np.where(block >= 0.0, values.reshape(block.shape), block)
-        return tex.astype(np.float32), texel
+        return tex.astype(np.float32, copy=False), texel
 
     # ------------------------------------------------------------------ file I/O
     def to_dict(self) -> dict[str, Any]:
