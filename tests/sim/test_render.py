@@ -8,7 +8,7 @@ from numpy.typing import NDArray
 
 from perchpose import CameraModel
 from perchpose.geometry import facing_pose
-from perchpose.sim.render import ImageQuality, Occluder, Renderer
+from perchpose.sim.render import ImageQuality, Occluder, Renderer, grid_rays
 
 
 def test_same_seed_same_frame(renderers: dict[str, Renderer]) -> None:
@@ -19,6 +19,21 @@ def test_same_seed_same_frame(renderers: dict[str, Renderer]) -> None:
     c = r.render(T, ImageQuality(), np.random.default_rng(6))
     np.testing.assert_array_equal(a, b)
     assert np.any(a != c)
+
+
+def test_renderers_of_one_camera_share_its_rays_and_other_lenses_get_their_own() -> None:
+    webcam = CameraModel.preset("webcam")
+    rays = grid_rays(webcam, 2)
+    assert grid_rays(CameraModel.preset("webcam"), 2) is rays  # an equal camera, made again
+    assert not rays.flags.writeable
+    assert rays.shape == (480 * 2 * 640 * 2, 3)
+    # the grid's first sample is a quarter pixel up and left of pixel (0, 0)'s centre
+    np.testing.assert_allclose(rays[0], webcam.pixel_rays(np.array([[-0.25, -0.25]]))[0], 1e-6)
+    assert grid_rays(webcam, 3).shape == (480 * 3 * 640 * 3, 3)
+    shifted = replace(webcam, K=webcam.K + np.array([[0, 0, 1.0], [0, 0, 0], [0, 0, 0]]))
+    other = grid_rays(shifted, 2)
+    assert other is not rays
+    assert not np.allclose(other, rays)
 
 
 def test_clean_render_levels_and_geometry(renderers: dict[str, Renderer]) -> None:

@@ -13,6 +13,7 @@ blur, noise and JPEG after, on the pixels; occluders are drawn before the blur.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Generic, Protocol, TypeVar
 
@@ -136,10 +137,47 @@ NOISE_BANK_SEED = 20240601
 SATURATION = 255.0
 
 
+# the supersampled grid's rays of the last few cameras rendered through, shared by every
+# renderer of the process (each is tens of MB and 0.1-0.7 s to compute; a campaign's or a
+# test's renderers mostly share one camera)
+_GRID_RAYS: OrderedDict[tuple[object, ...], NDArray[np.float32]] = OrderedDict()
+GRID_RAYS_KEPT = 4
+
+
+def grid_rays(camera: CameraModel, supersample: int) -> NDArray[np.float32]:
+    """(H n W n, 3) unit rays, row by row and read-only, through the centres of an ``n`` x
+    ``n`` grid of samples in every pixel (``n`` = ``supersample``), computed once per lens,
+    image size and ``n`` and kept for the next renderer of the same camera."""
+    key = (
+        camera.model,
+        camera.width_px,
+        camera.height_px,
+        np.asarray(camera.K, np.float64).tobytes(),
+        np.asarray(camera.dist, np.float64).tobytes(),
+        supersample,
+    )
+    rays = _GRID_RAYS.get(key)
+    if rays is None:
+        n = supersample
+        w, h = camera.size
+        offsets = (np.arange(n) + 0.5) / n - 0.5
+        us = (np.arange(w)[:, None] + offsets[None, :]).reshape(-1)
+        vs = (np.arange(h)[:, None] + offsets[None, :]).reshape(-1)
+        u, v = np.meshgrid(us, vs)
+        rays = camera.pixel_rays(np.stack([u.reshape(-1), v.reshape(-1)], 1)).astype(np.float32)
+        rays.flags.writeable = False
+        _GRID_RAYS[key] = rays
+        while len(_GRID_RAYS) > GRID_RAYS_KEPT:
+            _GRID_RAYS.popitem(last=False)
+    else:
+        _GRID_RAYS.move_to_end(key)
+    return rays
+
+
 @dataclass
 class Renderer(Generic[P]):
-    """Draws ``target`` (a TargetSpec, or any PlanarPattern) through ``camera``; ray directions
-    are computed once and cached.
+    """Draws ``target`` (a TargetSpec, or any PlanarPattern) through ``camera``; the rays of its
+    sample grid are computed once per camera and shared (``grid_rays``).
 
     noise_bank : draw each frame's sensor noise as a window, at an offset drawn from the frame's
         generator, of one bank of Gaussian noise twice the frame's size each way (drawn once,
@@ -168,14 +206,7 @@ class Renderer(Generic[P]):
 
     def _camera_rays(self) -> NDArray[np.float32]:
         if self._rays is None:
-            n = self.supersample
-            w, h = self.camera.size
-            offsets = (np.arange(n) + 0.5) / n - 0.5
-            us = (np.arange(w)[:, None] + offsets[None, :]).reshape(-1)
-            vs = (np.arange(h)[:, None] + offsets[None, :]).reshape(-1)
-            u, v = np.meshgrid(us, vs)
-            rays = self.camera.pixel_rays(np.stack([u.reshape(-1), v.reshape(-1)], 1))
-            self._rays = rays.astype(np.float32)
+            self._rays = grid_rays(self.camera, self.supersample)
         return self._rays
 
     def _sheet_pixel_box(self, T: Array) -> tuple[int, int, int, int] | None:
