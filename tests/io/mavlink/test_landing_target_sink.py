@@ -42,6 +42,7 @@ class Receiver:
         self.attitude = attitude
         self.p_ned_m = p_ned_m
         self._stop = threading.Event()
+        self._last_heard_s = time.monotonic()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
@@ -49,6 +50,7 @@ class Receiver:
         while not self._stop.is_set():
             msg = self.conn.recv_match(blocking=True, timeout=0.05)
             if msg is not None and msg.get_type() != "BAD_DATA":
+                self._last_heard_s = time.monotonic()
                 self.messages.append(msg)
                 if msg.get_type() == "TIMESYNC" and self.clock_offset_ns is not None:
                     self._timesync(msg)
@@ -74,7 +76,11 @@ class Receiver:
         return [m for m in self.messages if m.get_type() == name]
 
     def stop(self) -> None:
-        time.sleep(0.3)  # the last datagrams
+        # the last datagrams: read until 0.3 s pass without one (a loaded machine's thread
+        # may still be behind the sender), 10 s at most
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and time.monotonic() - self._last_heard_s < 0.3:
+            time.sleep(0.05)
         self._stop.set()
         self._thread.join()
         self.conn.close()
