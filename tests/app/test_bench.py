@@ -179,6 +179,7 @@ def test_the_kernels_are_ready_before_the_first_timed_frame(report: BenchReport)
     assert f"kernels ready in {report.warm_up_s:.1f} s" in format_report(report)
 
 
+@pytest.mark.slow  # two fresh processes, cold and warm (about 6 s)
 def test_startup_to_the_first_pose_in_a_fresh_process(
     webcam: CameraModel, paper_target: TargetSpec
 ) -> None:

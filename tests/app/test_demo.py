@@ -1,12 +1,14 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from perchpose import CameraModel
 from perchpose.app.demo import run_demo
 from perchpose.evaluation.metrics import format_stage_table
 
 
+@pytest.mark.slow  # the README's demo, whole (about 7 s)
 def test_demo_writes_its_files_and_measures(tmp_path: Path) -> None:
     messages: list[str] = []
     result = run_demo(

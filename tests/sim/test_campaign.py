@@ -19,6 +19,7 @@ def setup() -> PerchSetup:
     )
 
 
+@pytest.mark.slow  # a local Dask cluster flies a campaign (about 9 s)
 def test_the_same_seeds_give_the_same_runs_on_a_dask_cluster(setup: PerchSetup) -> None:
     distributed = pytest.importorskip("dask.distributed")
     local = run_campaign(setup, runs=3, seed=20)

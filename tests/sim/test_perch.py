@@ -403,6 +403,7 @@ def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
     assert summary["latency_range_ms"] == [pytest.approx(133.333, abs=1e-3)] * 2  # 2 frames
 
 
+@pytest.mark.slow  # five cells flown (about 10 s)
 def test_perch_sweeps_latency(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "p"
     argv = ["perch", "--sweep", "latency", "--runs", "1", "--estimator", "truth", "--quiet"]
