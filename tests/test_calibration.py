@@ -94,7 +94,11 @@ def _corner_noise_px(
 
 
 @pytest.mark.parametrize(
-    ("camera_name", "z_m"), [("webcam", (0.35, 0.55)), ("fpv_wide", (0.16, 0.3))]
+    ("camera_name", "z_m"),
+    [
+        ("webcam", (0.35, 0.55)),
+        pytest.param("fpv_wide", (0.16, 0.3), marks=pytest.mark.slow),  # about 9 s
+    ],
 )
 def test_rendered_boards_recover_the_camera(camera_name: str, z_m: tuple[float, float]) -> None:
     camera = CameraModel.preset(camera_name)
@@ -302,6 +306,7 @@ def test_calibrate_command_drives_track(tmp_path: Path) -> None:
     assert abs(e.x_cm - 2.0) < 0.2
 
 
+@pytest.mark.slow  # 20 frames searched twice, through a video file (about 7 s)
 def test_video_views_are_picked(tmp_path: Path) -> None:
     camera = CameraModel.preset("webcam")
     board = TUTORIAL_BOARD

@@ -370,6 +370,7 @@ def test_latency_is_flown_with_the_attitude_at_capture(monkeypatch: pytest.Monke
     assert sum(r.success for r in arrival) <= 2
 
 
+@pytest.mark.slow  # four runs, three of them in moderate wind (about 9 s)
 def test_a_slow_camera_with_latency_perches(tmp_path: Path) -> None:
     """15 fps and 133 ms (the AI deck's rate, two frames late), moderate wind: the campaign
     records the camera's timing and perches."""

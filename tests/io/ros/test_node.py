@@ -104,6 +104,7 @@ def _fly(
     return json.loads(out.read_text()), log
 
 
+@pytest.mark.slow  # the node fed 90 frames in a ROS 2 graph (about 16 s)
 def test_every_pose_has_its_image_s_exact_stamp_and_frame_and_matches_the_truth(
     approach_webcam_dir: Path, tmp_path: Path
 ) -> None:
