@@ -13,6 +13,7 @@ blur, noise and JPEG after, on the pixels; occluders are drawn before the blur.
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Generic, Protocol, TypeVar
@@ -141,6 +142,7 @@ SATURATION = 255.0
 # renderer of the process (each is tens of MB and 0.1-0.7 s to compute; a campaign's or a
 # test's renderers mostly share one camera)
 _GRID_RAYS: OrderedDict[tuple[object, ...], NDArray[np.float32]] = OrderedDict()
+_GRID_RAYS_LOCK = threading.Lock()  # renderers in several threads (a simulated vehicle's video)
 GRID_RAYS_KEPT = 4
 
 
@@ -156,8 +158,11 @@ def grid_rays(camera: CameraModel, supersample: int) -> NDArray[np.float32]:
         np.asarray(camera.dist, np.float64).tobytes(),
         supersample,
     )
-    rays = _GRID_RAYS.get(key)
-    if rays is None:
+    with _GRID_RAYS_LOCK:
+        rays = _GRID_RAYS.get(key)
+        if rays is not None:
+            _GRID_RAYS.move_to_end(key)
+            return rays
         n = supersample
         w, h = camera.size
         offsets = (np.arange(n) + 0.5) / n - 0.5
@@ -169,9 +174,7 @@ def grid_rays(camera: CameraModel, supersample: int) -> NDArray[np.float32]:
         _GRID_RAYS[key] = rays
         while len(_GRID_RAYS) > GRID_RAYS_KEPT:
             _GRID_RAYS.popitem(last=False)
-    else:
-        _GRID_RAYS.move_to_end(key)
-    return rays
+        return rays
 
 
 @dataclass
