@@ -3,7 +3,8 @@ from pathlib import Path
 
 import pytest
 
-from perchpose.app.perch import PerchOptions, run
+from perchpose.app.inputs import load_camera
+from perchpose.app.perch import PerchCampaign, PerchOptions, run
 from perchpose.errors import PerchposeError
 
 
@@ -51,3 +52,33 @@ def test_a_campaign_flown_on_full_state_setpoints_says_so(tmp_path: Path) -> Non
     assert any("full-state setpoints" in line for line in said)
     with pytest.raises(PerchposeError, match="--command: unknown 'attitude'"):
         run(PerchOptions(str(tmp_path / "other"), estimators="truth", runs=1, command="attitude"))
+
+
+def test_a_runs_length_is_asked_for_and_recorded(tmp_path: Path) -> None:
+    """``duration_s``: every run may fly that long and no longer (from 60-150 cm below the
+    target at up to 0.3 m/s, 1.5 s is too short to perch); the reports say how long it was.
+    Without it a run has 20 s, 40 s with faults."""
+    options = PerchOptions(
+        str(tmp_path / "short"),
+        estimators="truth",
+        runs=1,
+        seed=7,
+        sensing="ideal",
+        workers=1,
+        duration_s=1.5,
+    )
+    content = run(options, say=lambda _: None)
+    assert content["duration_s"] == 1.5
+    setup = content["setup"]
+    assert isinstance(setup, dict)
+    assert setup["duration_s"] == 1.5
+    assert content["success_rate"] == 0.0
+    cell = next(iter(content["cells"].values()))
+    assert isinstance(cell, dict)
+    assert cell["reasons"] == {"timeout": 1}
+    default = PerchCampaign.from_options(load_camera("preset:fpv"), estimators="truth", runs=1)
+    faulty = PerchCampaign.from_options(
+        load_camera("preset:fpv"), estimators="truth", runs=1, faults="link-loss"
+    )
+    assert default.setups[0].duration_s == 20.0
+    assert faulty.setups[0].duration_s == 40.0

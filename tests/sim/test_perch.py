@@ -188,6 +188,9 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         (["--latency-ms", "300"], "latency of 300 ms is outside what was verified"),
         (["--latency-ms", "-5"], "--latency-ms must be >= 0"),
         (["--fps", "0"], "--fps must be a positive number, got 0"),
+        (["--duration-s", "0"], "--duration-s must be more than 0 and at most 600 s, got 0"),
+        (["--duration-s", "nan"], "--duration-s must be more than 0 and at most 600 s, got nan"),
+        (["--duration-s", "601"], "--duration-s must be more than 0 and at most 600 s, got 601"),
     ],
 )
 def test_perch_bad_input(

@@ -62,9 +62,11 @@ class PerchCampaign:
         position_fixes: str = "send",
         command: str = "velocity",
         contact: str = "hold",
+        duration_s: float | None = None,
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
-        fault."""
+        fault. ``duration_s``: how long a run may fly (None: ``PerchSetup.duration_s``, or
+        ``FAULT_RUN_S`` with faults)."""
         names = list(comma_list(estimators))
         injected = comma_list(faults)
         unknown = [n for n in names if n not in ESTIMATORS]
@@ -110,7 +112,7 @@ class PerchCampaign:
             estimator=names[0],
             disturbances=Disturbances() if disturbances else Disturbances.none(),
             stamps=stamps,
-            duration_s=FAULT_RUN_S if injected else PerchSetup.duration_s,
+            duration_s=run_length_s(duration_s, faulty=bool(injected)),
             flight_controller=flight_controller,
             onboard_estimator=onboard_estimator,
             pilot=PilotSettings(
@@ -207,6 +209,7 @@ class PerchCampaign:
 
 SWEEP_LATENCIES_MS = (0.0, 50.0, 100.0, 150.0, 200.0)  # --sweep latency
 FAULT_RUN_S = 40.0  # a run with a fault goes on through its landing
+MAX_RUN_S = 600.0  # the longest run --duration-s flies (a Crazyflie's battery lasts about 7 min)
 
 
 @dataclass(frozen=True)
@@ -244,6 +247,7 @@ class PerchOptions:
     position_fixes: str = "send"
     command: str = "velocity"
     contact: str = "hold"
+    duration_s: float | None = None
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -271,6 +275,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         position_fixes=options.position_fixes,
         command=options.command,
         contact=options.contact,
+        duration_s=options.duration_s,
     )
     content = campaign.fly(
         options.out,
@@ -285,6 +290,19 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         text = json.dumps(content, indent=2, default=str)
         Path(options.json_out).write_text(text, encoding="utf-8")
     return content
+
+
+def run_length_s(duration_s: float | None, *, faulty: bool) -> float:
+    """How long a run may fly: ``duration_s`` as asked (checked), or the default
+    (``PerchSetup.duration_s``; ``FAULT_RUN_S`` with faults, which fly on through the
+    landing)."""
+    if duration_s is None:
+        return FAULT_RUN_S if faulty else PerchSetup.duration_s
+    if not (math.isfinite(duration_s) and 0.0 < duration_s <= MAX_RUN_S):
+        raise PerchposeError(
+            f"--duration-s must be more than 0 and at most {MAX_RUN_S:g} s, got {duration_s:g}"
+        )
+    return duration_s
 
 
 def comma_list(text: str) -> tuple[str, ...]:

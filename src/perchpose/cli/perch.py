@@ -158,6 +158,13 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
     "odometry-stall, attitude-stall, link-loss (comma-separated; runs then go on through the "
     "landing until the motors stop, up to 40 s).",
 )
+@click.option(
+    "--duration-s",
+    default=None,
+    type=float,
+    help="How long each run may fly, seconds (default 20; 40 with --faults); a run not "
+    "perched by then ends as a timeout.",
+)
 @camera_option_fpv
 @click.option(
     "--out",
@@ -210,6 +217,7 @@ def perch(
     latency_error_ms: float,
     time_offset: str,
     faults: str,
+    duration_s: float | None,
     camera_file: str,
     out: str,
     json_out: str | None,
@@ -252,6 +260,7 @@ def perch(
         faults=faults,
         latency_error_ms=latency_error_ms,
         time_offset=time_offset,
+        duration_s=duration_s,
     )
     content = run(options, say=lambda m: click.echo(m, err=True))
     click.echo(summary_table(content), nl=False)

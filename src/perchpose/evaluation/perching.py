@@ -650,6 +650,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "lean_lag_s": setup.pilot.lean_lag_s,
         "stamps": setup.stamps,
         "contact_mode": setup.contact_mode,
+        "duration_s": setup.duration_s,
         "faults": list(setup.faults),
         "fps": setup.fps,
         "latency_ms": _latency_ms(setup),
