@@ -1,3 +1,4 @@
+import dataclasses
 import math
 import re
 from pathlib import Path
@@ -262,3 +263,17 @@ def test_an_infinite_image_size_is_not_an_integer(tmp_path: Path) -> None:
     )
     with pytest.raises(CameraFileError, match="field 'image_width' is not an integer"):
         CameraModel.load(path)
+
+
+def test_a_camera_replaced_with_other_coefficients_keeps_no_cache_of_the_original() -> None:
+    """``dataclasses.replace`` builds a camera with its own cache: what the original worked
+    out for its own coefficients (its largest distortion) is not read back for another's."""
+    barrel = CameraModel(
+        np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]]),
+        np.array([-0.2, 0.05, 0.0, 0.0, 0.0]),
+        640,
+        480,
+    )
+    first = barrel.max_distortion_px()
+    straight = dataclasses.replace(barrel, dist=np.zeros(5))
+    assert straight.max_distortion_px() < 1e-9 < first

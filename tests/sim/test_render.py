@@ -30,9 +30,7 @@ def test_renderers_of_one_camera_share_its_rays_and_other_lenses_get_their_own()
     # the grid's first sample is a quarter pixel up and left of pixel (0, 0)'s centre
     np.testing.assert_allclose(rays[0], webcam.pixel_rays(np.array([[-0.25, -0.25]]))[0], 1e-6)
     assert grid_rays(webcam, 3).shape == (480 * 3 * 640 * 3, 3)
-    # a new camera, not dataclasses.replace (which would hand it the webcam's own _cache)
-    K = webcam.K + np.array([[0, 0, 1.0], [0, 0, 0], [0, 0, 0]])
-    shifted = CameraModel(K, webcam.dist, webcam.width_px, webcam.height_px, webcam.model)
+    shifted = replace(webcam, K=webcam.K + np.array([[0, 0, 1.0], [0, 0, 0], [0, 0, 0]]))
     other = grid_rays(shifted, 2)
     assert other is not rays
     assert not np.allclose(other, rays)

@@ -65,7 +65,7 @@ class CameraModel:
     height_px: int
     model: DistortionModel = "plumb_bob"
     name: str = "camera"
-    _cache: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+    _cache: dict[str, Any] = field(default_factory=dict, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)
