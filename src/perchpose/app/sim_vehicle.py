@@ -341,6 +341,7 @@ def _fly_in_real_time(
             world.odometry.p_m,
             world.odometry.v_mps,
             world.on_ground,
+            v.specific_force_body_mps2,
         )
         time.sleep(max(0.0, start_s + world.t_s + BLOCK_S - time.monotonic()))
 

@@ -1,6 +1,6 @@
 """Perching with an autopilot, checked at the autopilot's rules against a pymavlink endpoint on
-loopback that plays the vehicle: HEARTBEAT with its mode, ATTITUDE and LOCAL_POSITION_NED at
-50 Hz, and what it receives kept with the mode it was in."""
+loopback that plays the vehicle: HEARTBEAT with its mode, ATTITUDE, LOCAL_POSITION_NED and
+HIGHRES_IMU at 50 Hz, and what it receives kept with the mode it was in."""
 
 import math
 import threading
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from perchpose.cli import main
-from perchpose.control import PilotSettings
+from perchpose.control import ControllerSettings, PerchingController, PilotSettings
 from perchpose.io.mavlink import link as mavlink_link
 from perchpose.io.mavlink.landing_target_sink import mavutil_module
 from perchpose.io.mavlink.link import MavlinkLink
@@ -29,8 +29,9 @@ ARMED = 128 | 1  # MAV_MODE_FLAG_SAFETY_ARMED | MAV_MODE_FLAG_CUSTOM_MODE_ENABLE
 
 class Vehicle:
     """An autopilot on ``udpin``: level, still, 1 m up, in ``mode``; heartbeats at 10 Hz
-    (and at once on a mode change) until ``silent``; ATTITUDE and LOCAL_POSITION_NED at 50 Hz
-    while ``streams`` names them, each sample through ``sample`` (to spoil one). ``stranger``:
+    (and at once on a mode change) until ``silent``; ATTITUDE, LOCAL_POSITION_NED and
+    HIGHRES_IMU (its accelerometer: ``push_frd_mps2`` along the body's x and y, -g along z) at
+    50 Hz while ``streams`` names them, each sample through ``sample`` (to spoil one). ``stranger``:
     a second autopilot on the same link (system 2, disarmed in LOITER, rolled 30 deg) sends
     its heartbeats and attitude too."""
 
@@ -46,7 +47,8 @@ class Vehicle:
         self.armed = True
         self.silent = False
         self.stranger = stranger
-        self.streams = {"ATTITUDE", "LOCAL_POSITION_NED"}
+        self.streams = {"ATTITUDE", "LOCAL_POSITION_NED", "HIGHRES_IMU"}
+        self.push_frd_mps2 = (0.0, 0.0)
         self.height_m = 1.0
         self.flies = False  # its height follows the vertical speed it is sent (floor at 0)
         self._stated_s: float | None = None  # when it last sent its state
@@ -117,6 +119,10 @@ class Vehicle:
             x = nan if "LOCAL_POSITION_NED" in self.spoil else 0.0
             self.spoil.discard("LOCAL_POSITION_NED")
             self.conn.mav.local_position_ned_send(boot_ms, x, 0.0, -self.height_m, 0.0, 0.0, vz)
+        if "HIGHRES_IMU" in self.streams:
+            ax, ay = self.push_frd_mps2
+            zero = (0.0,) * 10
+            self.conn.mav.highres_imu_send(boot_ms * 1000, ax, ay, -9.81, *zero, 7)
         if self.stranger:  # the same socket, another system id
             self.conn.mav.srcSystem = 2
             self.conn.mav.heartbeat_send(2, self.autopilot, 1, LOITER, 4)
@@ -530,8 +536,9 @@ def test_the_pilot_asks_for_its_streams_and_says_why_it_never_took_over(
     assert {(m.command, m.param1, m.param2) for m in asked} == {
         (511, 30, 20000),
         (511, 32, 20000),
+        (511, 105, 20000),
     }
-    assert len(asked) == 6  # each stream, three times
+    assert len(asked) == 9  # each stream, three times
     assert all((m.target_system, m.target_component) == (7, 1) for m in asked)
     assert not vehicle.setpoints()
     assert reports[-1] == (
@@ -544,7 +551,7 @@ def test_streams_that_arrive_are_not_asked_again(udp_port: int) -> None:
         time.sleep(2.5)  # past the time a missing stream would be asked for again
     commands = [m for _, m in vehicle.received if m.get_type() == "COMMAND_LONG"]
     asked = [m for m in commands if m.param1 != 0]  # not the HEARTBEAT's rate
-    assert len(asked) <= 2  # at most the first request, before the streams were seen
+    assert len(asked) <= 3  # at most the first request, before the streams were seen
 
 
 def _command_longs(vehicle: Vehicle, command: int) -> list[Any]:
@@ -678,3 +685,37 @@ def test_tracking_that_ends_mid_landing_hands_the_vehicle_to_land(udp_port: int)
     assert (land.param1, land.param2) == (1, 9)
     assert any("while landing: the autopilot's LAND lands the vehicle" in r for r in reports)
     assert not any("a hover setpoint" in r for r in reports)
+
+
+def test_the_accelerometers_push_is_leaned_against_and_a_vehicle_without_one_is_flown_without(
+    udp_port: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """HIGHRES_IMU's accelerometer along the body's x and y is the air's push: with 0.6 m/s^2
+    forward (north: the vehicle is level, heading north) the setpoints lean against it by
+    push / the velocity loop's gain; a vehicle that never sends it is flown as before, and the
+    link says so once. (No disturbance observer and no lateral integral: this vehicle flies
+    no setpoint, which they would wind up on.)"""
+    monkeypatch.setattr(mavlink_link, "STREAM_RETRY_S", 0.2)
+    settings = ControllerSettings(observer_rate=0.0, k_i_xy=0.0)
+    north: dict[str, float] = {}
+    for pushed in (False, True):
+        controller = PerchingController(settings)
+        with guided(udp_port, controller=controller) as (vehicle, pilot, reports):
+            if pushed:
+                vehicle.push_frd_mps2 = (0.6, 0.0)
+                wait_for(lambda: pilot.specific_force() is not None)
+                wait_for(lambda: float(pilot.specific_force()[0]) > 0.5)  # type: ignore[index]
+            else:
+                vehicle.streams.discard("HIGHRES_IMU")
+                wait_for(lambda: any("HIGHRES_IMU" in r for r in reports))
+                assert pilot.specific_force() is None
+            start = len(vehicle.setpoints())
+            fly(pilot, 0.6, (0.0, 0.0, 0.6), time.monotonic())
+            sent = [msg for _, msg in vehicle.setpoints()[start:]]
+        assert len(sent) > 10
+        north[str(pushed)] = float(np.mean([msg.vx for msg in sent[len(sent) // 2 :]]))
+        if not pushed:
+            (said,) = [r for r in reports if "HIGHRES_IMU" in r]
+            assert "flown without its accelerometer" in said
+    lean = north["True"] - north["False"]
+    assert lean == pytest.approx(-0.6 / settings.onboard_velocity_gain, rel=0.1)

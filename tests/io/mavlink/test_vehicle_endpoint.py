@@ -1,6 +1,6 @@
 """The vehicle's end of a MAVLink link, heard by the project's own companion link: the
-autopilot it says it is, its mode and arming, its attitude and position in NED, the stream
-rates asked of it and TIMESYNC."""
+autopilot it says it is, its mode and arming, its attitude and position in NED, its
+accelerometer in FRD, the stream rates asked of it and TIMESYNC."""
 
 import math
 import threading
@@ -35,11 +35,13 @@ def test_attitude_angles_turn_back_into_the_body_attitude():
 class Served:
     """An endpoint served on a thread as the sim-vehicle serves it: a vehicle 1 m up, 0.2 m
     north and 0.1 m west of its origin, heading 30 deg left of north, climbing at 0.1 m/s,
-    LOITER (custom mode 5), armed; its ATTITUDE stream off until asked for."""
+    LOITER (custom mode 5), armed, its accelerometer reading a push of 0.3 m/s^2 forward and
+    0.2 m/s^2 left (FLU); its ATTITUDE stream off until asked for."""
 
     R = rot_z(math.radians(30.0))
     p = np.array([0.2, 0.1, 1.0])
     v = np.array([0.0, 0.0, 0.1])
+    f_body = np.array([0.3, 0.2, 9.81])
 
     def __init__(self, port: int, autopilot: int = 3) -> None:
         self.endpoint = VehicleEndpoint(f"udpin:127.0.0.1:{port}", autopilot=autopilot)
@@ -54,7 +56,9 @@ class Served:
             list(self.endpoint.messages())
             now = time.monotonic() - start
             self.endpoint.heartbeat(now, 5, armed=True)
-            self.endpoint.state(now, self.R, np.zeros(3), self.p, self.v, on_ground=False)
+            self.endpoint.state(
+                now, self.R, np.zeros(3), self.p, self.v, on_ground=False, f_body_mps2=self.f_body
+            )
             time.sleep(0.005)
 
     def stop(self) -> None:
@@ -84,12 +88,14 @@ def test_a_companion_hears_the_autopilot_its_state_in_ned_and_its_clock(
 ):
     link = MavlinkLink(
         f"udpout:127.0.0.1:{udp_port}",
-        streams=("ATTITUDE", "LOCAL_POSITION_NED"),
+        streams=("ATTITUDE", "LOCAL_POSITION_NED", "HIGHRES_IMU"),
         stream_hz=25.0,
     )
     try:
         vehicle = link.vehicle
         assert _until(lambda: vehicle.R_ned_frd is not None and vehicle.p_ned_m is not None)
+        assert _until(lambda: vehicle.f_frd_mps2 is not None)
+        assert np.allclose(vehicle.f_frd_mps2, [0.3, -0.2, -9.81], atol=1e-5)  # FRD
         assert vehicle.autopilot == 3
         assert vehicle.custom_mode == 5
         assert vehicle.armed
@@ -138,3 +144,24 @@ def test_the_vehicles_heartbeat_is_asked_for_at_ten_hertz(
         served.stop()
     with pytest.raises(link_module.LinkError, match="HEARTBEAT rate must be 1 to 50 Hz"):
         MavlinkLink(f"udpout:127.0.0.1:{udp_port}", heartbeat_hz=0.0)
+
+
+def test_an_accelerometer_reading_that_is_no_reading_is_dropped() -> None:
+    """HIGHRES_IMU with a NaN or beyond 16 g is refused whole; the last good one stays."""
+    from pymavlink.dialects.v20 import common
+
+    from perchpose.io.mavlink.link import VehicleState
+
+    state = VehicleState()
+    zero = (0.0,) * 10
+
+    def imu(ax: float, ay: float, az: float) -> object:
+        return common.MAVLink_highres_imu_message(0, ax, ay, az, *zero, 7)
+
+    assert state.heard(imu(0.1, -0.2, -9.8), now=1.0)
+    assert not state.heard(imu(float("nan"), 0.0, -9.8), now=2.0)
+    assert not state.heard(imu(0.0, 0.0, -200.0), now=3.0)
+    assert state.f_frd_mps2 is not None
+    assert np.allclose(state.f_frd_mps2, [0.1, -0.2, -9.8])
+    assert state.imu_age_s(5.0) == pytest.approx(4.0)
+    assert state.rejected == 2

@@ -52,7 +52,9 @@ MAV_STATE_ACTIVE = 4
 MAV_MODE_FLAG_SAFETY_ARMED = 128
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
-STREAM_IDS = {"ATTITUDE": 30, "LOCAL_POSITION_NED": 32}
+STREAM_IDS = {"ATTITUDE": 30, "LOCAL_POSITION_NED": 32, "HIGHRES_IMU": 105}
+OPTIONAL_STREAMS = ("HIGHRES_IMU",)  # flown without where the vehicle does not send them
+MAX_SPECIFIC_FORCE_MPS2 = 160.0  # 16 g: an accelerometer reading beyond is no reading
 HEARTBEAT_ID = 0
 MAV_LANDED_STATE_ON_GROUND = 1
 STREAM_RETRY_S = 2.0  # a stream not arriving this long after it was asked for is asked again
@@ -126,7 +128,9 @@ class VehicleState:
 
     The autopilot's HEARTBEAT: ``autopilot`` (MAV_AUTOPILOT: 3 ArduPilot, 12 PX4),
     ``custom_mode``, ``base_mode``; ATTITUDE as ``R_ned_frd``; LOCAL_POSITION_NED as
-    ``p_ned_m`` and ``v_ned_mps``; EXTENDED_SYS_STATE's ``landed_state`` (its land detector).
+    ``p_ned_m`` and ``v_ned_mps``; HIGHRES_IMU's accelerometer as ``f_frd_mps2`` (the specific
+    force in the body's FRD frame: at rest ``-g`` along z); EXTENDED_SYS_STATE's
+    ``landed_state`` (its land detector).
     ``system_id`` and ``component_id`` are the autopilot's:
     ``target_system`` if given, else the first autopilot whose HEARTBEAT is heard. Nothing from
     another system or component reaches this state. An ATTITUDE or LOCAL_POSITION_NED that
@@ -139,8 +143,10 @@ class VehicleState:
     R_ned_frd: Array | None = None
     p_ned_m: Array | None = None
     v_ned_mps: Array | None = None
+    f_frd_mps2: Array | None = None
     attitude_t_s: float = float("nan")
     position_t_s: float = float("nan")
+    imu_t_s: float = float("nan")
     autopilot: int | None = None
     custom_mode: int = 0
     base_mode: int = 0
@@ -164,6 +170,10 @@ class VehicleState:
     def position_age_s(self, now: float) -> float:
         """Seconds since the last good LOCAL_POSITION_NED (infinite before the first)."""
         return now - self.position_t_s if self.p_ned_m is not None else math.inf
+
+    def imu_age_s(self, now: float) -> float:
+        """Seconds since the last good HIGHRES_IMU (infinite before the first)."""
+        return now - self.imu_t_s if self.f_frd_mps2 is not None else math.inf
 
     def source(self, msg: Any) -> str:
         """Whose message this is: ``vehicle`` (our autopilot's, locking on to the first
@@ -211,6 +221,13 @@ class VehicleState:
                 return False
             self.p_ned_m, self.v_ned_mps = p, v
             self.position_t_s = now
+        elif kind == "HIGHRES_IMU":
+            f = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float)
+            if not (np.all(np.isfinite(f)) and np.linalg.norm(f) < MAX_SPECIFIC_FORCE_MPS2):
+                self.rejected += 1
+                return False
+            self.f_frd_mps2 = f
+            self.imu_t_s = now
         elif kind == "EXTENDED_SYS_STATE":
             self.landed_state = int(msg.landed_state)
             self.landed_state_t_s = now
@@ -232,15 +249,15 @@ class MavlinkLink:
     url : pymavlink connection string. target_system : the vehicle's MAVLink system id (None:
     the first autopilot heard); messages from other systems are ignored (each stranger said
     once). streams : the vehicle's messages the link asks for (``ATTITUDE``,
-    ``LOCAL_POSITION_NED``) with MAV_CMD_SET_MESSAGE_INTERVAL at ``stream_hz`` once it knows
-    the vehicle, again while one does not arrive (3 tries, 2 s apart), then says which never
-    came. heartbeat_hz : the rate the link asks of the vehicle's HEARTBEAT, the only message
-    that says its flight mode, so that a mode change by its pilot is heard within a tenth of a
-    second rather than a second (None: the vehicle's own 1 Hz); ArduPilot honours it, PX4
-    keeps 1 Hz: asked again while it does not come at half that rate (3 tries, 2 s apart),
-    then said once. timesync_period_s : how often a TIMESYNC request is sent (0: never;
-    requests from the vehicle are answered all the same). report : receives the one-line link
-    reports (default: this module's logger).
+    ``LOCAL_POSITION_NED``, ``HIGHRES_IMU``) with MAV_CMD_SET_MESSAGE_INTERVAL at ``stream_hz``
+    once it knows the vehicle, again while one does not arrive (3 tries, 2 s apart), then says
+    which never came. heartbeat_hz : the rate the link asks of the vehicle's HEARTBEAT, the only
+    message that says its flight mode, so that a mode change by its pilot is heard within a
+    tenth of a second rather than a second (None: the vehicle's own 1 Hz); ArduPilot honours it,
+    PX4 keeps 1 Hz: asked again while it does not come at half that rate (3 tries, 2 s apart),
+    then said once. timesync_period_s : how often a TIMESYNC request is sent (0: never; requests
+    from the vehicle are answered all the same). report : receives the one-line link reports
+    (default: this module's logger).
 
     No packet ends the link's thread: a message that cannot be packed is dropped, one that
     cannot be used is ignored, and an error in a listener or poller is caught; each kind of
@@ -449,7 +466,11 @@ class MavlinkLink:
 
     def _missing_streams(self, now: float) -> list[str]:
         v = self.vehicle
-        ages = {"ATTITUDE": v.attitude_age_s(now), "LOCAL_POSITION_NED": v.position_age_s(now)}
+        ages = {
+            "ATTITUDE": v.attitude_age_s(now),
+            "LOCAL_POSITION_NED": v.position_age_s(now),
+            "HIGHRES_IMU": v.imu_age_s(now),
+        }
         return [name for name in self.streams if not ages[name] < STREAM_RETRY_S]
 
     def _ask_for_streams(self, now: float) -> None:
@@ -464,12 +485,22 @@ class MavlinkLink:
         if not missing:
             return
         if self._stream_tries >= STREAM_TRIES:
-            self.say_once(
-                "streams",
-                f"MAVLink {self.url}: the vehicle does not send {' and '.join(missing)} though "
-                f"asked {STREAM_TRIES} times (MAV_CMD_SET_MESSAGE_INTERVAL); set its stream "
-                "rates (ArduPilot SRn_EXTRA1 / SRn_POSITION, PX4 the MAVLink mode)",
-            )
+            needed = [name for name in missing if name not in OPTIONAL_STREAMS]
+            if needed:
+                self.say_once(
+                    "streams",
+                    f"MAVLink {self.url}: the vehicle does not send {' and '.join(needed)} "
+                    f"though asked {STREAM_TRIES} times (MAV_CMD_SET_MESSAGE_INTERVAL); set its "
+                    "stream rates (ArduPilot SRn_EXTRA1 / SRn_POSITION, PX4 the MAVLink mode)",
+                )
+            if "HIGHRES_IMU" in missing:
+                self.say_once(
+                    "imu",
+                    f"MAVLink {self.url}: the vehicle does not send HIGHRES_IMU though asked "
+                    f"{STREAM_TRIES} times: flown without its accelerometer (no push fed "
+                    "forward; ArduPilot sends it only in builds with "
+                    "AP_MAVLINK_MSG_HIGHRES_IMU_ENABLED)",
+                )
             return
         self._stream_tries += 1
         self._next_stream_request = now + STREAM_RETRY_S
@@ -530,6 +561,7 @@ class MavlinkLink:
                         "HEARTBEAT",
                         "ATTITUDE",
                         "LOCAL_POSITION_NED",
+                        "HIGHRES_IMU",
                         "EXTENDED_SYS_STATE",
                         "TIMESYNC",
                     ],

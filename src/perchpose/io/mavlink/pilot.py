@@ -8,6 +8,13 @@ setpoint goes out as ``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_LOCAL_NED`
 velocity and yaw rate used (type mask 1479), which ArduCopter's GUIDED and PX4's OFFBOARD both
 follow.
 
+Where the autopilot streams HIGHRES_IMU (PX4; ArduPilot builds that carry it), the pilot reads
+its accelerometer as the Crazyflie link reads ``acc.x/y/z``: along the body's x and y the thrust
+has no part, so they are the air's push over the mass, which the controller leans the velocity
+setpoint against as it comes (``ControllerSettings.push_feedforward``) and its inertial filter
+turns into the world (``control.inertial``). A vehicle that does not send it is flown without
+(said once, after the link has asked for it three times).
+
 The autopilot stays in charge:
 - the pilot takes over only while the vehicle is armed and its HEARTBEAT says GUIDED
   (ArduPilot Copter, custom mode 4) or OFFBOARD (PX4, main mode 6); no controller setpoint is
@@ -247,7 +254,7 @@ class MavlinkPilot:
         self.link = link or MavlinkLink(
             url,
             target_system=target_system,
-            streams=("ATTITUDE", "LOCAL_POSITION_NED"),
+            streams=("ATTITUDE", "LOCAL_POSITION_NED", "HIGHRES_IMU"),
             heartbeat_hz=HEARTBEAT_HZ,
             report=report or log.warning,
         )
@@ -268,6 +275,7 @@ class MavlinkPilot:
             ages=self.ages,
             report=self.report,
             on_ground=lambda: self.vehicle.on_ground(time.monotonic()),
+            specific_force=self.specific_force,
         )
         self.proof_of_life = 0
         self._next_proof = 0.0
@@ -293,6 +301,15 @@ class MavlinkPilot:
         if v.p_ned_m is None or v.v_ned_mps is None or not self._fresh(v.position_t_s):
             return None
         return F @ v.p_ned_m, F @ v.v_ned_mps
+
+    def specific_force(self) -> Array | None:
+        """The accelerometer's specific force in FLU (m/s^2; at rest +g along z) from the
+        vehicle's HIGHRES_IMU, None if old or missing."""
+        v = self.vehicle
+        if v.f_frd_mps2 is None or not self._fresh(v.imu_t_s):
+            return None
+        f_flu: Array = F @ v.f_frd_mps2
+        return f_flu
 
     def ages(self) -> SenseAges:
         """How old the vehicle's ATTITUDE and LOCAL_POSITION_NED (the height's source) are."""

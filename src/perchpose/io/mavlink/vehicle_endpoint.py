@@ -2,7 +2,8 @@
 it answers one, for a simulated vehicle (``perchpose sim-vehicle``).
 
 Sends HEARTBEAT (MAV_TYPE_QUADROTOR, the autopilot's id, armed flag and custom mode),
-ATTITUDE, LOCAL_POSITION_NED and EXTENDED_SYS_STATE (its land detector) at the rates asked
+ATTITUDE, LOCAL_POSITION_NED, HIGHRES_IMU (its accelerometer and gyro) and
+EXTENDED_SYS_STATE (its land detector) at the rates asked
 for with MAV_CMD_SET_MESSAGE_INTERVAL (50 Hz until asked), answers TIMESYNC requests with
 its time since boot, and acknowledges each COMMAND_LONG with COMMAND_ACK. Times on the wire
 are since this endpoint's start (``time_boot_ms``), as an autopilot's are since its boot.
@@ -42,14 +43,17 @@ STREAMS = {
     0: "HEARTBEAT",
     30: "ATTITUDE",
     32: "LOCAL_POSITION_NED",
+    105: "HIGHRES_IMU",
     245: "EXTENDED_SYS_STATE",
 }
 DEFAULT_INTERVAL_S = {
     "HEARTBEAT": 1.0,
     "ATTITUDE": 0.02,
     "LOCAL_POSITION_NED": 0.02,
+    "HIGHRES_IMU": 0.02,
     "EXTENDED_SYS_STATE": 0.2,
 }
+HIGHRES_IMU_ACC_GYRO = 0b111111  # fields_updated: the accelerometer's and the gyro's axes
 
 
 def euler_ned_frd(R_world_body: Array) -> tuple[float, float, float]:
@@ -162,8 +166,10 @@ class VehicleEndpoint:
         p_world_m: Array,
         v_world_mps: Array,
         on_ground: bool,
+        f_body_mps2: Array | None = None,
     ) -> None:
-        """The streams that are due: attitude, local position (NED) and landed state."""
+        """The streams that are due: attitude, local position (NED), the IMU (the specific
+        force ``f_body_mps2`` in FLU, none without it) and landed state."""
         t_ms = self.boot_ms()
         if self.due("ATTITUDE", now_s):
             roll, pitch, yaw = euler_ned_frd(R_world_body)
@@ -173,6 +179,13 @@ class VehicleEndpoint:
             x, y, z = (F @ np.asarray(p_world_m, np.float64)).tolist()
             vx, vy, vz = (F @ np.asarray(v_world_mps, np.float64)).tolist()
             self._conn.mav.local_position_ned_send(t_ms, x, y, z, vx, vy, vz)
+        if f_body_mps2 is not None and self.due("HIGHRES_IMU", now_s):
+            ax, ay, az = (F @ np.asarray(f_body_mps2, np.float64)).tolist()
+            p, q, r = (F @ np.asarray(omega_body_rad_s, np.float64)).tolist()
+            t_us = t_ms * 1000
+            self._conn.mav.highres_imu_send(
+                t_us, ax, ay, az, p, q, r, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, HIGHRES_IMU_ACC_GYRO
+            )
         if self.due("EXTENDED_SYS_STATE", now_s):
             landed = MAV_LANDED_STATE_ON_GROUND if on_ground else MAV_LANDED_STATE_IN_AIR
             self._conn.mav.extended_sys_state_send(0, landed)
