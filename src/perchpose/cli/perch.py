@@ -163,7 +163,8 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
     default=None,
     type=float,
     help="How long each run may fly, seconds (default 20; 40 with --faults); a run not "
-    "perched by then ends as a timeout.",
+    "perched by then ends as a timeout. The camera's dropouts are drawn over the run's "
+    "length, so a seed flies another world at another length.",
 )
 @camera_option_fpv
 @click.option(
