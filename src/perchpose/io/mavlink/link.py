@@ -53,7 +53,11 @@ MAV_MODE_FLAG_SAFETY_ARMED = 128
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 STREAM_IDS = {"ATTITUDE": 30, "LOCAL_POSITION_NED": 32, "HIGHRES_IMU": 105}
-OPTIONAL_STREAMS = ("HIGHRES_IMU",)  # flown without where the vehicle does not send them
+# the streams a vehicle is flown without where it does not send them, and what that costs
+OPTIONAL_STREAMS = {
+    "HIGHRES_IMU": "flown without its accelerometer (no push fed forward; ArduPilot sends it "
+    "only in builds with AP_MAVLINK_MSG_HIGHRES_IMU_ENABLED)",
+}
 MAX_SPECIFIC_FORCE_MPS2 = 160.0  # 16 g: an accelerometer reading beyond is no reading
 HEARTBEAT_ID = 0
 MAV_LANDED_STATE_ON_GROUND = 1
@@ -493,14 +497,13 @@ class MavlinkLink:
                     f"though asked {STREAM_TRIES} times (MAV_CMD_SET_MESSAGE_INTERVAL); set its "
                     "stream rates (ArduPilot SRn_EXTRA1 / SRn_POSITION, PX4 the MAVLink mode)",
                 )
-            if "HIGHRES_IMU" in missing:
-                self.say_once(
-                    "imu",
-                    f"MAVLink {self.url}: the vehicle does not send HIGHRES_IMU though asked "
-                    f"{STREAM_TRIES} times: flown without its accelerometer (no push fed "
-                    "forward; ArduPilot sends it only in builds with "
-                    "AP_MAVLINK_MSG_HIGHRES_IMU_ENABLED)",
-                )
+            for name in missing:
+                if name in OPTIONAL_STREAMS:
+                    self.say_once(
+                        name,
+                        f"MAVLink {self.url}: the vehicle does not send {name} though asked "
+                        f"{STREAM_TRIES} times: {OPTIONAL_STREAMS[name]}",
+                    )
             return
         self._stream_tries += 1
         self._next_stream_request = now + STREAM_RETRY_S
