@@ -719,3 +719,29 @@ def test_the_accelerometers_push_is_leaned_against_and_a_vehicle_without_one_is_
             assert "flown without its accelerometer" in said
     lean = north["True"] - north["False"]
     assert lean == pytest.approx(-0.6 / settings.onboard_velocity_gain, rel=0.1)
+
+
+def test_an_accelerometer_that_stops_is_flown_without_and_nothing_else_changes(
+    udp_port: int,
+) -> None:
+    """HIGHRES_IMU stops mid-climb while ATTITUDE and LOCAL_POSITION_NED go on: the push is no
+    longer fed forward (its last sample ages out after ``odometry_max_age_s``), and the pilot
+    neither hovers nor hands the vehicle back: the accelerometer is not one of its senses."""
+    above = (0.0, 0.0, 0.6)
+    with guided(udp_port) as (vehicle, pilot, reports):
+        vehicle.push_frd_mps2 = (0.6, 0.0)
+        wait_for(lambda: pilot.specific_force() is not None)
+        t0 = time.monotonic()
+        fly(pilot, 0.5, above, t0)
+        vehicle.streams.discard("HIGHRES_IMU")
+        start = len(vehicle.setpoints())
+        fly(pilot, 1.5, above, t0)
+        state = pilot.pilot.state
+        assert pilot.specific_force() is None
+    late = [msg for _, msg in vehicle.setpoints()[start:]]
+    assert state == "perching"
+    assert len(late) > 30
+    # still climbing (NED z down) up to the one zero setpoint ``close`` sends
+    assert all(msg.vz < -0.05 for msg in late[-11:-1])
+    assert (late[-1].vx, late[-1].vy, late[-1].vz) == (0, 0, 0)
+    assert not any("hovering" in r or "autopilot flies it now" in r for r in reports)
