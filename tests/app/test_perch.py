@@ -56,8 +56,9 @@ def test_a_campaign_flown_on_full_state_setpoints_says_so(tmp_path: Path) -> Non
 
 def test_a_runs_length_is_asked_for_and_recorded(tmp_path: Path) -> None:
     """``duration_s``: every run may fly that long and no longer (from 60-150 cm below the
-    target at up to 0.3 m/s, 1.5 s is too short to perch); the reports say how long it was.
-    Without it a run has 20 s, 40 s with faults."""
+    target at up to 0.3 m/s, 1.5 s is too short to perch); the reports say how long it was,
+    and how long each vehicle hovered before it (``hover_s``). Without it a run has 20 s, 40 s
+    with faults."""
     options = PerchOptions(
         str(tmp_path / "short"),
         estimators="truth",
@@ -66,12 +67,14 @@ def test_a_runs_length_is_asked_for_and_recorded(tmp_path: Path) -> None:
         sensing="ideal",
         workers=1,
         duration_s=1.5,
+        hover_s=0.5,
     )
     content = run(options, say=lambda _: None)
     assert content["duration_s"] == 1.5
     setup = content["setup"]
     assert isinstance(setup, dict)
     assert setup["duration_s"] == 1.5
+    assert setup["hover_s"] == 0.5
     assert content["success_rate"] == 0.0
     cell = next(iter(content["cells"].values()))
     assert isinstance(cell, dict)

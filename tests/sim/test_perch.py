@@ -191,6 +191,8 @@ def test_perch_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         (["--duration-s", "0"], "--duration-s must be more than 0 and at most 600 s, got 0"),
         (["--duration-s", "nan"], "--duration-s must be more than 0 and at most 600 s, got nan"),
         (["--duration-s", "601"], "--duration-s must be more than 0 and at most 600 s, got 601"),
+        (["--hover-s", "-1"], "--hover-s must be between 0 and 60 s, got -1"),
+        (["--hover-s", "nan"], "--hover-s must be between 0 and 60 s, got nan"),
     ],
 )
 def test_perch_bad_input(
@@ -328,6 +330,29 @@ def test_perch_scheduler_that_is_another_service(
 
 
 @pytest.mark.slow
+def test_the_pilot_takes_over_a_vehicle_that_has_hovered_in_its_wind(setup: PerchSetup) -> None:
+    """Before the pilot takes over, the vehicle hovers ``hover_s`` in its run's wind on its
+    own loops: it starts the run leaning into the wind, nearly still, at the start its seed
+    draws. With no hover the wind meets it still level (a step of the whole mean wind)."""
+    flown: list[Quadrotor] = []
+
+    def plant(*args: object) -> Quadrotor:
+        flown.append(Quadrotor.hovering(*args))  # type: ignore[arg-type]
+        return flown[-1]
+
+    windy = replace(setup, wind="moderate", duration_s=0.01)
+    leaned = run_perch(windy, 5, plant=plant)
+    struck = run_perch(replace(windy, hover_s=0.0), 5, plant=plant)
+    upwind = -np.array([math.cos(leaned.wind_direction_rad), math.sin(leaned.wind_direction_rad)])
+    toward_wind_deg = [math.degrees(math.asin(q.R_world_body[:2, 2] @ upwind)) for q in flown]
+    assert toward_wind_deg[0] > 3.0
+    assert abs(toward_wind_deg[1]) < 0.5
+    assert np.linalg.norm(flown[0].v_mps) < 0.1
+    assert np.linalg.norm(leaned.p_magnet_m[0] - struck.p_magnet_m[0]) < 0.005
+    with pytest.raises(VehicleConfigError, match="hover_s"):
+        replace(windy, hover_s=-1.0)
+
+
 def test_moderate_wind_needs_the_disturbance_rejection() -> None:
     """The same eight moderate-wind runs (true pose): the controller as built perches them;
     without any of its disturbance rejection (the observer, the accelerometer's push fed

@@ -63,10 +63,12 @@ class PerchCampaign:
         command: str = "velocity",
         contact: str = "hold",
         duration_s: float | None = None,
+        hover_s: float = PerchSetup.hover_s,
     ) -> PerchCampaign:
         """Check the options as a user gave them; raise ``PerchposeError`` naming the one at
         fault. ``duration_s``: how long a run may fly (None: ``PerchSetup.duration_s``, or
-        ``FAULT_RUN_S`` with faults)."""
+        ``FAULT_RUN_S`` with faults). ``hover_s``: how long each vehicle hovers in its wind
+        before the pilot takes over."""
         names = list(comma_list(estimators))
         injected = comma_list(faults)
         unknown = [n for n in names if n not in ESTIMATORS]
@@ -102,6 +104,10 @@ class PerchCampaign:
             raise PerchposeError(
                 f"--latency-error-ms must be between 0 and 200, got {latency_error_ms:g}"
             )
+        if not (math.isfinite(hover_s) and 0.0 <= hover_s <= MAX_HOVER_S):
+            raise PerchposeError(
+                f"--hover-s must be between 0 and {MAX_HOVER_S:g} s, got {hover_s:g}"
+            )
         if sweep == "wind" and (wind_mps is not None or gust_mps is not None):
             raise PerchposeError("--sweep wind flies the named levels: drop --wind-mps/--gust-mps")
         if sweep == "latency" and latency_ms is not None:
@@ -113,6 +119,7 @@ class PerchCampaign:
             disturbances=Disturbances() if disturbances else Disturbances.none(),
             stamps=stamps,
             duration_s=run_length_s(duration_s, faulty=bool(injected)),
+            hover_s=hover_s,
             flight_controller=flight_controller,
             onboard_estimator=onboard_estimator,
             pilot=PilotSettings(
@@ -210,6 +217,7 @@ class PerchCampaign:
 SWEEP_LATENCIES_MS = (0.0, 50.0, 100.0, 150.0, 200.0)  # --sweep latency
 FAULT_RUN_S = 40.0  # a run with a fault goes on through its landing
 MAX_RUN_S = 600.0  # the longest run --duration-s flies (a Crazyflie's battery lasts about 7 min)
+MAX_HOVER_S = 60.0  # the longest hover before a run --hover-s flies (its CPU: a run's worth)
 
 
 @dataclass(frozen=True)
@@ -248,6 +256,7 @@ class PerchOptions:
     command: str = "velocity"
     contact: str = "hold"
     duration_s: float | None = None
+    hover_s: float = PerchSetup.hover_s
 
 
 def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, object]:
@@ -276,6 +285,7 @@ def run(options: PerchOptions, say: Callable[[str], None] = print) -> dict[str, 
         command=options.command,
         contact=options.contact,
         duration_s=options.duration_s,
+        hover_s=options.hover_s,
     )
     content = campaign.fly(
         options.out,

@@ -166,6 +166,15 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
     "perched by then ends as a timeout. The camera's dropouts are drawn over the run's "
     "length, so a seed flies another world at another length.",
 )
+@click.option(
+    "--hover-s",
+    default=3.0,
+    show_default=True,
+    type=float,
+    help="How long each vehicle hovers in its run's wind on its own loops (and estimator) "
+    "before the pilot takes over; 0: the wind strikes a still, level vehicle as the run "
+    "starts, as campaigns before this option flew.",
+)
 @camera_option_fpv
 @click.option(
     "--out",
@@ -219,6 +228,7 @@ def perch(
     time_offset: str,
     faults: str,
     duration_s: float | None,
+    hover_s: float,
     camera_file: str,
     out: str,
     json_out: str | None,
@@ -262,6 +272,7 @@ def perch(
         latency_error_ms=latency_error_ms,
         time_offset=time_offset,
         duration_s=duration_s,
+        hover_s=hover_s,
     )
     content = run(options, say=lambda m: click.echo(m, err=True))
     click.echo(summary_table(content), nl=False)

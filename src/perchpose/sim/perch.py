@@ -148,6 +148,7 @@ class PerchSetup:
     physics_hz: float = 500.0
     odometry_hz: float = 50.0
     duration_s: float = 20.0
+    hover_s: float = 3.0
     wind: str = "none"
     wind_mps: float | None = None
     gust_mps: float | None = None
@@ -190,6 +191,8 @@ class PerchSetup:
             raise VehicleConfigError("start_below_m must be 0 < low <= high")
         if not (self.fps > 0 and self.physics_hz >= self.fps and self.duration_s > 0):
             raise VehicleConfigError("need fps > 0, physics_hz >= fps and duration_s > 0")
+        if not (math.isfinite(self.hover_s) and self.hover_s >= 0):
+            raise VehicleConfigError(f"hover_s must be a time of 0 s or more, got {self.hover_s}")
         if not 0 <= self.odometry_hz <= self.physics_hz:
             raise VehicleConfigError("need 0 <= odometry_hz <= physics_hz")
         if abs(self.controller.camera_period_s - 1.0 / self.fps) > 1e-9:
@@ -602,6 +605,7 @@ class _Flight:
         self.vehicle.thrust_scale = self.draw.thrust_scale(0.0)
         self.vehicle.settle()
         self.kalman = _onboard_kalman(setup, self.vehicle, seeds[9])
+        self._hover_in_the_wind(start)
         self.senses: SensingDraw | None = None
         self.T_body_camera = np.asarray(setup.controller.T_body_camera, np.float64)
         flow_noise = 0.0
@@ -841,6 +845,25 @@ class _Flight:
         if estimate is not None:
             self.stamp_errors.append((estimate.t_s, true_s - estimate.t_s))
         return estimate
+
+    def _hover_in_the_wind(self, start_m: Array) -> None:
+        """Hold the start ``hover_s`` on the vehicle's own loops and estimator (a position
+        hold, as a vehicle flown to its start waits there) in the wind as it blows when the run
+        starts, then put the vehicle back at ``start_m`` with its lean, its motion and its
+        loops' and estimator's states as the hover left them: the pilot takes over a vehicle
+        that has flown in that wind, not one the whole wind strikes at the run's start."""
+        v, s = self.vehicle, self.setup
+        steps = round(s.hover_s * s.physics_hz)
+        if steps == 0 or s.wind_level.calm:
+            return
+        v.wind_mps = self.wind.now()
+        dt_s = 1.0 / s.physics_hz
+        start, yaw_rad = vec3(start_m), v.yaw_rad
+        for _ in range(steps):  # the model's loops hold it on the true position, step by step
+            v.hold = PositionHold(start, yaw_rad, vec3(v.p_m))
+            v.fly(dt_s, 1, np.zeros(3), 0.0, v.v_mps)
+        v.hold = None
+        v.p_m = np.array(start_m, np.float64)
 
     def fly(self, t_s: float, steps: int) -> int | None:
         """The vehicle through ``steps`` physics steps from ``t_s`` on the setpoint it holds,

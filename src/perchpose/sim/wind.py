@@ -110,6 +110,10 @@ class _FirstOrder:
         self.y = self.a * self.y + self.b * n
         return self.y
 
+    @property
+    def value(self) -> float:
+        return self.y
+
 
 class _DrydenTransverse:
     """(1 + sqrt(3) T s) / (1 + T s)^2 shaping: two first-order stages, x1 a unit Gauss-Markov
@@ -141,6 +145,10 @@ class _DrydenTransverse:
     def step(self, n: float) -> float:
         self.x2 = self.a * self.x2 + (1.0 - self.a) * self.x1
         self.x1 = self.a * self.x1 + self.q * n
+        return self.value
+
+    @property
+    def value(self) -> float:
         return self.gain * (self.c1 * self.x1 + self.c2 * self.x2)
 
 
@@ -181,9 +189,18 @@ class DrydenWind:
         if self.level.calm:
             return (0.0, 0.0, 0.0)
         n = self._rng.normal(size=3)
-        u = self.level.mean_mps + self._u.step(float(n[0]))
-        v = self._v.step(float(n[1]))
-        w = self._w.step(float(n[2]))
+        self._u.step(float(n[0]))
+        self._v.step(float(n[1]))
+        self._w.step(float(n[2]))
+        return self.now()
+
+    def now(self) -> tuple[float, float, float]:
+        """The wind as it blows now (the last sample, or the stationary draw it starts
+        from), world frame, m/s; draws nothing."""
+        if self.level.calm:
+            return (0.0, 0.0, 0.0)
+        u = self.level.mean_mps + self._u.value
+        v, w = self._v.value, self._w.value
         return (self._c * u - self._s * v, self._s * u + self._c * v, w)
 
     def samples(self, n: int) -> Array:
