@@ -30,9 +30,18 @@ def test_a_steady_push_leans_the_attitude_against_it_by_push_over_g() -> None:
 
 def test_the_lean_builds_over_its_lag() -> None:
     lean = LeanCorrection(1.0, offset_mps2=0.0)
+    lean.correct(np.eye(3), np.array([0.0, 0.0, GRAVITY_MPS2]), -0.01)  # taken over in still air
     _fly(lean, np.eye(3), np.array([0.0, 2.0, GRAVITY_MPS2]), 1.0)
     built = lean.lean_rad[0] / (2.0 / GRAVITY_MPS2)
     assert built == pytest.approx(1.0 - math.exp(-1.0), abs=0.02)
+
+
+def test_the_first_push_is_taken_as_steady() -> None:
+    # the pilot takes over a vehicle that has hovered in a wind: its filter's tilt is already
+    # off by the whole lean, and so is the correction from the first sample on
+    lean = LeanCorrection(1.0, offset_mps2=0.0)
+    lean.correct(np.eye(3), np.array([0.0, 2.0, GRAVITY_MPS2]), 5.0)
+    assert lean.lean_rad[0] == pytest.approx(2.0 / GRAVITY_MPS2, rel=1e-9)
 
 
 def test_the_push_is_turned_into_the_world_by_the_heading() -> None:

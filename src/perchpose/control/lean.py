@@ -17,6 +17,10 @@ level calibration is up to about 0.1 m/s^2 a side, a lean of 0.6 degrees, as lar
 filter's whole error in still air). It cannot be told from a steady wind, so the lean is
 taken from the push beyond it: ``offset_mps2`` less along the push's direction, none below.
 
+The pilot takes over a vehicle already flying: where a wind blows, the filter's attitude is
+already off by the whole lean, so the model starts from the first push as if it had held
+(starting from none, it would take a lag's time to catch up with an error that is all there).
+
 An estimator that knows its tilt (the truth in simulation, an autopilot's EKF with a drag
 model or an external attitude) needs none of it: ``LeanCorrection`` is only built for a
 drag-free one, with ``lag_s`` its time constant.
@@ -54,6 +58,7 @@ class LeanCorrection:
         self.offset_mps2 = offset_mps2
         self._push_mps2 = np.zeros(2)  # the world-frame push, low-passed over lag_s
         self._t_s: float | None = None
+        self._pushed = False  # the first push is taken as steady (the pilot takes over a flight)
         self.lean_rad = np.zeros(2)
 
     def correct(self, R_world_body: Array, f_body_mps2: Array | None, t_s: float) -> Array:
@@ -65,8 +70,9 @@ class LeanCorrection:
         self._t_s = t_s if self._t_s is None else max(self._t_s, t_s)
         if f_body_mps2 is not None and np.all(np.isfinite(f_body_mps2[:2])):
             push = (R @ np.array([f_body_mps2[0], f_body_mps2[1], 0.0]))[:2]
-            alpha = 1.0 - math.exp(-dt / self.lag_s)
+            alpha = 1.0 - math.exp(-dt / self.lag_s) if self._pushed else 1.0
             self._push_mps2 = self._push_mps2 + alpha * (push - self._push_mps2)
+            self._pushed = True
         size = float(np.linalg.norm(self._push_mps2))
         beyond = self._push_mps2 * (max(0.0, size - self.offset_mps2) / size if size > 0 else 0.0)
         # the body's z leans against the push: about x by push_y / g, about y by -push_x / g
