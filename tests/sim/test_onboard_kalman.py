@@ -158,7 +158,7 @@ def test_in_moderate_wind_the_pilot_perches_once_it_takes_out_the_lean_the_filte
     )
     setup = campaign.setups[0]
     assert setup.pilot.lean_lag_s == CRAZYFLIE_KALMAN_LAG_S
-    corrected = run_perch(setup, 1960007)
+    corrected = run_perch(setup, 1960006)
     assert corrected.success, corrected.reason
-    as_it_says = run_perch(replace(setup, pilot=replace(setup.pilot, lean_lag_s=0.0)), 1960007)
+    as_it_says = run_perch(replace(setup, pilot=replace(setup.pilot, lean_lag_s=0.0)), 1960006)
     assert as_it_says.reason == "timeout"
