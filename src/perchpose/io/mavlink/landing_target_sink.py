@@ -318,8 +318,15 @@ class LandingTargetSink:
         self.send(estimate)
 
     def close(self) -> None:
-        """Send what is queued, stop the link's thread and close the connection."""
+        """Send what is queued, stop the link's thread and close the connection; say how many
+        messages never went out, if any."""
         self.link.close()
+        if self.dropped:
+            self.report(
+                f"MAVLink {self.url}: {self.dropped} of {self.sent + self.dropped} messages "
+                "dropped unsent (the link was down, or fell behind frames read faster than it "
+                "sends)"
+            )
 
     def __enter__(self) -> LandingTargetSink:
         return self
