@@ -72,6 +72,20 @@ def test_same_seed_same_wind_and_calm_is_still() -> None:
     assert not calm.any()
 
 
+def test_the_wind_now_is_the_last_sample_and_draws_nothing() -> None:
+    """``now`` (the wind a vehicle hovers in before its run) is the wind the last step gave,
+    or before any step the stationary draw the gusts start from; asking for it changes no
+    later sample."""
+    asked = DrydenWind(WIND_LEVELS["moderate"], 0.01, np.random.default_rng(3), 0.7)
+    plain = DrydenWind(WIND_LEVELS["moderate"], 0.01, np.random.default_rng(3), 0.7)
+    first = np.array(asked.now())
+    assert np.hypot(first[0], first[1]) > 0.5  # the mean, 3 m/s, and a gust beside it
+    assert asked.now() == tuple(first)
+    sample = asked.step()
+    assert asked.now() == sample
+    np.testing.assert_array_equal(asked.samples(20), plain.samples(21)[1:])
+
+
 @pytest.mark.parametrize(
     ("mean", "gust", "message"),
     [
