@@ -106,9 +106,8 @@ class _FirstOrder:
     def start(self, sigma: float, n: float) -> None:
         self.y = sigma * n
 
-    def step(self, n: float) -> float:
+    def step(self, n: float) -> None:
         self.y = self.a * self.y + self.b * n
-        return self.y
 
     @property
     def value(self) -> float:
@@ -142,10 +141,9 @@ class _DrydenTransverse:
         r = p12 / math.sqrt(p11)
         self.x2 = r * n1 + math.sqrt(max(0.0, p22 - r * r)) * n2
 
-    def step(self, n: float) -> float:
+    def step(self, n: float) -> None:
         self.x2 = self.a * self.x2 + (1.0 - self.a) * self.x1
         self.x1 = self.a * self.x1 + self.q * n
-        return self.value
 
     @property
     def value(self) -> float:
