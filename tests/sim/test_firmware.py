@@ -68,8 +68,8 @@ def test_the_firmware_flies_the_velocity_and_yaw_rate_cflib_sends() -> None:
     turned = math.remainder(q.yaw_rad - yaw_before, math.tau)
     assert 0.3 < turned < 0.6  # about 0.5 rad, counter-clockwise
     assert all(0 < m <= firmware.FULL_COMMAND for m in q.motor_command)
-    # its velocity gains are not reachable through the bindings: a pilot's set is refused
-    assert not q.set_velocity_gain(6.0)
+    # a pilot's velocity gain reaches the firmware's velocity PID as a param write would
+    assert q.set_velocity_gain(6.0)
     assert q.set_velocity_gain(None)
 
 

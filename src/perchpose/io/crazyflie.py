@@ -32,6 +32,12 @@ COMPLEMENTARY_ESTIMATOR, KALMAN_ESTIMATOR = 1, 2
 log = logging.getLogger(__name__)
 
 
+def velocity_kp_deg(gain_per_s: float) -> float:
+    """``velCtlPid.vxKp`` (degrees of tilt per m/s of error) for a horizontal velocity-loop
+    gain: g tan(kp) per m/s, so for small tilts kp = gain / g in radians (25 is about 4.3 /s)."""
+    return math.degrees(gain_per_s / GRAVITY_MPS2)
+
+
 class CflibCommander:
     """The pilot's ``VehicleCommander`` on cflib's ``Commander``: a velocity in the world
     frame of the Crazyflie's state estimator (z up, m/s) with the yaw rate in deg/s
@@ -62,7 +68,7 @@ class CflibCommander:
         """False without the vehicle's own gains to give back (read at connection)."""
         if self.param is None or set(self.own_gains) != set(VELOCITY_GAINS):
             return False
-        kp_deg = math.degrees(gain_per_s / GRAVITY_MPS2)  # small tilts: tan(theta) ~ theta
+        kp_deg = velocity_kp_deg(gain_per_s)
         try:
             for name in VELOCITY_GAINS:
                 self.param.set_value(name, f"{kp_deg:.3f}")

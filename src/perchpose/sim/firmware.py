@@ -42,6 +42,8 @@ from numpy.typing import NDArray
 
 from perchpose.errors import VehicleConfigError
 from perchpose.geometry import quaternion_xyzw, roll_pitch_rad, rot_z, yaw_rad
+from perchpose.io.crazyflie import velocity_kp_deg
+from perchpose.sim.firmware_params import VelocityGains
 from perchpose.sim.quadrotor import (
     GRAVITY_MPS2,
     OnboardGains,
@@ -177,6 +179,10 @@ class FirmwareQuadrotor(Quadrotor):
         self.fw = load_firmware()
         self.controller = _Controller(self.fw, controller)
         fw = self.fw
+        # a vehicle powers up with the stock gains, whatever one before it in this process set
+        self._velocity_gains = VelocityGains.find(fw) if controller == "crazyflie-pid" else None
+        if self._velocity_gains is not None:
+            self._velocity_gains.stock()
         self._control = fw.control_t()
         self._setpoint = fw.setpoint_t()
         self._sensors = fw.sensorData_t()
@@ -213,10 +219,18 @@ class FirmwareQuadrotor(Quadrotor):
         self.v_mps, self.omega_rad_s = np.zeros(3), np.zeros(3)
 
     def set_velocity_gain(self, gain_per_s: float | None) -> bool:
-        """The firmware's velocity PID gains (``velCtlPid.vxKp``, a parameter a pilot sets on
-        a real Crazyflie over the link) are static variables its Python bindings do not reach:
-        refused, so the pilot flies the stock gain, and says so."""
-        return gain_per_s is None
+        """The firmware's velocity PID gains (``velCtlPid.vxKp`` and ``vyKp``, parameters a
+        pilot sets over a Crazyflie's link) set to ``gain_per_s`` as the link converts it,
+        written where the firmware's parameter system writes them; None puts back the stock
+        gain. False where the bindings' build does not let them be found
+        (``firmware_params``): the pilot then flies the stock gain, and says so."""
+        if self._velocity_gains is None:
+            return gain_per_s is None
+        if gain_per_s is None:
+            self._velocity_gains.stock()
+        else:
+            self._velocity_gains.set(velocity_kp_deg(gain_per_s))
+        return True
 
     def _integrate_velocity_error(self, dt_s: float, v_sp: Any, v_est: Any) -> None:
         """The firmware's own PIDs integrate; the model's integral stays unused."""
