@@ -466,6 +466,20 @@ def test_a_vehicle_that_refuses_the_gain_is_flown_on_its_own_and_said() -> None:
         PilotSettings(velocity_gain_per_s=40.0)
 
 
+def test_a_vehicle_on_a_drag_free_estimator_keeps_its_own_gain() -> None:
+    """On the Crazyflie's Kalman filter (a lean to take out) the gain is not raised: its
+    velocity errs with the push, and a stiffer loop flies more of the error."""
+    reports: list[str] = []
+    commander = Tunable()
+    settings = PilotSettings(lean_lag_s=1.2)
+    pilot = _pilot(Vehicle(commander, 1.0), settings=settings, reports=reports)
+    pilot.update(_seen(pilot.controller.settings, [0.0, 0.0, 0.5], 0.0), 0.0)
+    assert pilot.state == "perching"
+    assert commander.gains == []
+    assert pilot.controller.settings.onboard_velocity_gain == pytest.approx(4.3)
+    assert any("models no drag: its own velocity gain is kept (4.3 /s)" in r for r in reports)
+
+
 def _under_the_plate(
     frames: int, held: bool, target: Callable[[list[str]], tuple[float, float]]
 ) -> tuple[PerchingPilot, Vehicle, list[str], list[str]]:

@@ -294,9 +294,17 @@ class PerchingPilot:
 
     def _raise_velocity_gain(self) -> None:
         """Take over with the velocity loop of ``PilotSettings.velocity_gain_per_s`` where the
-        commander can set it; the controller then models that gain."""
+        commander can set it; the controller then models that gain. Not on a vehicle whose
+        estimator models no drag (``lean_lag_s`` > 0, the Crazyflie's Kalman filter): its
+        velocity is off by what gusts push, and a stiffer loop flies more of that error."""
         gain = self.settings.velocity_gain_per_s
         if gain is None or not isinstance(self.commander, VelocityGainSetter):
+            return
+        if self.settings.lean_lag_s > 0:
+            self.report(
+                "pilot: the vehicle's estimator models no drag: its own velocity gain is kept "
+                f"({self.controller.settings.onboard_velocity_gain:g} /s)"
+            )
             return
         if self.commander.set_velocity_gain(gain):
             self.controller.use_velocity_gain(gain)

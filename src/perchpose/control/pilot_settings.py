@@ -64,7 +64,10 @@ class PilotSettings:
     stops the motors or hands the vehicle back; None leaves the vehicle's own. A stiffer loop
     holds the magnet against gusts; the stock Crazyflie's 25 deg per m/s is about 4.3 /s, 6 /s
     is 35 deg per m/s. Where it cannot be set, the controller keeps modelling the vehicle's
-    own gain (``ControllerSettings.onboard_velocity_gain``).
+    own gain (``ControllerSettings.onboard_velocity_gain``). Where the vehicle's estimator
+    models no drag (``lean_lag_s`` > 0) the vehicle's own gain is kept: its velocity errs with
+    the gusts' push, and a stiffer (or softer) loop perched less often on the Crazyflie's
+    Kalman filter.
 
     command : what the pilot sends: ``velocity`` (a world velocity and a yaw rate: cflib's
     ``send_velocity_world_setpoint``, the vehicle's velocity loop flies it) or ``full-state``
