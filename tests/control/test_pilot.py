@@ -18,8 +18,9 @@ from perchpose.control import (
     SenseAges,
 )
 from perchpose.control.evidence import TouchdownDetector
+from perchpose.control.gyro import GyroReading
 from perchpose.control.pilot_clock import PilotClock
-from perchpose.geometry import invert_transform
+from perchpose.geometry import invert_transform, roll_pitch_rad, rot_x
 from perchpose.values import Estimate
 
 
@@ -478,6 +479,25 @@ def test_a_vehicle_on_a_drag_free_estimator_keeps_its_own_gain() -> None:
     assert commander.gains == []
     assert pilot.controller.settings.onboard_velocity_gain == pytest.approx(4.3)
     assert any("models no drag: its own velocity gain is kept (4.3 /s)" in r for r in reports)
+
+
+def test_on_a_drag_free_estimate_the_pilot_holds_the_gyros_word_over_seconds() -> None:
+    """The Kalman filter's attitude jumps 2 degrees (one of its corrections) while the gyro
+    says nothing turned: the attitude the pilot uses moves by the blend's share of it, and
+    on without a gyro, or on an estimate that knows its tilt, it is the estimate's."""
+    estimate = [np.eye(3)]
+    gyro = GyroReading(np.eye(3), 0)
+    settings = PilotSettings(lean_lag_s=1.2, gyro_blend_s=3.0)
+    blended = PerchingPilot(Recorder(), lambda: estimate[0], settings=settings, gyro=lambda: gyro)
+    plain = PerchingPilot(Recorder(), lambda: estimate[0], settings=settings)
+    knows = PerchingPilot(Recorder(), lambda: estimate[0], gyro=lambda: gyro)
+    for pilot in (blended, plain, knows):
+        np.testing.assert_allclose(pilot._attitude(0.0), np.eye(3))
+    estimate[0] = rot_x(math.radians(2.0))
+    roll_deg = math.degrees(roll_pitch_rad(blended._attitude(0.1))[0])
+    assert roll_deg == pytest.approx(2.0 * (1.0 - math.exp(-0.1 / 3.0)), rel=1e-3)
+    np.testing.assert_allclose(plain._attitude(0.1), estimate[0])
+    np.testing.assert_allclose(knows._attitude(0.1), estimate[0])
 
 
 def _under_the_plate(

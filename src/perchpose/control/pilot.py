@@ -75,6 +75,7 @@ from perchpose.control.controller import (
     usable,
 )
 from perchpose.control.evidence import ContactDetector, HeldDetector, TouchdownDetector
+from perchpose.control.gyro import BlendedAttitude, GyroReading
 from perchpose.control.lean import LeanCorrection
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
@@ -205,7 +206,10 @@ class PerchingPilot:
     None when it says nothing); while landing, its word is a touchdown too. specific_force :
     the vehicle's accelerometer along body x and y (and z, unused), m/s^2: its latest sample,
     as old as the odometry's; None while unknown. It is the aerodynamic push, which the
-    controller cancels as it comes (``ControllerSettings.push_feedforward``).
+    controller cancels as it comes (``ControllerSettings.push_feedforward``). gyro : the
+    vehicle's gyro integrated where its samples arrive (``control.gyro.GyroAttitude``), as
+    old as the attitude's; with a drag-free estimate (``PilotSettings.lean_lag_s``) the
+    attitude the pilot uses follows it over ``PilotSettings.gyro_blend_s``.
     """
 
     def __init__(
@@ -222,8 +226,10 @@ class PerchingPilot:
         clock: Callable[[], float] = time.monotonic,
         on_ground: Callable[[], bool | None] | None = None,
         specific_force: Callable[[], Array | None] | None = None,
+        gyro: Callable[[], GyroReading | None] | None = None,
     ) -> None:
         self.commander = commander
+        self.gyro = gyro
         self.specific_force = specific_force
         self.on_ground = on_ground
         self.ages = ages
@@ -235,6 +241,7 @@ class PerchingPilot:
         self.settings = settings or PilotSettings()
         lag_s = self.settings.lean_lag_s
         self.lean = LeanCorrection(lag_s) if lag_s > 0 else None
+        self.blend = BlendedAttitude(self.settings.gyro_blend_s) if lag_s > 0 else None
         self.height_m = height_m
         self.odometry = odometry
         self.report = report or log.warning
@@ -434,7 +441,8 @@ class PerchingPilot:
 
     def _attitude(self, t_s: float) -> Array:
         """The vehicle's attitude, with the lean its estimate misses taken out where it is
-        drag-free (``PilotSettings.lean_lag_s``)."""
+        drag-free (``PilotSettings.lean_lag_s``), and there blended with the integrated gyro
+        where the link gives it (``PilotSettings.gyro_blend_s``)."""
         R_world_body = np.asarray(self.attitude(), np.float64)
         if self.lean is None or not np.all(np.isfinite(R_world_body)):
             return R_world_body
@@ -442,7 +450,11 @@ class PerchingPilot:
         # with the plate within held_within_m its touch and the magnet's pull reach the
         # accelerometer too: the lean is held as it was
         reach = self._plate_above_m < self.settings.held_within_m
-        return self.lean.correct(R_world_body, None if reach else f_body, t_s)
+        R_world_body = self.lean.correct(R_world_body, None if reach else f_body, t_s)
+        gyro = None if self.gyro is None else self.gyro()
+        if self.blend is None or gyro is None:
+            return R_world_body
+        return self.blend.blend(R_world_body, gyro, t_s)
 
     def _odometry(self, t_s: float, motion: tuple[Array, Array], R_world_body: Array) -> Odometry:
         """The odometry for the controller: the motion, and the accelerometer's push turned

@@ -83,7 +83,10 @@ class PilotSettings:
     lean_lag_s : the vehicle's attitude estimate is drag-free (a flying Crazyflie's Kalman
     filter) and misses the lean a push needs, taken in over about this long: the pilot takes
     that lean, predicted from the accelerometer's push, out of each attitude it uses
-    (``control.lean``); 0: the estimate knows its tilt.
+    (``control.lean``); 0: the estimate knows its tilt. gyro_blend_s : on such an estimate,
+    where the link hands the pilot the vehicle's gyro, the attitude the pilot uses follows the
+    integrated gyro over this long and the estimate (its lean taken out) beyond
+    (``control.gyro``): the lean's prediction leaves errors that change faster than this.
     """
 
     land_after_lost_s: float = 4.0
@@ -112,6 +115,7 @@ class PilotSettings:
     position_gain_per_s: float = 2.0
     yaw_gain_per_s: float = 6.0
     lean_lag_s: float = 0.0
+    gyro_blend_s: float = 3.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -136,6 +140,7 @@ class PilotSettings:
             "live_height_s",
             "position_gain_per_s",
             "yaw_gain_per_s",
+            "gyro_blend_s",
         )
         require_positive(self, positive, ControllerConfigError, "pilot setting ")
         if not (math.isfinite(self.lean_lag_s) and 0.0 <= self.lean_lag_s <= 10.0):
