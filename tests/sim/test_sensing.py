@@ -8,6 +8,7 @@ import pytest
 
 from perchpose import CameraModel, TargetSpec
 from perchpose.errors import SensingConfigError, VehicleConfigError
+from perchpose.geometry import rot_z
 from perchpose.sim.perch import PerchSetup, run_perch
 from perchpose.sim.sensing import (
     Accelerometer,
@@ -157,3 +158,23 @@ def test_the_accelerometer_comes_with_the_odometry_and_has_its_errors() -> None:
         reads.mean(axis=0), [0.5, 0.0, 9.81] + accelerometer.bias_mps2, atol=0.02
     )
     np.testing.assert_allclose(reads.std(axis=0), 0.2, rtol=0.1)
+
+
+def test_the_gyro_is_integrated_as_its_samples_arrive_each_once_in_order() -> None:
+    """Logged with the attitude, the gyro reaches the pilot after the attitude's delay; each
+    sample that has arrived is integrated once, however often the pilot asks."""
+    state = SensedState(attitude_delay_s=0.05, odometry_delay_s=0.05)
+    assert state.gyro_reading(0.0) is None
+    rate_dps = np.array([0.0, 0.0, 30.0])
+    for k in range(11):  # 0 to 0.2 s at 50 Hz, turning at 30 deg/s about z
+        state.record(k * 0.02, np.eye(3), np.zeros(3), np.zeros(3), None, rate_dps)
+        if k == 5:
+            state.gyro_reading(0.1)  # asked once midway
+    reading = state.gyro_reading(0.1)  # samples made by 0.05 s have arrived: 0.04 s of turn
+    assert reading is not None
+    np.testing.assert_allclose(reading.R_ref_body, rot_z(math.radians(30.0 * 0.04)), atol=1e-9)
+    state.gyro_reading(0.1)
+    reading = state.gyro_reading(0.25)  # all of them: 0.2 s
+    assert reading is not None
+    np.testing.assert_allclose(reading.R_ref_body, rot_z(math.radians(30.0 * 0.2)), atol=1e-9)
+    assert reading.restarts == 0

@@ -388,6 +388,8 @@ def setup_description(setup: PerchSetup) -> dict[str, object]:
         "onboard_estimator": setup.onboard_estimator,
         "command": setup.pilot.command,
         "T_body_camera": np.asarray(setup.controller.T_body_camera).round(9).tolist(),
+        # a drag-free estimator's pilot holds its attitude to the gyro over this long
+        **({"gyro_blend_s": setup.pilot.gyro_blend_s} if setup.pilot.lean_lag_s > 0 else {}),
     }
 
 
@@ -649,6 +651,7 @@ def summary_json(records: list[RunRecord], setup: PerchSetup) -> dict[str, objec
         "onboard_estimator": setup.onboard_estimator,
         "command": setup.pilot.command,
         "lean_lag_s": setup.pilot.lean_lag_s,
+        "gyro_blend_s": setup.pilot.gyro_blend_s if setup.pilot.lean_lag_s > 0 else None,
         "stamps": setup.stamps,
         "contact_mode": setup.contact_mode,
         "duration_s": setup.duration_s,

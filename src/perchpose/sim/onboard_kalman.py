@@ -220,6 +220,13 @@ class CrazyflieKalman:
     def R_world_body(self) -> Array:
         return np.array(self.attitude)
 
+    @property
+    def gyro_dps(self) -> Array:
+        """The IMU's latest gyro sample (body rates with their bias and noise, deg/s): what
+        the firmware logs as ``gyro.x/y/z``."""
+        g = self._gyro_latest
+        return np.array([g.x, g.y, g.z], np.float64)
+
     def _imu_sample(self, vehicle: Quadrotor) -> None:
         s, rng = self.senses, self._rng
         w_dps = np.degrees(vehicle.omega_rad_s) + self.gyro_bias_dps

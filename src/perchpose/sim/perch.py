@@ -31,6 +31,7 @@ from perchpose.control import (
     PilotState,
     SenseAges,
 )
+from perchpose.control.gyro import GyroReading
 from perchpose.errors import VehicleConfigError
 from perchpose.estimator import PerchingEstimator
 from perchpose.fusion.base import stage_of
@@ -638,6 +639,7 @@ class _Flight:
             ages=None if self.sensed is None else self.sense_ages,
             report=log.debug,
             specific_force=self.specific_force,
+            gyro=self.gyro,
         )
         magnet = setup.controller.p_body_magnet_m
         holds = setup.contact_mode == "hold"
@@ -728,6 +730,13 @@ class _Flight:
             return self.kalman.position_m, self.kalman.velocity_mps
         return self.odometry.p_m, self.odometry.v_mps
 
+    def gyro(self) -> GyroReading | None:
+        """The firmware's gyro, logged with its attitude, integrated as it arrives (None with
+        ideal senses or the model's estimator: its attitude knows its tilt)."""
+        if self.sensed is None:
+            return None
+        return self.sensed.gyro_reading(self._through("attitude"))
+
     def specific_force(self) -> Array | None:
         """The accelerometer's sample the pilot has now (body frame), as it arrives."""
         if self.sensed is None:
@@ -773,7 +782,8 @@ class _Flight:
             R = noisy_attitude(R, self.setup.sensing.attitude_noise_deg, self.senses_rng)
         assert self.accelerometer is not None
         f_body = self.accelerometer.read(self.vehicle.specific_force_body_mps2)
-        self.sensed.record(t_s, R, *self._odometry_now(), f_body)
+        gyro_dps = None if self.kalman is None else self.kalman.gyro_dps
+        self.sensed.record(t_s, R, *self._odometry_now(), f_body, gyro_dps)
 
     def frames_late(self) -> int:
         """How many frame periods after its capture this frame reaches the pilot: the

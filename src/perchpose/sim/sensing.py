@@ -54,6 +54,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.camera import CameraModel
+from perchpose.control.gyro import GyroAttitude, GyroReading
 from perchpose.control.history import newest_at
 from perchpose.errors import SensingConfigError, require_non_negative
 from perchpose.geometry import make_transform, rot_x, rot_y, rot_z
@@ -231,6 +232,7 @@ class Sample(NamedTuple):
     p_m: Array
     v_mps: Array
     f_body_mps2: Array | None = None  # the accelerometer
+    gyro_dps: Array | None = None  # the gyro (body rates, deg/s), logged with the attitude
 
 
 class SensedState:
@@ -241,6 +243,8 @@ class SensedState:
         self.attitude_delay_s = attitude_delay_s
         self.odometry_delay_s = odometry_delay_s
         self._samples: deque[tuple[float, Sample]] = deque(maxlen=HISTORY)
+        self.gyro = GyroAttitude()  # integrated as the samples arrive, as a link would
+        self._gyro_through_s = -math.inf
 
     def record(
         self,
@@ -249,15 +253,17 @@ class SensedState:
         p_m: Array,
         v_mps: Array,
         f_body_mps2: Array | None = None,
+        gyro_dps: Array | None = None,
     ) -> None:
         """A sample the flight controller made at ``t_s`` (``f_body_mps2``: its
-        accelerometer's, where it logs one)."""
+        accelerometer's, ``gyro_dps`` its gyro's, where it logs them)."""
         sample = Sample(
             t_s,
             R_world_body,
             np.array(p_m, np.float64),
             np.array(v_mps, np.float64),
             None if f_body_mps2 is None else np.array(f_body_mps2, np.float64),
+            None if gyro_dps is None else np.array(gyro_dps, np.float64),
         )
         self._samples.append((t_s, sample))
 
@@ -280,6 +286,22 @@ class SensedState:
         """The position and velocity that have reached the pilot at ``t_s``."""
         sample = self._odometry_sample(t_s)
         return sample.p_m, sample.v_mps
+
+    def gyro_reading(self, t_s: float) -> GyroReading | None:
+        """The gyro integrated over every sample that has reached the pilot by ``t_s`` (with
+        the attitude), in the order they were made; None before the first."""
+        arrived_s = t_s - self.attitude_delay_s
+        fresh = []
+        for made_s, sample in reversed(self._samples):
+            if made_s <= self._gyro_through_s:
+                break
+            if made_s <= arrived_s:
+                fresh.append(sample)
+        for sample in reversed(fresh):
+            if sample.gyro_dps is not None:
+                self.gyro.add(sample.t_s, np.radians(sample.gyro_dps))
+            self._gyro_through_s = sample.t_s
+        return self.gyro.reading()
 
     def specific_force(self, t_s: float) -> Array | None:
         """The accelerometer's sample that has reached the pilot at ``t_s`` (it comes with the
