@@ -22,8 +22,10 @@ from cflib.crtp.crtpstack import CRTPPacket, CRTPPort
 from perchpose import CameraModel, PerchingEstimator, TargetSpec
 from perchpose.cli import main
 from perchpose.control import PerchingController, PerchingPilot, PilotSettings
+from perchpose.control.gyro import GyroAttitude
 from perchpose.control.lean import CRAZYFLIE_KALMAN_LAG_S
 from perchpose.errors import ControllerConfigError, LinkError
+from perchpose.geometry import roll_pitch_rad, yaw_rad
 from perchpose.io.crazyflie import CflibCommander, connect
 from perchpose.io.samples import SampleGate
 from perchpose.values import Estimate
@@ -408,6 +410,7 @@ def bare_connection(
     connection._state_t_s = math.nan
     connection._motion_t_s = math.nan
     connection._f_body_mps2 = None
+    connection._gyro = GyroAttitude()
     connection.own_gains = {}
     connection.lean_lag_s = 0.0
     return connection
@@ -416,7 +419,8 @@ def bare_connection(
 def state_sample(z_m: float, qw: float = 1.0) -> dict[str, float]:
     """The attitude-and-height log block: level (or ``qw`` spoilt) at ``z_m``."""
     names = ("qw", "qx", "qy", "qz", "z")
-    return dict(zip([f"stateEstimate.{n}" for n in names], (qw, 0.0, 0.0, 0.0, z_m), strict=True))
+    sample = dict(zip([f"stateEstimate.{n}" for n in names], (qw, 0.0, 0.0, 0.0, z_m), strict=True))
+    return {**sample, "gyro.x": 0.0, "gyro.y": 0.0, "gyro.z": 0.0}
 
 
 STILL = {
@@ -723,3 +727,32 @@ def test_a_full_state_setpoint_goes_out_as_the_firmware_decodes_it(
     assert abs(y) < 0.01
     assert 2.0 * math.atan2(z, w) == pytest.approx(0.3, abs=0.01)
     assert (rate_roll, rate_pitch, rate_yaw) == (0, 0, 0)
+
+
+def test_the_gyro_is_logged_with_the_attitude_and_integrated_on_the_firmwares_clock(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """``gyro.x/y/z`` (deg/s) come with the attitude block; the link integrates them over the
+    firmware's log timestamps (not their arrival, which bunches), and a Kalman-filter pilot
+    holds its attitude to them: a 2 degree jump of the filter's attitude with no turn moves
+    the pilot's by the blend's share."""
+    cf, _link = crazyflie
+    now = {"s": 100.0}
+    connection = bare_connection(cf, clock=lambda: now["s"])
+    connection.lean_lag_s = CRAZYFLIE_KALMAN_LAG_S
+    assert connection.gyro() is None
+    for k in range(26):  # 0.5 s of firmware time at 50 Hz, arriving in bursts
+        now["s"] = 100.0 + 0.1 * (k // 5)
+        connection._state(20 * k, {**state_sample(1.0), "gyro.z": 20.0}, None)
+    reading = connection.gyro()
+    assert reading is not None
+    assert math.degrees(yaw_rad(reading.R_ref_body)) == pytest.approx(10.0, rel=1e-6)
+    pilot = connection.pilot(clock=lambda: now["s"])
+    assert pilot.blend is not None
+    level = pilot._attitude(0.0)
+    tilted = {**state_sample(1.0), "stateEstimate.qw": math.cos(math.radians(1.0))}
+    tilted["stateEstimate.qx"] = math.sin(math.radians(1.0))  # rolled 2 degrees
+    connection._state(20 * 26, tilted, None)  # gyro 0: nothing turned
+    after = pilot._attitude(0.1)
+    roll_deg = math.degrees(roll_pitch_rad(after)[0] - roll_pitch_rad(level)[0])
+    assert 0.0 < roll_deg < 0.1

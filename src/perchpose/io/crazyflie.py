@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.control.gyro import GyroAttitude, GyroReading
 from perchpose.control.lean import CRAZYFLIE_KALMAN_LAG_S
 from perchpose.control.pilot import PerchingPilot, PilotSettings, SenseAges
 from perchpose.errors import LinkError
@@ -125,9 +126,12 @@ class CflibCommander:
 
 class CrazyflieConnection:
     """An open cflib link with the vehicle's attitude, height, position and velocity streamed
-    from its state estimate (``stateEstimate.qw/qx/qy/qz`` and ``.z`` in one log block,
-    ``stateEstimate.x/y/vx/vy/vz`` with the accelerometer's ``acc.x/y/z`` (g, half floats) in
-    a second: 26 bytes, all a block holds; 50 Hz). Each
+    from its state estimate (``stateEstimate.qw/qx/qy/qz`` and ``.z`` with the gyro's
+    ``gyro.x/y/z`` (deg/s, half floats) in one log block, ``stateEstimate.x/y/vx/vy/vz`` with
+    the accelerometer's ``acc.x/y/z`` (g, half floats) in a second: 26 bytes each, all a block
+    holds; 50 Hz). The gyro is integrated as its samples arrive, on the firmware's log
+    timestamps (``control.gyro``): on the Kalman filter the pilots hold their attitude to it
+    over seconds. Each
     odometry sample ticks the pilots it handed out (``PerchingPilot.tick_now``): their lateral
     loop closes at 50 Hz on odometry between camera frames.
 
@@ -172,6 +176,9 @@ class CrazyflieConnection:
         self._log = LogConfig(name="perchpose", period_in_ms=20)
         for name in [*names, "stateEstimate.z"]:
             self._log.add_variable(name, "float")
+        for axis in ("x", "y", "z"):  # the body rates, integrated on arrival
+            self._log.add_variable(f"gyro.{axis}", "FP16")
+        self._gyro = GyroAttitude()
         self._log.data_received_cb.add_callback(self._state)
         self._motion = LogConfig(name="perchpose-odometry", period_in_ms=20)
         for axis in ("x", "y", "vx", "vy", "vz"):
@@ -263,6 +270,8 @@ class CrazyflieConnection:
         self._R_world_body = R
         self._height_m = float(data["stateEstimate.z"])
         self._state_t_s = now
+        rates_dps = [data["gyro.x"], data["gyro.y"], data["gyro.z"]]
+        self._gyro.add(int(timestamp) / 1000.0, np.radians(np.array(rates_dps, np.float64)))
 
     def _moved(self, timestamp: int, data: dict[str, float], _config: object) -> None:
         if not self._usable(data):
@@ -286,6 +295,10 @@ class CrazyflieConnection:
 
     def attitude(self) -> Array:
         return self._R_world_body
+
+    def gyro(self) -> GyroReading | None:
+        """The gyro integrated over the samples so far (None before the first)."""
+        return self._gyro.reading()
 
     def odometry(self) -> tuple[Array, Array] | None:
         """Position and velocity (world frame, m, m/s) from the state estimate, or None."""
@@ -321,6 +334,7 @@ class CrazyflieConnection:
             ages=self.ages,
             report=self.report,
             specific_force=self.specific_force,
+            gyro=self.gyro,
             settings=settings,
             **kwargs,
         )
