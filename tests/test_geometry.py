@@ -1,5 +1,6 @@
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -8,8 +9,11 @@ from perchpose.geometry import (
     check_transform,
     facing_pose,
     invert_transform,
+    rot_z,
+    rotation_from_vector,
     rvec_tvec_from_transform,
     transform_from_rvec_tvec,
+    vector_from_rotation,
     weighted_circular_mean_rad,
     wrap_angle_deg,
     wrap_angle_rad,
@@ -114,3 +118,13 @@ def test_the_rotation_vector_jacobian_inverse_is_its_inverse() -> None:
         np.testing.assert_allclose(
             rotation_vector_jacobian_inverse(yaw, pitch) @ J, np.eye(3), atol=1e-12
         )
+
+
+def test_a_rotation_vector_and_its_rotation_agree_with_opencv_and_invert() -> None:
+    rng = np.random.default_rng(7)
+    for w in [np.zeros(3), np.array([1e-9, 0.0, 0.0]), *rng.uniform(-1.5, 1.5, (20, 3))]:
+        R = rotation_from_vector(w)
+        expected, _ = cv2.Rodrigues(w.reshape(3, 1))
+        np.testing.assert_allclose(R, expected, atol=1e-12)
+        np.testing.assert_allclose(vector_from_rotation(R), w, atol=1e-9)
+    np.testing.assert_allclose(rotation_from_vector([0.0, 0.0, 0.5]), rot_z(0.5), atol=1e-12)

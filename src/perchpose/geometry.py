@@ -133,6 +133,33 @@ def facing_pose(
     return make_transform(R, np.array([x_m, y_m, z_m]))
 
 
+def rotation_from_vector(w_rad: Array) -> Array:
+    """``exp([w]x)`` (3, 3) of the rotation vector ``w`` (Rodrigues' formula, numpy only: the
+    controller imports no OpenCV)."""
+    w = np.asarray(w_rad, np.float64).reshape(3)
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = w / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    R: Array = np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+    return R
+
+
+def vector_from_rotation(R: Array) -> Array:
+    """The rotation vector (3,) of a rotation ``R`` turned by less than pi (the inverse of
+    ``rotation_from_vector``)."""
+    R = np.asarray(R, np.float64)
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin_angle = 0.5 * float(np.linalg.norm(axis))
+    cos_angle = 0.5 * (float(np.trace(R)) - 1.0)
+    angle = math.atan2(sin_angle, cos_angle)
+    if sin_angle < 1e-12:
+        return 0.5 * axis  # no turn (to first order)
+    w: Array = axis * (angle / (2.0 * sin_angle))
+    return w
+
+
 def roll_pitch_rad(R: Array) -> tuple[float, float]:
     """(roll, pitch) of ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (z-y-x angles, as a vehicle's
     attitude is given), radians; ``yaw_rad`` is the third."""

@@ -21,11 +21,11 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import ControllerConfigError
+from perchpose.geometry import rotation_from_vector, vector_from_rotation
 
 Array = NDArray[np.float64]
 MAX_GAP_S = 0.1  # a longer gap between rate samples is not integrated across (a stalled log)
@@ -37,16 +37,6 @@ class GyroReading(NamedTuple):
 
     R_ref_body: Array
     restarts: int
-
-
-def _exp(rotvec_rad: Array) -> Array:
-    R, _ = cv2.Rodrigues(np.asarray(rotvec_rad, np.float64).reshape(3, 1))
-    return np.asarray(R, np.float64)
-
-
-def _log(R: Array) -> Array:
-    rvec, _ = cv2.Rodrigues(np.asarray(R, np.float64))
-    return np.asarray(rvec, np.float64).reshape(3)
 
 
 class GyroAttitude:
@@ -73,7 +63,9 @@ class GyroAttitude:
             if dt_s > MAX_GAP_S:
                 self.restarts += 1
             elif dt_s > 0.0:
-                self.R_ref_body = self.R_ref_body @ _exp(0.5 * (omega0 + omega) * dt_s)
+                self.R_ref_body = self.R_ref_body @ rotation_from_vector(
+                    0.5 * (omega0 + omega) * dt_s
+                )
         self._last = (t_s, omega)
 
     def reading(self) -> GyroReading | None:
@@ -107,7 +99,7 @@ class BlendedAttitude:
         else:
             dt_s = max(0.0, t_s - self._t_s)
             share = 1.0 - math.exp(-dt_s / self.blend_s)
-            step = _log(self._R_world_ref.T @ measured)
-            self._R_world_ref = self._R_world_ref @ _exp(share * step)
+            step = vector_from_rotation(self._R_world_ref.T @ measured)
+            self._R_world_ref = self._R_world_ref @ rotation_from_vector(share * step)
         self._t_s, self._restarts = t_s, restarts
         return self._R_world_ref @ R_ref_body

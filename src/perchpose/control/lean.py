@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import ControllerConfigError
+from perchpose.geometry import rotation_from_vector
 
 Array = NDArray[np.float64]
 GRAVITY_MPS2 = 9.81
@@ -81,12 +82,5 @@ class LeanCorrection:
 
 
 def _tilt_about(angles_rad: Array) -> Array:
-    """The rotation by the rotation vector (x, y, 0) (Rodrigues' formula; the controller
-    imports no OpenCV)."""
-    angle = float(np.hypot(angles_rad[0], angles_rad[1]))
-    if angle < 1e-12:
-        return np.eye(3)
-    kx, ky = angles_rad[0] / angle, angles_rad[1] / angle
-    K = np.array([[0.0, 0.0, ky], [0.0, 0.0, -kx], [-ky, kx, 0.0]])
-    tilt: Array = np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
-    return tilt
+    """The rotation by the rotation vector (x, y, 0)."""
+    return rotation_from_vector(np.array([angles_rad[0], angles_rad[1], 0.0]))
