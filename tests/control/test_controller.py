@@ -488,3 +488,31 @@ def test_the_stamps_offset_is_estimated_and_corrected_once_sure() -> None:
     assert reported.time_offset is not None
     assert reported.time_offset.offset_s == pytest.approx(found.offset_s, abs=0.002)
     assert reported.capture_time(frame) == 10.0
+
+
+def test_a_target_held_by_the_inertial_filter_is_carried_on_when_it_drops_out(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Blind under the plate, the inertial filter puts the vehicle 1 cm from where the
+    odometry's drift does; when it drops out the controller goes on from the filter's word,
+    on the odometry's motion since, not from the odometry's own (a jump of centimetres
+    mid-alignment, chased at full speed)."""
+    s = ControllerSettings(observer_rate=0.0)
+    c = PerchingController(s)
+    for k in range(3):
+        t = k / 30
+        c.update(_seen(s, [0.0, 0.0, 0.3], t), t, np.eye(3), _odometry(t))
+    held_by_odometry = c.update(None, 4 / 30, np.eye(3), _odometry(4 / 30)).error_m
+    assert held_by_odometry is not None
+    r_m = np.array([-0.01, 0.0]) - c._magnet_offset(np.eye(3))[:2]  # the filter: 1 cm along x
+    monkeypatch.setattr(c.inertial, "state_at", lambda _t: (r_m, np.zeros(2)))
+    by_filter = c.update(None, 5 / 30, np.eye(3), _odometry(5 / 30)).error_m
+    assert by_filter is not None
+    assert by_filter[0] == pytest.approx(held_by_odometry[0] + 0.01, abs=1e-9)
+    monkeypatch.setattr(c.inertial, "state_at", lambda _t: None)  # dropped out
+    carried_on = c.update(None, 6 / 30, np.eye(3), _odometry(6 / 30, x_m=0.002)).error_m
+    assert carried_on is not None
+    assert carried_on[0] == pytest.approx(by_filter[0] - 0.002, abs=1e-9)
+    # a fix of its own again: the odometry's hold, as without the filter
+    c.update(_seen(s, [0.0, 0.0, 0.3], 7 / 30), 7 / 30, np.eye(3), _odometry(7 / 30, x_m=0.002))
+    assert c._inertial_gap is None

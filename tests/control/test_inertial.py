@@ -153,8 +153,45 @@ def test_a_fix_far_from_the_prediction_starts_afresh() -> None:
     assert tracker.odometry_error(1.0) is None
 
 
+def test_a_blind_spell_keeps_a_ready_filter_in_use_until_its_velocity_is_lost() -> None:
+    """Fixes stop (the camera too close to the plate to see): the velocity's spread grows
+    past the spread the filter became ready at, and it stays in use, until the spread passes
+    ``keep_velocity_std_mps``."""
+    # always worth using; the odometry's error large and slow (a drag-free filter's), so
+    # without fixes the velocity is soon not known
+    settings = InertialSettings(
+        use_above_mps=1e-6,
+        use_below_mps=1e-6,
+        min_odometry_error_mps=0.15,
+        max_odometry_error_mps=0.3,
+        odometry_error_s=1.0,
+    )
+    tracker = InertialTracker(settings)
+    rng = np.random.default_rng(3)
+    t = 0.0
+    for k in range(200):  # 2 s of fixes at 33 Hz
+        t = k * 0.01
+        tracker.sample(t, rng.normal(0, 0.05, 2), rng.normal(0, 0.05, 2))
+        if k % 3 == 0:
+            tracker.fix(t, np.zeros(2), 0.3)
+    assert tracker.in_use
+    spreads, used = [], []
+    for k in range(1, 801):  # 8 s blind
+        tracker.sample(t + k * 0.01, rng.normal(0, 0.05, 2), rng.normal(0, 0.05, 2))
+        spreads.append(math.sqrt(float(tracker._steps[-1].P[1, 1])))
+        used.append(tracker.in_use)
+    spread, in_use = np.array(spreads), np.array(used)
+    between = (spread > settings.ready_velocity_std_mps) & (spread < settings.keep_velocity_std_mps)
+    assert between.any()  # the blind spell did pass the ready spread
+    assert in_use[between].all()
+    assert not in_use[spread > settings.keep_velocity_std_mps].any()
+    assert (spread > settings.keep_velocity_std_mps).any()
+
+
 def test_settings_are_checked() -> None:
     with pytest.raises(ControllerConfigError, match="accel_noise_mps2"):
         InertialSettings(accel_noise_mps2=0.0)
     with pytest.raises(ControllerConfigError, match="fix_std_per_m"):
         InertialSettings(fix_std_per_m=-1.0)
+    with pytest.raises(ControllerConfigError, match="keep_velocity_std_mps"):
+        InertialSettings(keep_velocity_std_mps=0.01)

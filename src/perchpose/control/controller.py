@@ -425,6 +425,9 @@ class PerchingController:
         self._attitudes: deque[tuple[float, Array]] = deque(maxlen=64)
         self._target_odom: Array | None = None
         self._target_t: float | None = None
+        # where the inertial filter put the held target (x, y) less where the odometry does,
+        # while it was in use since the last fix: carried on if it drops out before the next
+        self._inertial_gap: Array | None = None
         self._observer = DisturbanceObserver(
             self.settings.onboard_velocity_gain,
             self.settings.observer_rate,
@@ -598,6 +601,7 @@ class PerchingController:
         for the vehicle's estimator."""
         r_m = -(d + self._magnet_offset(R_world_body))  # the body's centre from the target
         self.inertial.fix(t_capture_s, r_m[:2], float(np.linalg.norm(d)))
+        self._inertial_gap = None  # a fix of its own again
         p_capture = self._position_at(t_capture_s)
         if p_capture is None:
             return
@@ -637,7 +641,14 @@ class PerchingController:
         held = self._target_odom - self._magnet_odom(carried(odometry, t_s), R_world_body)
         state = self.inertial.state_at(t_s)
         if state is not None:
-            held[:2] = -(state[0] + self._magnet_offset(R_world_body)[:2])
+            inertial = -(state[0] + self._magnet_offset(R_world_body)[:2])
+            self._inertial_gap = inertial - held[:2]
+            held[:2] = inertial
+        elif self._inertial_gap is not None:
+            # the filter has dropped out (blind too long under the plate, its velocity no
+            # longer known): go on from where it left the target, on the odometry's motion,
+            # not from where the odometry's own drift has put it (centimetres apart)
+            held[:2] += self._inertial_gap
         return held
 
     def _reject(self, v_cmd: Array, t_s: float, odometry: Odometry | None) -> Array:

@@ -73,6 +73,9 @@ class InertialSettings:
     attitude 0.5 deg off). fix_std_m, fix_std_per_m : a fix's spread, a floor plus a share
     of the distance to the target. history_s : how far back a late fix is replayed from.
     ready_velocity_std_mps : the velocity's spread under which the filter is ready.
+    keep_velocity_std_mps : once ready, the spread it stays ready under (blind under the
+    plate, with no fixes, the spread grows; dropping the filter there would switch the
+    controller to the odometry's drifted view, centimetres off, mid-alignment).
     gate_sigma, reset_m : a fix further than both from the prediction starts the filter
     afresh. max_correction_mps : the largest correction of the vehicle's velocity estimate
     the controller adds to a setpoint. use_above_mps, use_below_mps : the filter is used
@@ -95,6 +98,7 @@ class InertialSettings:
     fix_std_per_m: float = 0.005
     history_s: float = 0.4
     ready_velocity_std_mps: float = 0.02
+    keep_velocity_std_mps: float = 0.06
     gate_sigma: float = 6.0
     reset_m: float = 0.05
     max_correction_mps: float = 0.3
@@ -116,6 +120,7 @@ class InertialSettings:
             "fix_std_m",
             "history_s",
             "ready_velocity_std_mps",
+            "keep_velocity_std_mps",
             "gate_sigma",
             "reset_m",
             "max_correction_mps",
@@ -123,6 +128,11 @@ class InertialSettings:
             "use_below_mps",
         )
         require_positive(self, names, ControllerConfigError, "inertial ")
+        if self.keep_velocity_std_mps < self.ready_velocity_std_mps:
+            raise ControllerConfigError(
+                f"inertial keep_velocity_std_mps ({self.keep_velocity_std_mps}) must be at "
+                f"least ready_velocity_std_mps ({self.ready_velocity_std_mps})"
+            )
         if not (math.isfinite(self.fix_std_per_m) and self.fix_std_per_m >= 0):
             raise ControllerConfigError(
                 f"inertial fix_std_per_m must be >= 0, got {self.fix_std_per_m}"
@@ -165,6 +175,7 @@ class InertialTracker:
         self._moments = np.array([self.error_var + self.noise_var, self.error_var])
         self._last_residual: Array | None = None
         self.correlated = False  # the odometry's error is worth correcting (``in_use``)
+        self._kept = False  # ready, and its velocity's spread still under keep_velocity_std_mps
 
     @property
     def in_use(self) -> bool:
@@ -173,10 +184,15 @@ class InertialTracker:
 
     @property
     def ready(self) -> bool:
-        """Started, and the velocity known to ``ready_velocity_std_mps``."""
+        """Started, and the velocity known to ``ready_velocity_std_mps``; once ready, it
+        stays so while the spread is under ``keep_velocity_std_mps``."""
         if not self._started or not self._steps:
+            self._kept = False
             return False
-        return math.sqrt(float(self._steps[-1].P[V, V])) < self.settings.ready_velocity_std_mps
+        s = self.settings
+        limit = s.keep_velocity_std_mps if self._kept else s.ready_velocity_std_mps
+        self._kept = math.sqrt(float(self._steps[-1].P[V, V])) < limit
+        return self._kept
 
     def _predict(self, x: Array, P: Array, a_mps2: Array, dt_s: float) -> tuple[Array, Array]:
         if dt_s <= 0.0:
