@@ -80,11 +80,11 @@ class VelocityGains:
 def _struct_after_anchor(path: str) -> int | None:
     """How far the struct lies past the exported function, by the file's symbol table."""
     try:
-        elf = Path(path).read_bytes()
-        symbols = _static_objects(elf, SOURCE_FILE)
-        anchor = _global_symbol(elf, ANCHOR_FUNCTION)
+        table = _symbols(Path(path).read_bytes())
     except (OSError, ValueError, struct.error):
         return None
+    symbols = _static_objects(table, SOURCE_FILE)
+    anchor = _global_symbol(table, ANCHOR_FUNCTION)
     if STRUCT_NAME not in symbols or anchor is None:
         return None
     return symbols[STRUCT_NAME] - anchor
@@ -126,12 +126,12 @@ def _symbols(elf: bytes) -> list[tuple[str, int, int]]:
     return out
 
 
-def _static_objects(elf: bytes, source_file: str) -> dict[str, int]:
-    """The file-static data objects of one source file: the local symbols that follow its
-    FILE entry."""
+def _static_objects(table: list[tuple[str, int, int]], source_file: str) -> dict[str, int]:
+    """The file-static data objects of one source file in the symbol table: the local
+    symbols that follow its FILE entry."""
     objects: dict[str, int] = {}
     current = ""
-    for name, kind, value in _symbols(elf):
+    for name, kind, value in table:
         if kind == _STT_FILE:
             current = name
         elif kind == _STT_OBJECT and Path(current).name == source_file:
@@ -139,6 +139,6 @@ def _static_objects(elf: bytes, source_file: str) -> dict[str, int]:
     return objects
 
 
-def _global_symbol(elf: bytes, name: str) -> int | None:
-    values = [value for n, _kind, value in _symbols(elf) if n == name and value]
+def _global_symbol(table: list[tuple[str, int, int]], name: str) -> int | None:
+    values = [value for n, _kind, value in table if n == name and value]
     return values[0] if values else None
