@@ -28,9 +28,11 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
 - ``perched``: contact: during the final climb (or a climb at its speed with the plate
   within ``climb_contact_within_m``) the vehicle's height stopped rising (under
   ``contact_rise_m`` over ``contact_window_s`` while climbing), or in any phase with the
-  plate within ``held_within_m`` by the camera's last fresh estimate, its height held still
-  (within ``held_still_m`` over ``held_window_s``) against vertical speeds asked that would
-  have moved it twice that (the magnet caught it): a stop setpoint cuts the motors and the
+  plate within ``held_within_m`` by the camera's last measured frame (its own distance, not
+  the odometry's) or the height within ``held_height_m`` of the plate's by those frames, its
+  height held still (within ``held_still_m`` over ``held_window_s``) against vertical speeds
+  asked that would have moved it twice that, and still the plate's height by those frames
+  (the magnet caught it): a stop setpoint cuts the motors and the
   magnet holds the vehicle. Time alone never stops the motors; without a height source there
   is no contact evidence, and a final climb that does not end backs off;
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
@@ -58,6 +60,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
@@ -76,6 +79,7 @@ from perchpose.control.controller import (
 )
 from perchpose.control.evidence import ContactDetector, HeldDetector, TouchdownDetector
 from perchpose.control.gyro import BlendedAttitude, GyroReading
+from perchpose.control.history import newest_at
 from perchpose.control.lean import LeanCorrection
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
@@ -113,6 +117,10 @@ class PilotState(StrEnum):
 
 DONE = (PilotState.LANDED, PilotState.PERCHED, PilotState.LINK_LOST, PilotState.RELEASED)
 FLYING = (PilotState.PERCHING, PilotState.LOST, PilotState.LANDING)
+# the camera's measured words on the plate's height averaged for the held-contact evidence
+PLATE_WORDS = 15  # half a second of frames at 30 fps
+HEIGHT_HISTORY = 128  # live heights kept, to pair a frame with the height at its capture
+HEIGHT_FIT_S = 0.15  # the heights either side of a capture the height there is fitted to
 
 
 class SenseAges(NamedTuple):
@@ -260,11 +268,14 @@ class PerchingPilot:
         s = self.settings
         self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
         self._held = HeldDetector(s.held_window_s, s.held_still_m)
-        # the height where the camera last put the plate within held_within_m
-        self._plate_height_m: float | None = None
-        # whether the camera's last word put the plate within held_within_m (between frames,
-        # and while it sees no target, that word stands: the odometry's guess does not move it)
-        self._plate_near = False
+        # the plate's height on the vehicle's height sensor, by the camera's last measured
+        # frames: each one's distance above the magnet plus the height at its capture (their
+        # mean: a drag-free filter's height is centimetres noisy on a range sensor 2 m from
+        # the floor). The plate does not move, so it stands while the camera sees nothing;
+        # only a measured frame moves it (an odometry that drifts while the plate holds the
+        # vehicle would carry the plate away on paper)
+        self._plate_words: deque[float] = deque(maxlen=PLATE_WORDS)
+        self._heights: deque[tuple[float, float]] = deque(maxlen=HEIGHT_HISTORY)
         self._plate_above_m = math.inf  # the camera's last word on the plate's distance
         # when a fresh frame last put the plate further than contact_veto_m
         self._far_seen_t: float | None = None
@@ -424,6 +435,30 @@ class PerchingPilot:
         height = self.height_m()
         return height if height is not None and math.isfinite(height) else None
 
+    def _note_height(self, t_s: float) -> None:
+        """Keep the live height at ``t_s`` (a frame's word on the plate is paired with the
+        height at its capture)."""
+        height = self._height()
+        if height is not None and (not self._heights or t_s >= self._heights[-1][0]):
+            self._heights.append((t_s, height))
+
+    def _height_at(self, t_s: float) -> float | None:
+        """The live height at ``t_s``: the least-squares line through the heights kept within
+        ``HEIGHT_FIT_S`` of it, at ``t_s`` (a drag-free filter's height on a range sensor 2 m
+        from the floor is a centimetre noisy from one sample to the next, and the vehicle may
+        be climbing); the nearest kept sample where there are too few, the height now where
+        none is kept."""
+        if not self._heights:
+            return self._height()
+        near = [(t, h) for t, h in self._heights if abs(t - t_s) <= HEIGHT_FIT_S]
+        if len(near) < 3:
+            return newest_at(self._heights, t_s)
+        t_mean = sum(t for t, _ in near) / len(near)
+        h_mean = sum(h for _, h in near) / len(near)
+        spread = sum((t - t_mean) ** 2 for t, _ in near)
+        slope = sum((t - t_mean) * (h - h_mean) for t, h in near) / spread if spread > 0 else 0.0
+        return h_mean + slope * (t_s - t_mean)
+
     def _height_age(self) -> float:
         """Seconds since the vehicle's last height sample (infinite without a height)."""
         if self.height_m is None:
@@ -449,7 +484,7 @@ class PerchingPilot:
         f_body = None if self.specific_force is None else self.specific_force()
         # with the plate within held_within_m its touch and the magnet's pull reach the
         # accelerometer too: the lean is held as it was
-        reach = self._plate_above_m < self.settings.held_within_m
+        reach = self._plate_in_reach(t_s)
         R_world_body = self.lean.correct(R_world_body, None if reach else f_body, t_s)
         gyro = None if self.gyro is None else self.gyro()
         if self.blend is None or gyro is None:
@@ -614,6 +649,7 @@ class PerchingPilot:
             if t_s < self.last_t_s or not self.flying:
                 return None
             self.last_t_s = t_s
+            self._note_height(t_s)
             if self.state == PilotState.LANDING:
                 return self._land_step(t_s)
             stale = self._stale(t_s)
@@ -669,66 +705,71 @@ class PerchingPilot:
         )
         if pressing and self._contact.touched(t_s, self._height()) and not far:
             return _stopped_against(command)
-        return HELD_UP if self._held_up(command, t_s, seen=seen) else None
+        return HELD_UP if self._held_up(command, t_s) else None
 
-    def _held_up(self, command: Command, t_s: float, *, seen: bool) -> bool:
+    def _held_up(self, command: Command, t_s: float) -> bool:
         """Contact evidence near the plate in any phase (a back-off, or steps down out of the
         capture cone and climbs again, where the camera's evidence at a few centimetres says
-        the vehicle is off-centre): with the plate within ``held_within_m`` by the camera's
-        last word, the vertical speeds asked for over ``held_window_s`` would have moved the
-        vehicle twice ``held_still_m`` and its height has stayed within ``held_still_m``: the
-        magnet holds it against the plate (the motors cannot pull it off). Only a fresh
-        estimate (``seen``) changes that word: against the plate the camera is too near to
-        see the target, and an odometry that drifts while the plate holds the vehicle (a
-        Kalman filter whose tilt is off, its flow 2 m from the floor) would carry the plate
-        away on paper. The height must also be within ``held_still_m`` of where that word was
-        given."""
-        if seen:
-            error = command.error_m
-            self._camera_puts_plate(None if error is None else float(error[2]))
-        if not self._plate_near:
+        the vehicle is off-centre; a blind climb the magnet caught): with the plate within
+        reach (``_plate_in_reach``), the vertical speeds asked for over ``held_window_s``
+        would have moved the vehicle twice ``held_still_m`` and its height has stayed within
+        ``held_still_m``, and it is still at the plate's height (``_at_plate_height``): the
+        magnet holds it against the plate (the motors cannot pull it off)."""
+        if not self._plate_in_reach(t_s):
             self._held.reset()
             return False
-        height = self._height()
-        held = self._held.touched(t_s, height, command.climb_asked_mps)
-        # and it is still where the camera put the plate: a vehicle that came off the plate
-        # and hovers unseen below it, not following the climb asked, is not held
-        up = self._plate_height_m
-        return held and (
-            up is None or height is None or abs(height - up) < self.settings.held_still_m
+        held = self._held.touched(t_s, self._height(), command.climb_asked_mps)
+        return held and self._at_plate_height(t_s)
+
+    def _plate_in_reach(self, t_s: float) -> bool:
+        """The plate is within the magnet's reach (``held_within_m``) by the camera's last
+        measured frame, or the vehicle is at the plate's height by the frames
+        (``_at_plate_height``: a vehicle that climbed the last centimetres blind)."""
+        return self._plate_above_m < self.settings.held_within_m or (
+            bool(self._plate_words) and self._at_plate_height(t_s)
         )
 
-    def _landing_sees(self, estimate: Estimate) -> None:
-        """A fresh frame while landing: how far it puts the plate from the magnet, along the
-        body's z through the mount (no attitude needed, which may be the sense that was
-        lost)."""
-        self._camera_puts_plate(self.controller.target_above_magnet_m(estimate))
+    def _at_plate_height(self, t_s: float) -> bool:
+        """The height now (``_height_at``: fitted to the last tenths of a second) is within
+        ``held_height_m`` (the height sensor's own error) of the plate's height by the
+        camera's measured frames (True where either is unknown): a vehicle that came off the
+        plate and hovers unseen below it is not at the plate."""
+        height = self._height_at(t_s)
+        if not self._plate_words or height is None:
+            return True
+        plate = sum(self._plate_words) / len(self._plate_words)
+        return abs(plate - height) < self.settings.held_height_m
 
-    def _camera_puts_plate(self, above_m: float | None) -> None:
-        """A fresh frame's word on the plate, ``above_m`` over the magnet (None: the frame
-        measured no distance): within ``held_within_m`` it is near, and the height now is the
-        plate's; further, it is not, and there is no plate's height; with no distance it is
-        not near, and the plate's height stays what it was."""
-        if above_m is not None:
-            self._plate_above_m = above_m
-        near = above_m is not None and above_m < self.settings.held_within_m
-        if near:
-            self._plate_height_m = self._height()
-        elif above_m is not None:
-            self._plate_height_m = None
-        self._plate_near = near
+    def _camera_puts_plate(self, estimate: Estimate) -> None:
+        """A measured frame's word on the plate: how far above the magnet it puts it, along
+        the body's z through the mount (no attitude needed, which may be the sense that was
+        lost), and that plus the height at the frame's capture: the plate's height. A word
+        further than ``held_height_m`` from the mean of those before starts them again (the
+        plate has moved on the height sensor: a height that jumped, another marker). A gap
+        wider than ``held_gap_m`` starts the held window again: the magnet has not closed it."""
+        above_m = self.controller.target_above_magnet_m(estimate)
+        self._plate_above_m = above_m
+        if above_m > self.settings.held_gap_m:
+            self._held.reset()
+        height = self._height_at(self.controller.capture_time(estimate))
+        if height is None:
+            return
+        words = self._plate_words
+        word = height + above_m
+        if words and abs(word - sum(words) / len(words)) >= self.settings.held_height_m:
+            words.clear()
+        words.append(word)
 
     def _held_landing(self, t_s: float, height_m: float) -> bool:
-        """Contact evidence while landing: the landing began where the camera had put the
-        plate within ``held_within_m``, the height is still there (within ``held_still_m``)
-        and has held still against the descent for ``held_window_s``: the magnet caught the
+        """Contact evidence while landing: the plate within the magnet's reach
+        (``_plate_in_reach``), the height held still against the descent for
+        ``held_window_s`` and still the plate's (``_at_plate_height``): the magnet caught the
         vehicle before the landing, which it cannot leave."""
-        s = self.settings
-        up = self._plate_height_m
-        if up is None or abs(height_m - up) >= s.held_still_m:
+        if not self._plate_in_reach(t_s):
             self._held.reset()
             return False
-        return self._held.touched(t_s, height_m, -s.land_speed_mps)
+        held = self._held.touched(t_s, height_m, -self.settings.land_speed_mps)
+        return held and self._at_plate_height(t_s)
 
     def _pressing(self, command: Command, t_s: float) -> bool:
         """The command climbs into the plate, so that a height that stops rising is contact:
@@ -772,6 +813,7 @@ class PerchingPilot:
             t_s = max(t_s, estimate.t_s + max(0.0, self.clock() - estimate.captured_s))
         t_s = max(t_s, self.last_t_s)
         self.last_t_s = t_s
+        self._note_height(t_s)
         self._frame_clock = (t_s, self.clock())
         self._frame_t = t_s
         if self._camera_silent:
@@ -786,9 +828,8 @@ class PerchingPilot:
         if self.state in DONE:
             return PilotStep(t_s, self.state, None, None, None)
         if self.state == PilotState.LANDING:
-            if fresh:
-                assert estimate is not None
-                self._landing_sees(estimate)
+            if fresh and estimate is not None and estimate.age_s <= 0.0:
+                self._camera_puts_plate(estimate)
             return self._land_step(t_s)
         if fresh:
             self._last_valid_t = t_s
@@ -810,6 +851,11 @@ class PerchingPilot:
             estimate, t_s, R_world_body, odometry, self._age("attitude")
         )
         self._send_fix(command)
+        if seen and estimate is not None and estimate.age_s <= 0.0:
+            # a measurement of this frame (not the estimator coasting): the camera's word on
+            # the plate, by its own distance through the mount (the command's error is the
+            # odometry's, which drifts while the plate holds the vehicle)
+            self._camera_puts_plate(estimate)
         return self._follow(command, t_s, seen=seen)
 
     def _send_fix(self, command: Command) -> None:

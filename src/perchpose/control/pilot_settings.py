@@ -49,9 +49,19 @@ class PilotSettings:
     contact and touchdown count only height samples younger than this (a stream at 10 Hz or
     faster stays live between its samples); it must be shorter than the contact window, so that
     a height that froze never makes a contact on its own. held_window_s, held_still_m,
-    held_within_m : contact is also, in any phase with the plate within held_within_m by the
-    camera (the magnet reaches about that far), a height that stayed within held_still_m over
-    held_window_s while the vertical speeds asked for would have moved the vehicle twice that:
+    held_within_m, held_height_m : contact is also, in any phase with the plate within
+    held_within_m by the camera's last measured frame (the magnet reaches about that far) or
+    the height within held_height_m of the plate's by the measured frames (each one's distance
+    plus the height at its capture: a climb the magnet caught after the camera's last frame),
+    a height that stayed within held_still_m over held_window_s while the vertical speeds asked
+    for would have moved the vehicle twice that, and still within held_height_m of the
+    plate's; held_height_m is the height sensor's error, not the magnet's reach (a Flow deck's
+    range 2 m from the floor reads within 2.5 cm, 1 sigma, and the filter fusing it was 3 cm
+    high for tenths of a second before the plate in traced runs); held_gap_m : a measured frame
+    that puts the plate further than this above the magnet starts that window again: the
+    camera sees a gap, which the magnet's pull closes by itself only under about this (0.8 N at
+    15 mm against the 39 g vehicle's 0.38 N; 0.26 N at 20 mm, where a vehicle asked to descend
+    can hang under the plate for a second, and falls if its motors stop):
     the magnet holds it (the controller backing off, or stepping down out of its capture cone
     and climbing again, on the camera's evidence at a few centimetres; a vehicle in free air
     follows what it is asked with a lag of a few tenths of a second, hence the longer window; a
@@ -103,6 +113,8 @@ class PilotSettings:
     held_window_s: float = 1.0
     held_still_m: float = 0.02
     held_within_m: float = 0.03
+    held_height_m: float = 0.05
+    held_gap_m: float = 0.015
     setpoint_period_s: float = 0.05
     frame_timeout_s: float = 0.25
     stale_after_s: float = 0.25
@@ -133,6 +145,8 @@ class PilotSettings:
             "held_window_s",
             "held_still_m",
             "held_within_m",
+            "held_height_m",
+            "held_gap_m",
             "setpoint_period_s",
             "frame_timeout_s",
             "stale_after_s",
