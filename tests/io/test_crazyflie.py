@@ -163,12 +163,19 @@ def test_a_long_loss_lands_and_then_stays_silent(
     cf, link = crazyflie
     settings = PilotSettings(land_after_lost_s=0.1)
     height = [0.32]
-
-    def descending() -> float:  # 2 cm a frame down to the floor, 1 cm up
-        height[0] = max(0.01, height[0] - 0.02)
-        return height[0]
-
-    pilot, steps = fly(cf, estimates, settings, descending)
+    pilot = PerchingPilot(
+        CflibCommander(cf.commander),
+        level,
+        settings=settings,
+        height_m=lambda: height[0],
+        report=lambda _m: None,
+    )
+    pilot.watch_link(cf)
+    steps = []
+    for estimate in estimates:
+        steps.append(pilot.update(estimate, estimate.t_s))
+        if pilot.state == "landing":  # 2 cm a landing frame down to the floor, 1 cm up
+            height[0] = max(0.01, height[0] - 0.02)
     packets = [decode(p) for p in link.sent]
     states = [t[2] for t in pilot.transitions]
     assert states == ["perching", "lost", "landing", "landed"]
