@@ -75,3 +75,24 @@ def test_a_held_vehicle_reads_held_through_a_centimetre_of_height_noise() -> Non
     assert said[-1]
     for lag_s in (0.1, 0.3, 0.5):
         assert not any(_fly([-0.1] * 150, held=False, lag_s=lag_s, noise_m=0.01))
+
+
+def test_a_vehicle_leaving_the_plate_as_a_descent_is_asked_is_not_held() -> None:
+    """Held against the plate through a hover (nothing asked), it comes off as the descent
+    is asked 0.6 s into the window and follows it: over the window its height rose and fell,
+    a flat trend, and the asking adds up to 4 cm, but all of it in the second half (a traced
+    strong-wind run whose motors were stopped 3 cm under the plate). Held through the
+    descent too, it is contact once both halves of a window asked for it."""
+    detector = HeldDetector(1.0, 0.02)
+    said = []
+    z = 1.95
+    for i in range(50):  # the hover: pressed up 2 cm, then held there
+        z = min(1.97, z + 0.002)
+        said.append(detector.touched(i * DT_S, z, 0.0))
+    for i in range(50, 70):  # the descent asked: it follows at 0.1 m/s
+        z -= 0.1 * DT_S
+        said.append(detector.touched(i * DT_S, z, -0.1))
+    assert not any(said)
+    held = _fly([0.0] * 50 + [-0.1] * 60, held=True)
+    assert not any(held[:75])  # the first half of the window still the hover's
+    assert held[-1]

@@ -55,14 +55,17 @@ class ContactDetector:
 
 
 class HeldDetector:
-    """Contact evidence near the plate in any phase: over a whole ``window_s`` the vertical
-    speeds asked for would have moved the vehicle at least twice ``still_m`` one way, and
-    its height's trend (the least-squares line through the window's samples) moved less than
-    ``still_m``: something holds it (the magnet, against the plate). A vehicle in free air
-    follows what it is asked with a lag of a few tenths of a second, so its trend moves at
-    least ``2 still_m`` less that lag's worth. The trend, not the samples' spread, so that a
-    height estimate with a centimetre of noise (a Kalman filter's on a range sensor 2 m
-    from the floor) still reads a vehicle held still."""
+    """Contact evidence near the plate in any phase: over each half of a whole ``window_s``
+    the vertical speeds asked for would have moved the vehicle at least ``still_m`` (the same
+    way in both), and its height's trend (the least-squares line through the window's
+    samples) moved less than ``still_m``: something holds it (the magnet, against the
+    plate). A vehicle in free air follows what it is asked with a lag of a few tenths of a
+    second, so its trend moves at least ``2 still_m`` less that lag's worth. The trend, not
+    the samples' spread, so that a height estimate with a centimetre of noise (a Kalman
+    filter's on a range sensor 2 m from the floor) still reads a vehicle held still. Both
+    halves, so that a window whose asking began halfway (a hover, then a descent) is not
+    read as held while the vehicle is only starting to follow it: a vehicle the plate held
+    in the hover, leaving it as the descent is asked, has a flat trend across the two."""
 
     def __init__(self, window_s: float, still_m: float) -> None:
         self.still_m = still_m
@@ -86,12 +89,20 @@ class HeldDetector:
         start = self._window.samples[0][0]
         while len(self._asked) > 1 and self._asked[1][0] <= start:
             self._asked.popleft()
+        middle = start + 0.5 * (t_s - start)
+        first, second = self._asked_m(start, middle), self._asked_m(middle, t_s)
+        asked = first * second > 0.0 and min(abs(first), abs(second)) >= self.still_m
+        return asked and abs(self._trend_m()) < self.still_m
+
+    def _asked_m(self, start_s: float, end_s: float) -> float:
+        """How far the vertical speeds asked for would have moved the vehicle from
+        ``start_s`` to ``end_s`` (each held until the next)."""
         asked = list(self._asked)
-        moved = sum(
-            v * (min(t1, t_s) - max(t0, start))
-            for (t0, v), (t1, _) in zip(asked, [*asked[1:], (t_s, 0.0)], strict=True)
+        ends = [t for t, _ in asked[1:]] + [math.inf]
+        return sum(
+            v * max(0.0, min(t1, end_s) - max(t0, start_s))
+            for (t0, v), t1 in zip(asked, ends, strict=True)
         )
-        return abs(moved) >= 2.0 * self.still_m and abs(self._trend_m()) < self.still_m
 
     def _trend_m(self) -> float:
         """How far the least-squares line through the window's heights moves across it."""
