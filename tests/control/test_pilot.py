@@ -750,23 +750,53 @@ def _held_at_the_plate(dip_m: float) -> tuple[PerchingPilot, HeldAtThePlate, lis
     return pilot, vehicle, reports, s.p_body_magnet_m[2]
 
 
+def _frames_at_the_plate(
+    pilot: PerchingPilot,
+    vehicle: Vehicle,
+    frames: int,
+    seen: Callable[[int, float], Estimate | None],
+    moved: Callable[[int], None] = lambda _k: None,
+) -> None:
+    """``frames`` camera frames at 30 Hz with a tick between each two, until perched: frame
+    ``k`` at time ``t`` brings ``seen(k, t)``, after ``moved(k)`` has moved the vehicle."""
+    for k in range(frames):
+        moved(k)
+        t = vehicle.t_s
+        pilot.update(seen(k, t), t)
+        vehicle.fly(1 / 60)
+        pilot.tick(vehicle.t_s)
+        vehicle.fly(1 / 60)
+        if pilot.state == "perched":
+            return
+
+
+def _seen_first(
+    s: ControllerSettings, aside_m: float, above_m: float, frames: int = 15
+) -> Callable[[int, float], Estimate | None]:
+    """For ``_frames_at_the_plate``: the target ``aside_m`` to the side and ``above_m``
+    above the magnet in the first ``frames`` frames, then nothing seen."""
+    magnet_z = s.p_body_magnet_m[2]
+
+    def seen(k: int, t: float) -> Estimate | None:
+        return _seen(s, [aside_m, 0.0, magnet_z + above_m], t) if k < frames else None
+
+    return seen
+
+
 def test_a_vehicle_held_at_the_plate_is_perched_through_its_odometrys_height_noise() -> None:
     """The camera puts the plate 2 mm above the magnet, 15 mm to the side, then sees nothing
     (too near the target); the odometry's height dips 3.5 cm now and then: carried by the
     odometry alone, those samples would put the plate beyond ``held_within_m`` and start the
     held window afresh each time. The camera's last word stands, and the height held still
     against what was asked is contact."""
-    pilot, vehicle, reports, magnet_z = _held_at_the_plate(dip_m=0.035)
+    pilot, vehicle, reports, _magnet_z = _held_at_the_plate(dip_m=0.035)
     s = pilot.controller.settings
-    for k in range(90):
-        t = vehicle.t_s
-        seen = _seen(s, [0.015, 0.0, magnet_z + 0.002], t) if k < 15 else None
-        pilot.update(seen, t)
-        vehicle.fly(1 / 60)
-        pilot.tick(vehicle.t_s)
-        vehicle.fly(1 / 60)
-        if pilot.state == "perched":
-            break
+    _frames_at_the_plate(
+        pilot,
+        vehicle,
+        90,
+        _seen_first(s, 0.015, 0.002),
+    )
     assert pilot.state == "perched"
     assert any("the magnet holds the vehicle" in r for r in reports)
 
@@ -799,22 +829,16 @@ def test_only_a_measured_frame_moves_the_cameras_word_on_the_plate(coasting: boo
     reports: list[str] = []
     pilot = _pilot(vehicle, controller=s, reports=reports)
     magnet_z = s.p_body_magnet_m[2]
-    for k in range(50):  # 1.7 s: the held window (1 s) once, not twice
-        t = vehicle.t_s
+
+    def seen(k: int, t: float) -> Estimate:
         if k < 15:
-            seen = _seen(s, [0.015, 0.0, magnet_z + 0.002], t)
-        elif coasting:
-            seen = Estimate.of_pose(
-                t, _seen(s, [0.015, 0.0, magnet_z + 0.002], t).t_m, 0.0, age_s=0.1
-            )
-        else:
-            seen = _seen(s, [0.015, 0.0, magnet_z + 0.10], t)
-        pilot.update(seen, t)
-        vehicle.fly(1 / 60)
-        pilot.tick(vehicle.t_s)
-        vehicle.fly(1 / 60)
-        if pilot.state == "perched":
-            break
+            return _seen(s, [0.015, 0.0, magnet_z + 0.002], t)
+        if coasting:
+            measured = _seen(s, [0.015, 0.0, magnet_z + 0.002], t)
+            return Estimate.of_pose(t, measured.t_m, 0.0, age_s=0.1)
+        return _seen(s, [0.015, 0.0, magnet_z + 0.10], t)
+
+    _frames_at_the_plate(pilot, vehicle, 50, seen)  # 1.7 s: the held window (1 s) once, not twice
     if coasting:
         assert pilot.state == "perched"
         assert any("the magnet holds the vehicle" in r for r in reports)
@@ -828,19 +852,20 @@ def test_a_climb_the_magnet_caught_after_the_cameras_last_frame_is_held() -> Non
     4.5 cm unseen and the magnet holds it. The
     plate's height by the frames is the height now: held against the descent asked, it is
     contact (by the camera's last distance alone it never would be)."""
-    pilot, vehicle, reports, magnet_z = _held_at_the_plate(dip_m=0.0)
+    pilot, vehicle, reports, _magnet_z = _held_at_the_plate(dip_m=0.0)
     s = pilot.controller.settings
-    for k in range(120):
-        t = vehicle.t_s
+
+    def rises(k: int) -> None:
         if k == 15:
             vehicle.p_m[2] += 0.045
-        seen = _seen(s, [0.035, 0.0, magnet_z + 0.045], t) if k < 15 else None
-        pilot.update(seen, t)
-        vehicle.fly(1 / 60)
-        pilot.tick(vehicle.t_s)
-        vehicle.fly(1 / 60)
-        if pilot.state == "perched":
-            break
+
+    _frames_at_the_plate(
+        pilot,
+        vehicle,
+        120,
+        _seen_first(s, 0.035, 0.045),
+        rises,
+    )
     assert pilot.state == "perched"
     assert any("the magnet holds the vehicle" in r for r in reports)
 
@@ -852,16 +877,10 @@ def test_a_vehicle_hanging_under_the_plate_in_view_of_a_gap_is_not_held() -> Non
     asked, but a gap the magnet has not closed (``held_gap_m``): its motors stay on. Seen at
     1 cm (the camera's own error at contact), it is held."""
     for gap_m, held in ((0.02, False), (0.01, True)):
-        pilot, vehicle, reports, magnet_z = _held_at_the_plate(dip_m=0.0)
-        s = pilot.controller.settings
-        for _ in range(90):
-            t = vehicle.t_s
-            pilot.update(_seen(s, [0.015, 0.0, magnet_z + gap_m], t), t)
-            vehicle.fly(1 / 60)
-            pilot.tick(vehicle.t_s)
-            vehicle.fly(1 / 60)
-            if pilot.state == "perched":
-                break
+        pilot, vehicle, reports, _magnet_z = _held_at_the_plate(dip_m=0.0)
+        _frames_at_the_plate(
+            pilot, vehicle, 90, _seen_first(pilot.controller.settings, 0.015, gap_m, frames=90)
+        )
         assert (pilot.state == "perched") == held, gap_m
         assert any("the magnet holds the vehicle" in r for r in reports) == held
 
@@ -997,16 +1016,19 @@ def test_a_vehicle_that_came_off_the_plate_and_hovers_unseen_below_it_is_not_hel
     otherwise say the magnet holds it): without a fresh frame the camera's word stands, but
     the height is no longer the plate's (beyond ``held_height_m``, the height sensor's own
     error), so the motors stay on."""
-    pilot, vehicle, _reports, magnet_z = _held_at_the_plate(dip_m=0.0)
+    pilot, vehicle, _reports, _magnet_z = _held_at_the_plate(dip_m=0.0)
     s = pilot.controller.settings
-    for k in range(90):
-        t = vehicle.t_s
+
+    def comes_off(k: int) -> None:
         if k == 15:
             vehicle.p_m[2] -= 0.08
-        seen = _seen(s, [0.015, 0.0, magnet_z + 0.002], t) if k < 15 else None
-        pilot.update(seen, t)
-        vehicle.fly(1 / 60)
-        pilot.tick(vehicle.t_s)
-        vehicle.fly(1 / 60)
+
+    _frames_at_the_plate(
+        pilot,
+        vehicle,
+        90,
+        _seen_first(s, 0.015, 0.002),
+        comes_off,
+    )
     assert pilot.state != "perched"
     assert vehicle.commander.sent[-1] != ()
