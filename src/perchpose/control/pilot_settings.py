@@ -53,11 +53,12 @@ class PilotSettings:
     held_within_m by the camera's last measured frame (the magnet reaches about that far) or
     the height within held_height_m of the plate's by the measured frames (each one's distance
     plus the height at its capture: a climb the magnet caught after the camera's last frame),
-    a height that stayed within held_still_m over held_window_s while the vertical speeds asked
-    for would have moved the vehicle twice that, and still within held_height_m of the
-    plate's; held_height_m is the height sensor's error, not the magnet's reach (a Flow deck's
-    range 2 m from the floor reads within 2.5 cm, 1 sigma, and the filter fusing it was 3 cm
-    high for tenths of a second before the plate in traced runs); held_gap_m : a measured frame
+    a height that stayed within held_still_m over held_window_s while the vertical speeds
+    asked for would have moved the vehicle that far in each half of it, and still within
+    held_height_m of the plate's; held_height_m is the height sensor's error, not the
+    magnet's reach (a Flow deck's range 2 m from the floor reads within 2.5 cm, 1 sigma, and
+    the filter fusing it was 3 cm high for tenths of a second before the plate in traced
+    runs); held_gap_m : a measured frame
     that puts the plate further than this above the magnet starts that window again: the
     camera sees a gap, which the magnet's pull closes by itself only under about this (0.8 N at
     15 mm against the 39 g vehicle's 0.38 N; 0.26 N at 20 mm, where a vehicle asked to descend
