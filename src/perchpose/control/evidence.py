@@ -6,6 +6,20 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
+
+
+def line_at(samples: Sequence[tuple[float, float]], t_s: float) -> float:
+    """The least-squares line through ``samples`` ((t_s, height_m), at least one), at
+    ``t_s`` (their mean where they span no time)."""
+    n = len(samples)
+    t_mean = sum(t for t, _ in samples) / n
+    h_mean = sum(h for _, h in samples) / n
+    spread = sum((t - t_mean) ** 2 for t, _ in samples)
+    if spread <= 0.0:
+        return h_mean
+    slope = sum((t - t_mean) * (h - h_mean) for t, h in samples) / spread
+    return h_mean + slope * (t_s - t_mean)
 
 
 class HeightWindow:
@@ -107,14 +121,7 @@ class HeldDetector:
     def _trend_m(self) -> float:
         """How far the least-squares line through the window's heights moves across it."""
         samples = self._window.samples
-        n = len(samples)
-        t_mean = sum(t for t, _ in samples) / n
-        h_mean = sum(h for _, h in samples) / n
-        spread = sum((t - t_mean) ** 2 for t, _ in samples)
-        if spread <= 0.0:
-            return 0.0
-        slope = sum((t - t_mean) * (h - h_mean) for t, h in samples) / spread
-        return slope * (samples[-1][0] - samples[0][0])
+        return line_at(samples, samples[-1][0]) - line_at(samples, samples[0][0])
 
 
 class TouchdownDetector:

@@ -77,7 +77,12 @@ from perchpose.control.controller import (
     carried,
     usable,
 )
-from perchpose.control.evidence import ContactDetector, HeldDetector, TouchdownDetector
+from perchpose.control.evidence import (
+    ContactDetector,
+    HeldDetector,
+    TouchdownDetector,
+    line_at,
+)
 from perchpose.control.gyro import BlendedAttitude, GyroReading
 from perchpose.control.history import newest_at
 from perchpose.control.lean import LeanCorrection
@@ -453,11 +458,7 @@ class PerchingPilot:
         near = [(t, h) for t, h in self._heights if abs(t - t_s) <= HEIGHT_FIT_S]
         if len(near) < 3:
             return newest_at(self._heights, t_s)
-        t_mean = sum(t for t, _ in near) / len(near)
-        h_mean = sum(h for _, h in near) / len(near)
-        spread = sum((t - t_mean) ** 2 for t, _ in near)
-        slope = sum((t - t_mean) * (h - h_mean) for t, h in near) / spread if spread > 0 else 0.0
-        return h_mean + slope * (t_s - t_mean)
+        return line_at(near, t_s)
 
     def _height_age(self) -> float:
         """Seconds since the vehicle's last height sample (infinite without a height)."""
@@ -715,29 +716,43 @@ class PerchingPilot:
         would have moved the vehicle twice ``held_still_m`` and its height has stayed within
         ``held_still_m``, and it is still at the plate's height (``_at_plate_height``): the
         magnet holds it against the plate (the motors cannot pull it off)."""
-        if not self._plate_in_reach(t_s):
+        return self._held_at(t_s, self._height(), command.climb_asked_mps)
+
+    def _held_at(self, t_s: float, height_m: float | None, asked_z_mps: float) -> bool:
+        """The held window with this height and the vertical speed asked: held while the plate
+        is within reach (else the window starts again) and the vehicle at its height."""
+        at_plate = self._at_plate_height(t_s)
+        if not self._plate_in_reach(t_s, at_plate):
             self._held.reset()
             return False
-        held = self._held.touched(t_s, self._height(), command.climb_asked_mps)
-        return held and self._at_plate_height(t_s)
+        return self._held.touched(t_s, height_m, asked_z_mps) and at_plate
 
-    def _plate_in_reach(self, t_s: float) -> bool:
+    def _plate_in_reach(self, t_s: float, at_plate: bool | None = None) -> bool:
         """The plate is within the magnet's reach (``held_within_m``) by the camera's last
         measured frame, or the vehicle is at the plate's height by the frames
-        (``_at_plate_height``: a vehicle that climbed the last centimetres blind)."""
-        return self._plate_above_m < self.settings.held_within_m or (
-            bool(self._plate_words) and self._at_plate_height(t_s)
-        )
+        (``_at_plate_height``, or ``at_plate`` where already known: a vehicle that climbed
+        the last centimetres blind)."""
+        if self._plate_above_m < self.settings.held_within_m:
+            return True
+        if at_plate is None:
+            at_plate = self._at_plate_height(t_s)
+        return bool(self._plate_words) and at_plate
+
+    @property
+    def _plate_height_m(self) -> float | None:
+        """The plate's height by the camera's measured frames (their words' mean)."""
+        words = self._plate_words
+        return sum(words) / len(words) if words else None
 
     def _at_plate_height(self, t_s: float) -> bool:
         """The height now (``_height_at``: fitted to the last tenths of a second) is within
         ``held_height_m`` (the height sensor's own error) of the plate's height by the
         camera's measured frames (True where either is unknown): a vehicle that came off the
         plate and hovers unseen below it is not at the plate."""
-        height = self._height_at(t_s)
-        if not self._plate_words or height is None:
+        plate = self._plate_height_m
+        height = None if plate is None else self._height_at(t_s)
+        if plate is None or height is None:
             return True
-        plate = sum(self._plate_words) / len(self._plate_words)
         return abs(plate - height) < self.settings.held_height_m
 
     def _camera_puts_plate(self, estimate: Estimate) -> None:
@@ -754,22 +769,17 @@ class PerchingPilot:
         height = self._height_at(self.controller.capture_time(estimate))
         if height is None:
             return
-        words = self._plate_words
-        word = height + above_m
-        if words and abs(word - sum(words) / len(words)) >= self.settings.held_height_m:
-            words.clear()
-        words.append(word)
+        word, plate = height + above_m, self._plate_height_m
+        if plate is not None and abs(word - plate) >= self.settings.held_height_m:
+            self._plate_words.clear()
+        self._plate_words.append(word)
 
     def _held_landing(self, t_s: float, height_m: float) -> bool:
         """Contact evidence while landing: the plate within the magnet's reach
         (``_plate_in_reach``), the height held still against the descent for
         ``held_window_s`` and still the plate's (``_at_plate_height``): the magnet caught the
         vehicle before the landing, which it cannot leave."""
-        if not self._plate_in_reach(t_s):
-            self._held.reset()
-            return False
-        held = self._held.touched(t_s, height_m, -self.settings.land_speed_mps)
-        return held and self._at_plate_height(t_s)
+        return self._held_at(t_s, height_m, -self.settings.land_speed_mps)
 
     def _pressing(self, command: Command, t_s: float) -> bool:
         """The command climbs into the plate, so that a height that stops rising is contact:
