@@ -481,6 +481,17 @@ def test_a_vehicle_on_a_drag_free_estimator_keeps_its_own_gain() -> None:
     assert any("models no drag: its own velocity gain is kept (4.3 /s)" in r for r in reports)
 
 
+def test_on_a_drag_free_estimate_the_odometrys_error_is_taken_as_correlated() -> None:
+    """A Kalman filter's velocity errs over tenths of a second even where the error is too
+    small for the inertial filter to learn it as worth correcting: on such an estimate the
+    pilot says so to the controller's filter from the start; on one that knows its tilt the
+    filter learns it."""
+    kalman = PerchingPilot(Recorder(), lambda: np.eye(3), settings=PilotSettings(lean_lag_s=1.2))
+    knows = PerchingPilot(Recorder(), lambda: np.eye(3))
+    assert kalman.controller.inertial.correlated
+    assert not knows.controller.inertial.correlated
+
+
 def test_on_a_drag_free_estimate_the_pilot_holds_the_gyros_word_over_seconds() -> None:
     """The Kalman filter's attitude jumps 2 degrees (one of its corrections) while the gyro
     says nothing turned: the attitude the pilot uses moves by the blend's share of it, and

@@ -159,10 +159,10 @@ def test_in_moderate_wind_the_pilot_perches_once_it_takes_out_the_lean_the_filte
     )
     setup = campaign.setups[0]
     assert setup.pilot.lean_lag_s == CRAZYFLIE_KALMAN_LAG_S
-    corrected = run_perch(setup, 1960006)
+    corrected = run_perch(setup, 1960007)
     assert corrected.success, corrected.reason
     # the same pilot believing the filter's tilt (at the vehicle's own gain, as it keeps
     # on this filter: without a lean to take out it would raise it)
     believing = replace(setup.pilot, lean_lag_s=0.0, velocity_gain_per_s=None)
-    as_it_says = run_perch(replace(setup, pilot=believing), 1960006)
+    as_it_says = run_perch(replace(setup, pilot=believing), 1960007)
     assert as_it_says.reason == "timeout"

@@ -29,8 +29,13 @@ error is white, is learnt from the odometry's residuals as they come (covariance
 only a correlated error survives from one sample to the next): a white error (the odometry
 model's default) is left to the vehicle's loop, which averages it: the filter is then not
 used at all (``in_use``), and the controller flies the odometry as it did without it; a
-Flow deck's error is corrected. A fix arrives a latency after its capture: the filter keeps
-its states and samples of the last ``history_s`` and replays them from the fix's time.
+Flow deck's error is corrected. Where the vehicle's estimator is known to leave a correlated
+error (``assume_correlated``: the pilot on a Crazyflie's Kalman filter), the filter is used
+whatever size the residuals give it: in still and light air that filter's velocity is off by
+only 1.5-4 cm/s, too little to pass ``use_above_mps``, but the error lasts a few tenths of a
+second, and flown as it comes it swings the magnet 2-3 cm about the target. A fix arrives a
+latency after its capture: the filter keeps its states and samples of the last
+``history_s`` and replays them from the fix's time.
 
 It says nothing until its velocity is known to ``ready_velocity_std_mps`` (a few fixes); a
 fix that disagrees by more than ``reset_m`` and ``gate_sigma`` spreads starts it afresh (the
@@ -175,12 +180,19 @@ class InertialTracker:
         self._moments = np.array([self.error_var + self.noise_var, self.error_var])
         self._last_residual: Array | None = None
         self.correlated = False  # the odometry's error is worth correcting (``in_use``)
+        self._known_correlated = False  # said so (``assume_correlated``), not learnt
         self._kept = False  # ready, and its velocity's spread still under keep_velocity_std_mps
 
     @property
     def in_use(self) -> bool:
         """``ready``, and the odometry's error learnt as correlated enough to correct."""
         return self.settings.enabled and self.correlated and self.ready
+
+    def assume_correlated(self) -> None:
+        """Take the odometry's error as correlated from now on, however small its residuals
+        say it is: the vehicle's estimator is known to leave such an error (a Kalman filter
+        fusing a Flow deck's flow). Its size is still learnt."""
+        self._known_correlated = self.correlated = True
 
     @property
     def ready(self) -> bool:
@@ -272,6 +284,8 @@ class InertialTracker:
         )
         self.noise_var = max(s.min_odometry_error_mps**2, float(self._moments[0]) - self.error_var)
         size = math.sqrt(self.error_var)
+        if self._known_correlated:
+            return
         if size > s.use_above_mps:
             self.correlated = True
         elif size < s.use_below_mps:

@@ -222,7 +222,9 @@ class PerchingPilot:
     controller cancels as it comes (``ControllerSettings.push_feedforward``). gyro : the
     vehicle's gyro integrated where its samples arrive (``control.gyro.GyroAttitude``), as
     old as the attitude's; with a drag-free estimate (``PilotSettings.lean_lag_s``) the
-    attitude the pilot uses follows it over ``PilotSettings.gyro_blend_s``.
+    attitude the pilot uses follows it over ``PilotSettings.gyro_blend_s``, and the
+    controller's inertial filter takes the odometry's error as correlated from the start
+    (``InertialTracker.assume_correlated``).
     """
 
     def __init__(
@@ -255,6 +257,8 @@ class PerchingPilot:
         lag_s = self.settings.lean_lag_s
         self.lean = LeanCorrection(lag_s) if lag_s > 0 else None
         self.blend = BlendedAttitude(self.settings.gyro_blend_s) if lag_s > 0 else None
+        if lag_s > 0:  # a Kalman filter's velocity: its error is correlated however small
+            self.controller.inertial.assume_correlated()
         self.height_m = height_m
         self.odometry = odometry
         self.report = report or log.warning
