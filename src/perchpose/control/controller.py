@@ -141,7 +141,10 @@ class ControllerSettings:
     later than that first-order loop the vehicle answers a setpoint (the observer's model;
     ``control.disturbance``): 0.1 s. On the Crazyflie firmware's PID an observer without it
     rings and never perches, with 0.03 s half the runs do and from 0.06 s on nearly all; 0.1 s
-    keeps a margin above that (benchmarks/notes/simulation.md). observer_rate : the
+    keeps a margin above that (benchmarks/notes/simulation.md). onboard_vertical_gain,
+    onboard_vertical_delay_s : the same of its vertical loop, which answers sooner (thrust
+    needs no tilt first): 5.5 /s and 0.02 s, fitted to the firmware's PID
+    (``control.disturbance``). observer_rate : the
     observer's poles, rad/s (0: no observer). commit_observer_rate : its poles during the
     final climb (0: observer_rate): faster there, where a gust has a few tenths of a second to
     push the magnet aside, and the climb ends before the oscillation that a fast observer
@@ -203,6 +206,8 @@ class ControllerSettings:
     hold_target_s: float = 1.0
     onboard_velocity_gain: float = 4.3
     onboard_delay_s: float = 0.1
+    onboard_vertical_gain: float = 5.5
+    onboard_vertical_delay_s: float = 0.02
     observer_rate: float = 12.0
     commit_observer_rate: float = 18.0
     k_i_xy: float = 1.5
@@ -260,10 +265,15 @@ class ControllerSettings:
             "max_integral_xy_mps",
             "integrate_within_m",
             "onboard_velocity_gain",
+            "onboard_vertical_gain",
             "commit_gain",
         )
         require_positive(self, positive, ControllerConfigError)
-        require_non_negative(self, ("onboard_delay_s", "push_filter_s"), ControllerConfigError)
+        require_non_negative(
+            self,
+            ("onboard_delay_s", "onboard_vertical_delay_s", "push_filter_s"),
+            ControllerConfigError,
+        )
         if self.commit_frames < 1:
             raise ControllerConfigError(f"commit_frames must be >= 1, got {self.commit_frames}")
         if self.max_tries < 1:
@@ -437,6 +447,8 @@ class PerchingController:
                 self.settings.max_disturbance_z_mps,
             ),
             self.settings.onboard_delay_s,
+            vertical_gain=self.settings.onboard_vertical_gain,
+            vertical_delay_s=self.settings.onboard_vertical_delay_s,
         )
         self._integral_xy = np.zeros(2)
         self._steer_t: float | None = None

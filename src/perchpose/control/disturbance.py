@@ -20,6 +20,16 @@ deg at 1 Hz and 95 deg at 2 Hz, about 0.13 s). ``delay_s`` makes the model answe
 setpoint that was sent that long ago: without it, an observer as fast as 6-18 rad/s reads the
 vehicle's own late answer as a disturbance and rings with it at about 2 Hz.
 
+The vertical loop answers sooner: thrust moves the vehicle up with no tilt to wait for. The
+firmware's PID lags by 56 deg at 1 Hz and 88 deg at 2 Hz vertically (on its Kalman filter
+58 and 77), the model's loops by 65 and 91 (``benchmarks/bench_agreement.py``'s vehicles,
+a sine asked of each): a first-order loop of 5.5 /s answering 0.02 s late lags by 56 and 80.
+Modelled as the horizontal loop (4.3 /s, 0.1 s: 92 and 143 deg), the observer reads the
+vertical answer as arriving early and rings with it: under the plate, on a Kalman filter's
+height from a range sensor 2 m from the floor, it swung the vertical setpoint by +-0.3 m/s
+(its clamp) at about 3 Hz, and the climb stalled there for seconds. ``vertical_gain`` and
+``vertical_delay_s`` are that loop's model (None: the horizontal one).
+
 A disturbance measured apart (the accelerometer's aerodynamic push, cancelled through the
 setpoint by the controller) is a known input ``a_k`` of the model, ``dv/dt = k_v (v_sp - v) +
 a_k + a``: the observer then estimates only what it leaves unexplained, and does not cancel the
@@ -48,9 +58,14 @@ class DisturbanceObserver:
         rate: float,
         max_offset_mps: tuple[float, float, float],
         delay_s: float = 0.0,
+        *,
+        vertical_gain: float | None = None,
+        vertical_delay_s: float | None = None,
     ) -> None:
         self._k_v = velocity_gain
         self.delay_s = delay_s
+        self.vertical_gain = vertical_gain
+        self.vertical_delay_s = delay_s if vertical_delay_s is None else vertical_delay_s
         self.rate = rate  # sets the gains l1, l2
         self.max_offset_mps = np.asarray(max_offset_mps, np.float64)
         self.v_mps: Array | None = None
@@ -61,14 +76,20 @@ class DisturbanceObserver:
 
     @property
     def k_v(self) -> float:
-        """The velocity loop's gain in the model, 1/s."""
+        """The horizontal velocity loop's gain in the model, 1/s."""
         return self._k_v
 
     @k_v.setter
     def k_v(self, velocity_gain: float) -> None:
-        """A new loop gain (the pilot set the vehicle's): the observer's gain l1 follows."""
+        """A new horizontal loop gain (the pilot set the vehicle's): l1 follows."""
         self._k_v = velocity_gain
         self.rate = self._rate
+
+    @property
+    def gains(self) -> Array:
+        """The model's loop gain per axis (x, y, z), 1/s."""
+        k_z = self._k_v if self.vertical_gain is None else self.vertical_gain
+        return np.array([self._k_v, self._k_v, k_z])
 
     @property
     def rate(self) -> float:
@@ -79,13 +100,13 @@ class DisturbanceObserver:
     def rate(self, rate: float) -> None:
         """Move the poles (the estimates carry on from where they are)."""
         self._rate = rate
-        self.l1 = max(0.0, 2.0 * rate - self.k_v)
+        self.l1 = np.maximum(0.0, 2.0 * rate - self.gains)  # per axis
         self.l2 = rate * rate
 
     @property
     def offset_mps(self) -> Array:
         """The setpoint offset that cancels the disturbance (clamped)."""
-        return np.clip(-self.a_mps2 / self.k_v, -self.max_offset_mps, self.max_offset_mps)
+        return np.clip(-self.a_mps2 / self.gains, -self.max_offset_mps, self.max_offset_mps)
 
     def update(
         self,
@@ -110,12 +131,14 @@ class DisturbanceObserver:
         then = newest_at(self._past, self._clock_s - age_s) if age_s > 0 else self.v_mps
         error = v_odo - then
         self._sent.append((self._clock_s, np.asarray(v_sp_mps, np.float64)))
-        answered = newest_at(self._sent, self._clock_s - self.delay_s)
-        dv = self.k_v * (answered - self.v_mps) + self.a_mps2
+        answered = newest_at(self._sent, self._clock_s - self.delay_s).copy()
+        answered[2] = newest_at(self._sent, self._clock_s - self.vertical_delay_s)[2]
+        gains = self.gains
+        dv = gains * (answered - self.v_mps) + self.a_mps2
         if known_mps2 is not None:
             dv = dv + known_mps2
         self.v_mps = self.v_mps + dt_s * (dv + self.l1 * error)
-        limit = self.max_offset_mps * self.k_v
+        limit = self.max_offset_mps * gains
         # anti-windup: the estimate never leaves what the clamp lets the setpoint cancel
         self.a_mps2 = np.clip(self.a_mps2 + dt_s * self.l2 * error, -limit, limit)
         self._clock_s += dt_s
