@@ -185,7 +185,8 @@ class InertialTracker:
 
     @property
     def in_use(self) -> bool:
-        """``ready``, and the odometry's error learnt as correlated enough to correct."""
+        """``ready``, and the odometry's error learnt as correlated enough to correct (or said
+        to be, ``assume_correlated``)."""
         return self.settings.enabled and self.correlated and self.ready
 
     def assume_correlated(self) -> None:
