@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Sequence
+from itertools import chain, islice
 
 
 def line_at(samples: Sequence[tuple[float, float]], t_s: float) -> float:
@@ -111,11 +112,10 @@ class HeldDetector:
     def _asked_m(self, start_s: float, end_s: float) -> float:
         """How far the vertical speeds asked for would have moved the vehicle from
         ``start_s`` to ``end_s`` (each held until the next)."""
-        asked = list(self._asked)
-        ends = [t for t, _ in asked[1:]] + [math.inf]
+        ends = chain(islice(self._asked, 1, None), [(math.inf, 0.0)])
         return sum(
             v * max(0.0, min(t1, end_s) - max(t0, start_s))
-            for (t0, v), t1 in zip(asked, ends, strict=True)
+            for (t0, v), (t1, _) in zip(self._asked, ends, strict=True)
         )
 
     def _trend_m(self) -> float:

@@ -284,9 +284,9 @@ class InertialTracker:
             np.clip(error_var, s.min_odometry_error_mps**2, s.max_odometry_error_mps**2)
         )
         self.noise_var = max(s.min_odometry_error_mps**2, float(self._moments[0]) - self.error_var)
-        size = math.sqrt(self.error_var)
         if self._known_correlated:
-            return
+            return  # said so: its size is learnt, the filter's use is not
+        size = math.sqrt(self.error_var)
         if size > s.use_above_mps:
             self.correlated = True
         elif size < s.use_below_mps:
