@@ -60,6 +60,7 @@ class Vehicle:
         self.spoil: set[str] = set()  # the next sample of these kinds carries a NaN
         self.received: list[tuple[int, Any]] = []  # (the mode it arrived in, message)
         self._stop = threading.Event()
+        self._last_heard_s = time.monotonic()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
@@ -77,6 +78,7 @@ class Vehicle:
         while not self._stop.is_set():
             msg = self.conn.recv_match(blocking=True, timeout=0.005)
             if msg is not None and msg.get_type() != "BAD_DATA":
+                self._last_heard_s = time.monotonic()
                 self.received.append((self.mode, msg))
                 self._obey(msg)
             now = time.monotonic()
@@ -138,7 +140,12 @@ class Vehicle:
         ]
 
     def stop(self) -> None:
-        time.sleep(0.2)
+        # the last datagrams: read until 0.3 s pass without one (a loaded machine's thread
+        # may still be behind the sender; a fixed 0.2 s once missed the final hover), 10 s at
+        # most, as the landing-target sink's vehicle does
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and time.monotonic() - self._last_heard_s < 0.3:
+            time.sleep(0.05)
         self._stop.set()
         self._thread.join()
         self.conn.close()
