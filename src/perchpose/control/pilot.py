@@ -367,6 +367,12 @@ class PerchingPilot:
             if self.state not in DONE:
                 self._enter(state, self.last_t_s, reason)
 
+    def exclusive(self) -> threading.RLock:
+        """The pilot's lock: held, no frame, tick or odometry sample moves the pilot (and no
+        setpoint goes out) on another thread; e.g. around a link's last command and the
+        release that follows it, so no tick slips a setpoint in after the last one."""
+        return self._lock
+
     def abort(self, t_s: float, reason: str = "stopped by the user") -> None:
         """Stop perching: land if flying; otherwise never take over."""
         with self._lock:

@@ -386,6 +386,36 @@ def test_the_pilot_flies_its_own_system_and_ignores_a_stranger(udp_port: int) ->
     assert reports[-1].endswith("ended released")  # by the end of tracking, not system 2
 
 
+def test_no_tick_sends_a_setpoint_after_the_last_hover(udp_port: int) -> None:
+    """The link's thread ticks the pilot on every LOCAL_POSITION_NED. One that runs while
+    ``close`` sends its hover waits for the release and then sends nothing: the hover is the
+    last setpoint the vehicle gets."""
+    vehicle = Vehicle(udp_port, ARDUPILOT, GUIDED)
+    pilot = MavlinkPilot(f"udpout:127.0.0.1:{udp_port}", report=lambda _line: None)
+    try:
+        wait_for(pilot.ready)
+        fly(pilot, 0.5, (0.10, 0.0, 0.6), time.monotonic())
+        assert pilot.pilot.state == "perching"
+        hover = pilot.commander.velocity
+        ticked = threading.Event()
+
+        def hover_while_the_link_ticks(v_ned: tuple[float, float, float], yaw: float) -> None:
+            hover(v_ned, yaw)
+            # a tick on another thread, as the link's thread would run one, right after
+            tick = threading.Thread(target=lambda: (pilot.pilot.tick_now(), ticked.set()))
+            tick.start()
+            tick.join(timeout=0.3)  # it cannot run while close holds the pilot
+
+        pilot.commander.velocity = hover_while_the_link_ticks  # type: ignore[method-assign]
+        pilot.close()
+        assert ticked.wait(2.0)  # it ran once the pilot was released, and sent nothing
+    finally:
+        vehicle.stop()
+    last = vehicle.setpoints()[-1][1]
+    assert (last.vx, last.vy, last.vz) == (0, 0, 0)
+    assert len(steering(vehicle.setpoints())) > 5
+
+
 def test_the_first_autopilot_heard_is_the_one_flown(udp_port: int) -> None:
     with guided(udp_port) as (vehicle, pilot, _reports):
         vehicle.stranger = True

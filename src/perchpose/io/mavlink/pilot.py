@@ -428,17 +428,25 @@ class MavlinkPilot:
 
     def close(self, reason: str = "tracking ended") -> None:
         """Stop: one zero-velocity setpoint if flying in the setpoint mode (the autopilot's
-        LAND if the pilot was landing), then nothing more (said once), and close the link."""
+        LAND if the pilot was landing), then nothing more (said once), and close the link.
+        The last command and the release go out under the pilot's lock: no tick on the
+        pilot's clock or the link's thread sends a setpoint after the last one."""
         self.clock.stop()
-        if self.pilot.state == PilotState.LANDING and self.commander.send_land():
-            self.pilot.release(f"{reason} while landing: the autopilot's LAND lands the vehicle")
-        elif self.pilot.flying:
-            if self.engaged():
-                self.commander.velocity((0.0, 0.0, 0.0), 0.0)
-            mode = setpoint_mode(self.vehicle) or "its mode"
-            self.pilot.release(
-                f"{reason}: a hover setpoint, then nothing more; the autopilot holds the "
-                f"vehicle in {mode} or its failsafe acts"
-            )
+        with self.pilot.exclusive():
+            if self.pilot.state == PilotState.LANDING and self.commander.send_land():
+                self.pilot.release(
+                    f"{reason} while landing: the autopilot's LAND lands the vehicle"
+                )
+            elif self.pilot.flying:
+                mode = setpoint_mode(self.vehicle) or "its mode"
+                if self.engaged():
+                    self.commander.velocity((0.0, 0.0, 0.0), 0.0)
+                    last = "a hover setpoint, then nothing more"
+                else:
+                    last = "nothing more sent (the vehicle does not take setpoints now)"
+                self.pilot.release(
+                    f"{reason}: {last}; the autopilot holds the vehicle in {mode} or its "
+                    "failsafe acts"
+                )
         self.report(self.summary())
         self.link.close()
