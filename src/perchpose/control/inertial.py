@@ -198,14 +198,18 @@ class InertialTracker:
     @property
     def ready(self) -> bool:
         """Started, and the velocity known to ``ready_velocity_std_mps``; once ready, it
-        stays so while the spread is under ``keep_velocity_std_mps``."""
+        stays so while the spread is under ``keep_velocity_std_mps`` (``_settle``, after
+        each sample and fix: reading it changes nothing)."""
+        return self._kept
+
+    def _settle(self) -> None:
+        """Whether the filter is ready, from its newest velocity spread, with hysteresis."""
         if not self._started or not self._steps:
             self._kept = False
-            return False
+            return
         s = self.settings
         limit = s.keep_velocity_std_mps if self._kept else s.ready_velocity_std_mps
         self._kept = math.sqrt(float(self._steps[-1].P[V, V])) < limit
-        return self._kept
 
     def _predict(self, x: Array, P: Array, a_mps2: Array, dt_s: float) -> tuple[Array, Array]:
         if dt_s <= 0.0:
@@ -264,6 +268,7 @@ class InertialTracker:
         self._steps.append(_Step(t_s, a, v, x, P))
         while self._steps and self._steps[0].t_s < t_s - self.settings.history_s:
             self._steps.popleft()
+        self._settle()
 
     def _learn(self, residual: Array, dt_s: float) -> None:
         """Learn how the odometry's velocity error behaves from its residual against the
@@ -304,21 +309,28 @@ class InertialTracker:
             return  # older than the history
         self._fix_t_s = t_capture_s
         std = s.fix_std_m + s.fix_std_per_m * max(0.0, distance_m)
-        step = self._steps[i]
-        if not self._started:
+        if self._started:
+            self._correct(i, t_capture_s, r, std)
+        else:
             self._start(i, t_capture_s, r, std)
-            return
-        x, P = self._predict(step.x, step.P, step.a_mps2, t_capture_s - step.t_s)
+        self._settle()
+
+    def _correct(self, i: int, t_s: float, r: Array, std: float) -> None:
+        """Take a fix into the filter at ``t_s`` (after sample ``i``) and replay from it; one
+        that disagrees beyond the gate starts the filter afresh there."""
+        s = self.settings
+        step = self._steps[i]
+        x, P = self._predict(step.x, step.P, step.a_mps2, t_s - step.t_s)
         innovation = r - x[R]
         spread = math.sqrt(float(P[R, R]) + std * std)
         if float(np.max(np.abs(innovation))) > max(s.reset_m, s.gate_sigma * spread):
             self.resets += 1
-            self._start(i, t_capture_s, r, std)
+            self._start(i, t_s, r, std)
             return
         H = np.zeros(4)
         H[R] = 1.0
         x, P = self._update(x, P, H, r, std * std)
-        self._replay(i, t_capture_s, x, P)
+        self._replay(i, t_s, x, P)
 
     def _start(self, i: int, t_s: float, r: Array, std: float) -> None:
         """Start afresh at a fix: its position, the flight controller's velocity then."""
