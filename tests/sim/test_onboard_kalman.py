@@ -133,12 +133,12 @@ def test_the_fixes_fused_by_the_filter_are_what_lets_it_perch() -> None:
     # scored at the first touch: the magnet's pull forgives a touch 14 mm off-centre, which
     # the run without fixes makes once the magnet catches it; the cone is what this is about
     setup = replace(campaign.setups[0], contact_mode="first-touch")
-    fused = run_perch(setup, 960000)
+    fused = run_perch(setup, 960002)
     assert fused.success, fused.reason
     off = replace(setup.controller.position_fixes, send=False)
     inertial_off = replace(setup.controller.inertial, enabled=False)
     controller = replace(setup.controller, position_fixes=off, inertial=inertial_off)
-    alone = run_perch(replace(setup, controller=controller), 960000)
+    alone = run_perch(replace(setup, controller=controller), 960002)
     assert alone.reason == "timeout"
 
 
@@ -159,10 +159,10 @@ def test_in_moderate_wind_the_pilot_perches_once_it_takes_out_the_lean_the_filte
     )
     setup = campaign.setups[0]
     assert setup.pilot.lean_lag_s == CRAZYFLIE_KALMAN_LAG_S
-    corrected = run_perch(setup, 1960007)
+    corrected = run_perch(setup, 1960004)
     assert corrected.success, corrected.reason
     # the same pilot believing the filter's tilt (at the vehicle's own gain, as it keeps
     # on this filter: without a lean to take out it would raise it)
     believing = replace(setup.pilot, lean_lag_s=0.0, velocity_gain_per_s=None)
-    as_it_says = run_perch(replace(setup, pilot=believing), 1960007)
+    as_it_says = run_perch(replace(setup, pilot=believing), 1960004)
     assert as_it_says.reason == "timeout"
