@@ -722,7 +722,8 @@ def test_a_back_off_the_magnet_holds_at_the_plate_is_contact() -> None:
     # the height was still over the whole held window first
     perched_at = next(t for t, _, after in pilot.transitions if after == "perched")
     retreat_frames = phases.index("retreat")
-    assert perched_at - pilot.transitions[0][0] >= retreat_frames / 30 + 1.0 - 0.1
+    window_s = pilot.settings.held_window_s
+    assert perched_at - pilot.transitions[0][0] >= retreat_frames / 30 + window_s - 0.1
 
 
 def test_a_back_off_that_descends_is_not_contact() -> None:
