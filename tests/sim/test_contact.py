@@ -155,6 +155,17 @@ def test_a_gear_beside_the_magnet_does_not_hold() -> None:
     assert forces.gap_m(q) > 0.1
 
 
+def test_only_a_gear_under_the_plate_is_at_it() -> None:
+    """A gear 3 mm under the plate is at it; the same height beside the plate's edge (the
+    plate is 20 cm square) is free air, whatever its gap to the plate's plane says."""
+    q, forces = _on_the_plate(below_m=0.003)
+    assert forces.at_plate(q, 0.005)
+    assert not forces.at_plate(q, 0.002)
+    beside, forces = _on_the_plate(below_m=-0.04, xy_m=(0.0, 1.6))
+    assert forces.gap_m(beside) < 0.0
+    assert not forces.at_plate(beside, 0.005)
+
+
 def test_the_magnet_seats_a_gear_that_touched_with_its_rim() -> None:
     """Touching 8 degrees tilted, 1 mm into the plate at its rim: the pull at the gear's
     centre against the rim's reaction turns the vehicle flat (a pendulum hanging from it)."""

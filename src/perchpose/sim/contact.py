@@ -334,6 +334,12 @@ class PlateForces:
         """How far the gear's centre is below the plate (negative: pressed into it)."""
         return self._gap_m(vec3(vehicle.p_m), mat3(vehicle.R_world_body))
 
+    def at_plate(self, vehicle: Quadrotor, within_m: float) -> bool:
+        """The gear's centre is under the plate (within its square) and less than
+        ``within_m`` below it; beside the plate there is nothing to stop against."""
+        x, y, _ = vehicle.point_in_world(self.centre)
+        return max(abs(x), abs(y)) <= self.half_m and self.gap_m(vehicle) < within_m
+
 
 def tilt_deg(vehicle: Quadrotor) -> float:
     """The angle between the body's z axis and the world's vertical."""

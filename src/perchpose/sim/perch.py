@@ -909,8 +909,8 @@ class _Flight:
         if (s.to_motor_stop or self.forces is not None) and not self.stop.motors_stopped and stops:
             self.stop.motors_stopped = True  # the pilot's stop, or the vehicle's own watchdog
             self.stop.stopped_at_s = t_s
-            self.stop.stopped_at_plate = (
-                self.forces is not None and self.forces.gap_m(v) < AT_PLATE_M
+            self.stop.stopped_at_plate = self.forces is not None and self.forces.at_plate(
+                v, AT_PLATE_M
             )
             rests = self.resting or self.stop.stopped_at_plate
             self.stop.floor_height_m = float(v.p_m[2]) - REST_Z_M
