@@ -719,10 +719,11 @@ def test_a_back_off_the_magnet_holds_at_the_plate_is_contact() -> None:
     assert "retreat" in phases
     assert pilot.state == "perched"
     assert any("the magnet holds the vehicle" in r for r in reports)
-    # the height was still over the whole held window first
+    # the height was still over a whole window first: the shorter one, the camera's frames
+    # having put the plate within the magnet's reach a moment before
     perched_at = next(t for t, _, after in pilot.transitions if after == "perched")
     retreat_frames = phases.index("retreat")
-    window_s = pilot.settings.held_window_s
+    window_s = pilot.settings.caught_window_s
     assert perched_at - pilot.transitions[0][0] >= retreat_frames / 30 + window_s - 0.1
 
 
@@ -826,6 +827,46 @@ class HeldWithDriftingOdometry(HeldAtThePlate):
         p = self.p_m.copy()
         p[2] -= self.sink_mps * (self.t_s - self.since_s)
         return p, np.array([0.0, 0.0, -self.sink_mps])
+
+
+class HeldWithRisingHeight(HeldAtThePlate):
+    """Held at the plate, its height estimate rising at ``rise_mps`` (a Kalman filter that
+    takes the thrust's lean against the plate for acceleration)."""
+
+    def __init__(self, commander: Recorder, height_m: float, rise_mps: float) -> None:
+        super().__init__(commander, height_m, dip_m=0.0)
+        self.rise_mps = rise_mps
+
+    def height(self) -> float:
+        return float(self.p_m[2]) + self.rise_mps * (self.t_s - self.since_s)
+
+    def odometry(self) -> tuple[np.ndarray, np.ndarray]:
+        p = self.p_m.copy()
+        p[2] = self.height()
+        return p, np.array([0.0, 0.0, self.rise_mps])
+
+
+def test_a_height_rising_against_the_descent_just_after_the_plate_was_seen_is_held() -> None:
+    """The camera puts the plate 2 mm above the magnet, 15 mm aside (out of the capture
+    cone: a descent is asked), then sees nothing; the vehicle's height estimate rises 8 cm/s
+    while the magnet holds it (never still, so the whole held window's evidence never comes).
+    With the camera's word that recent, a height that moved against the asking is contact
+    within the shorter ``caught_window_s``, before the vehicle's own loops can tip it onto a
+    rotor."""
+    s = ControllerSettings(observer_rate=0.0)
+    vehicle = HeldWithRisingHeight(Recorder(), 1.0, rise_mps=0.0)
+    reports: list[str] = []
+    pilot = _pilot(vehicle, controller=s, reports=reports)
+
+    def drifts(k: int) -> None:
+        if k == 15:
+            vehicle.since_s, vehicle.rise_mps = vehicle.t_s, 0.08
+
+    _frames_at_the_plate(pilot, vehicle, 75, _seen_first(s, 0.015, 0.002), drifts)
+    assert pilot.state == "perched"
+    assert any("the magnet holds the vehicle" in r for r in reports)
+    perched_at = next(t for t, _, after in pilot.transitions if after == "perched")
+    assert perched_at - vehicle.since_s < pilot.settings.held_window_s
 
 
 @pytest.mark.parametrize("coasting", [True, False])

@@ -73,12 +73,14 @@ class HeldDetector:
     """Contact evidence near the plate in any phase: over each half of a whole ``window_s``
     the vertical speeds asked for would have moved the vehicle at least ``still_m`` (the same
     way in both), and its height's trend (the least-squares line through the window's
-    samples) moved less than ``still_m`` that way: something holds it (the magnet, against
-    the plate). A trend against the asking counts as held: a Kalman filter's height drifts
+    samples) moved less than ``still_m``: something holds it (the magnet, against the
+    plate). Where the caller knows the vehicle was at the plate a moment before, a trend
+    against the asking counts as held too (``against``): a Kalman filter's height drifts
     while the plate holds the vehicle (it takes the thrust's lean against the plate for
-    acceleration), while a vehicle following what it is asked moves with it. A vehicle in
-    free air follows what it is asked with a lag of a few tenths of a second, so its trend
-    moves at least ``2 still_m`` less that lag's worth. The trend, not
+    acceleration), while a vehicle following what it is asked moves with it; elsewhere a
+    gust can lift a free vehicle against the asking. A vehicle in free air follows what it
+    is asked with a lag of a few tenths of a second, so its trend moves at least
+    ``2 still_m`` less that lag's worth. The trend, not
     the samples' spread, so that a height estimate with a centimetre of noise (a Kalman
     filter's on a range sensor 2 m from the floor) still reads a vehicle held still. Both
     halves, so that a window whose asking began halfway (a hover, then a descent) is not
@@ -94,9 +96,12 @@ class HeldDetector:
         self._window.reset()
         self._asked.clear()
 
-    def touched(self, t_s: float, height_m: float | None, asked_z_mps: float) -> bool:
+    def touched(
+        self, t_s: float, height_m: float | None, asked_z_mps: float, *, against: bool = False
+    ) -> bool:
         """Add a height sample and the vertical speed asked for then; True once the
-        vehicle has held still against a whole window of asking."""
+        vehicle has held still against a whole window of asking (``against``: or its height
+        moved against the asking, where something else says it is at the plate)."""
         if not self._window.add(t_s, height_m):
             if not self._window.samples:
                 self._asked.clear()
@@ -110,7 +115,9 @@ class HeldDetector:
         middle = start + 0.5 * (t_s - start)
         first, second = self._asked_m(start, middle), self._asked_m(middle, t_s)
         asked = first * second > 0.0 and min(abs(first), abs(second)) >= self.still_m
-        return asked and self._trend_m() * math.copysign(1.0, first) < self.still_m
+        trend = self._trend_m()
+        moved = trend * math.copysign(1.0, first) if against else abs(trend)
+        return asked and moved < self.still_m
 
     def _asked_m(self, start_s: float, end_s: float) -> float:
         """How far the vertical speeds asked for would have moved the vehicle from

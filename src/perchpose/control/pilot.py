@@ -277,6 +277,7 @@ class PerchingPilot:
         s = self.settings
         self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
         self._held = HeldDetector(s.held_window_s, s.held_still_m)
+        self._caught_held = HeldDetector(s.caught_window_s, s.held_still_m)
         # the plate's height on the vehicle's height sensor, by the camera's last measured
         # frames: each one's distance above the magnet plus the height at its capture (their
         # mean: a drag-free filter's height is centimetres noisy on a range sensor 2 m from
@@ -286,6 +287,7 @@ class PerchingPilot:
         self._plate_words: deque[float] = deque(maxlen=PLATE_WORDS)
         self._heights: deque[tuple[float, float]] = deque(maxlen=HEIGHT_HISTORY)
         self._plate_above_m = math.inf  # the camera's last word on the plate's distance
+        self._plate_seen_s = -math.inf  # that word's capture time (the pilot's clock)
         # when a fresh frame last put the plate further than contact_veto_m
         self._far_seen_t: float | None = None
         self._climbing_since: float | None = None  # a climb that may meet the plate began
@@ -436,7 +438,7 @@ class PerchingPilot:
         self._landing_since = t_s
         self._landing_said = None
         self._touchdown.reset()
-        self._held.reset()
+        self._reset_held()
         self._enter(PilotState.LANDING, t_s, why)
 
     # -- the vehicle's senses -------------------------------------------------------------
@@ -555,7 +557,7 @@ class PerchingPilot:
         """A stale sense: hover (no climb) until it is fresh; land or release once lost."""
         s = self.settings
         self._contact.reset()
-        self._held.reset()
+        self._reset_held()
         if age_s >= s.senses_lost_after_s:
             old = self._old(name, age_s)
             if s.on_senses_lost == "release":
@@ -730,12 +732,35 @@ class PerchingPilot:
 
     def _held_at(self, t_s: float, height_m: float | None, asked_z_mps: float) -> bool:
         """The held window with this height and the vertical speed asked: held while the plate
-        is within reach (else the window starts again) and the vehicle at its height."""
+        is within reach (else the window starts again) and the vehicle at its height. On the
+        camera's own recent word (``_caught``) also over the shorter ``caught_window_s``, a
+        height that moved against the asking counting as held; never on the height's alone."""
         at_plate = self._at_plate_height(t_s)
         if not self._plate_in_reach(t_s, at_plate):
-            self._held.reset()
+            self._reset_held()
             return False
-        return self._held.touched(t_s, height_m, asked_z_mps) and at_plate
+        held = self._held.touched(t_s, height_m, asked_z_mps)
+        if self._caught(t_s):
+            caught = self._caught_held.touched(t_s, height_m, asked_z_mps, against=True)
+        else:
+            self._caught_held.reset()
+            caught = False
+        return (held or caught) and at_plate
+
+    def _reset_held(self) -> None:
+        self._held.reset()
+        self._caught_held.reset()
+
+    def _caught(self, t_s: float) -> bool:
+        """The camera's last measured frame put the plate within the magnet's reach
+        (``held_within_m``) no longer than two caught windows ago: the vehicle was at the plate
+        a moment before. There a height drifting against the asking is the filter's (the
+        plate holds the vehicle); a vehicle unseen for longer, or only at the plate's height
+        by its own height sensor, may be beside the plate, where a gust or the filter's
+        drift lifts it against the asking in free air."""
+        s = self.settings
+        recent = t_s - self._plate_seen_s <= 2.0 * s.caught_window_s
+        return recent and self._plate_above_m < s.held_within_m
 
     def _plate_in_reach(self, t_s: float, at_plate: bool | None = None) -> bool:
         """The plate is within the magnet's reach (``held_within_m``) by the camera's last
@@ -774,9 +799,10 @@ class PerchingPilot:
         wider than ``held_gap_m`` starts the held window again: the magnet has not closed it."""
         above_m = self.controller.target_above_magnet_m(estimate)
         self._plate_above_m = above_m
+        self._plate_seen_s = self.controller.capture_time(estimate)
         if above_m > self.settings.held_gap_m:
-            self._held.reset()
-        height = self._height_at(self.controller.capture_time(estimate))
+            self._reset_held()
+        height = self._height_at(self._plate_seen_s)
         if height is None:
             return
         word, plate = height + above_m, self._plate_height_m

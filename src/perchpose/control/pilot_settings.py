@@ -53,11 +53,8 @@ class PilotSettings:
     held_within_m by the camera's last measured frame (the magnet reaches about that far) or
     the height within held_height_m of the plate's by the measured frames (each one's distance
     plus the height at its capture: a climb the magnet caught after the camera's last frame),
-    a height that moved less than held_still_m the way it was asked over held_window_s
-    while the vertical speeds asked for would have moved the vehicle that far in each half
-    of it (a height that moved against the asking counts as held: a Kalman filter's height
-    drifts while the plate holds the vehicle, 5 cm up in 0.6 s in a traced run), and still
-    within
+    a height that stayed within held_still_m over held_window_s while the vertical speeds
+    asked for would have moved the vehicle that far in each half of it, and still within
     held_height_m of the plate's; held_height_m is the height sensor's error, not the
     magnet's reach (a Flow deck's range 2 m from the floor reads within 2.5 cm, 1 sigma, and
     the filter fusing it was 3 cm high for tenths of a second before the plate in traced
@@ -68,11 +65,17 @@ class PilotSettings:
     can hang under the plate for a second, and falls if its motors stop):
     the magnet holds it (the controller backing off, or stepping down out of its capture cone
     and climbing again, on the camera's evidence at a few centimetres; a vehicle in free air
-    follows what it is asked with a lag of a few tenths of a second, hence a window longer
-    than the contact window; a vehicle in strong turbulence can fail to follow for as long,
-    but not with the plate that near). Not longer: a held vehicle's own loops tip it over
+    follows what it is asked with a lag of a few tenths of a second, hence the longer window;
+    a vehicle in strong turbulence can fail to follow for as long, but not with the plate that
+    near). caught_window_s : with the camera's last measured frame putting the plate within
+    held_within_m no longer than two of these windows ago (the vehicle was at the plate a
+    moment before), the same evidence over this shorter window, and a height that moved
+    against the asking also counts (a Kalman filter's height drifts while the plate holds
+    the vehicle: 5 cm up in 0.6 s in a traced run). A held vehicle's own loops tip it over
     (its filter's velocity drifts, its velocity loop leans against the drift), and 0.7-1 s
-    after the magnet caught it off-centre a rotor met the plate in traced runs. limits : the
+    after the magnet caught it off-centre a rotor met the plate in traced runs; the whole
+    held window stays for a vehicle at the plate's height by its height sensor alone, which
+    may be beside the plate descending slower than asked. limits : the
     largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
@@ -117,7 +120,8 @@ class PilotSettings:
     contact_rise_m: float = 0.005
     climb_contact_within_m: float = 0.1
     contact_veto_m: float = 0.06
-    held_window_s: float = 0.6
+    held_window_s: float = 1.0
+    caught_window_s: float = 0.6
     held_still_m: float = 0.02
     held_within_m: float = 0.03
     held_height_m: float = 0.05
@@ -150,6 +154,7 @@ class PilotSettings:
             "climb_contact_within_m",
             "contact_veto_m",
             "held_window_s",
+            "caught_window_s",
             "held_still_m",
             "held_within_m",
             "held_height_m",
