@@ -75,8 +75,8 @@ class PilotSettings:
     (its filter's velocity drifts, its velocity loop leans against the drift), and 0.7-1 s
     after the magnet caught it off-centre a rotor met the plate in traced runs; the whole
     held window stays for a vehicle at the plate's height by its height sensor alone, which
-    may be beside the plate descending slower than asked. limits : the
-    largest setpoint sent.
+    may be beside the plate descending slower than asked. limits : the largest setpoint
+    sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
     sets on the vehicle when it takes over, where its commander can
