@@ -1,9 +1,10 @@
 """What the vehicle's own height says about contact: a vehicle the magnet holds against the
-plate, against one in free air that follows what it is asked with a lag."""
+plate, against one in free air that follows what it is asked with a lag; and what its
+accelerometer says: a held vehicle is rigid."""
 
 import numpy as np
 
-from perchpose.control.evidence import ContactDetector, HeldDetector
+from perchpose.control.evidence import ContactDetector, HeldDetector, RigidDetector
 
 DT_S = 0.02  # odometry at 50 Hz
 
@@ -119,3 +120,61 @@ def test_a_held_vehicle_whose_height_drifts_against_the_asking_is_contact() -> N
     assert not any(said(0.08, -0.1, against=False))
     assert not any(said(0.08, 0.1, against=True))
     assert not any(said(-0.08, -0.1, against=True))
+
+
+def _rigid_said(spreads_mps2: list[float], repeats: int = 1) -> list[bool | None]:
+    """``RigidDetector(0.3 s, 0.6 m/s^2)`` fed accelerometer samples at 100 Hz, each read
+    ``repeats`` times (the pilot reads the link's latest sample on every tick), whose
+    vertical specific force spreads ``spreads_mps2[i]`` (normal) about gravity; what it says
+    after each new sample."""
+    detector = RigidDetector(0.3, 0.6)
+    rng = np.random.default_rng(1)
+    said = []
+    for i, spread in enumerate(spreads_mps2):
+        f = [0.1, -0.2, 9.81 + float(rng.normal(0.0, spread))]
+        for _ in range(repeats):
+            detector.add(i * 0.01, f)
+        said.append(detector.rigid(i * 0.01))
+    return said
+
+
+def test_a_vehicle_whose_accelerometer_reads_only_its_noise_is_rigid() -> None:
+    said = _rigid_said([0.2] * 60)
+    assert said[:3] == [None] * 3  # too few samples to say
+    assert all(said[3:])
+
+
+def test_a_vehicle_whose_thrust_changes_reach_the_accelerometer_is_not_rigid() -> None:
+    """A vehicle in free air fighting gusts: its vertical specific force spreads 1.5 m/s^2
+    (1.7 over 0.3 s in a traced strong-wind run beside the plate)."""
+    said = _rigid_said([1.5] * 60)
+    assert not any(said[10:])
+
+
+def test_an_impact_leaves_the_rigid_window_after_its_length() -> None:
+    """The catch's impact shakes the accelerometer for a tenth of a second (+-4 m/s^2 in
+    turn); rigid again once it is older than the window (0.3 s), not before."""
+    detector = RigidDetector(0.3, 0.6)
+    rng = np.random.default_rng(2)
+    said = []
+    for i in range(80):
+        shake = (4.0 if i % 2 else -4.0) if 20 <= i < 30 else 0.0
+        detector.add(i * 0.01, [0.0, 0.0, 9.81 + shake + float(rng.normal(0.0, 0.2))])
+        said.append(detector.rigid(i * 0.01))
+    assert all(said[3:20])
+    assert not any(said[21:59])  # the last shake (i = 29) is in the window until i = 59
+    assert all(said[60:])
+
+
+def test_a_sample_read_again_is_not_a_new_one() -> None:
+    """Read ten times each, a noisy accelerometer's samples are no more rigid than once:
+    repeats would shrink the spread measured."""
+    assert _rigid_said([1.5] * 60, repeats=10) == _rigid_said([1.5] * 60)
+
+
+def test_no_accelerometer_says_nothing() -> None:
+    detector = RigidDetector(0.3, 0.6)
+    for i in range(50):
+        detector.add(i * 0.01, None)
+        detector.add(i * 0.01, [0.0, 0.0, float("nan")])
+    assert detector.rigid(0.5) is None

@@ -923,6 +923,53 @@ def test_a_climb_the_magnet_caught_after_the_cameras_last_frame_is_held() -> Non
     assert any("the magnet holds the vehicle" in r for r in reports)
 
 
+class Accelerometer:
+    """A vehicle's accelerometer sampled at 100 Hz on its clock: gravity along body z and a
+    normal spread of ``spread_mps2`` (0.2: the vibration of a vehicle held still; 1.5: a
+    vehicle in free air whose loops change its thrust against gusts)."""
+
+    def __init__(self, vehicle: Vehicle, spread_mps2: float) -> None:
+        self.vehicle = vehicle
+        self.spread_mps2 = spread_mps2
+        self._rng = np.random.default_rng(3)
+        self._k = -1
+        self._f = np.zeros(3)
+
+    def __call__(self) -> np.ndarray:
+        k = int(self.vehicle.t_s * 100)
+        if k != self._k:
+            self._k = k
+            self._f = np.array([0.0, 0.0, 9.81 + self._rng.normal(0.0, self.spread_mps2)])
+        return self._f
+
+
+@pytest.mark.parametrize(("spread_mps2", "held"), [(0.2, True), (1.5, False)])
+def test_a_height_held_against_the_descent_is_contact_only_on_a_rigid_accelerometer(
+    spread_mps2: float, held: bool
+) -> None:
+    """The camera put the plate 2 mm above the magnet, 15 mm aside, then sees nothing; the
+    height holds still at the plate's against the descent asked. The magnet holding the
+    vehicle (its accelerometer reads its vibration alone) is contact. A vehicle beside the
+    plate whose filter's drift holds it at the plate's height in a gust (its accelerometer
+    reads its thrust's changes) keeps its motors: stopped, it falls 2 m."""
+    s = ControllerSettings(observer_rate=0.0)
+    vehicle = HeldAtThePlate(Recorder(), 1.0, dip_m=0.0)
+    reports: list[str] = []
+    pilot = PerchingPilot(
+        vehicle.commander,
+        lambda: np.eye(3),
+        controller=PerchingController(s),
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        report=reports.append,
+        clock=lambda: vehicle.t_s,
+        specific_force=Accelerometer(vehicle, spread_mps2),
+    )
+    _frames_at_the_plate(pilot, vehicle, 120, _seen_first(s, 0.015, 0.002))
+    assert (pilot.state == "perched") == held
+    assert any("the magnet holds the vehicle" in r for r in reports) == held
+
+
 def test_a_vehicle_hanging_under_the_plate_in_view_of_a_gap_is_not_held() -> None:
     """A vehicle hangs still 2 cm under the plate against the descent asked (the magnet's
     pull and the ceiling effect against a velocity loop slow to wind down), its camera

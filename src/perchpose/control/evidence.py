@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from itertools import chain, islice
 
 
@@ -132,6 +132,54 @@ class HeldDetector:
         """How far the least-squares line through the window's heights moves across it."""
         samples = self._window.samples
         return line_at(samples, samples[-1][0]) - line_at(samples, samples[0][0])
+
+
+class RigidDetector:
+    """Rigidity evidence from the accelerometer: over the last ``window_s`` its vertical
+    specific force (body z) spread less than ``spread_mps2`` (standard deviation). A vehicle
+    the plate holds does not move: the plate takes every change of thrust, and its
+    accelerometer reads gravity and its own noise. A vehicle in free air takes them as
+    vertical acceleration; its loops change the thrust all the time in gusts, exactly where a
+    filter's drifting velocity can hold it at a height against what it is asked. Samples come
+    as the link delivers them; one read again unchanged is not a new sample."""
+
+    MIN_SAMPLES = 4  # fewer in a window says nothing either way
+
+    def __init__(self, window_s: float, spread_mps2: float) -> None:
+        self.window_s = window_s
+        self.spread_mps2 = spread_mps2
+        self._samples: deque[tuple[float, float]] = deque()  # (t_s, body z, m/s^2)
+        self._last: tuple[float, ...] | None = None
+
+    def reset(self) -> None:
+        self._samples.clear()
+        self._last = None
+
+    def add(self, t_s: float, f_body_mps2: Iterable[float] | None) -> None:
+        """Add the accelerometer's latest sample (body x, y, z; None or non-finite: none)."""
+        if f_body_mps2 is None:
+            return
+        sample = tuple(float(f) for f in f_body_mps2)
+        if len(sample) < 3:
+            return
+        if not all(math.isfinite(f) for f in sample) or sample == self._last:
+            return
+        self._last = sample
+        self._samples.append((t_s, sample[2]))
+        while self._samples and t_s - self._samples[0][0] > self.window_s:
+            self._samples.popleft()
+
+    def rigid(self, t_s: float) -> bool | None:
+        """True where the window's samples spread less than ``spread_mps2``, False where
+        more; None where the window holds too few to say (no accelerometer on the link)."""
+        while self._samples and t_s - self._samples[0][0] > self.window_s:
+            self._samples.popleft()
+        n = len(self._samples)
+        if n < self.MIN_SAMPLES:
+            return None
+        mean = sum(f for _, f in self._samples) / n
+        spread = math.sqrt(sum((f - mean) ** 2 for _, f in self._samples) / (n - 1))
+        return spread < self.spread_mps2
 
 
 class TouchdownDetector:

@@ -32,7 +32,8 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
   the odometry's) or the height within ``held_height_m`` of the plate's by those frames, its
   height held still (within ``held_still_m`` over ``held_window_s``) against vertical speeds
   asked that would have moved it twice that, and still the plate's height by those frames
-  (the magnet caught it): a stop setpoint cuts the motors and the
+  (the magnet caught it), and, where the link gives the accelerometer, rigid
+  (``rigid_spread_mps2`` over ``rigid_window_s``): a stop setpoint cuts the motors and the
   magnet holds the vehicle. Time alone never stops the motors; without a height source there
   is no contact evidence, and a final climb that does not end backs off;
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
@@ -80,6 +81,7 @@ from perchpose.control.controller import (
 from perchpose.control.evidence import (
     ContactDetector,
     HeldDetector,
+    RigidDetector,
     TouchdownDetector,
     line_at,
 )
@@ -278,6 +280,7 @@ class PerchingPilot:
         self._contact = ContactDetector(s.contact_window_s, s.contact_rise_m)
         self._held = HeldDetector(s.held_window_s, s.held_still_m)
         self._caught_held = HeldDetector(s.caught_window_s, s.held_still_m)
+        self._rigid = RigidDetector(s.rigid_window_s, s.rigid_spread_mps2)
         # the plate's height on the vehicle's height sensor, by the camera's last measured
         # frames: each one's distance above the magnet plus the height at its capture (their
         # mean: a drag-free filter's height is centimetres noisy on a range sensor 2 m from
@@ -734,7 +737,10 @@ class PerchingPilot:
         """The held window with this height and the vertical speed asked: held while the plate
         is within reach (else the window starts again) and the vehicle at its height. On the
         camera's own recent word (``_caught``) also over the shorter ``caught_window_s``, a
-        height that moved against the asking counting as held; never on the height's alone."""
+        height that moved against the asking counting as held; never on the height's alone,
+        and never while the accelerometer says the vehicle moves (``_rigid``: a vehicle in
+        free air whose filter's drift holds it at the plate's height)."""
+        self._rigid.add(t_s, None if self.specific_force is None else self.specific_force())
         at_plate = self._at_plate_height(t_s)
         if not self._plate_in_reach(t_s, at_plate):
             self._reset_held()
@@ -745,7 +751,7 @@ class PerchingPilot:
         else:
             self._caught_held.reset()
             caught = False
-        return (held or caught) and at_plate
+        return (held or caught) and at_plate and self._rigid.rigid(t_s) is not False
 
     def _reset_held(self) -> None:
         self._held.reset()

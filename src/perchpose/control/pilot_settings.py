@@ -75,8 +75,17 @@ class PilotSettings:
     (its filter's velocity drifts, its velocity loop leans against the drift), and 0.7-1 s
     after the magnet caught it off-centre a rotor met the plate in traced runs; the whole
     held window stays for a vehicle at the plate's height by its height sensor alone, which
-    may be beside the plate descending slower than asked. limits : the largest setpoint
-    sent.
+    may be beside the plate descending slower than asked. rigid_window_s, rigid_spread_mps2 :
+    either way, where the link gives the accelerometer, held also needs the vehicle rigid:
+    its vertical specific force spread less than rigid_spread_mps2 (standard deviation) over
+    the last rigid_window_s (``control.evidence.RigidDetector``). The plate takes a held
+    vehicle's changes of thrust; a vehicle in free air, whose filter's velocity drifts in a
+    gust so that it holds a height against a descent, takes them as acceleration (a vehicle
+    1.3-2 m beside the plate at its height read held in traced strong-wind runs; its
+    accelerometer spread 1.7 m/s^2 over 0.3 s, held vehicles 0.1-0.35). It must sit above
+    the accelerometer's own spread on the vehicle held still with its motors running
+    (vibration): 0.2 m/s^2 in the simulation; measure ``acc.z`` on a Crazyflie hovering.
+    limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
     sets on the vehicle when it takes over, where its commander can
@@ -126,6 +135,8 @@ class PilotSettings:
     held_within_m: float = 0.03
     held_height_m: float = 0.05
     held_gap_m: float = 0.015
+    rigid_window_s: float = 0.3
+    rigid_spread_mps2: float = 0.6
     setpoint_period_s: float = 0.05
     frame_timeout_s: float = 0.25
     stale_after_s: float = 0.25
@@ -159,6 +170,8 @@ class PilotSettings:
             "held_within_m",
             "held_height_m",
             "held_gap_m",
+            "rigid_window_s",
+            "rigid_spread_mps2",
             "setpoint_period_s",
             "frame_timeout_s",
             "stale_after_s",
