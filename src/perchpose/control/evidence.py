@@ -151,10 +151,6 @@ class RigidDetector:
         self._samples: deque[tuple[float, float]] = deque()  # (t_s, body z, m/s^2)
         self._last: tuple[float, ...] | None = None
 
-    def reset(self) -> None:
-        self._samples.clear()
-        self._last = None
-
     def add(self, t_s: float, f_body_mps2: Iterable[float] | None) -> None:
         """Add the accelerometer's latest sample (body x, y, z; None or non-finite: none)."""
         if f_body_mps2 is None:

@@ -81,10 +81,11 @@ class PilotSettings:
     the last rigid_window_s (``control.evidence.RigidDetector``). The plate takes a held
     vehicle's changes of thrust; a vehicle in free air, whose filter's velocity drifts in a
     gust so that it holds a height against a descent, takes them as acceleration (a vehicle
-    1.3-2 m beside the plate at its height read held in traced strong-wind runs; its
-    accelerometer spread 1.7 m/s^2 over 0.3 s, held vehicles 0.1-0.35). It must sit above
-    the accelerometer's own spread on the vehicle held still with its motors running
-    (vibration): 0.2 m/s^2 in the simulation; measure ``acc.z`` on a Crazyflie hovering.
+    0.65 m beside the plate, 2 m up, read held in a traced strong-wind run; its accelerometer
+    spread 1.7 m/s^2 over 0.3 s, held vehicles' 0.11-0.46). It must sit above the
+    accelerometer's own spread on the vehicle held still with its motors running (its
+    vibration): 0.2 m/s^2 in the simulation; on a Crazyflie, log ``acc.z`` with the vehicle
+    held against the plate, motors on.
     limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
