@@ -162,20 +162,23 @@ class RigidDetector:
             return
         self._last = sample
         self._samples.append((t_s, sample[2]))
-        while self._samples and t_s - self._samples[0][0] > self.window_s:
-            self._samples.popleft()
+        self._forget_before(t_s)
 
     def rigid(self, t_s: float) -> bool | None:
         """True where the window's samples spread less than ``spread_mps2``, False where
         more; None where the window holds too few to say (no accelerometer on the link)."""
-        while self._samples and t_s - self._samples[0][0] > self.window_s:
-            self._samples.popleft()
+        self._forget_before(t_s)
         n = len(self._samples)
         if n < self.MIN_SAMPLES:
             return None
         mean = sum(f for _, f in self._samples) / n
         spread = math.sqrt(sum((f - mean) ** 2 for _, f in self._samples) / (n - 1))
         return spread < self.spread_mps2
+
+    def _forget_before(self, t_s: float) -> None:
+        """Drop the samples older than a window before ``t_s``."""
+        while self._samples and t_s - self._samples[0][0] > self.window_s:
+            self._samples.popleft()
 
 
 class TouchdownDetector:
