@@ -73,6 +73,6 @@ def test_the_end_of_a_flight_says_the_fixes_given_to_the_vehicle() -> None:
         controller.position_fixes.fix(np.array(target), np.zeros(3))
     VehicleLinks(controllers=[controller]).say_fixes(said.append)
     assert said == [
-        "position fixes for the vehicle's estimator: 1 made, 1 held back as over 0.1 m from "
-        "its own estimate"
+        "position fixes for the vehicle's estimator: 1 made, 1 held back as over 0.1 m aside "
+        "from its own estimate"
     ]

@@ -32,6 +32,22 @@ def test_an_outlier_is_not_sent_and_a_drift_beyond_it_anchors_again() -> None:
     assert fixes.fix(np.array([0.3, 0.0, 0.0]), p_now) == pytest.approx(np.zeros(3))
 
 
+def test_a_height_apart_from_the_estimate_still_corrects_the_horizontal_position() -> None:
+    # a range sensor and the camera disagree on the height by more than the horizontal gate:
+    # the fix is sent, with the camera's height while it is within its own bound, and with the
+    # estimate's own height beyond it
+    fixes = PositionFixes(
+        PositionFixSettings(anchor_fixes=1, max_jump_m=0.1, max_height_jump_m=0.3)
+    )
+    p_now = np.array([0.0, 0.0, 2.0])
+    fixes.fix(np.zeros(3), p_now)
+    near = fixes.fix(np.array([0.03, 0.0, 0.15]), p_now)
+    assert near == pytest.approx([-0.03, 0.0, 1.85])
+    far = fixes.fix(np.array([0.03, 0.0, 0.5]), p_now)
+    assert far == pytest.approx([-0.03, 0.0, 2.0])
+    assert fixes.refused == 0
+
+
 def test_non_finite_input_and_bad_settings_are_refused() -> None:
     fixes = PositionFixes(PositionFixSettings(anchor_fixes=1))
     assert fixes.fix(np.array([np.nan, 0.0, 0.0]), np.zeros(3)) is None
@@ -40,3 +56,5 @@ def test_non_finite_input_and_bad_settings_are_refused() -> None:
         PositionFixSettings(anchor_fixes=0)
     with pytest.raises(ControllerConfigError, match="std_m"):
         PositionFixSettings(std_m=0.0)
+    with pytest.raises(ControllerConfigError, match="max_height_jump_m"):
+        PositionFixSettings(max_height_jump_m=-0.1)

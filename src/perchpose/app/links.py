@@ -94,8 +94,8 @@ class VehicleLinks:
             if fixes.sent or fixes.refused:
                 report(
                     f"position fixes for the vehicle's estimator: {fixes.sent} made, "
-                    f"{fixes.refused} held back as over {fixes.settings.max_jump_m:g} m from its "
-                    "own estimate"
+                    f"{fixes.refused} held back as over {fixes.settings.max_jump_m:g} m aside from "
+                    "its own estimate"
                 )
 
 
