@@ -970,6 +970,34 @@ def test_a_height_held_against_the_descent_is_contact_only_on_a_rigid_accelerome
     assert any("the magnet holds the vehicle" in r for r in reports) == held
 
 
+@pytest.mark.parametrize(("tilt_deg", "held"), [(1.0, True), (8.0, False)])
+def test_a_height_held_on_the_height_sensors_word_alone_is_contact_only_level(
+    tilt_deg: float, held: bool
+) -> None:
+    """The camera's last frames put the plate 4 cm above the magnet (beyond its reach, within
+    the height sensor's error of the vehicle's height), then it sees nothing for 4 s while the
+    height holds still against the descent asked and the accelerometer reads its vibration
+    alone. Level, the magnet caught the vehicle after the camera's last frame: contact. Leaning
+    8 deg, it may be a vehicle in free air beside the plate holding its place against the
+    wind, whose filter's drift holds it at the plate's height: its motors stay on."""
+    s = ControllerSettings(observer_rate=0.0)
+    vehicle = HeldAtThePlate(Recorder(), 1.0, dip_m=0.0)
+    reports: list[str] = []
+    pilot = PerchingPilot(
+        vehicle.commander,
+        lambda: rot_x(math.radians(tilt_deg)),
+        controller=PerchingController(s),
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        report=reports.append,
+        clock=lambda: vehicle.t_s,
+        specific_force=Accelerometer(vehicle, 0.2),
+    )
+    _frames_at_the_plate(pilot, vehicle, 120, _seen_first(s, 0.015, 0.04))
+    assert (pilot.state == "perched") == held
+    assert any("the magnet holds the vehicle" in r for r in reports) == held
+
+
 def test_a_vehicle_hanging_under_the_plate_in_view_of_a_gap_is_not_held() -> None:
     """A vehicle hangs still 2 cm under the plate against the descent asked (the magnet's
     pull and the ceiling effect against a velocity loop slow to wind down), its camera

@@ -33,9 +33,10 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
   height held still (within ``held_still_m`` over ``held_window_s``) against vertical speeds
   asked that would have moved it twice that, and still the plate's height by those frames
   (the magnet caught it), and, where the link gives the accelerometer, rigid
-  (``rigid_spread_mps2`` over ``rigid_window_s``): a stop setpoint cuts the motors and the
-  magnet holds the vehicle. Time alone never stops the motors; without a height source there
-  is no contact evidence, and a final climb that does not end backs off;
+  (``rigid_spread_mps2`` over ``rigid_window_s``), and, without the camera's word on the plate
+  within the last two ``caught_window_s``, level (``held_level_deg``): a stop setpoint cuts
+  the motors and the magnet holds the vehicle. Time alone never stops the motors; without a
+  height source there is no contact evidence, and a final climb that does not end backs off;
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
   Crazyflie's own commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s
   and 2 s without setpoints); ``released`` is an autopilot taking control back (it left the
@@ -739,7 +740,9 @@ class PerchingPilot:
         camera's own recent word (``_caught``) also over the shorter ``caught_window_s``, a
         height that moved against the asking counting as held; never on the height's alone,
         and never while the accelerometer says the vehicle moves (``_rigid``: a vehicle in
-        free air whose filter's drift holds it at the plate's height)."""
+        free air whose filter's drift holds it at the plate's height). Without the camera's
+        recent word the vehicle must also be level (``_level``): one leaning into the wind
+        beside the plate may be steady enough to read rigid."""
         self._rigid.add(t_s, None if self.specific_force is None else self.specific_force())
         at_plate = self._at_plate_height(t_s)
         if not self._plate_in_reach(t_s, at_plate):
@@ -751,7 +754,17 @@ class PerchingPilot:
         else:
             self._caught_held.reset()
             caught = False
+            held = held and self._level(t_s)
         return (held or caught) and at_plate and self._rigid.rigid(t_s) is not False
+
+    def _level(self, t_s: float) -> bool:
+        """The vehicle leans less than ``held_level_deg`` (an attitude not known: not
+        level)."""
+        R_world_body = self._attitude(t_s)
+        if not np.all(np.isfinite(R_world_body)):
+            return False
+        cos_tilt = float(np.clip(R_world_body[2, 2], -1.0, 1.0))
+        return math.degrees(math.acos(cos_tilt)) < self.settings.held_level_deg
 
     def _reset_held(self) -> None:
         self._held.reset()
