@@ -90,7 +90,8 @@ class PilotSettings:
     also needs the vehicle level within this tilt: the magnet holds it flat against the plate
     (traced: 0.3-4.5 deg at 8 of 9 such stops, 10 deg at one caught 22 mm off-centre),
     while a vehicle in free air holding its place against strong wind leans into it (the two
-    read held beside the plate: 7-11 deg). Less than a held vehicle's lean never reads held.
+    read held beside the plate: 7-11 deg). Set under the tilt at which the magnet holds the
+    vehicle, a held vehicle never reads held on that path.
     limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
