@@ -9,6 +9,7 @@ from perchpose.geometry import (
     check_transform,
     facing_pose,
     invert_transform,
+    lean_deg,
     rot_z,
     rotation_from_vector,
     rvec_tvec_from_transform,
@@ -128,3 +129,10 @@ def test_a_rotation_vector_and_its_rotation_agree_with_opencv_and_invert() -> No
         np.testing.assert_allclose(R, expected, atol=1e-12)
         np.testing.assert_allclose(vector_from_rotation(R), w, atol=1e-9)
     np.testing.assert_allclose(rotation_from_vector([0.0, 0.0, 0.5]), rot_z(0.5), atol=1e-12)
+
+
+def test_lean_is_the_angle_of_the_body_z_from_the_vertical_whatever_the_heading() -> None:
+    R = rot_z(1.2) @ rotation_from_vector(np.array([0.0, np.radians(8.0), 0.0]))
+    assert lean_deg(R) == pytest.approx(8.0)
+    assert lean_deg(np.eye(3)) == 0.0
+    assert lean_deg(np.diag([1.0, -1.0, -1.0])) == pytest.approx(180.0)

@@ -168,6 +168,11 @@ def roll_pitch_rad(R: Array) -> tuple[float, float]:
     return roll, pitch
 
 
+def lean_deg(R_world_body: Array) -> float:
+    """The angle between the body's z axis and the world's vertical, degrees."""
+    return math.degrees(math.acos(float(np.clip(R_world_body[2, 2], -1.0, 1.0))))
+
+
 def tilt_rad(R_camera_target: Array) -> tuple[float, float]:
     """(roll, pitch) of the target's plane, radians, with the estimate's yaw (``yaw_rad``)
     completing them: ``R = Rz(yaw) Ry(pitch) Rx(roll) R_CAMERA_TARGET_FACING``. Both are 0

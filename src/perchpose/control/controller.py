@@ -71,7 +71,7 @@ from perchpose.control.mount import default_T_body_camera
 from perchpose.control.position_fix import PositionFixes, PositionFixSettings
 from perchpose.control.time_offset import TimeOffset, TimeOffsetEstimator, TimeOffsetSettings
 from perchpose.errors import ControllerConfigError, require_non_negative, require_positive
-from perchpose.geometry import angle_diff_rad, wrap_angle_rad, yaw_rad
+from perchpose.geometry import angle_diff_rad, lean_deg, wrap_angle_rad, yaw_rad
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -536,8 +536,7 @@ class PerchingController:
     # -- the vehicle's past ---------------------------------------------------------------
 
     def _remember_attitude(self, t_s: float, R_world_body: Array) -> None:
-        z = float(np.clip(np.asarray(R_world_body, np.float64)[2, 2], -1.0, 1.0))
-        self._tilt_deg = math.degrees(math.acos(z))  # the latest attitude's
+        self._tilt_deg = lean_deg(np.asarray(R_world_body, np.float64))  # the latest attitude's
         self._offset.attitude(t_s, R_world_body)
         if self._attitudes and t_s < self._attitudes[-1][0]:
             return  # out of order: the history stays sorted

@@ -91,7 +91,7 @@ from perchpose.control.history import newest_at
 from perchpose.control.lean import LeanCorrection
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
-from perchpose.geometry import yaw_rad
+from perchpose.geometry import lean_deg, yaw_rad
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -763,8 +763,7 @@ class PerchingPilot:
         R_world_body = self._attitude(t_s)
         if not np.all(np.isfinite(R_world_body)):
             return False
-        cos_tilt = float(np.clip(R_world_body[2, 2], -1.0, 1.0))
-        return math.degrees(math.acos(cos_tilt)) < self.settings.held_level_deg
+        return lean_deg(R_world_body) < self.settings.held_level_deg
 
     def _reset_held(self) -> None:
         self._held.reset()
