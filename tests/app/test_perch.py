@@ -37,21 +37,26 @@ def test_an_unknown_estimator_is_named(tmp_path: Path) -> None:
     assert not (tmp_path / "runs.csv").exists()
 
 
-def test_a_campaign_flown_on_full_state_setpoints_says_so(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("command", "said_as"),
+    [("full-state", "full-state setpoints"), ("attitude", "attitude setpoints (a lean")],
+)
+def test_a_campaign_flown_on_other_setpoints_says_so(
+    tmp_path: Path, command: str, said_as: str
+) -> None:
     """``command="full-state"``: the pilot sends positions the vehicle's position loop holds;
-    a run perches in still air with the true pose, and the reports say which command flew."""
+    ``"attitude"``: a lean and a height, the pilot flying the velocity loop itself. A run
+    perches in still air with the true pose, and the reports say which command flew."""
     out = tmp_path / "perch"
     said: list[str] = []
-    options = PerchOptions(
-        str(out), estimators="truth", runs=1, seed=3, workers=1, command="full-state"
-    )
+    options = PerchOptions(str(out), estimators="truth", runs=1, seed=3, workers=1, command=command)
     content = run(options, say=said.append)
-    assert content["command"] == "full-state"
-    assert content["setup"]["command"] == "full-state"
+    assert content["command"] == command
+    assert content["setup"]["command"] == command
     assert content["success_rate"] == 1.0
-    assert any("full-state setpoints" in line for line in said)
-    with pytest.raises(PerchposeError, match="--command: unknown 'attitude'"):
-        run(PerchOptions(str(tmp_path / "other"), estimators="truth", runs=1, command="attitude"))
+    assert any(said_as in line for line in said)
+    with pytest.raises(PerchposeError, match="--command: unknown 'thrust'"):
+        run(PerchOptions(str(tmp_path / "other"), estimators="truth", runs=1, command="thrust"))
 
 
 def test_a_runs_length_is_asked_for_and_recorded(tmp_path: Path) -> None:

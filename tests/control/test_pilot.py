@@ -17,10 +17,13 @@ from perchpose.control import (
     PilotSettings,
     SenseAges,
 )
+from perchpose.control.attitude_command import lean_for
 from perchpose.control.evidence import TouchdownDetector
 from perchpose.control.gyro import GyroReading
+from perchpose.control.inertial import InertialSettings
 from perchpose.control.pilot_clock import PilotClock
 from perchpose.geometry import invert_transform, roll_pitch_rad, rot_x
+from perchpose.sim.quadrotor import leaned
 from perchpose.values import Estimate
 
 
@@ -645,6 +648,92 @@ class FullState(Recorder):
         self.full.append((p_world_m, v_world_mps, yaw_rad, yaw_rate_rad_s))
 
 
+class Leaning(Recorder):
+    """A commander whose vehicle takes attitude setpoints: each kept as (roll, pitch, yaw
+    rate, height)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.leans: list[tuple[float, float, float, float]] = []
+
+    def send_attitude(
+        self, roll_rad: float, pitch_rad: float, yaw_rate_rad_s: float, z_m: float
+    ) -> None:
+        self.leans.append((roll_rad, pitch_rad, yaw_rate_rad_s, z_m))
+
+
+def _leaning_pilot(
+    commander: Recorder, vehicle: Vehicle, yaw: float, push: float, command: str = "attitude"
+) -> PerchingPilot:
+    """A pilot on a level vehicle at heading ``yaw`` whose accelerometer measures a push of
+    ``push`` m/s^2 along the world's x axis (turned into the body); no inertial filter, so the
+    vehicle's velocity is its odometry's."""
+    R = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
+    f_body = R.T @ np.array([push, 0.0, 9.81])
+    return PerchingPilot(
+        commander,
+        lambda: R,
+        controller=PerchingController(ControllerSettings(inertial=InertialSettings(enabled=False))),
+        settings=PilotSettings(command=command),
+        height_m=vehicle.height,
+        odometry=vehicle.odometry,
+        clock=lambda: vehicle.t_s,
+        specific_force=lambda: f_body,
+    )
+
+
+def test_attitude_setpoints_fly_the_pilots_own_velocity_loop_and_cancel_the_push() -> None:
+    """With ``command="attitude"`` each setpoint is a lean and a height: the height leads the
+    vehicle's own estimate by the vertical velocity over the position gain (2 /s), and the
+    lean is the pilot's velocity loop (5 /s on the velocity asked less the vehicle's) less
+    the push, under the vehicle's heading. The velocity asked carries none of the offsets a
+    vehicle's own loop needs (the push's among them): flown with velocity setpoints, the same
+    frames and push ask a different velocity (from the second frame: the controller's push
+    filter starts from none). A link that takes velocities only is sent
+    those, said once."""
+    yaw, push = 0.4, 1.5
+    c = ControllerSettings()
+    frames = [(_seen(c, [0.05, -0.03, 0.6], 0.1 * k), 0.1 * k) for k in range(5)]
+    commander = Leaning()
+    vehicle = Vehicle(commander, 1.0)
+    vehicle.p_m = np.array([0.3, -0.2, 1.0])
+    vehicle.v_mps = np.array([0.1, -0.05, 0.0])
+    pilot = _leaning_pilot(commander, vehicle, yaw, push)
+    steps = [pilot.update(estimate, t_s) for estimate, t_s in frames]
+    assert commander.sent == []  # no velocity setpoint
+    assert len(commander.leans) == 5
+    v_now = vehicle.v_mps[:2]
+    for step, (roll, pitch, rate, z_m) in zip(steps, commander.leans, strict=True):
+        assert step.v_mps is not None
+        assert step.yaw_rate_rad_s is not None
+        assert z_m == pytest.approx(1.0 + step.v_mps[2] / 2.0)
+        assert rate == pytest.approx(step.yaw_rate_rad_s)
+        a_world = 5.0 * (np.array(step.v_mps[:2]) - v_now) - np.array([push, 0.0])
+        wanted = lean_for(a_world, yaw, math.radians(20.0))
+        assert (roll, pitch) == pytest.approx((wanted.roll_rad, wanted.pitch_rad), abs=1e-9)
+        # the vehicle at this lean accelerates as asked
+        assert np.array(leaned(roll, pitch, yaw)) * 9.81 == pytest.approx(a_world, abs=1e-9)
+    without_push = Leaning()
+    calm = _leaning_pilot(without_push, Vehicle(without_push, 1.0), yaw, 0.0)
+    velocity = Recorder()
+    offsets = _leaning_pilot(velocity, Vehicle(velocity, 1.0), yaw, push, command="velocity")
+    calm_steps = [calm.update(estimate, t_s) for estimate, t_s in frames]
+    velocity_steps = [offsets.update(estimate, t_s) for estimate, t_s in frames]
+    for step, calm_step in zip(steps, calm_steps, strict=True):
+        assert step.v_mps == pytest.approx(calm_step.v_mps, abs=1e-12)
+    assert all(
+        abs(s.v_mps[0] - v.v_mps[0]) > 0.05  # type: ignore[index]
+        for s, v in zip(steps[1:], velocity_steps[1:], strict=True)
+    )
+    reports: list[str] = []
+    plain = Recorder()
+    velocity_only = _pilot(Vehicle(plain, 1.0), PilotSettings(command="attitude"), None, reports)
+    for estimate, t_s in frames[:3]:
+        velocity_only.update(estimate, t_s)
+    assert len(plain.sent) == 3
+    assert sum("attitude setpoints are sent as velocities" in r for r in reports) == 1
+
+
 def test_full_state_setpoints_lead_the_estimate_by_what_the_vehicles_loops_fly() -> None:
     """With ``command="full-state"`` each setpoint is a position and a yaw that the vehicle's
     position and yaw loops (2 /s and 6 /s) turn into the controller's velocity and yaw rate,
@@ -699,8 +788,8 @@ def test_full_state_setpoints_lead_the_estimate_by_what_the_vehicles_loops_fly()
     old.update(_seen(c, [0.05, -0.03, 0.6], 0.0), 0.0)
     assert stale.full == []
     assert len(stale.sent) == 1
-    with pytest.raises(ControllerConfigError, match="command 'attitude'"):
-        PilotSettings(command="attitude")
+    with pytest.raises(ControllerConfigError, match="command 'thrust'"):
+        PilotSettings(command="thrust")
 
 
 def _backing_off_at_the_plate(held: bool) -> tuple[PerchingPilot, list[str], list[str]]:

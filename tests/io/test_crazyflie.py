@@ -763,3 +763,22 @@ def test_the_gyro_is_logged_with_the_attitude_and_integrated_on_the_firmwares_cl
     after = pilot._attitude(0.1)
     roll_deg = math.degrees(roll_pitch_rad(after)[0] - roll_pitch_rad(level)[0])
     assert 0.0 < roll_deg < 0.1
+
+
+def test_an_attitude_setpoint_goes_out_as_the_firmware_decodes_it(
+    crazyflie: tuple[Crazyflie, FakeRadioLink],
+) -> None:
+    """cflib's own packet (TYPE_ZDISTANCE): roll and pitch in degrees, the pitch in the
+    firmware's legacy sign (a nose-down lean, which accelerates forward, goes out negative:
+    the decoder passes it on to a PID that compares it with its own legacy pitch), the yaw
+    rate counter-clockwise in deg/s, the height in metres."""
+    cf, link = crazyflie
+    CflibCommander(cf.commander).send_attitude(math.radians(3.0), math.radians(5.0), 0.2, 1.5)
+    ((port, _channel, data),) = link.sent
+    assert port == CRTPPort.COMMANDER_GENERIC
+    kind, roll, pitch, yaw_rate, z = struct.unpack("<Bffff", data)
+    assert kind == 9  # TYPE_ZDISTANCE (today's: the yaw rate counter-clockwise positive)
+    assert roll == pytest.approx(3.0, rel=1e-6)
+    assert pitch == pytest.approx(-5.0, rel=1e-6)
+    assert yaw_rate == pytest.approx(math.degrees(0.2), rel=1e-6)
+    assert z == pytest.approx(1.5, rel=1e-6)

@@ -125,6 +125,56 @@ def test_a_full_state_setpoint_is_held_on_the_vehicles_own_estimate(controller: 
     assert np.linalg.norm(q.v_mps) < 0.03
 
 
+@pytest.mark.parametrize("controller", ["model", "crazyflie-pid"])
+def test_an_attitude_setpoint_is_flown_as_a_lean_at_the_height_asked(controller: str) -> None:
+    """An attitude setpoint (cflib's send_zdistance_setpoint as the commander decodes it) held
+    by the model's loops and by the firmware's PID: heading 0.5 rad, a 4 deg nose-down pitch
+    and a 2 deg roll to the left (negative), at a height 10 cm up on the vehicle's own
+    estimate (5 cm high). The body leans as asked within 0.5 deg, and at 0.5 s (0.3 m/s, drag
+    still small) it accelerates along the heading and to its left as ``leaned`` says, within
+    15 %; within 3 s it holds the height its estimate puts at the setpoint (the firmware's
+    PID resets its integrators at the change of setpoint mode, and sinks 4 cm before its
+    height loop wins it back). Then a yaw rate asked is flown within 1 s."""
+    from perchpose.geometry import roll_pitch_rad
+    from perchpose.sim.quadrotor import AttitudeHold, Quadrotor, leaned
+
+    yaw0 = 0.5
+    start = np.array([0.0, 0.0, 1.0])
+    if controller == "model":
+        q = Quadrotor.hovering(QuadrotorParams(), start, yaw0)
+    else:
+        pytest.importorskip("cffirmware")
+        q = firmware.FirmwareQuadrotor.hovering_on_firmware(
+            controller, 500.0, QuadrotorParams(), start, yaw0
+        )
+        q.settle()
+    offset = np.array([0.0, 0.0, 0.05])
+
+    def hold(roll: float, pitch: float, yaw_rate: float) -> None:
+        p_est = q.p_m + offset
+        p = (float(p_est[0]), float(p_est[1]), float(p_est[2]))
+        q.hold = AttitudeHold(roll, pitch, yaw_rate, 1.1, p)
+        q.fly(DT, 5, np.zeros(3), 0.0, q.v_mps)  # the estimate comes at 100 Hz
+
+    roll, pitch = math.radians(-2.0), math.radians(4.0)
+    for _ in range(50):
+        hold(roll, pitch, 0.0)
+    got_roll, got_pitch = roll_pitch_rad(q.R_world_body)
+    assert math.degrees(got_roll) == pytest.approx(-2.0, abs=0.5)
+    assert math.degrees(got_pitch) == pytest.approx(4.0, abs=0.5)
+    v0 = q.v_mps
+    hold(roll, pitch, 0.0)
+    a_xy = (q.v_mps[:2] - v0[:2]) / (5 * DT)
+    expected = 9.81 * np.array(leaned(roll, pitch, q.yaw_rad))
+    assert np.linalg.norm(a_xy - expected) < 0.15 * np.linalg.norm(expected)
+    for _ in range(250):
+        hold(roll, pitch, 0.0)
+    assert abs(q.p_m[2] - 1.05) < 0.01
+    for _ in range(100):
+        hold(0.0, 0.0, 0.5)
+    assert q.omega_rad_s[2] == pytest.approx(0.5, abs=0.05)
+
+
 def test_a_vehicle_flies_as_the_first_in_its_process_whatever_flew_before_it() -> None:
     """The firmware's PID keeps its integrators, filters and desired yaw in the module: a
     vehicle after another that ended tilted, yawed and wound up (as a campaign's worker flies

@@ -34,7 +34,7 @@ class LinkOptions:
     URI (None: no Crazyflie). mount : ``up``, ``down`` or a mount YAML (None: upward).
     position_fixes : the flying pilot hands each fix to the vehicle's estimator where its link
     can (the Crazyflie's Kalman filter, as an external position). command : what the flying
-    pilot sends (``PilotSettings.command``: ``velocity`` or ``full-state``; a MAVLink
+    pilot sends (``PilotSettings.command``: ``velocity``, ``full-state`` or ``attitude``; a MAVLink
     autopilot is sent velocities)."""
 
     mavlink_url: str | None = None

@@ -87,7 +87,7 @@ class PerchCampaign:
                 f"(choose {' or '.join(POSITION_FIXES)})"
             )
         if command not in COMMANDS:
-            raise PerchposeError(f"--command: unknown {command!r} (choose {' or '.join(COMMANDS)})")
+            raise PerchposeError(f"--command: unknown {command!r} (choose {', '.join(COMMANDS)})")
         if contact not in CONTACT_MODES:
             raise PerchposeError(
                 f"--contact: unknown {contact!r} (choose {' or '.join(CONTACT_MODES)})"
@@ -198,6 +198,11 @@ class PerchCampaign:
                 flown += (
                     "; the pilot sends full-state setpoints, which the vehicle's position loop "
                     "holds"
+                )
+            elif base.pilot.command == "attitude":
+                flown += (
+                    "; the pilot sends attitude setpoints (a lean and a height) and flies the "
+                    "horizontal velocity loop itself"
                 )
             say(
                 f"{len(jobs)} runs: {cells} cell{plural} of {self.runs} runs; {senses(base)}{flown}"

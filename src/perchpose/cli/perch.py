@@ -94,9 +94,11 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
     type=click.Choice(list(COMMANDS)),
     default="velocity",
     show_default=True,
-    help="What the pilot sends the vehicle: velocity (cflib's send_velocity_world_setpoint) "
-    "or full-state (send_full_state_setpoint: a position and yaw its own position loop holds "
-    "on its own estimate). Attitude setpoints are not built.",
+    help="What the pilot sends the vehicle: velocity (cflib's send_velocity_world_setpoint), "
+    "full-state (send_full_state_setpoint: a position and yaw its own position loop holds "
+    "on its own estimate) or attitude (send_zdistance_setpoint: a roll, a pitch and a height; "
+    "the pilot flies the horizontal velocity loop itself on the camera's fixes and the "
+    "accelerometer).",
 )
 @click.option(
     "--position-fixes",

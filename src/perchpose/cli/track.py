@@ -120,9 +120,11 @@ if TYPE_CHECKING:
     type=click.Choice(list(COMMANDS)),
     default="velocity",
     show_default=True,
-    help="What the flying pilot sends: velocity setpoints, or full-state ones (a position and "
+    help="What the flying pilot sends: velocity setpoints, full-state ones (a position and "
     "yaw the Crazyflie's own position loop holds on its estimate: cflib's "
-    "send_full_state_setpoint; a MAVLink autopilot is sent velocities).",
+    "send_full_state_setpoint), or attitude ones (a roll, a pitch and a height, "
+    "send_zdistance_setpoint: the pilot flies the horizontal velocity loop itself on the "
+    "camera's fixes and the accelerometer). A MAVLink autopilot is sent velocities.",
 )
 @click.option(
     "--position-fixes/--no-position-fixes",

@@ -466,6 +466,24 @@ class PerchingController:
         self.position_fixes = PositionFixes(self.settings.position_fixes)
         self._position_fix: Array | None = None  # this frame's, for its command
         self.inertial = InertialTracker(self.settings.inertial)
+        # the pilot flies the horizontal velocity loop itself (attitude setpoints): the
+        # setpoint's horizontal velocity is then the one asked, with no offset for a loop
+        self._lean_command = False
+
+    def use_lean_command(self) -> None:
+        """The pilot sends attitude setpoints and flies the horizontal velocity loop itself
+        (``control.attitude_command``, on ``horizontal_velocity_mps`` and the push): from now
+        on the horizontal setpoint is the velocity asked, with none of the offsets that make
+        a vehicle's own loop on its own estimate fly it (the estimate's error, the push, the
+        observer's); the vertical keeps them."""
+        self._lean_command = True
+
+    def horizontal_velocity_mps(self, odometry: Odometry) -> Array:
+        """The vehicle's horizontal velocity at the odometry's time: the inertial filter's
+        where it knows it, otherwise the odometry's own."""
+        known = self.inertial.velocity_at(odometry.t_s)
+        v = np.asarray(odometry.v_mps, np.float64)[:2] if known is None else known
+        return np.array(v, np.float64)
 
     def use_velocity_gain(self, gain_per_s: float) -> None:
         """The vehicle's velocity loop now has this gain (the pilot set it): the observer and
@@ -685,6 +703,8 @@ class PerchingController:
         push = self._filtered_push(odometry, dt)
         v_sp = v_cmd - push / s.onboard_velocity_gain
         if s.observer_rate == 0:
+            if self._lean_command:
+                return np.array([v_cmd[0], v_cmd[1], v_sp[2]], np.float64)
             return v_sp + correction
         previous = self._last_sp if self._last_sp is not None else np.zeros(3)
         fast = self.phase == Phase.COMMIT and s.commit_observer_rate > 0
@@ -692,6 +712,8 @@ class PerchingController:
         self._observer.update(previous, v_flown, dt, max(0.0, t_s - odometry.t_s), push)
         v_sp = v_sp + self._observer.offset_mps
         self._last_sp = v_sp
+        if self._lean_command:
+            return np.array([v_cmd[0], v_cmd[1], v_sp[2]], np.float64)
         return v_sp + correction
 
     def _filtered_push(self, odometry: Odometry, dt_s: float) -> Array:

@@ -71,6 +71,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
+from perchpose.control.attitude_command import LeanLoop
 from perchpose.control.controller import (
     Command,
     Odometry,
@@ -91,7 +92,7 @@ from perchpose.control.history import newest_at
 from perchpose.control.lean import LeanCorrection
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
-from perchpose.geometry import lean_deg, yaw_rad
+from perchpose.geometry import lean_deg, roll_pitch_rad, yaw_rad
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -187,6 +188,18 @@ class FullStateSender(Protocol):
 
 
 @runtime_checkable
+class AttitudeSender(Protocol):
+    """A commander that sends attitude setpoints (``PilotSettings.command``): a roll and a
+    pitch (rad, ZYX Euler angles under the vehicle's heading: pitch positive nose down, roll
+    positive right side down), a yaw rate (rad/s, counter-clockwise) and a height (world z of
+    the vehicle's own estimate, m), which its attitude and height loops hold."""
+
+    def send_attitude(
+        self, roll_rad: float, pitch_rad: float, yaw_rate_rad_s: float, z_m: float
+    ) -> None: ...
+
+
+@runtime_checkable
 class PositionFixSender(Protocol):
     """A commander that hands the vehicle's own state estimator an external position (world
     frame of its odometry, m), as a motion-capture system does."""
@@ -205,6 +218,21 @@ class PilotStep:
     v_mps: tuple[float, float, float] | None
     yaw_rate_rad_s: float | None
     phase: str | None
+
+
+def _lean_loop(settings: PilotSettings, controller: PerchingController) -> LeanLoop:
+    """The pilot's horizontal velocity loop for attitude setpoints, cancelling the push as the
+    controller would; a controller flown so is told (``use_lean_command``)."""
+    c = controller.settings
+    if settings.command == "attitude":
+        controller.use_lean_command()
+    return LeanLoop(
+        settings.lean_gain_per_s,
+        math.radians(settings.max_lean_deg),
+        push_feedforward=c.push_feedforward,
+        push_filter_s=c.push_filter_s,
+        max_push_mps2=c.max_push_mps2,
+    )
 
 
 class PerchingPilot:
@@ -262,8 +290,8 @@ class PerchingPilot:
         self.blend = BlendedAttitude(self.settings.gyro_blend_s) if lag_s > 0 else None
         if lag_s > 0:  # a Kalman filter's velocity: its error is correlated however small
             self.controller.inertial.assume_correlated()
-        self.height_m = height_m
-        self.odometry = odometry
+        self._lean_loop = _lean_loop(self.settings, self.controller)
+        self.height_m, self.odometry = height_m, odometry
         self.report = report or log.warning
         self.state = PilotState.WAITING
         self._gain_raised = False
@@ -333,6 +361,8 @@ class PerchingPilot:
         gain = self.settings.velocity_gain_per_s
         if gain is None or not isinstance(self.commander, VelocityGainSetter):
             return
+        if self.settings.command == "attitude":
+            return  # the horizontal velocity loop is the pilot's own
         if self.settings.lean_lag_s > 0:
             self.report(
                 "pilot: the vehicle's estimator models no drag: its own velocity gain is kept "
@@ -398,7 +428,11 @@ class PerchingPilot:
                     f"pilot: a non-finite setpoint at t = {t_s:.2f} s was replaced by a hover "
                     "(reported once)"
                 )
-        if not (self.settings.command == "full-state" and self._send_full_state(sp)):
+        command = self.settings.command
+        if not (
+            (command == "full-state" and self._send_full_state(sp))
+            or (command == "attitude" and self._send_attitude(t_s, sp))
+        ):
             self.commander.send_velocity(sp.v_mps, sp.yaw_rate_rad_s)
         self.last_sent_clock_s = self.clock()
         self._last_setpoint = (t_s, v, yaw_rate_rad_s, phase)
@@ -412,25 +446,70 @@ class PerchingPilot:
         position by (older than ``stale_after_s``: a hover is then a zero velocity, not a
         return to where the vehicle was)."""
         if not isinstance(self.commander, FullStateSender):
-            if not self._velocity_only_said:
-                self._velocity_only_said = True
-                self.report(
-                    "pilot: this vehicle's link takes velocity setpoints only: full-state "
-                    "setpoints are sent as velocities"
-                )
+            self._say_velocity_only()
             return False
-        motion = self._motion()
+        p_now = self._position_now()
+        if p_now is None:
+            return False
         s = self.settings
-        if motion is None or not self._age("position") < s.stale_after_s:
-            return False
-        # the odometry's position carried to now by its velocity (it is a sample old)
-        age_s = self._age("position")
-        p_now = carried(Odometry(-age_s, motion[0], motion[1]), 0.0)
         p_sp = p_now + np.asarray(sp.v_mps, np.float64) / s.position_gain_per_s
         yaw_sp = yaw_rad(np.asarray(self.attitude())) + sp.yaw_rate_rad_s / s.yaw_gain_per_s
         p = (float(p_sp[0]), float(p_sp[1]), float(p_sp[2]))
         self.commander.send_full_state(p, sp.v_mps, yaw_sp, sp.yaw_rate_rad_s)
         return True
+
+    def _send_attitude(self, t_s: float, sp: Setpoint) -> bool:
+        """``sp`` as an attitude setpoint (``PilotSettings.command``): the lean the pilot's own
+        velocity loop asks for ``sp``'s horizontal velocity (``control.attitude_command``, on
+        the velocity the controller knows best and the accelerometer's push), the yaw rate,
+        and the height that the vehicle's own loop, holding it from its estimate, climbs to
+        at ``sp``'s vertical speed. False where it cannot be sent (the velocity is sent
+        instead), as for a full-state setpoint."""
+        if not isinstance(self.commander, AttitudeSender):
+            self._say_velocity_only()
+            return False
+        p_now = self._position_now()
+        motion = self._motion()
+        if p_now is None or motion is None:
+            return False
+        # the vehicle holds its own estimate of its attitude at the lean sent: where that
+        # estimate misses the lean a push needs (``lean_lag_s``), the lean sent is the one
+        # wanted less what the estimate misses
+        R_own = np.asarray(self.attitude(), np.float64)
+        R_world_body = self._attitude(t_s)
+        odometry = self._odometry(t_s, motion, R_world_body)
+        v_now = self.controller.horizontal_velocity_mps(odometry)
+        push = None if odometry.push_mps2 is None else odometry.push_mps2[:2]
+        lean = self._lean_loop.lean(t_s, sp.v_mps, v_now, push, yaw_rad(R_world_body))
+        roll, pitch = roll_pitch_rad(R_world_body)
+        roll_own, pitch_own = roll_pitch_rad(R_own)
+        z_m = float(p_now[2]) + sp.v_mps[2] / self.settings.position_gain_per_s
+        self.commander.send_attitude(
+            lean.roll_rad - (roll - roll_own),
+            lean.pitch_rad - (pitch - pitch_own),
+            sp.yaw_rate_rad_s,
+            z_m,
+        )
+        return True
+
+    def _say_velocity_only(self) -> None:
+        if not self._velocity_only_said:
+            self._velocity_only_said = True
+            self.report(
+                "pilot: this vehicle's link takes velocity setpoints only: "
+                f"{self.settings.command} setpoints are sent as velocities"
+            )
+
+    def _position_now(self) -> Array | None:
+        """The odometry's position carried to now by its velocity (it is a sample old); None
+        without odometry, or with odometry too old to place a position by (older than
+        ``stale_after_s``: a hover is then a zero velocity, not a return to where the vehicle
+        was)."""
+        motion = self._motion()
+        age_s = self._age("position")
+        if motion is None or not age_s < self.settings.stale_after_s:
+            return None
+        return carried(Odometry(-age_s, motion[0], motion[1]), 0.0)
 
     def _stop(self, t_s: float, state: PilotState, why: str) -> PilotStep:
         self._enter(state, t_s, why)  # first: a commander may ask which stop this is

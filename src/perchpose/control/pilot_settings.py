@@ -10,7 +10,7 @@ from perchpose.control.setpoint import SetpointLimits
 from perchpose.errors import ControllerConfigError, require_positive
 
 ON_SENSES_LOST = ("land", "release")
-COMMANDS = ("velocity", "full-state")
+COMMANDS = ("velocity", "full-state", "attitude")
 
 
 @dataclass(frozen=True)
@@ -112,9 +112,15 @@ class PilotSettings:
     setpoints, on its own estimate at its own rate). The position leads the vehicle's estimate
     by the velocity over position_gain_per_s, and the yaw by the yaw rate over yaw_gain_per_s
     (the vehicle's position and yaw gains: the Crazyflie firmware's ``posCtlPid.xKp`` 2 /s and
-    ``pidYaw.kp`` 6 /s), so that its loops fly the pilot's velocity and yaw rate. A vehicle
-    whose link takes velocity setpoints only (a MAVLink autopilot's, here) is sent those, and
-    the pilot says so once.
+    ``pidYaw.kp`` 6 /s), so that its loops fly the pilot's velocity and yaw rate. Or
+    ``attitude`` (a roll, a pitch, the yaw rate and a height in the frame of the vehicle's
+    own estimate: cflib's ``send_zdistance_setpoint``): the vehicle's attitude loop flies the
+    lean and its position loop the height, led by the vertical velocity over
+    position_gain_per_s, and the horizontal velocity loop is the pilot's own
+    (``control.attitude_command``), lean_gain_per_s on the velocity the camera's fixes and the
+    accelerometer give, less the accelerometer's push, within max_lean_deg. A vehicle whose
+    link takes velocity setpoints only (a MAVLink autopilot's, here) is sent those, and the
+    pilot says so once; so is one whose odometry is missing or older than stale_after_s.
 
     lean_lag_s : the vehicle's attitude estimate is drag-free (a flying Crazyflie's Kalman
     filter) and misses the lean a push needs, taken in over about this long: the pilot takes
@@ -156,6 +162,8 @@ class PilotSettings:
     command: str = "velocity"
     position_gain_per_s: float = 2.0
     yaw_gain_per_s: float = 6.0
+    lean_gain_per_s: float = 5.0
+    max_lean_deg: float = 20.0
     lean_lag_s: float = 0.0
     gyro_blend_s: float = 3.0
 
@@ -188,6 +196,8 @@ class PilotSettings:
             "live_height_s",
             "position_gain_per_s",
             "yaw_gain_per_s",
+            "lean_gain_per_s",
+            "max_lean_deg",
             "gyro_blend_s",
         )
         require_positive(self, positive, ControllerConfigError, "pilot setting ")
@@ -195,9 +205,13 @@ class PilotSettings:
             raise ControllerConfigError(
                 f"pilot setting lean_lag_s must be within 0-10 s, got {self.lean_lag_s}"
             )
+        if not self.max_lean_deg <= 45.0:
+            raise ControllerConfigError(
+                f"pilot setting max_lean_deg must be at most 45 deg, got {self.max_lean_deg}"
+            )
         if self.command not in COMMANDS:
             raise ControllerConfigError(
-                f"pilot setting command {self.command!r}: choose {' or '.join(COMMANDS)}"
+                f"pilot setting command {self.command!r}: choose {', '.join(COMMANDS)}"
             )
         gain = self.velocity_gain_per_s
         if gain is not None and not 0.5 <= gain <= 12.0:

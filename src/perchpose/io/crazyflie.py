@@ -42,10 +42,11 @@ def velocity_kp_deg(gain_per_s: float) -> float:
 class CflibCommander:
     """The pilot's ``VehicleCommander`` on cflib's ``Commander``: a velocity in the world
     frame of the Crazyflie's state estimator (z up, m/s) with the yaw rate in deg/s
-    (``send_velocity_world_setpoint``), or a full state (``send_full_state_setpoint``: the
-    position the firmware's position loop holds on its own estimate); a stop cuts the motors
-    and hands the setpoint priority back to the high-level commander (``send_stop_setpoint``,
-    ``send_notify_setpoint_stop``).
+    (``send_velocity_world_setpoint``), a full state (``send_full_state_setpoint``: the
+    position the firmware's position loop holds on its own estimate), or an attitude
+    (``send_zdistance_setpoint``: a roll, a pitch, the yaw rate and the height); a stop cuts
+    the motors and hands the setpoint priority back to the high-level commander
+    (``send_stop_setpoint``, ``send_notify_setpoint_stop``).
     With cflib's ``Extpos`` (``extpos``) it hands the Kalman filter the camera's fixes as an
     external position.
 
@@ -103,6 +104,19 @@ class CflibCommander:
         orientation = (0.0, 0.0, math.sin(yaw_rad / 2.0), math.cos(yaw_rad / 2.0))
         self.commander.send_full_state_setpoint(
             p_world_m, v_world_mps, (0.0, 0.0, 0.0), orientation, 0.0, 0.0, 0.0
+        )
+
+    def send_attitude(
+        self, roll_rad: float, pitch_rad: float, yaw_rate_rad_s: float, z_m: float
+    ) -> None:
+        """``send_zdistance_setpoint``: roll and pitch in degrees, the yaw rate in deg/s and
+        the height (m) its position loop holds on its own estimate. The commander's decoder
+        passes roll and pitch on as they come, so the pitch goes in the firmware's legacy
+        sign (positive nose up, the sign its PID compares with its own attitude's). The yaw
+        rate is counter-clockwise positive, as for ``send_velocity_world_setpoint``: cflib
+        turns it round for a firmware that still takes the legacy packet."""
+        self.commander.send_zdistance_setpoint(
+            math.degrees(roll_rad), -math.degrees(pitch_rad), math.degrees(yaw_rate_rad_s), z_m
         )
 
     def send_stop(self) -> None:

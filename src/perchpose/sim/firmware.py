@@ -14,7 +14,10 @@ attitude loop every second tick, 500 Hz, and the position loop every tenth, 100 
   (``TYPE_VELOCITY_WORLD``: world velocity in m/s on x, y and z, the yaw rate in deg/s,
   counter-clockwise positive, in velocity mode on every axis), or, while the vehicle holds a
   full-state setpoint (``Quadrotor.hold``), ``send_full_state_setpoint`` (``TYPE_FULL_STATE``:
-  absolute position, the yaw from the orientation's quaternion);
+  absolute position, the yaw from the orientation's quaternion), or, while it holds an attitude
+  setpoint, ``send_zdistance_setpoint`` (``TYPE_ZDISTANCE``: roll and pitch absolute in
+  degrees, the height absolute, the yaw rate; x and y disabled, so the PID flies the lean
+  asked and only its height loop is its own);
 - the state estimate: the attitude as the firmware keeps it (roll, pitch and yaw in degrees,
   the pitch's sign flipped as the firmware's legacy convention has it, and the quaternion),
   the velocity the odometry gives (world frame), the position (the vehicle's own estimate
@@ -46,6 +49,8 @@ from perchpose.io.crazyflie import velocity_kp_deg
 from perchpose.sim.firmware_params import VelocityGains
 from perchpose.sim.quadrotor import (
     GRAVITY_MPS2,
+    AttitudeHold,
+    Hold,
     OnboardGains,
     PositionHold,
     Quadrotor,
@@ -245,7 +250,12 @@ class FirmwareQuadrotor(Quadrotor):
             sp.velocity.x, sp.velocity.y, sp.velocity.z = (float(v) for v in v_sp)
             sp.mode.yaw = fw.modeVelocity
             sp.mode.quat = fw.modeDisable
+            # each packet is decoded onto a cleared setpoint: nothing of an attitude one stays
+            sp.mode.roll = sp.mode.pitch = fw.modeDisable
+            sp.attitude.roll = sp.attitude.pitch = 0.0
             sp.attitudeRate.yaw = math.degrees(yaw_rate_sp)
+        elif isinstance(self.hold, AttitudeHold):
+            self._zdistance(self.hold)
         else:
             self._full_state(self.hold)
         sp.velocity_body = False
@@ -264,10 +274,33 @@ class FirmwareQuadrotor(Quadrotor):
             thrust[rotor] = self.motor_command[motor] / FULL_COMMAND * FULL_THRUST_N
         return (thrust[0], thrust[1], thrust[2], thrust[3])
 
-    def _position_loop(self, hold: PositionHold) -> tuple[Vec3, float]:
+    def _position_loop(self, hold: Hold, v_est: Vec3) -> tuple[Vec3, float]:
         """The firmware runs its own position loop on the full-state setpoint
-        (``_full_state``): nothing for the model's loops to fly."""
+        (``_full_state``) and its own height loop on the attitude one (``_zdistance``):
+        nothing for the model's loops to fly."""
         return (0.0, 0.0, 0.0), 0.0
+
+    def _zdistance(self, hold: AttitudeHold) -> None:
+        """The setpoint as the commander decodes cflib's ``send_zdistance_setpoint``
+        (``TYPE_ZDISTANCE``): the height absolute, roll and pitch absolute in degrees (the
+        pitch in the firmware's legacy sign, positive nose up, as the decoder passes it on),
+        the yaw rate in velocity mode (counter-clockwise, deg/s); x and y disabled, which
+        makes the PID take roll and pitch from the setpoint instead of its velocity loop."""
+        fw = self.fw
+        sp = self._setpoint
+        sp.mode.x = sp.mode.y = fw.modeDisable
+        sp.mode.z = fw.modeAbs
+        sp.position.x = sp.position.y = 0.0
+        sp.position.z = hold.z_m
+        sp.velocity.x = sp.velocity.y = sp.velocity.z = 0.0
+        sp.acceleration.x = sp.acceleration.y = sp.acceleration.z = 0.0
+        sp.mode.roll = sp.mode.pitch = fw.modeAbs
+        sp.attitude.roll = math.degrees(hold.roll_rad)
+        sp.attitude.pitch = -math.degrees(hold.pitch_rad)
+        sp.mode.yaw = fw.modeVelocity
+        sp.mode.quat = fw.modeDisable
+        sp.attitudeRate.roll = sp.attitudeRate.pitch = 0.0
+        sp.attitudeRate.yaw = math.degrees(hold.yaw_rate_rad_s)
 
     def _full_state(self, hold: PositionHold) -> None:
         """The setpoint as the commander decodes cflib's ``send_full_state_setpoint``

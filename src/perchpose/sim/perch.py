@@ -52,6 +52,8 @@ from perchpose.sim.firmware import FirmwareQuadrotor, check_flight_controller, l
 from perchpose.sim.flow_deck import FlowDeckError
 from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses, check_onboard_estimator
 from perchpose.sim.quadrotor import (
+    AttitudeHold,
+    Hold,
     OnboardGains,
     PositionHold,
     Quadrotor,
@@ -361,14 +363,27 @@ class HeldSetpoint:
         # None while the last setpoint is a velocity
         self.position_m: Array | None = None
         self.yaw_rad = 0.0
+        # an attitude setpoint's roll, pitch (rad) and height (world z of the vehicle's
+        # estimate, m); None while the last setpoint is not one
+        self.lean: tuple[float, float, float] | None = None
         self.clock = clock
         self.link_up = link_up
         self.delay_s = delay_s
         self.stopped = False
         self.received_s: float | None = None  # the vehicle's watchdog starts at the first
         self.sent_s: list[float] = []  # when the pilot sent each command
-        # on their way: (arrival time, velocity, yaw rate, stop, full state's position and yaw)
-        self._pending: deque[tuple[float, Array, float, bool, tuple[Array, float] | None]] = deque()
+        # on their way: (arrival time, velocity, yaw rate, stop, full state's position and
+        # yaw, attitude setpoint's roll, pitch and height)
+        self._pending: deque[
+            tuple[
+                float,
+                Array,
+                float,
+                bool,
+                tuple[Array, float] | None,
+                tuple[float, float, float] | None,
+            ]
+        ] = deque()
 
     def _send(
         self,
@@ -376,21 +391,24 @@ class HeldSetpoint:
         yaw_rate_rad_s: float,
         stop: bool,
         full_state: tuple[Array, float] | None = None,
+        lean: tuple[float, float, float] | None = None,
     ) -> None:
         now = self.clock()
         self.sent_s.append(now)
         if self.link_up():
-            self._pending.append((now + self.delay_s, v_mps, yaw_rate_rad_s, stop, full_state))
+            arrival_s = now + self.delay_s
+            self._pending.append((arrival_s, v_mps, yaw_rate_rad_s, stop, full_state, lean))
             self.deliver()
 
     def deliver(self) -> None:
         """Take every setpoint that has arrived by now."""
         now = self.clock()
         while self._pending and self._pending[0][0] <= now + 1e-12:
-            arrived_s, v_mps, yaw_rate, stop, full_state = self._pending.popleft()
+            arrived_s, v_mps, yaw_rate, stop, full_state, lean = self._pending.popleft()
             self.received_s = arrived_s
             self.v_mps, self.yaw_rate_rad_s = v_mps, yaw_rate
             self.position_m, self.yaw_rad = full_state or (None, 0.0)
+            self.lean = lean
             self.stopped = self.stopped or stop
         while self._fixes and self._fixes[0][0] <= now + 1e-12:
             _, p_m = self._fixes.popleft()
@@ -423,6 +441,13 @@ class HeldSetpoint:
         """A full-state setpoint: the vehicle holds the position and yaw with its own loops."""
         full = (np.array(p_world_m, np.float64), float(yaw_rad))
         self._send(np.array(v_world_mps, np.float64), yaw_rate_rad_s, False, full)
+
+    def send_attitude(
+        self, roll_rad: float, pitch_rad: float, yaw_rate_rad_s: float, z_m: float
+    ) -> None:
+        """An attitude setpoint: the vehicle leans so and holds the height with its own loop."""
+        lean = (float(roll_rad), float(pitch_rad), float(z_m))
+        self._send(np.zeros(3), yaw_rate_rad_s, False, None, lean)
 
     def send_stop(self) -> None:
         self._send(np.zeros(3), 0.0, True)
@@ -920,11 +945,16 @@ class _Flight:
         v_sp = c.v_mps if silent_s < LEVEL_AFTER_S else np.zeros(3)
         # a full state to hold, from the vehicle's own estimate (a silent link levels the
         # vehicle: no more holding)
-        hold: PositionHold | None = None
+        hold: Hold | None = None
         if c.position_m is not None and silent_s < LEVEL_AFTER_S:
             p_est = vec3(self._odometry_now()[0])
             hold = PositionHold(vec3(c.position_m), c.yaw_rad, p_est, vec3(c.v_mps))
             v_sp = c.position_m - np.array(p_est)
+        elif c.lean is not None and silent_s < LEVEL_AFTER_S:
+            p_est = vec3(self._odometry_now()[0])
+            roll, pitch, z_m = c.lean
+            hold = AttitudeHold(roll, pitch, c.yaw_rate_rad_s, z_m, p_est)
+            v_sp = np.array([0.0, 0.0, z_m - p_est[2]])
         if self.resting and (self.stop.motors_stopped or v_sp[2] <= 0.0):
             self._follow(dt_s * steps)  # on the floor, still
             if self.kalman is not None:

@@ -170,6 +170,34 @@ class PositionHold:
     v_mps: Vec3 = (0.0, 0.0, 0.0)  # the setpoint's velocity (a feed-forward some loops take)
 
 
+@dataclass(frozen=True)
+class AttitudeHold:
+    """An attitude setpoint as the vehicle flies it (cflib's ``send_zdistance_setpoint``): the
+    roll and pitch to lean to (rad, the body's ZYX Euler angles under its own heading: pitch
+    positive tilts the nose down, towards +x; roll positive lowers the right side, towards
+    -y), the yaw rate (rad/s, counter-clockwise), the height to hold (world z of the
+    vehicle's own estimate, m) with its position loop, and its own position estimate when the
+    setpoint's block of steps began."""
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rate_rad_s: float
+    z_m: float
+    p_estimate_m: Vec3
+
+
+def leaned(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float]:
+    """The horizontal acceleration per unit of vertical (world x and y, the tangent of the
+    thrust's tilt) of a body at this roll and pitch under heading ``yaw_rad``."""
+    forward = math.tan(pitch_rad)
+    left = -math.tan(roll_rad) / math.cos(pitch_rad)
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return c * forward - s * left, s * forward + c * left
+
+
+Hold = PositionHold | AttitudeHold
+
+
 class OnboardEstimate(Protocol):
     """A flight controller's state estimator in the loop (``sim.onboard_kalman``): what the
     onboard loops fly, advanced after each physics step with the vehicle's true state."""
@@ -234,9 +262,9 @@ class Quadrotor:
         # velocity estimate ``fly`` is given)
         self.estimator: OnboardEstimate | None = None
         self._vi: Vec3 = (0.0, 0.0, 0.0)  # the onboard velocity integral, m/s^2
-        # a full-state setpoint the vehicle holds (None: it flies the velocity ``fly`` is
-        # given), and its position estimate at this step
-        self.hold: PositionHold | None = None
+        # a full-state or attitude setpoint the vehicle holds (None: it flies the velocity
+        # ``fly`` is given), and its position estimate at this step
+        self.hold: Hold | None = None
         self._p_estimate: Vec3 = (0.0, 0.0, 0.0)
         # the plate's forces (its face, friction and magnet) where it can reach (None: free
         # flight; the contact is then only watched, ``perchpose.sim.contact.PlateContact``)
@@ -438,8 +466,8 @@ class Quadrotor:
     ) -> int | None:
         """``n_steps`` steps of the onboard loops and the dynamics with the same setpoint and
         velocity estimate (with an ``estimator``: its velocity, step by step); while ``hold``
-        is set, the setpoint is its position and yaw (``_position_loop``), and the velocity
-        and yaw rate given are not flown. Stops after the
+        is set, the setpoint is its position and yaw (``_position_loop``), or its lean and
+        height, and the velocity and yaw rate given are not flown. Stops after the
         step on which ``touched`` says the vehicle touched something (``perchpose.sim.contact``)
         and returns that step's index; otherwise returns None."""
         v_sp, v_est, yaw_rate = vec3(v_sp_mps), vec3(v_estimate_mps), float(yaw_rate_sp)
@@ -453,7 +481,7 @@ class Quadrotor:
                     if estimator is not None
                     else _carried(hold.p_estimate_m, v_est, i * dt_s)
                 )
-                v_sp, yaw_rate = self._position_loop(hold)
+                v_sp, yaw_rate = self._position_loop(hold, v_est)
             self._integrate_velocity_error(dt_s, v_sp, v_est)
             self._advance(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
             if estimator is not None:
@@ -462,11 +490,16 @@ class Quadrotor:
                 return i
         return None
 
-    def _position_loop(self, hold: PositionHold) -> tuple[Vec3, float]:
+    def _position_loop(self, hold: Hold, v_est: Vec3) -> tuple[Vec3, float]:
         """The velocity and yaw rate that hold ``hold``'s position and yaw from the position
-        estimate: the firmware's PID position loop (proportional, capped)."""
+        estimate: the firmware's PID position loop (proportional, capped). An attitude hold
+        has its height held so, and its lean and yaw rate flown as they are (its horizontal
+        velocity error is none: the velocity loop's integral stays as it is)."""
         g = self.gains
         top = g.max_position_speed_mps
+        if isinstance(hold, AttitudeHold):
+            climb = max(-top, min(top, g.k_position * (hold.z_m - self._p_estimate[2])))
+            return (v_est[0], v_est[1], climb), hold.yaw_rate_rad_s
         ex, ey, ez = (s - e for s, e in zip(hold.p_m, self._p_estimate, strict=True))
         v_sp = (
             max(-top, min(top, g.k_position * ex)),
@@ -512,6 +545,12 @@ class Quadrotor:
         fx = m * (self._k_xy * (v_sp[0] - v_est[0]) + ix)
         fy = m * (self._k_xy * (v_sp[1] - v_est[1]) + iy)
         fz = m * (g.k_velocity * (v_sp[2] - v_est[2]) + iz + GRAVITY_MPS2)
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._attitude_estimate()
+        yaw = math.atan2(r10, r00)
+        hold = self.hold
+        if isinstance(hold, AttitudeHold):
+            tx, ty = leaned(hold.roll_rad, hold.pitch_rad, yaw)
+            fx, fy = fz * tx, fz * ty
         # limit the tilt of the thrust vector
         horizontal = math.hypot(fx, fy)
         max_h = max(fz, 0.1 * p.weight_n) * math.tan(g.max_tilt_rad)
@@ -520,8 +559,6 @@ class Quadrotor:
             fy *= max_h / horizontal
         norm = math.sqrt(fx * fx + fy * fy + fz * fz)
         zx, zy, zz = fx / norm, fy / norm, fz / norm
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._attitude_estimate()
-        yaw = math.atan2(r10, r00)
         cx, cy = math.cos(yaw), math.sin(yaw)
         # y_b = z_b x x_c, normalised; x_b = y_b x z_b: the columns of R_des
         yx, yy, yz = -zz * cy, zz * cx, zx * cy - zy * cx

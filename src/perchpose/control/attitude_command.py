@@ -1,0 +1,113 @@
+"""The pilot's own horizontal velocity loop, for a vehicle sent attitude setpoints.
+
+With ``PilotSettings.command`` ``attitude`` the pilot sends a roll, a pitch, a yaw rate and a
+height (cflib's ``send_zdistance_setpoint``): the vehicle's attitude loop flies the lean and its
+position loop holds the height on its own estimate, and the horizontal velocity loop is the
+pilot's. A Crazyflie's velocity loop flies its Kalman filter's velocity, which models no drag:
+a vehicle leaning into a gust reads to it as accelerating, and in strong wind that velocity
+runs 0.5-1 m/s off for a second at a time. The pilot's loop flies instead the velocity the
+camera's fixes and the accelerometer give (``control.inertial``), and cancels the push the
+accelerometer measures as it comes, as a lean rather than as a velocity offset for a loop to
+turn into one.
+
+The acceleration asked is ``gain * (v_asked - v) - push`` (world x and y), within the lean
+``max_lean_rad`` allows; the lean that gives it under the vehicle's heading is
+
+    pitch = atan(a_forward / g),  roll = atan(-a_left * cos(pitch) / g)
+
+(ZYX Euler angles: pitch positive tilts the nose down, towards +x; roll positive lowers the
+right side, towards -y), thrust along the body's z axis holding the weight.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+GRAVITY_MPS2 = 9.81
+
+
+@dataclass(frozen=True)
+class Lean:
+    """A lean to send: roll and pitch (rad, as above), and whether the acceleration asked was
+    cut to the largest lean."""
+
+    roll_rad: float
+    pitch_rad: float
+    clamped: bool = False
+
+
+def lean_for(a_world_mps2: ArrayLike, yaw_rad: float, max_lean_rad: float) -> Lean:
+    """The roll and pitch that accelerate the vehicle by ``a_world_mps2`` (world x and y)
+    under heading ``yaw_rad``, the acceleration cut to ``g tan(max_lean_rad)``."""
+    a = np.asarray(a_world_mps2, np.float64).reshape(-1)[:2]
+    top = GRAVITY_MPS2 * math.tan(max_lean_rad)
+    norm = float(np.hypot(a[0], a[1]))
+    clamped = norm > top
+    if clamped:
+        a = a * (top / norm)
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    forward = c * float(a[0]) + s * float(a[1])
+    left = -s * float(a[0]) + c * float(a[1])
+    pitch = math.atan2(forward, GRAVITY_MPS2)
+    roll = math.atan2(-left * math.cos(pitch), GRAVITY_MPS2)
+    return Lean(roll, pitch, clamped)
+
+
+class LeanLoop:
+    """Velocity asked -> lean: ``gain_per_s`` (1/s) on the velocity error, less the push
+    (low-passed over ``push_filter_s``, at most ``max_push_mps2``; none where
+    ``push_feedforward`` is off or no sample came), within ``max_lean_rad``."""
+
+    def __init__(
+        self,
+        gain_per_s: float,
+        max_lean_rad: float,
+        *,
+        push_feedforward: bool = True,
+        push_filter_s: float = 0.03,
+        max_push_mps2: float = 4.0,
+    ) -> None:
+        self.gain_per_s = gain_per_s
+        self.max_lean_rad = max_lean_rad
+        self.push_feedforward = push_feedforward
+        self.push_filter_s = push_filter_s
+        self.max_push_mps2 = max_push_mps2
+        self._push = np.zeros(2)
+        self._t_s: float | None = None
+
+    def lean(
+        self,
+        t_s: float,
+        v_asked_mps: ArrayLike,
+        v_now_mps: ArrayLike,
+        push_mps2: ArrayLike | None,
+        yaw_rad: float,
+    ) -> Lean:
+        """The lean for the horizontal velocity asked (world, m/s), the vehicle's velocity now
+        and the push the accelerometer measures (world x and y, m/s^2; None: no sample)."""
+        # the first sample is taken as it is; later ones through the low-pass
+        dt_s = math.inf if self._t_s is None else max(0.0, t_s - self._t_s)
+        self._t_s = t_s
+        push = self._filtered(push_mps2, dt_s)
+        error = np.asarray(v_asked_mps, np.float64)[:2] - np.asarray(v_now_mps, np.float64)[:2]
+        return lean_for(self.gain_per_s * error - push, yaw_rad, self.max_lean_rad)
+
+    def _filtered(self, push_mps2: ArrayLike | None, dt_s: float) -> Array:
+        if not self.push_feedforward or push_mps2 is None:
+            self._push = np.zeros(2)
+            return self._push
+        measured = np.asarray(push_mps2, np.float64).reshape(-1)[:2]
+        if not np.all(np.isfinite(measured)):
+            self._push = np.zeros(2)
+            return self._push
+        norm = float(np.hypot(measured[0], measured[1]))
+        if norm > self.max_push_mps2:
+            measured = measured * (self.max_push_mps2 / norm)
+        alpha = 1.0 if self.push_filter_s == 0 else 1.0 - math.exp(-dt_s / self.push_filter_s)
+        self._push = self._push + alpha * (measured - self._push)
+        return self._push
