@@ -685,7 +685,7 @@ def _leaning_pilot(
 def test_attitude_setpoints_fly_the_pilots_own_velocity_loop_and_cancel_the_push() -> None:
     """With ``command="attitude"`` each setpoint is a lean and a height: the height leads the
     vehicle's own estimate by the vertical velocity over the position gain (2 /s), and the
-    lean is the pilot's velocity loop (5 /s on the velocity asked less the vehicle's) less
+    lean is the pilot's velocity loop (8 /s on the velocity asked less the vehicle's) less
     the push, under the vehicle's heading. The velocity asked carries none of the offsets a
     vehicle's own loop needs (the push's among them): flown with velocity setpoints, the same
     frames and push ask a different velocity (from the second frame: the controller's push
@@ -708,7 +708,7 @@ def test_attitude_setpoints_fly_the_pilots_own_velocity_loop_and_cancel_the_push
         assert step.yaw_rate_rad_s is not None
         assert z_m == pytest.approx(1.0 + step.v_mps[2] / 2.0)
         assert rate == pytest.approx(step.yaw_rate_rad_s)
-        a_world = 5.0 * (np.array(step.v_mps[:2]) - v_now) - np.array([push, 0.0])
+        a_world = 8.0 * (np.array(step.v_mps[:2]) - v_now) - np.array([push, 0.0])
         wanted = lean_for(a_world, yaw, math.radians(20.0))
         assert (roll, pitch) == pytest.approx((wanted.roll_rad, wanted.pitch_rad), abs=1e-9)
         # the vehicle at this lean accelerates as asked
@@ -732,6 +732,19 @@ def test_attitude_setpoints_fly_the_pilots_own_velocity_loop_and_cancel_the_push
         velocity_only.update(estimate, t_s)
     assert len(plain.sent) == 3
     assert sum("attitude setpoints are sent as velocities" in r for r in reports) == 1
+    # and those velocities keep the offsets the vehicle's own loop needs
+    plain = Recorder()
+    pushed = _leaning_pilot(plain, Vehicle(plain, 1.0), yaw, push)
+    for estimate, t_s in frames:
+        pushed.update(estimate, t_s)
+    assert [sent[:3] for sent in plain.sent] == [tuple(s.v_mps or ()) for s in velocity_steps]
+    # an attitude too old to lean by: a velocity, which the vehicle's own loop holds
+    stale = Leaning()
+    old = _leaning_pilot(stale, Vehicle(stale, 1.0), yaw, push)
+    old.ages = lambda: SenseAges(0.3, 0.0, 0.0)
+    old.update(frames[0][0], frames[0][1])
+    assert stale.leans == []
+    assert len(stale.sent) == 1
 
 
 def test_full_state_setpoints_lead_the_estimate_by_what_the_vehicles_loops_fly() -> None:

@@ -220,11 +220,14 @@ class PilotStep:
     phase: str | None
 
 
-def _lean_loop(settings: PilotSettings, controller: PerchingController) -> LeanLoop:
+def _lean_loop(
+    settings: PilotSettings, controller: PerchingController, commander: VehicleCommander
+) -> LeanLoop:
     """The pilot's horizontal velocity loop for attitude setpoints, cancelling the push as the
-    controller would; a controller flown so is told (``use_lean_command``)."""
+    controller would; a controller flown so (a link that takes them) is told
+    (``use_lean_command``)."""
     c = controller.settings
-    if settings.command == "attitude":
+    if settings.command == "attitude" and isinstance(commander, AttitudeSender):
         controller.use_lean_command()
     return LeanLoop(
         settings.lean_gain_per_s,
@@ -290,7 +293,7 @@ class PerchingPilot:
         self.blend = BlendedAttitude(self.settings.gyro_blend_s) if lag_s > 0 else None
         if lag_s > 0:  # a Kalman filter's velocity: its error is correlated however small
             self.controller.inertial.assume_correlated()
-        self._lean_loop = _lean_loop(self.settings, self.controller)
+        self._lean_loop = _lean_loop(self.settings, self.controller, commander)
         self.height_m, self.odometry = height_m, odometry
         self.report = report or log.warning
         self.state = PilotState.WAITING
@@ -361,7 +364,7 @@ class PerchingPilot:
         gain = self.settings.velocity_gain_per_s
         if gain is None or not isinstance(self.commander, VelocityGainSetter):
             return
-        if self.settings.command == "attitude":
+        if self.settings.command == "attitude" and isinstance(self.commander, AttitudeSender):
             return  # the horizontal velocity loop is the pilot's own
         if self.settings.lean_lag_s > 0:
             self.report(
@@ -464,13 +467,15 @@ class PerchingPilot:
         the velocity the controller knows best and the accelerometer's push), the yaw rate,
         and the height that the vehicle's own loop, holding it from its estimate, climbs to
         at ``sp``'s vertical speed. False where it cannot be sent (the velocity is sent
-        instead), as for a full-state setpoint."""
+        instead): as for a full-state setpoint, and where the attitude is older than
+        ``stale_after_s`` or not finite."""
         if not isinstance(self.commander, AttitudeSender):
             self._say_velocity_only()
             return False
         p_now = self._position_now()
         motion = self._motion()
-        if p_now is None or motion is None:
+        fresh = self._age("attitude") < self.settings.stale_after_s
+        if p_now is None or motion is None or not fresh:
             return False
         # the vehicle holds its own estimate of its attitude at the lean sent: where that
         # estimate misses the lean a push needs (``lean_lag_s``), the lean sent is the one
@@ -484,12 +489,10 @@ class PerchingPilot:
         roll, pitch = roll_pitch_rad(R_world_body)
         roll_own, pitch_own = roll_pitch_rad(R_own)
         z_m = float(p_now[2]) + sp.v_mps[2] / self.settings.position_gain_per_s
-        self.commander.send_attitude(
-            lean.roll_rad - (roll - roll_own),
-            lean.pitch_rad - (pitch - pitch_own),
-            sp.yaw_rate_rad_s,
-            z_m,
-        )
+        sent = (lean.roll_rad - (roll - roll_own), lean.pitch_rad - (pitch - pitch_own), z_m)
+        if not all(math.isfinite(x) for x in sent):
+            return False  # an attitude that is not known: the velocity goes instead
+        self.commander.send_attitude(sent[0], sent[1], sp.yaw_rate_rad_s, sent[2])
         return True
 
     def _say_velocity_only(self) -> None:

@@ -162,7 +162,7 @@ class PilotSettings:
     command: str = "velocity"
     position_gain_per_s: float = 2.0
     yaw_gain_per_s: float = 6.0
-    lean_gain_per_s: float = 5.0
+    lean_gain_per_s: float = 8.0
     max_lean_deg: float = 20.0
     lean_lag_s: float = 0.0
     gyro_blend_s: float = 3.0
