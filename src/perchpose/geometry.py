@@ -168,6 +168,16 @@ def roll_pitch_rad(R: Array) -> tuple[float, float]:
     return roll, pitch
 
 
+def leaned(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float]:
+    """The horizontal acceleration per unit of vertical (world x and y: the tangent of the
+    thrust's tilt) of a body at this roll and pitch (``roll_pitch_rad``'s angles) under
+    heading ``yaw_rad``."""
+    forward = math.tan(pitch_rad)
+    left = -math.tan(roll_rad) / math.cos(pitch_rad)
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return c * forward - s * left, s * forward + c * left
+
+
 def lean_deg(R_world_body: Array) -> float:
     """The angle between the body's z axis and the world's vertical, degrees."""
     return math.degrees(math.acos(float(np.clip(R_world_body[2, 2], -1.0, 1.0))))

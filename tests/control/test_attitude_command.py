@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from perchpose.control.attitude_command import LeanLoop, lean_for
-from perchpose.sim.quadrotor import leaned
+from perchpose.geometry import leaned
 
 MAX = math.radians(20.0)
 

@@ -22,8 +22,7 @@ from perchpose.control.evidence import TouchdownDetector
 from perchpose.control.gyro import GyroReading
 from perchpose.control.inertial import InertialSettings
 from perchpose.control.pilot_clock import PilotClock
-from perchpose.geometry import invert_transform, roll_pitch_rad, rot_x
-from perchpose.sim.quadrotor import leaned
+from perchpose.geometry import invert_transform, leaned, roll_pitch_rad, rot_x
 from perchpose.values import Estimate
 
 

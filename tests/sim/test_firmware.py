@@ -135,8 +135,8 @@ def test_an_attitude_setpoint_is_flown_as_a_lean_at_the_height_asked(controller:
     15 %; within 3 s it holds the height its estimate puts at the setpoint (the firmware's
     PID resets its integrators at the change of setpoint mode, and sinks 4 cm before its
     height loop wins it back). Then a yaw rate asked is flown within 1 s."""
-    from perchpose.geometry import roll_pitch_rad
-    from perchpose.sim.quadrotor import AttitudeHold, Quadrotor, leaned
+    from perchpose.geometry import leaned, roll_pitch_rad
+    from perchpose.sim.quadrotor import AttitudeHold, Quadrotor
 
     yaw0 = 0.5
     start = np.array([0.0, 0.0, 1.0])

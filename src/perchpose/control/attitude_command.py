@@ -61,7 +61,15 @@ def lean_for(a_world_mps2: ArrayLike, yaw_rad: float, max_lean_rad: float) -> Le
 class LeanLoop:
     """Velocity asked -> lean: ``gain_per_s`` (1/s) on the velocity error, less the push
     (low-passed over ``push_filter_s``, at most ``max_push_mps2``; none where
-    ``push_feedforward`` is off or no sample came), within ``max_lean_rad``."""
+    ``push_feedforward`` is off or no sample came), within ``max_lean_rad``.
+
+    The velocity it is given describes the vehicle some time ago (``v_age_s``: the odometry's
+    age), and the estimate behind it lags the vehicle by a few hundredths of a second more;
+    the attitude loop that flies the lean answers over about 0.15 s (the firmware's attitude
+    P gain is 6 /s). Flown as it comes, that lag leaves a stiff loop ringing. The loop carries
+    the velocity forward over ``v_age_s + lead_s`` by the acceleration the vehicle has now
+    (``a_now_mps2``: its lean's, from the attitude, which is fresher than the odometry, and
+    the push), so that it answers the vehicle's velocity now, not the velocity it had."""
 
     def __init__(
         self,
@@ -71,8 +79,10 @@ class LeanLoop:
         push_feedforward: bool = True,
         push_filter_s: float = 0.03,
         max_push_mps2: float = 4.0,
+        lead_s: float = 0.0,
     ) -> None:
         self.gain_per_s = gain_per_s
+        self.lead_s = lead_s
         self.max_lean_rad = max_lean_rad
         self.push_feedforward = push_feedforward
         self.push_filter_s = push_filter_s
@@ -87,14 +97,23 @@ class LeanLoop:
         v_now_mps: ArrayLike,
         push_mps2: ArrayLike | None,
         yaw_rad: float,
+        v_age_s: float = 0.0,
+        a_now_mps2: ArrayLike | None = None,
     ) -> Lean:
-        """The lean for the horizontal velocity asked (world, m/s), the vehicle's velocity now
-        and the push the accelerometer measures (world x and y, m/s^2; None: no sample)."""
+        """The lean for the horizontal velocity asked (world, m/s), the vehicle's velocity
+        ``v_age_s`` ago, the push the accelerometer measures (world x and y, m/s^2; None: no
+        sample) and the horizontal acceleration the vehicle has now (world, m/s^2, before the
+        push; None: none carried)."""
         # the first sample is taken as it is; later ones through the low-pass
         dt_s = math.inf if self._t_s is None else max(0.0, t_s - self._t_s)
         self._t_s = t_s
         push = self._filtered(push_mps2, dt_s)
-        error = np.asarray(v_asked_mps, np.float64)[:2] - np.asarray(v_now_mps, np.float64)[:2]
+        v = np.asarray(v_now_mps, np.float64)[:2]
+        if a_now_mps2 is not None:
+            a_now = np.asarray(a_now_mps2, np.float64).reshape(-1)[:2] + push
+            if np.all(np.isfinite(a_now)):
+                v = v + a_now * (max(0.0, v_age_s) + self.lead_s)
+        error = np.asarray(v_asked_mps, np.float64)[:2] - v
         return lean_for(self.gain_per_s * error - push, yaw_rad, self.max_lean_rad)
 
     def _filtered(self, push_mps2: ArrayLike | None, dt_s: float) -> Array:

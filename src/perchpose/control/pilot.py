@@ -71,7 +71,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.control.attitude_command import LeanLoop
+from perchpose.control.attitude_command import GRAVITY_MPS2, LeanLoop
 from perchpose.control.controller import (
     Command,
     Odometry,
@@ -92,7 +92,7 @@ from perchpose.control.history import newest_at
 from perchpose.control.lean import LeanCorrection
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
-from perchpose.geometry import lean_deg, roll_pitch_rad, yaw_rad
+from perchpose.geometry import lean_deg, leaned, roll_pitch_rad, yaw_rad
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -235,6 +235,7 @@ def _lean_loop(
         push_feedforward=c.push_feedforward,
         push_filter_s=c.push_filter_s,
         max_push_mps2=c.max_push_mps2,
+        lead_s=settings.lean_lead_s,
     )
 
 
@@ -485,8 +486,14 @@ class PerchingPilot:
         odometry = self._odometry(t_s, motion, R_world_body)
         v_now = self.controller.horizontal_velocity_mps(odometry)
         push = None if odometry.push_mps2 is None else odometry.push_mps2[:2]
-        lean = self._lean_loop.lean(t_s, sp.v_mps, v_now, push, yaw_rad(R_world_body))
         roll, pitch = roll_pitch_rad(R_world_body)
+        yaw = yaw_rad(R_world_body)
+        # the acceleration the vehicle's lean gives it now (the push is added in the loop);
+        # none within the plate's reach, whose touch holds the vehicle whatever its lean
+        a_now = None
+        if not self._plate_in_reach(t_s):
+            a_now = GRAVITY_MPS2 * np.array(leaned(roll, pitch, yaw))
+        lean = self._lean_loop.lean(t_s, sp.v_mps, v_now, push, yaw, t_s - odometry.t_s, a_now)
         roll_own, pitch_own = roll_pitch_rad(R_own)
         z_m = float(p_now[2]) + sp.v_mps[2] / self.settings.position_gain_per_s
         sent = (lean.roll_rad - (roll - roll_own), lean.pitch_rad - (pitch - pitch_own), z_m)

@@ -164,6 +164,7 @@ class PilotSettings:
     yaw_gain_per_s: float = 6.0
     lean_gain_per_s: float = 8.0
     max_lean_deg: float = 20.0
+    lean_lead_s: float = 0.04
     lean_lag_s: float = 0.0
     gyro_blend_s: float = 3.0
 
@@ -204,6 +205,10 @@ class PilotSettings:
         if not (math.isfinite(self.lean_lag_s) and 0.0 <= self.lean_lag_s <= 10.0):
             raise ControllerConfigError(
                 f"pilot setting lean_lag_s must be within 0-10 s, got {self.lean_lag_s}"
+            )
+        if not (math.isfinite(self.lean_lead_s) and 0.0 <= self.lean_lead_s <= 0.5):
+            raise ControllerConfigError(
+                f"pilot setting lean_lead_s must be within 0-0.5 s, got {self.lean_lead_s}"
             )
         if not self.max_lean_deg <= 45.0:
             raise ControllerConfigError(

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perchpose.errors import VehicleConfigError
-from perchpose.geometry import rot_z
+from perchpose.geometry import leaned, rot_z
 
 Array = NDArray[np.float64]
 GRAVITY_MPS2 = 9.81
@@ -184,15 +184,6 @@ class AttitudeHold:
     yaw_rate_rad_s: float
     z_m: float
     p_estimate_m: Vec3
-
-
-def leaned(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float]:
-    """The horizontal acceleration per unit of vertical (world x and y, the tangent of the
-    thrust's tilt) of a body at this roll and pitch under heading ``yaw_rad``."""
-    forward = math.tan(pitch_rad)
-    left = -math.tan(roll_rad) / math.cos(pitch_rad)
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return c * forward - s * left, s * forward + c * left
 
 
 Hold = PositionHold | AttitudeHold
