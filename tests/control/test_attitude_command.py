@@ -64,3 +64,15 @@ def test_the_loop_leans_on_the_velocity_error_against_the_push() -> None:
         0.0, [0.0, 0.0], [0.0, 0.0], [1.0, 0.0], 0.0
     )
     assert (off.roll_rad, off.pitch_rad) == (0.0, 0.0)
+
+
+def test_the_velocity_is_carried_forward_by_the_acceleration_the_vehicle_has_now() -> None:
+    """A velocity ``v_age_s`` old is carried over that age and ``lead_s`` more by the lean's
+    acceleration now and the push; without an acceleration now it is taken as it is."""
+    loop = LeanLoop(8.0, MAX, push_filter_s=0.0, lead_s=0.04)
+    lean = loop.lean(0.0, [0.3, 0.0], [0.3, 0.0], [0.5, 0.0], 0.0, 0.02, [1.0, 0.0])
+    carried = 0.3 + (1.0 + 0.5) * 0.06
+    expected = 8.0 * (0.3 - carried) - 0.5
+    assert 9.81 * math.tan(lean.pitch_rad) == pytest.approx(expected)
+    as_it_is = loop.lean(0.01, [0.3, 0.0], [0.3, 0.0], [0.5, 0.0], 0.0, 0.02, None)
+    assert 9.81 * math.tan(as_it_is.pitch_rad) == pytest.approx(-0.5)

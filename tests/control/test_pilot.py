@@ -684,12 +684,13 @@ def _leaning_pilot(
 def test_attitude_setpoints_fly_the_pilots_own_velocity_loop_and_cancel_the_push() -> None:
     """With ``command="attitude"`` each setpoint is a lean and a height: the height leads the
     vehicle's own estimate by the vertical velocity over the position gain (2 /s), and the
-    lean is the pilot's velocity loop (8 /s on the velocity asked less the vehicle's) less
-    the push, under the vehicle's heading. The velocity asked carries none of the offsets a
-    vehicle's own loop needs (the push's among them): flown with velocity setpoints, the same
-    frames and push ask a different velocity (from the second frame: the controller's push
-    filter starts from none). A link that takes velocities only is sent
-    those, said once."""
+    lean is the pilot's velocity loop (8 /s on the velocity asked less the vehicle's, carried
+    40 ms on by the acceleration it has) less the push, under the vehicle's heading. The
+    velocity asked carries none of the offsets a vehicle's own loop needs (the push's among
+    them): flown with velocity setpoints, the same frames and push ask a different velocity
+    (from the second frame: the controller's push filter starts from none). A link that
+    takes velocities only is sent those, said once, with the offsets; so is a vehicle whose
+    attitude is too old to lean by."""
     yaw, push = 0.4, 1.5
     c = ControllerSettings()
     frames = [(_seen(c, [0.05, -0.03, 0.6], 0.1 * k), 0.1 * k) for k in range(5)]
@@ -707,7 +708,9 @@ def test_attitude_setpoints_fly_the_pilots_own_velocity_loop_and_cancel_the_push
         assert step.yaw_rate_rad_s is not None
         assert z_m == pytest.approx(1.0 + step.v_mps[2] / 2.0)
         assert rate == pytest.approx(step.yaw_rate_rad_s)
-        a_world = 8.0 * (np.array(step.v_mps[:2]) - v_now) - np.array([push, 0.0])
+        # the velocity carried 40 ms on by the acceleration the level vehicle has: the push
+        v_ahead = v_now + 0.04 * np.array([push, 0.0])
+        a_world = 8.0 * (np.array(step.v_mps[:2]) - v_ahead) - np.array([push, 0.0])
         wanted = lean_for(a_world, yaw, math.radians(20.0))
         assert (roll, pitch) == pytest.approx((wanted.roll_rad, wanted.pitch_rad), abs=1e-9)
         # the vehicle at this lean accelerates as asked
