@@ -24,6 +24,7 @@ from perchpose.cli import main
 from perchpose.control import PerchingController, PerchingPilot, PilotSettings
 from perchpose.control.gyro import GyroAttitude
 from perchpose.control.lean import CRAZYFLIE_KALMAN_LAG_S
+from perchpose.control.pilot import SenseAges
 from perchpose.errors import ControllerConfigError, LinkError
 from perchpose.geometry import roll_pitch_rad, yaw_rad
 from perchpose.io.crazyflie import CflibCommander, connect
@@ -782,3 +783,78 @@ def test_an_attitude_setpoint_goes_out_as_the_firmware_decodes_it(
     assert pitch == pytest.approx(-5.0, rel=1e-6)
     assert yaw_rate == pytest.approx(math.degrees(0.2), rel=1e-6)
     assert z == pytest.approx(1.5, rel=1e-6)
+
+
+def _kind(packet: tuple[int, int, bytes]) -> str:
+    """A commander packet's kind: stop, notify_stop, velocity or zdistance."""
+    _port, channel, data = packet
+    if channel == 1:
+        return "notify_stop"
+    return {0: "stop", 8: "velocity", 9: "zdistance"}[data[0]]
+
+
+@pytest.mark.parametrize("fault", ["camera-stall", "target-lost", "odometry-stall", "link-loss"])
+def test_attitude_setpoints_through_each_fault_one_metre_up(
+    crazyflie: tuple[Crazyflie, FakeRadioLink], fault: str
+) -> None:
+    """``command="attitude"`` over cflib's packet code, 1 m up with the target 0.8 m above the
+    camera for 1 s, then 12 s of the pilot's clock at 20 Hz with one fault. A stalled camera
+    or a lost target: attitude setpoints hold, then land it (the height asked 0.1 m under the
+    estimate: 0.2 m/s over the position gain), and at touchdown the stop. The odometry stops:
+    once it is stale the setpoints are velocities (a hover, then the landing's descent). The
+    link drops: nothing more is sent."""
+    cf, link = crazyflie
+    now = [0.0]
+    p_m = np.array([0.0, 0.0, 1.0])
+    odometry_age = [0.0]
+    pilot = PerchingPilot(
+        CflibCommander(cf.commander),
+        level,
+        settings=PilotSettings(command="attitude"),
+        height_m=lambda: float(p_m[2]),
+        odometry=lambda: (p_m.copy(), np.zeros(3)),
+        ages=lambda: SenseAges(0.0, odometry_age[0], odometry_age[0]),
+        clock=lambda: now[0],
+        report=lambda _m: None,
+    )
+    pilot.watch_link(cf)
+    for i in range(30):
+        now[0] = i / 30.0
+        pilot.update(Estimate.of_pose(now[0], (0.02, -0.01, 0.8), 0.0), now[0])
+    assert {_kind(p) for p in link.sent} == {"zdistance"}
+    link.sent.clear()
+    landing_heights: list[tuple[float, float]] = []  # (height, height asked) while landing
+    if fault == "link-loss":
+        cf.connection_lost.call("radio://0/80/2M/E7E7E7E7E7", "Too many packets lost")
+    for k in range(1, 241):
+        now[0] = 1.0 + 0.05 * k
+        if fault == "odometry-stall":
+            odometry_age[0] = now[0] - 1.0
+        if fault == "target-lost":
+            pilot.update(Estimate.none(now[0]), now[0])
+        else:
+            pilot.tick(now[0])
+        if pilot.state == "landing":
+            if fault != "odometry-stall" and _kind(link.sent[-1]) == "zdistance":
+                z_asked = struct.unpack("<Bffff", link.sent[-1][2])[4]
+                landing_heights.append((float(p_m[2]), z_asked))
+            p_m[2] = max(0.0, p_m[2] - 0.2 * 0.05)
+    kinds = [_kind(p) for p in link.sent]
+    if fault == "link-loss":
+        assert pilot.state == "link_lost"
+        assert kinds == []
+    elif fault == "odometry-stall":
+        assert [t[2] for t in pilot.transitions] == ["perching", "landing"]
+        stale = kinds.index("velocity")  # the position 0.25 s old
+        assert 3 <= stale <= 6
+        assert set(kinds[stale:]) == {"velocity"}
+        _, _, data = link.sent[-1]
+        assert struct.unpack("<Bffff", data)[1:] == pytest.approx((0.0, 0.0, -0.2, 0.0))
+    else:
+        assert [t[2] for t in pilot.transitions] == ["perching", "lost", "landing", "landed"]
+        assert kinds[-2:] == ["stop", "notify_stop"]
+        assert set(kinds[:-2]) == {"zdistance"}
+        assert p_m[2] == 0.0  # stopped on the floor
+        assert len(landing_heights) > 50
+        for height_m, z_asked in landing_heights:
+            assert z_asked == pytest.approx(height_m - 0.1, abs=1e-5)
