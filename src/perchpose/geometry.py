@@ -168,6 +168,15 @@ def roll_pitch_rad(R: Array) -> tuple[float, float]:
     return roll, pitch
 
 
+def clip_norm(v: Array, limit: float) -> Array:
+    """``v`` scaled down to length ``limit`` where it is longer."""
+    size = float(np.linalg.norm(v))
+    if size > limit:
+        scaled: Array = v * (limit / size)
+        return scaled
+    return v
+
+
 def leaned(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float]:
     """The horizontal acceleration per unit of vertical (world x and y: the tangent of the
     thrust's tilt) of a body at this roll and pitch (``roll_pitch_rad``'s angles) under

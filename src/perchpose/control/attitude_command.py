@@ -25,10 +25,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-Array = NDArray[np.float64]
-GRAVITY_MPS2 = 9.81
+from perchpose.control.lean import GRAVITY_MPS2
+from perchpose.control.push import PushFilter
+from perchpose.geometry import clip_norm
 
 
 @dataclass(frozen=True)
@@ -44,12 +45,10 @@ class Lean:
 def lean_for(a_world_mps2: ArrayLike, yaw_rad: float, max_lean_rad: float) -> Lean:
     """The roll and pitch that accelerate the vehicle by ``a_world_mps2`` (world x and y)
     under heading ``yaw_rad``, the acceleration cut to ``g tan(max_lean_rad)``."""
-    a = np.asarray(a_world_mps2, np.float64).reshape(-1)[:2]
+    asked = np.asarray(a_world_mps2, np.float64).reshape(-1)[:2]
     top = GRAVITY_MPS2 * math.tan(max_lean_rad)
-    norm = float(np.hypot(a[0], a[1]))
-    clamped = norm > top
-    if clamped:
-        a = a * (top / norm)
+    a = clip_norm(asked, top)
+    clamped = float(np.linalg.norm(asked)) > top
     c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     forward = c * float(a[0]) + s * float(a[1])
     left = -s * float(a[0]) + c * float(a[1])
@@ -84,10 +83,7 @@ class LeanLoop:
         self.gain_per_s = gain_per_s
         self.lead_s = lead_s
         self.max_lean_rad = max_lean_rad
-        self.push_feedforward = push_feedforward
-        self.push_filter_s = push_filter_s
-        self.max_push_mps2 = max_push_mps2
-        self._push = np.zeros(2)
+        self._push = PushFilter(push_feedforward, push_filter_s, max_push_mps2)
         self._t_s: float | None = None
 
     def lean(
@@ -107,7 +103,7 @@ class LeanLoop:
         # the first sample is taken as it is; later ones through the low-pass
         dt_s = math.inf if self._t_s is None else max(0.0, t_s - self._t_s)
         self._t_s = t_s
-        push = self._filtered(push_mps2, dt_s)
+        push = self._push.update(push_mps2, dt_s)
         v = np.asarray(v_now_mps, np.float64)[:2]
         if a_now_mps2 is not None:
             a_now = np.asarray(a_now_mps2, np.float64).reshape(-1)[:2] + push
@@ -115,18 +111,3 @@ class LeanLoop:
                 v = v + a_now * (max(0.0, v_age_s) + self.lead_s)
         error = np.asarray(v_asked_mps, np.float64)[:2] - v
         return lean_for(self.gain_per_s * error - push, yaw_rad, self.max_lean_rad)
-
-    def _filtered(self, push_mps2: ArrayLike | None, dt_s: float) -> Array:
-        if not self.push_feedforward or push_mps2 is None:
-            self._push = np.zeros(2)
-            return self._push
-        measured = np.asarray(push_mps2, np.float64).reshape(-1)[:2]
-        if not np.all(np.isfinite(measured)):
-            self._push = np.zeros(2)
-            return self._push
-        norm = float(np.hypot(measured[0], measured[1]))
-        if norm > self.max_push_mps2:
-            measured = measured * (self.max_push_mps2 / norm)
-        alpha = 1.0 if self.push_filter_s == 0 else 1.0 - math.exp(-dt_s / self.push_filter_s)
-        self._push = self._push + alpha * (measured - self._push)
-        return self._push

@@ -69,9 +69,10 @@ from perchpose.control.history import newest_at
 from perchpose.control.inertial import InertialSettings, InertialTracker
 from perchpose.control.mount import default_T_body_camera
 from perchpose.control.position_fix import PositionFixes, PositionFixSettings
+from perchpose.control.push import PushFilter
 from perchpose.control.time_offset import TimeOffset, TimeOffsetEstimator, TimeOffsetSettings
 from perchpose.errors import ControllerConfigError, require_non_negative, require_positive
-from perchpose.geometry import angle_diff_rad, lean_deg, wrap_angle_rad, yaw_rad
+from perchpose.geometry import angle_diff_rad, clip_norm, lean_deg, wrap_angle_rad, yaw_rad
 from perchpose.values import Estimate
 
 Array = NDArray[np.float64]
@@ -97,15 +98,6 @@ MAX_CAMERA_PERIOD_S = 1.0 / 15.0
 MAX_CAMERA_LATENCY_S = 0.2
 MAX_CARRY_S = 0.1  # the longest an odometry sample is carried forward by its velocity
 MIN_PHASE_MARGIN_DEG = 30.0  # of each proportional loop (``phase_margin_deg``)
-
-
-def clip_norm(v: Array, limit: float) -> Array:
-    """``v`` scaled down to length ``limit`` where it is longer."""
-    size = float(np.linalg.norm(v))
-    if size > limit:
-        scaled: Array = v * (limit / size)
-        return scaled
-    return v
 
 
 @dataclass(frozen=True)
@@ -457,7 +449,10 @@ class PerchingController:
         self._steer_t: float | None = None
         self._last_t: float | None = None
         self._last_sp: Array | None = None
-        self._push_mps2 = np.zeros(3)  # the measured push, low-passed (world frame)
+        settings = self.settings  # the measured push, low-passed (world frame)
+        self._push = PushFilter(
+            settings.push_feedforward, settings.push_filter_s, settings.max_push_mps2
+        )
         self._tilt_deg = 0.0
         # the last frame's command before the observer's offset (flown on between frames)
         self._frame_command: Command | None = None
@@ -697,21 +692,16 @@ class PerchingController:
         correction = np.zeros(3)
         correction[:2] = self._velocity_correction(t_s)
         v_flown = np.array(odometry.v_mps, np.float64)
-        known = self.inertial.velocity_at(odometry.t_s)
-        if known is not None:
-            v_flown[:2] = known
+        v_flown[:2] = self.horizontal_velocity_mps(odometry)
         push = self._filtered_push(odometry, dt)
         v_sp = v_cmd - push / s.onboard_velocity_gain
-        if s.observer_rate == 0:
-            if self._lean_command:
-                return np.array([v_cmd[0], v_cmd[1], v_sp[2]], np.float64)
-            return v_sp + correction
-        previous = self._last_sp if self._last_sp is not None else np.zeros(3)
-        fast = self.phase == Phase.COMMIT and s.commit_observer_rate > 0
-        self._observer.rate = s.commit_observer_rate if fast else s.observer_rate
-        self._observer.update(previous, v_flown, dt, max(0.0, t_s - odometry.t_s), push)
-        v_sp = v_sp + self._observer.offset_mps
-        self._last_sp = v_sp
+        if s.observer_rate != 0:
+            previous = self._last_sp if self._last_sp is not None else np.zeros(3)
+            fast = self.phase == Phase.COMMIT and s.commit_observer_rate > 0
+            self._observer.rate = s.commit_observer_rate if fast else s.observer_rate
+            self._observer.update(previous, v_flown, dt, max(0.0, t_s - odometry.t_s), push)
+            v_sp = v_sp + self._observer.offset_mps
+            self._last_sp = v_sp
         if self._lean_command:
             return np.array([v_cmd[0], v_cmd[1], v_sp[2]], np.float64)
         return v_sp + correction
@@ -719,15 +709,8 @@ class PerchingController:
     def _filtered_push(self, odometry: Odometry, dt_s: float) -> Array:
         """The push to cancel now: the accelerometer's, low-passed and clamped (zero without
         one, or with ``push_feedforward`` off)."""
-        s = self.settings
-        push = odometry.push_mps2
-        if not s.push_feedforward or push is None or not np.all(np.isfinite(push)):
-            self._push_mps2 = np.zeros(3)
-            return self._push_mps2
-        measured = clip_norm(np.array([push[0], push[1], 0.0], np.float64), s.max_push_mps2)
-        alpha = 1.0 if s.push_filter_s == 0 else 1.0 - math.exp(-dt_s / s.push_filter_s)
-        self._push_mps2 = self._push_mps2 + alpha * (measured - self._push_mps2)
-        return self._push_mps2
+        x, y = self._push.update(odometry.push_mps2, dt_s)
+        return np.array([x, y, 0.0], np.float64)
 
     # -- the loop -----------------------------------------------------------------------------
 

@@ -71,7 +71,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from perchpose.control.attitude_command import GRAVITY_MPS2, LeanLoop
+from perchpose.control.attitude_command import LeanLoop
 from perchpose.control.controller import (
     Command,
     Odometry,
@@ -89,7 +89,7 @@ from perchpose.control.evidence import (
 )
 from perchpose.control.gyro import BlendedAttitude, GyroReading
 from perchpose.control.history import newest_at
-from perchpose.control.lean import LeanCorrection
+from perchpose.control.lean import GRAVITY_MPS2, LeanCorrection
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
 from perchpose.geometry import lean_deg, leaned, roll_pitch_rad, yaw_rad
@@ -452,7 +452,7 @@ class PerchingPilot:
         if not isinstance(self.commander, FullStateSender):
             self._say_velocity_only()
             return False
-        p_now = self._position_now()
+        p_now = self._position_now(self._motion())
         if p_now is None:
             return False
         s = self.settings
@@ -473,10 +473,10 @@ class PerchingPilot:
         if not isinstance(self.commander, AttitudeSender):
             self._say_velocity_only()
             return False
-        p_now = self._position_now()
         motion = self._motion()
+        p_now = self._position_now(motion)
         fresh = self._age("attitude") < self.settings.stale_after_s
-        if p_now is None or motion is None or not fresh:
+        if motion is None or p_now is None or not fresh:
             return False
         # the vehicle holds its own estimate of its attitude at the lean sent: where that
         # estimate misses the lean a push needs (``lean_lag_s``), the lean sent is the one
@@ -510,12 +510,11 @@ class PerchingPilot:
                 f"{self.settings.command} setpoints are sent as velocities"
             )
 
-    def _position_now(self) -> Array | None:
-        """The odometry's position carried to now by its velocity (it is a sample old); None
-        without odometry, or with odometry too old to place a position by (older than
-        ``stale_after_s``: a hover is then a zero velocity, not a return to where the vehicle
-        was)."""
-        motion = self._motion()
+    def _position_now(self, motion: tuple[Array, Array] | None) -> Array | None:
+        """The odometry's position (``motion``, the latest sample) carried to now by its
+        velocity (it is a sample old); None without odometry, or with odometry too old to
+        place a position by (older than ``stale_after_s``: a hover is then a zero velocity,
+        not a return to where the vehicle was)."""
         age_s = self._age("position")
         if motion is None or not age_s < self.settings.stale_after_s:
             return None
