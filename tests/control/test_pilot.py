@@ -22,7 +22,7 @@ from perchpose.control.evidence import TouchdownDetector
 from perchpose.control.gyro import GyroReading
 from perchpose.control.inertial import InertialSettings
 from perchpose.control.pilot_clock import PilotClock
-from perchpose.geometry import invert_transform, leaned, roll_pitch_rad, rot_x
+from perchpose.geometry import invert_transform, leaned, roll_pitch_rad, rot_x, rot_y, rot_z
 from perchpose.values import Estimate
 
 
@@ -747,6 +747,58 @@ def test_attitude_setpoints_fly_the_pilots_own_velocity_loop_and_cancel_the_push
     old.update(frames[0][0], frames[0][1])
     assert stale.leans == []
     assert len(stale.sent) == 1
+
+
+def test_a_vehicle_that_takes_the_pitch_with_the_other_sign_is_sent_velocities() -> None:
+    """A vehicle whose attitude loop takes the pitch sent with the other sign (a firmware's
+    legacy pitch, taken otherwise): moving 0.5 m/s away from the target, the pilot asks a
+    lean towards it and the vehicle leans as far away. Within half a second the pilot says so,
+    once, and sends velocities from then on; a vehicle that flies the lean is sent leans
+    throughout."""
+    c = ControllerSettings()
+
+    def fly(flip: float) -> tuple[Leaning, list[str]]:
+        commander = Leaning()
+        vehicle = Vehicle(commander, 1.0)
+        vehicle.v_mps = np.array([-0.5, 0.0, 0.0])
+
+        def attitude() -> np.ndarray:
+            if not commander.leans:
+                return np.eye(3)
+            roll, pitch = commander.leans[-1][:2]
+            return rot_z(0.0) @ rot_y(flip * pitch) @ rot_x(roll)
+
+        reports: list[str] = []
+        pilot = PerchingPilot(
+            commander,
+            attitude,
+            controller=PerchingController(
+                ControllerSettings(inertial=InertialSettings(enabled=False))
+            ),
+            settings=PilotSettings(command="attitude"),
+            height_m=vehicle.height,
+            odometry=vehicle.odometry,
+            clock=lambda: vehicle.t_s,
+            report=reports.append,
+        )
+        for k in range(30):
+            t_s = 0.05 * k
+            vehicle.t_s = 100.0 + t_s
+            pilot.update(_seen(c, [0.0, 0.0, 0.6], t_s), t_s)
+        return commander, reports
+
+    flipped, reports = fly(-1.0)
+    said = [r for r in reports if "does not fly the lean sent" in r]
+    assert len(said) == 1
+    assert "pitch sent +" in said[0]
+    assert "the vehicle's -" in said[0]
+    assert len(flipped.leans) == 9  # judged on the tenth frame, 0.45 s in: the window filled
+    assert len(flipped.sent) == 30 - len(flipped.leans)  # velocities from then on
+    assert all(len(sent) == 4 for sent in flipped.sent)
+    follows, reports = fly(1.0)
+    assert len(follows.leans) == 30
+    assert follows.sent == []
+    assert not any("does not fly" in r for r in reports)
 
 
 def test_full_state_setpoints_lead_the_estimate_by_what_the_vehicles_loops_fly() -> None:

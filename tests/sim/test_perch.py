@@ -1,5 +1,6 @@
 import csv
 import json
+import logging
 import math
 import socket
 import threading
@@ -11,7 +12,7 @@ import pytest
 
 from perchpose import CameraModel, TargetSpec
 from perchpose.cli import main
-from perchpose.control import PerchingController
+from perchpose.control import PerchingController, PilotSettings
 from perchpose.errors import VehicleConfigError, WindConfigError
 from perchpose.evaluation.perching import summarise
 from perchpose.geometry import rot_z
@@ -497,3 +498,39 @@ def test_perch_records_how_the_contact_was_scored(tmp_path: Path) -> None:
         row = next(csv.DictReader((out / "runs.csv").open()))
         assert row["success"] == "1"
         assert math.isfinite(float(row["stop_after_contact_s"])) == (mode == "hold")
+
+
+def test_a_vehicle_that_takes_the_pitch_with_the_other_sign_perches_on_velocities(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Attitude setpoints to a vehicle whose attitude loop takes the pitch with the other
+    sign (the link flips it, as a firmware reading the legacy pitch otherwise would),
+    moderate wind: the pilot's watch sees it, says so, and the vehicle perches on velocity
+    setpoints. Unwatched (a threshold no vehicle parts by), it runs from the target at once
+    and every run is lost."""
+    sent = HeldSetpoint.send_attitude
+
+    def flipped(
+        self: HeldSetpoint, roll_rad: float, pitch_rad: float, yaw_rate: float, z_m: float
+    ) -> None:
+        sent(self, roll_rad, -pitch_rad, yaw_rate, z_m)
+
+    monkeypatch.setattr(HeldSetpoint, "send_attitude", flipped)
+    caplog.set_level(logging.DEBUG, logger="perchpose.sim.perch")
+
+    def setup(max_error_deg: float) -> PerchSetup:
+        pilot = PilotSettings(command="attitude", lean_follow_error_deg=max_error_deg)
+        return PerchSetup(
+            CameraModel.preset("fpv"),
+            TargetSpec.paper(),
+            estimator="truth",
+            wind="moderate",
+            pilot=pilot,
+        )
+
+    watched = [run_perch(setup(10.0), seed) for seed in range(3)]
+    assert all(r.success for r in watched), [r.reason for r in watched]
+    said = [m for m in caplog.messages if "does not fly the lean sent" in m and "(pitch sent" in m]
+    assert len(said) == 3
+    unwatched = [run_perch(setup(180.0), seed) for seed in range(3)]
+    assert not any(r.success for r in unwatched)

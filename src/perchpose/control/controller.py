@@ -465,13 +465,14 @@ class PerchingController:
         # setpoint's horizontal velocity is then the one asked, with no offset for a loop
         self._lean_command = False
 
-    def use_lean_command(self) -> None:
+    def use_lean_command(self, on: bool = True) -> None:
         """The pilot sends attitude setpoints and flies the horizontal velocity loop itself
         (``control.attitude_command``, on ``horizontal_velocity_mps`` and the push): from now
         on the horizontal setpoint is the velocity asked, with none of the offsets that make
         a vehicle's own loop on its own estimate fly it (the estimate's error, the push, the
-        observer's); the vertical keeps them."""
-        self._lean_command = True
+        observer's); the vertical keeps them. ``on`` False: velocity setpoints again, with
+        the offsets."""
+        self._lean_command = on
 
     def horizontal_velocity_mps(self, odometry: Odometry) -> Array:
         """The vehicle's horizontal velocity at the odometry's time: the inertial filter's

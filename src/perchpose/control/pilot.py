@@ -90,6 +90,7 @@ from perchpose.control.evidence import (
 from perchpose.control.gyro import BlendedAttitude, GyroReading
 from perchpose.control.history import newest_at
 from perchpose.control.lean import GRAVITY_MPS2, LeanCorrection
+from perchpose.control.lean_follow import LeanFollowWatch
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
 from perchpose.control.setpoint import Setpoint, safe_setpoint
 from perchpose.geometry import lean_deg, leaned, roll_pitch_rad, yaw_rad
@@ -222,14 +223,14 @@ class PilotStep:
 
 def _lean_loop(
     settings: PilotSettings, controller: PerchingController, commander: VehicleCommander
-) -> LeanLoop:
+) -> tuple[LeanLoop, LeanFollowWatch]:
     """The pilot's horizontal velocity loop for attitude setpoints, cancelling the push as the
-    controller would; a controller flown so (a link that takes them) is told
-    (``use_lean_command``)."""
+    controller would, and the watch on whether the vehicle flies the leans it sends; a
+    controller flown so (a link that takes them) is told (``use_lean_command``)."""
     c = controller.settings
     if settings.command == "attitude" and isinstance(commander, AttitudeSender):
         controller.use_lean_command()
-    return LeanLoop(
+    loop = LeanLoop(
         settings.lean_gain_per_s,
         math.radians(settings.max_lean_deg),
         push_feedforward=c.push_feedforward,
@@ -237,6 +238,10 @@ def _lean_loop(
         max_push_mps2=c.max_push_mps2,
         lead_s=settings.lean_lead_s,
     )
+    watch = LeanFollowWatch(
+        settings.lean_response_s, settings.lean_follow_window_s, settings.lean_follow_error_deg
+    )
+    return loop, watch
 
 
 class PerchingPilot:
@@ -294,7 +299,7 @@ class PerchingPilot:
         self.blend = BlendedAttitude(self.settings.gyro_blend_s) if lag_s > 0 else None
         if lag_s > 0:  # a Kalman filter's velocity: its error is correlated however small
             self.controller.inertial.assume_correlated()
-        self._lean_loop = _lean_loop(self.settings, self.controller, commander)
+        self._lean_loop, self._lean_watch = _lean_loop(self.settings, self.controller, commander)
         self.height_m, self.odometry = height_m, odometry
         self.report = report or log.warning
         self.state = PilotState.WAITING
@@ -433,10 +438,11 @@ class PerchingPilot:
                     "(reported once)"
                 )
         command = self.settings.command
-        if not (
-            (command == "full-state" and self._send_full_state(sp))
-            or (command == "attitude" and self._send_attitude(t_s, sp))
-        ):
+        sent = (command == "full-state" and self._send_full_state(sp)) or (
+            command == "attitude" and self._send_attitude(t_s, sp)
+        )
+        if not sent:
+            self._lean_watch.restart()  # the vehicle's own loop sets its lean meanwhile
             self.commander.send_velocity(sp.v_mps, sp.yaw_rate_rad_s)
         self.last_sent_clock_s = self.clock()
         self._last_setpoint = (t_s, v, yaw_rate_rad_s, phase)
@@ -468,10 +474,14 @@ class PerchingPilot:
         the velocity the controller knows best and the accelerometer's push), the yaw rate,
         and the height that the vehicle's own loop, holding it from its estimate, climbs to
         at ``sp``'s vertical speed. False where it cannot be sent (the velocity is sent
-        instead): as for a full-state setpoint, and where the attitude is older than
-        ``stale_after_s`` or not finite."""
+        instead): as for a full-state setpoint, where the attitude is older than
+        ``stale_after_s`` or not finite, and for good once the vehicle did not fly the lean
+        sent (``control.lean_follow``: its attitude loop takes an angle with another sign
+        than the pilot's, or not at all)."""
         if not isinstance(self.commander, AttitudeSender):
             self._say_velocity_only()
+            return False
+        if self._lean_watch.broken is not None:
             return False
         motion = self._motion()
         p_now = self._position_now(motion)
@@ -491,7 +501,8 @@ class PerchingPilot:
         # the acceleration the vehicle's lean gives it now (the push is added in the loop);
         # none within the plate's reach, whose touch holds the vehicle whatever its lean
         a_now = None
-        if not self._plate_in_reach(t_s):
+        in_reach = self._plate_in_reach(t_s)
+        if not in_reach:
             a_now = GRAVITY_MPS2 * np.array(leaned(roll, pitch, yaw))
         lean = self._lean_loop.lean(t_s, sp.v_mps, v_now, push, yaw, t_s - odometry.t_s, a_now)
         roll_own, pitch_own = roll_pitch_rad(R_own)
@@ -499,8 +510,23 @@ class PerchingPilot:
         sent = (lean.roll_rad - (roll - roll_own), lean.pitch_rad - (pitch - pitch_own), z_m)
         if not all(math.isfinite(x) for x in sent):
             return False  # an attitude that is not known: the velocity goes instead
+        own = (roll_own, pitch_own)
+        if self._lean_watch.update(t_s, (sent[0], sent[1]), own, watch=not in_reach):
+            self._refuse_attitudes(t_s)
+            return False
         self.commander.send_attitude(sent[0], sent[1], sp.yaw_rate_rad_s, sent[2])
         return True
+
+    def _refuse_attitudes(self, t_s: float) -> None:
+        """The vehicle did not fly the lean sent: velocity setpoints from now on, which its
+        own loops fly, with the offsets the controller gives them."""
+        self.controller.use_lean_command(False)
+        self.report(
+            f"pilot: the vehicle does not fly the lean sent at t = {t_s:.2f} s "
+            f"({self._lean_watch.detail}): velocity setpoints from now on. Check the sign "
+            "its firmware takes for that angle (cflib's send_zdistance_setpoint sends pitch "
+            "nose up positive)"
+        )
 
     def _say_velocity_only(self) -> None:
         if not self._velocity_only_said:

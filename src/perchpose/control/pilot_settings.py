@@ -121,6 +121,13 @@ class PilotSettings:
     accelerometer give, less the accelerometer's push, within max_lean_deg. A vehicle whose
     link takes velocity setpoints only (a MAVLink autopilot's, here) is sent those, and the
     pilot says so once; so is one whose odometry is missing or older than stale_after_s.
+    lean_response_s, lean_follow_window_s, lean_follow_error_deg : a vehicle sent attitudes
+    holds its own attitude estimate at the lean sent, as a loop answering over about
+    lean_response_s (the Crazyflie firmware's attitude loop: 63 % of a step in 0.15 s); where
+    its roll or pitch stood more than lean_follow_error_deg from that on average over the last
+    lean_follow_window_s and turned against it (the plate's touch aside), it does not fly what
+    is sent (an angle's sign taken otherwise): the pilot says so and sends velocities from
+    then on (``control.lean_follow``).
 
     lean_lag_s : the vehicle's attitude estimate is drag-free (a flying Crazyflie's Kalman
     filter) and misses the lean a push needs, taken in over about this long: the pilot takes
@@ -165,6 +172,9 @@ class PilotSettings:
     lean_gain_per_s: float = 8.0
     max_lean_deg: float = 20.0
     lean_lead_s: float = 0.04
+    lean_response_s: float = 0.15
+    lean_follow_window_s: float = 0.5
+    lean_follow_error_deg: float = 10.0
     lean_lag_s: float = 0.0
     gyro_blend_s: float = 3.0
 
@@ -199,6 +209,9 @@ class PilotSettings:
             "yaw_gain_per_s",
             "lean_gain_per_s",
             "max_lean_deg",
+            "lean_response_s",
+            "lean_follow_window_s",
+            "lean_follow_error_deg",
             "gyro_blend_s",
         )
         require_positive(self, positive, ControllerConfigError, "pilot setting ")
