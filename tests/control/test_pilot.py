@@ -751,22 +751,20 @@ def test_attitude_setpoints_fly_the_pilots_own_velocity_loop_and_cancel_the_push
 
 def test_a_vehicle_that_takes_the_pitch_with_the_other_sign_is_sent_velocities() -> None:
     """A vehicle whose attitude loop takes the pitch sent with the other sign (a firmware's
-    legacy pitch, taken otherwise): moving 0.5 m/s away from the target, the pilot asks a
-    lean towards it and the vehicle leans as far away. Within half a second the pilot says so,
-    once, and sends velocities from then on; a vehicle that flies the lean is sent leans
-    throughout."""
+    legacy pitch, taken otherwise; its attitude loop answers over 0.1 s): moving 0.5 m/s away
+    from the target, the pilot asks a lean towards it and the vehicle leans away. Within half a
+    second the pilot says so, once, and sends velocities from then on; a vehicle that flies the
+    lean is sent leans throughout."""
     c = ControllerSettings()
 
     def fly(flip: float) -> tuple[Leaning, list[str]]:
         commander = Leaning()
         vehicle = Vehicle(commander, 1.0)
         vehicle.v_mps = np.array([-0.5, 0.0, 0.0])
+        lean = np.zeros(2)  # the vehicle's roll and pitch
 
         def attitude() -> np.ndarray:
-            if not commander.leans:
-                return np.eye(3)
-            roll, pitch = commander.leans[-1][:2]
-            return rot_z(0.0) @ rot_y(flip * pitch) @ rot_x(roll)
+            return rot_z(0.0) @ rot_y(float(lean[1])) @ rot_x(float(lean[0]))
 
         reports: list[str] = []
         pilot = PerchingPilot(
@@ -784,6 +782,9 @@ def test_a_vehicle_that_takes_the_pitch_with_the_other_sign_is_sent_velocities()
         for k in range(30):
             t_s = 0.05 * k
             vehicle.t_s = 100.0 + t_s
+            if commander.leans:
+                asked = np.array(commander.leans[-1][:2]) * np.array([1.0, flip])
+                lean += (1.0 - math.exp(-0.05 / 0.1)) * (asked - lean)
             pilot.update(_seen(c, [0.0, 0.0, 0.6], t_s), t_s)
         return commander, reports
 
@@ -792,7 +793,7 @@ def test_a_vehicle_that_takes_the_pitch_with_the_other_sign_is_sent_velocities()
     assert len(said) == 1
     assert "pitch sent +" in said[0]
     assert "the vehicle's -" in said[0]
-    assert len(flipped.leans) == 9  # judged on the tenth frame, 0.45 s in: the window filled
+    assert len(flipped.leans) == 6  # judged on the seventh frame, 0.3 s in: a window's worth
     assert len(flipped.sent) == 30 - len(flipped.leans)  # velocities from then on
     assert all(len(sent) == 4 for sent in flipped.sent)
     follows, reports = fly(1.0)

@@ -124,10 +124,10 @@ class PilotSettings:
     lean_response_s, lean_follow_window_s, lean_follow_error_deg : a vehicle sent attitudes
     holds its own attitude estimate at the lean sent, as a loop answering over about
     lean_response_s (the Crazyflie firmware's attitude loop: 63 % of a step in 0.15 s); where
-    its roll or pitch stood more than lean_follow_error_deg from that on average over the last
-    lean_follow_window_s and turned against it (the plate's touch aside), it does not fly what
-    is sent (an angle's sign taken otherwise): the pilot says so and sends velocities from
-    then on (``control.lean_follow``).
+    its roll or pitch stood more than lean_follow_error_deg from that on average over about
+    the last lean_follow_window_s and turned against it (the plate's touch aside), it does not
+    fly what is sent (an angle's sign taken otherwise): the pilot says so and sends velocities
+    from then on (``control.lean_follow``).
 
     lean_lag_s : the vehicle's attitude estimate is drag-free (a flying Crazyflie's Kalman
     filter) and misses the lean a push needs, taken in over about this long: the pilot takes
@@ -173,7 +173,7 @@ class PilotSettings:
     max_lean_deg: float = 20.0
     lean_lead_s: float = 0.04
     lean_response_s: float = 0.15
-    lean_follow_window_s: float = 0.5
+    lean_follow_window_s: float = 0.3
     lean_follow_error_deg: float = 10.0
     lean_lag_s: float = 0.0
     gyro_blend_s: float = 3.0
