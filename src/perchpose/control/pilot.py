@@ -477,7 +477,7 @@ class PerchingPilot:
         instead): as for a full-state setpoint, where the attitude is older than
         ``stale_after_s`` or not finite, and for good once the vehicle did not fly the lean
         sent (``control.lean_follow``: its attitude loop takes an angle with another sign
-        than the pilot's, or not at all)."""
+        than the pilot's)."""
         if not isinstance(self.commander, AttitudeSender):
             self._say_velocity_only()
             return False
