@@ -47,17 +47,17 @@ class LeanFollowWatch:
         self.max_error_deg = max_error_deg
         self.broken: str | None = None
         self.detail = ""
-        self.restart()
-
-    def restart(self) -> None:
-        """Watch afresh from the next setpoint (after setpoints of another kind, or the plate's
-        touch): the vehicle's lean then is the loop's start."""
-        self._t0_s: float | None = None
+        self._t0_s: float | None = None  # when the watch began (None: it begins anew)
         self._t_s = 0.0
         self._flown = np.zeros(2)
         self._sent = np.zeros(2)
         # weighted sums: weight, flown, own, flown^2, flown*own, |own - flown| (degrees)
         self._sums = np.zeros((6, 2))
+
+    def restart(self) -> None:
+        """Watch afresh from the next setpoint (after setpoints of another kind, or the plate's
+        touch): the vehicle's lean then is the loop's start."""
+        self._t0_s = None
 
     def update(
         self,
@@ -78,6 +78,7 @@ class LeanFollowWatch:
             return None
         if self._t0_s is None:
             self._t0_s, self._flown = t_s, own.copy()
+            self._sums = np.zeros((6, 2))
         else:
             dt_s = max(0.0, t_s - self._t_s)
             self._flown = self._flown + (1.0 - math.exp(-dt_s / self.response_s)) * (
