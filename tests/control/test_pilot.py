@@ -537,24 +537,92 @@ def _under_the_plate(
 
 
 def _against_the_plate(
-    target_above_magnet_m: float,
-) -> tuple[PerchingPilot, list[tuple[float | str, ...]]]:
+    target_above_magnet_m: float, held: bool = True
+) -> tuple[PerchingPilot, list[tuple[float | str, ...]], list[str]]:
     """A vehicle under a plate that stops its climb, whose camera keeps seeing the target
     ``target_above_magnet_m`` above the magnet, centred (a late pose: the plate looks further
-    than it is); one second of frames at 30 Hz."""
-    pilot, vehicle, _, _ = _under_the_plate(30, False, lambda _: (0.0, target_above_magnet_m))
-    return pilot, vehicle.commander.sent
+    than it is); 1.5 s of frames at 30 Hz. ``held``: the magnet holds it there (it does not
+    come down when asked)."""
+    pilot, vehicle, _, reports = _under_the_plate(45, held, lambda _: (0.0, target_above_magnet_m))
+    return pilot, vehicle.commander.sent, reports
 
 
 def test_a_climb_stopped_by_the_plate_before_the_final_climb_is_contact() -> None:
-    pilot, sent = _against_the_plate(0.07)
+    pilot, sent, reports = _against_the_plate(0.07)
     assert pilot.controller.phase == "climb"
     assert pilot.state == "perched"
     assert sent[-1] == ()
+    assert any("held against a descent" in r for r in reports)
+
+
+def test_the_motors_stop_only_once_the_magnet_held_the_vehicle_against_a_descent() -> None:
+    """Contact evidence begins the check: a descent asked for ``seat_check_s``; the stop
+    comes after it, on a vehicle the magnet holds."""
+    pilot, sent, _ = _against_the_plate(0.07)
+    s = pilot.settings
+    down = [i for i, c in enumerate(sent) if c == (0.0, 0.0, -s.seat_check_mps, 0.0)]
+    assert down
+    assert sent[down[-1] + 1] == ()
+    assert len(down) * pilot.controller.settings.camera_period_s >= s.seat_check_s - 0.05
+    assert sent[: down[0]]
+    assert all(c != () for c in sent[: down[0]])
+
+
+def test_a_vehicle_the_magnet_does_not_hold_comes_down_and_backs_off_without_a_stop() -> None:
+    """The same climb against the plate, on a vehicle that comes down when asked (its gear
+    pressed against the plate beyond the magnet's hold): no motor stop; the controller backs
+    off for another final climb, and the pilot says why."""
+    pilot, sent, reports = _against_the_plate(0.07, held=False)
+    assert () not in sent
+    assert pilot.state == "perching"
+    assert pilot.seat_drops >= 1
+    assert pilot.controller.tries >= 1
+    assert any("the magnet did not hold the vehicle" in r for r in reports)
+
+
+def test_without_a_check_the_motors_stop_on_the_contact_evidence_alone() -> None:
+    s = ControllerSettings(observer_rate=0.0)
+    commander = Recorder()
+    vehicle = Vehicle(commander, 1.0)
+    pilot = _pilot(vehicle, settings=PilotSettings(seat_check_s=0.0), controller=s)
+    magnet_z = s.p_body_magnet_m[2]
+    for _ in range(30):
+        pilot.update(_seen(s, [0.0, 0.0, magnet_z + 0.07], vehicle.t_s), vehicle.t_s)
+        vehicle.fly(1 / 30)
+        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)
+    assert pilot.state == "perched"
+    assert (0.0, 0.0, -pilot.settings.seat_check_mps, 0.0) not in commander.sent
+
+
+class ThrustRecorder(Recorder):
+    """A commander whose vehicle also takes a level thrust, kept as ("thrust", fraction)."""
+
+    def send_level_thrust(self, hover_fraction: float) -> None:
+        self.sent.append(("thrust", hover_fraction))
+
+
+def test_the_check_sends_a_level_thrust_where_the_link_takes_one() -> None:
+    """A link that takes a thrust is sent one under the hover's (a descent asked of the
+    vehicle's own loop takes off only what its floor lets it); the stop follows it."""
+    s = ControllerSettings(observer_rate=0.0)
+    commander = ThrustRecorder()
+    vehicle = Vehicle(commander, 1.0, stuck=True)
+    pilot = _pilot(vehicle, controller=s)
+    magnet_z = s.p_body_magnet_m[2]
+    for _ in range(45):
+        pilot.update(_seen(s, [0.0, 0.0, magnet_z + 0.07], vehicle.t_s), vehicle.t_s)
+        vehicle.fly(1 / 30)
+        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)
+    assert pilot.state == "perched"
+    thrusts = [i for i, c in enumerate(commander.sent) if c and c[0] == "thrust"]
+    assert thrusts
+    assert commander.sent[thrusts[-1] + 1] == ()
+    assert all(commander.sent[i] == ("thrust", pilot.settings.seat_check_thrust) for i in thrusts)
+    assert thrusts == list(range(thrusts[0], thrusts[-1] + 1))
 
 
 def test_a_climb_far_from_the_plate_that_does_not_rise_is_not_contact() -> None:
-    pilot, sent = _against_the_plate(0.3)
+    pilot, sent, _ = _against_the_plate(0.3)
     assert pilot.state == "perching"
     assert sent[-1] != ()
 
@@ -567,7 +635,7 @@ def test_a_final_climb_that_stalls_while_the_camera_puts_the_plate_far_is_not_co
 
     def flown(above_after_commit_m: float) -> PerchingPilot:
         pilot, _, _, _ = _under_the_plate(
-            30, False, lambda ph: (0.0, above_after_commit_m if "commit" in ph else 0.002)
+            30, True, lambda ph: (0.0, above_after_commit_m if "commit" in ph else 0.002)
         )
         return pilot
 

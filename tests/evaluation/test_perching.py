@@ -70,6 +70,19 @@ def test_runs_are_written_one_by_one_and_resumed(tmp_path: Path, setup: PerchSet
     json.dumps(content, default=str)
 
 
+def test_the_hold_checks_that_dropped_and_the_refused_leans_are_read_back(
+    tmp_path: Path, setup: PerchSetup
+) -> None:
+    with CampaignLog(tmp_path, setup) as log:
+        log.add(replace(_record(0), seat_drops=2, leans_refused=True))
+        log.add(_record(1))
+    back = list(read_runs(tmp_path / "runs.csv"))
+    assert [(r.seat_drops, r.leans_refused) for r in back] == [(2, True), (0, False)]
+    content = summary_json(back, setup)
+    cell = content["by_estimator"]["truth"]
+    assert (cell["seat_drops"], cell["runs_with_seat_drops"], cell["leans_refused"]) == (2, 1, 1)
+
+
 def test_resume_refuses_runs_of_another_setup(tmp_path: Path, setup: PerchSetup) -> None:
     with CampaignLog(tmp_path, setup) as log:
         log.add(_record(0))

@@ -69,6 +69,9 @@ class FakeRadioLink:
 def decode(packet: tuple[int, int, bytes]) -> tuple[Any, ...]:
     """A commander packet as (kind, values...)."""
     port, channel, data = packet
+    if port == CRTPPort.COMMANDER:  # the legacy setpoint: roll, pitch, yaw rate, thrust
+        roll, pitch, yaw_rate, thrust = struct.unpack("<fffH", data)
+        return ("rpyt", roll, pitch, yaw_rate, thrust)
     assert port == CRTPPort.COMMANDER_GENERIC
     if channel == 1:
         kind, remain_ms = struct.unpack("<BI", data)
@@ -269,6 +272,13 @@ def test_commit_ends_perched_only_on_contact(crazyflie: tuple[Crazyflie, FakeRad
     packets = [decode(p) for p in link.sent]
     climbs = [p for p in packets if p[0] == "velocity"]
     assert all(p[3] == pytest.approx(pilot.controller.settings.commit_speed_mps) for p in climbs)
+    # then the magnet's hold tried: the legacy setpoint's thrust unlocked (one with none),
+    # a quarter of the PID's hover thrust, level, and the stop once the height held
+    check = packets[len(climbs) : -2]
+    assert check[0] == ("rpyt", 0.0, 0.0, 0.0, 0)
+    assert set(check[1:]) == {("rpyt", 0.0, 0.0, 0.0, 9000)}
+    period = pilot.settings.setpoint_period_s
+    assert len(check) >= pilot.settings.seat_check_s / period
     assert packets[-2:] == [("stop",), ("notify_stop", 0)]
     assert pilot.state == "perched"
     # stopped 0.3 s (the contact window) after the climb stalled, not on a timer
@@ -786,8 +796,10 @@ def test_an_attitude_setpoint_goes_out_as_the_firmware_decodes_it(
 
 
 def _kind(packet: tuple[int, int, bytes]) -> str:
-    """A commander packet's kind: stop, notify_stop, velocity or zdistance."""
-    _port, channel, data = packet
+    """A commander packet's kind: stop, notify_stop, velocity, zdistance or rpyt."""
+    port, channel, data = packet
+    if port == CRTPPort.COMMANDER:
+        return "rpyt"
     if channel == 1:
         return "notify_stop"
     return {0: "stop", 8: "velocity", 9: "zdistance"}[data[0]]

@@ -175,6 +175,38 @@ def test_an_attitude_setpoint_is_flown_as_a_lean_at_the_height_asked(controller:
     assert q.omega_rad_s[2] == pytest.approx(0.5, abs=0.05)
 
 
+@pytest.mark.parametrize("controller", ["model", "crazyflie-pid"])
+def test_a_level_thrust_is_flown_as_the_thrust_asked(controller: str) -> None:
+    """A level thrust (cflib's legacy send_setpoint as the PID takes it: the height loop off)
+    of a quarter of the hover's: the model's loops give a quarter of the weight, the
+    firmware's PID a quarter of its ``thrustBase`` (36000 of 65535, the motors' units; 60 g
+    at full), whatever the vehicle weighs. 0.2 s in, the vehicle falls at the acceleration
+    that thrust leaves it, within 10 %, and stays level within a degree."""
+    from perchpose.geometry import lean_deg
+    from perchpose.sim.quadrotor import AttitudeHold, Quadrotor
+
+    params = QuadrotorParams()
+    start = np.array([0.0, 0.0, 1.0])
+    if controller == "model":
+        q = Quadrotor.hovering(params, start, 0.3)
+        thrust_n = 0.25 * params.weight_n
+    else:
+        pytest.importorskip("cffirmware")
+        q = firmware.FirmwareQuadrotor.hovering_on_firmware(controller, 500.0, params, start, 0.3)
+        q.settle()
+        thrust_n = 0.25 * firmware.THRUST_BASE / firmware.FULL_COMMAND * 0.060 * 9.81
+    for _ in range(20):
+        p = (float(q.p_m[0]), float(q.p_m[1]), float(q.p_m[2]))
+        q.hold = AttitudeHold(0.0, 0.0, 0.0, math.nan, p, 0.25)
+        q.fly(DT, 5, np.zeros(3), 0.0, q.v_mps)
+    v0 = q.v_mps
+    q.fly(DT, 5, np.zeros(3), 0.0, q.v_mps)
+    a_z = (q.v_mps[2] - v0[2]) / (5 * DT)
+    expected = thrust_n / params.mass_kg - 9.81
+    assert a_z == pytest.approx(expected, rel=0.1)
+    assert lean_deg(q.R_world_body) < 1.0
+
+
 def test_a_vehicle_flies_as_the_first_in_its_process_whatever_flew_before_it() -> None:
     """The firmware's PID keeps its integrators, filters and desired yaw in the module: a
     vehicle after another that ended tilted, yawed and wound up (as a campaign's worker flies

@@ -34,9 +34,15 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
   asked that would have moved it twice that, and still the plate's height by those frames
   (the magnet caught it), and, where the link gives the accelerometer, rigid
   (``rigid_spread_mps2`` over ``rigid_window_s``), and, without the camera's word on the plate
-  within the last two ``caught_window_s``, level (``held_level_deg``): a stop setpoint cuts
-  the motors and the magnet holds the vehicle. Time alone never stops the motors; without a
-  height source there is no contact evidence, and a final climb that does not end backs off;
+  within the last two ``caught_window_s``, level (``held_level_deg``). Contact evidence
+  alone does not stop the motors: the pilot first tries the magnet's hold
+  (``control.seat_check``: a level thrust under the hover's, ``seat_check_thrust``, where the
+  link takes one, else a descent at ``seat_check_mps``, for ``seat_check_s``). A vehicle whose
+  height stayed within ``seat_drop_m`` is held: a stop setpoint cuts the motors. One that came
+  down is not (its gear against the plate beyond the magnet's hold, or beside the plate): the
+  pilot says so and the controller backs off for another final climb (or gives up: landing).
+  Time alone never stops the motors; without a height source there is no contact evidence,
+  and a final climb that does not end backs off;
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
   Crazyflie's own commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s
   and 2 s without setpoints); ``released`` is an autopilot taking control back (it left the
@@ -92,6 +98,7 @@ from perchpose.control.history import newest_at
 from perchpose.control.lean import GRAVITY_MPS2, LeanCorrection
 from perchpose.control.lean_follow import LeanFollowWatch
 from perchpose.control.pilot_settings import ON_SENSES_LOST, PilotSettings
+from perchpose.control.seat_check import FALLING_READINGS, SeatCheck, SeatChecks, SeatVerdict
 from perchpose.control.setpoint import Setpoint, safe_setpoint
 from perchpose.geometry import lean_deg, leaned, roll_pitch_rad, yaw_rad
 from perchpose.values import Estimate
@@ -201,6 +208,15 @@ class AttitudeSender(Protocol):
 
 
 @runtime_checkable
+class ThrustSender(Protocol):
+    """A commander that sends a level attitude with a collective thrust, as a fraction of the
+    thrust its vehicle hovers on, and no height loop: what tries the magnet's hold
+    (``control.seat_check``)."""
+
+    def send_level_thrust(self, hover_fraction: float) -> None: ...
+
+
+@runtime_checkable
 class PositionFixSender(Protocol):
     """A commander that hands the vehicle's own state estimator an external position (world
     frame of its odometry, m), as a motion-capture system does."""
@@ -307,8 +323,8 @@ class PerchingPilot:
         self._fixes_taken = True  # until the commander says its vehicle takes none
         self._velocity_only_said = False
         self.transitions: list[tuple[float, PilotState, PilotState]] = []
-        self.replaced_setpoints = 0
-        self.silences = 0  # times the camera's watchdog fired
+        # non-finite setpoints replaced by a hover; times the camera's watchdog fired
+        self.replaced_setpoints = self.silences = 0
         self._last_valid_t: float | None = None
         self._frame_t: float | None = None  # the pilot's time of the last frame handed over
         self._camera_silent = False
@@ -332,6 +348,7 @@ class PerchingPilot:
         # when a fresh frame last put the plate further than contact_veto_m
         self._far_seen_t: float | None = None
         self._climbing_since: float | None = None  # a climb that may meet the plate began
+        self._seats = SeatChecks()  # the magnet's hold tried before a stop (``seat_check``)
         self._touchdown = TouchdownDetector(
             s.touchdown_window_s, s.touchdown_still_m, s.landed_height_m, s.touchdown_speed_mps
         )
@@ -552,8 +569,95 @@ class PerchingPilot:
         self._restore_velocity_gain()
         return PilotStep(t_s, self.state, None, None, None)
 
+    # -- the magnet's hold ----------------------------------------------------------------
+
+    @property
+    def leans_refused(self) -> bool:
+        """The vehicle did not fly the leans sent: velocities since (``control.lean_follow``)."""
+        return self._lean_watch.broken is not None
+
+    @property
+    def seat_drops(self) -> int:
+        """The checks of the magnet's hold the vehicle came down in (``control.seat_check``)."""
+        return self._seats.drops
+
+    def _try_seat(self, t_s: float, why: str) -> PilotStep:
+        """Contact evidence ``why``: try the magnet's hold before the motors stop
+        (``control.seat_check``), or stop them at once where ``seat_check_s`` is 0."""
+        if self.settings.seat_check_s <= 0.0:
+            return self._stop(t_s, PilotState.PERCHED, why)
+        self._seats.now = SeatCheck(t_s, self._seat_height(t_s), why)
+        return self._seat_step(t_s)
+
+    def _seat_height(self, t_s: float) -> float | None:
+        """The live height at ``t_s``, fitted over the last tenths of a second (None where
+        no live height is now)."""
+        return None if self._height() is None else self._height_at(t_s)
+
+    def _seat_step(self, t_s: float) -> PilotStep:
+        """One step of the check: the motors stop once the magnet held the vehicle against
+        the descent asked; a vehicle that came down is flown on (the controller backs off,
+        or the landing goes on); else the descent is asked again."""
+        seat, s = self._seats.now, self.settings
+        assert seat is not None
+        f_body = None if self.specific_force is None else self.specific_force()
+        f_z = None if f_body is None else float(np.asarray(f_body, np.float64)[2])
+        limits = (s.seat_check_s, s.seat_drop_m, s.seat_fall_mps2)
+        verdict = seat.verdict(t_s, self._seat_height(t_s), f_z, limits)
+        if verdict == SeatVerdict.HELD:
+            self._seats.now = None
+            return self._stop(t_s, PilotState.PERCHED, f"{seat.why}; held against a descent")
+        if verdict == SeatVerdict.DROPPED:
+            return self._seat_dropped(t_s, seat)
+        if not isinstance(self.commander, ThrustSender):
+            return self._send(t_s, np.array([0.0, 0.0, -s.seat_check_mps]), 0.0, SEAT_CHECK)
+        # the thrust itself, under the hover's: a descent asked of the vehicle's own loop
+        # takes off only what its loop's floor lets it (the firmware's PID: half the hover)
+        self._lean_watch.restart()
+        self.commander.send_level_thrust(s.seat_check_thrust)
+        self.last_sent_clock_s = self.clock()
+        down = np.array([0.0, 0.0, -s.seat_check_mps])
+        self._last_setpoint = (t_s, down, 0.0, SEAT_CHECK)
+        return PilotStep(t_s, self.state, (0.0, 0.0, -s.seat_check_mps), 0.0, SEAT_CHECK)
+
+    def _seat_dropped(self, t_s: float, seat: SeatCheck) -> PilotStep:
+        """The vehicle came down when asked: the magnet does not hold it. Perching, the
+        controller backs off for another final climb (or gives up: a landing); landing, the
+        landing goes on."""
+        self._seats.now = None
+        self._seats.drops += 1
+        self._contact.reset()
+        self._reset_held()
+        self._climbing_since = None
+        what = (
+            f"{seat.drop_m * 100:.0f} cm in {t_s - seat.started_s:.2f} s"
+            if seat.falling < FALLING_READINGS
+            else f"its accelerometer read a fall {t_s - seat.started_s:.2f} s in"
+        )
+        if self.state == PilotState.LANDING:
+            self.report(
+                f"pilot: the magnet did not hold the vehicle at t = {t_s:.2f} s (it came down: "
+                f"{what}): landing on"
+            )
+            return self._land_step(t_s)
+        phase = self.controller.back_off(t_s)
+        then = (
+            "giving up: landing"
+            if phase == Phase.GIVE_UP
+            else f"backing off for another final climb ({self.controller.tries} failed)"
+        )
+        self.report(
+            f"pilot: the magnet did not hold the vehicle at t = {t_s:.2f} s (it came down: "
+            f"{what}, after: {seat.why}): {then}"
+        )
+        if phase == Phase.GIVE_UP:
+            self._start_landing(t_s, f"gave up after {self.controller.tries} final climbs")
+            return self._land_step(t_s)
+        return self._send(t_s, np.zeros(3), 0.0, Phase.RETREAT)
+
     def _start_landing(self, t_s: float, why: str) -> None:
         self._landing_since = t_s
+        self._seats.now = None
         self._landing_said = None
         self._touchdown.reset()
         self._reset_held()
@@ -676,6 +780,7 @@ class PerchingPilot:
         s = self.settings
         self._contact.reset()
         self._reset_held()
+        self._seats.now = None  # a check needs a live height and the vehicle's own loop
         if age_s >= s.senses_lost_after_s:
             old = self._old(name, age_s)
             if s.on_senses_lost == "release":
@@ -728,8 +833,10 @@ class PerchingPilot:
             vz = None if motion is None else float(motion[1][2])
             if self._touchdown.touched(t_s, height, vz):
                 return self._stop(t_s, PilotState.LANDED, f"touchdown sensed at {height:.2f} m")
+            if self._seats.now is not None:
+                return self._seat_step(t_s)
             if self._held_landing(t_s, height):
-                return self._stop(t_s, PilotState.PERCHED, HELD_UP)
+                return self._try_seat(t_s, HELD_UP)
             since = self._landing_since if self._landing_since is not None else t_s
             if t_s - since >= s.stuck_report_s:
                 self._say_landing(
@@ -788,6 +895,8 @@ class PerchingPilot:
                 return self._hold(t_s, *stale)
             if self._frame_t is not None and t_s - self._frame_t > self.settings.frame_timeout_s:
                 return self._silent(t_s)
+            if self._seats.now is not None:
+                return self._seat_step(t_s)
             step = self._between_frames(t_s) if self.state == PilotState.PERCHING else None
             return step if step is not None else self._again(t_s)
 
@@ -812,7 +921,7 @@ class PerchingPilot:
         pressing = self._pressing(command, t_s)
         contact = self._contact_evidence(command, t_s, pressing, seen=False)
         if contact is not None:
-            return self._stop(t_s, PilotState.PERCHED, contact)
+            return self._try_seat(t_s, contact)
         return self._send(t_s, command.v_mps, command.yaw_rate_rad_s, command.phase)
 
     def _contact_evidence(
@@ -1055,6 +1164,8 @@ class PerchingPilot:
         """The state the controller's command leads to, and the setpoint sent in it
         (``seen``: it rests on a fresh camera estimate)."""
         s = self.settings
+        if self._seats.now is not None:
+            return self._seat_step(t_s)
         if command.phase == Phase.GIVE_UP:
             tries = self.controller.tries
             self._start_landing(t_s, f"gave up after {tries} final climbs without contact")
@@ -1062,7 +1173,7 @@ class PerchingPilot:
         pressing = self._pressing(command, t_s)
         contact = self._contact_evidence(command, t_s, pressing, seen=seen)
         if contact is not None:
-            return self._stop(t_s, PilotState.PERCHED, contact)
+            return self._try_seat(t_s, contact)
         if command.phase == Phase.COMMIT:
             self._enter(PilotState.PERCHING, t_s, "final climb")
         else:
@@ -1098,6 +1209,7 @@ class PerchingPilot:
             sleep(self.settings.setpoint_period_s)
 
 
+SEAT_CHECK = "seat-check"  # the phase of the setpoints that try the magnet's hold
 HELD_UP = (
     "near the plate the height held still against what was asked: the magnet holds the vehicle"
 )

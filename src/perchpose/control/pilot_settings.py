@@ -92,6 +92,26 @@ class PilotSettings:
     while a vehicle in free air holding its place against strong wind leans into it (the two
     read held beside the plate: 7-11 deg). Set under the tilt at which the magnet holds the
     vehicle, a held vehicle never reads held on that path.
+
+    The magnet's hold (``control.seat_check``): seat_check_s, seat_check_thrust,
+    seat_check_mps, seat_fall_mps2, seat_drop_m : contact evidence does not stop the motors
+    at once. For seat_check_s the pilot first sends a level thrust of seat_check_thrust of the
+    hover's (where the link takes one: cflib's legacy setpoint), else a descent at
+    seat_check_mps. It stops the motors only if the vehicle stayed: its accelerometer's
+    vertical specific force never read under seat_fall_mps2 twice running (held by the plate
+    it reads about g; let go on a quarter of the hover thrust, about a quarter of g), and its
+    height (fitted over the last tenths of a second) stayed within seat_drop_m of where the
+    check began. A vehicle that came down is not held by the magnet (its gear against the plate
+    beyond the magnet's hold, or beside the plate): the controller backs off for another final
+    climb. The thrust is the test: a gear pressed 23 mm off the magnet's centre in a traced
+    run (a pull of 0.44 N against the 39 g vehicle's 0.38 N) stayed on a quarter of the hover
+    thrust and fell from the plate 20 ms after the motors stopped, sliding off in the wind. A
+    descent asked of the vehicle's own loop takes off only what its loop's floor lets it (the
+    firmware's PID: ``thrustMin`` 20000 of a 42600 hover for 39 g), so a gear beyond the hold
+    still reads held. seat_drop_m sits above the wander of a Flow deck's filtered height 2 m
+    from the floor while the plate holds the vehicle (3 cm in 0.4 s traced) and under what a
+    vehicle let go on a descent falls in the window. seat_check_s 0 stops the motors on the
+    contact evidence alone.
     limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
@@ -158,6 +178,11 @@ class PilotSettings:
     rigid_window_s: float = 0.3
     rigid_spread_mps2: float = 0.4
     held_level_deg: float = 6.0
+    seat_check_s: float = 0.4
+    seat_check_mps: float = 0.5
+    seat_drop_m: float = 0.06
+    seat_check_thrust: float = 0.25
+    seat_fall_mps2: float = 6.0
     setpoint_period_s: float = 0.05
     frame_timeout_s: float = 0.25
     stale_after_s: float = 0.25
@@ -200,6 +225,9 @@ class PilotSettings:
             "rigid_window_s",
             "rigid_spread_mps2",
             "held_level_deg",
+            "seat_check_mps",
+            "seat_drop_m",
+            "seat_fall_mps2",
             "setpoint_period_s",
             "frame_timeout_s",
             "stale_after_s",
@@ -222,6 +250,15 @@ class PilotSettings:
         if not (math.isfinite(self.lean_lead_s) and 0.0 <= self.lean_lead_s <= 0.5):
             raise ControllerConfigError(
                 f"pilot setting lean_lead_s must be within 0-0.5 s, got {self.lean_lead_s}"
+            )
+        if not (math.isfinite(self.seat_check_thrust) and 0.0 < self.seat_check_thrust < 1.0):
+            raise ControllerConfigError(
+                "pilot setting seat_check_thrust must be within 0-1 (of the hover's thrust), "
+                f"got {self.seat_check_thrust}"
+            )
+        if not (math.isfinite(self.seat_check_s) and 0.0 <= self.seat_check_s <= 5.0):
+            raise ControllerConfigError(
+                f"pilot setting seat_check_s must be within 0-5 s, got {self.seat_check_s}"
             )
         if not self.max_lean_deg <= 45.0:
             raise ControllerConfigError(

@@ -65,6 +65,8 @@ RUN_COLUMNS = (
     "time_offset_end_true_ms",
     "seated_offset_mm",
     "stop_after_contact_s",
+    "seat_drops",
+    "leans_refused",
     "latency_ms",
     "odometry_hz",
     "odometry_delay_ms",
@@ -136,6 +138,10 @@ class RunRecord:
     # motors' stop (NaN: not flown through the contact, or no stop against the plate)
     seated_offset_mm: float = math.nan
     stop_after_contact_s: float = math.nan
+    # checks of the magnet's hold the vehicle came down in; the pilot sent velocities instead
+    # of leans the vehicle did not fly (``control.lean_follow``)
+    seat_drops: int = 0
+    leans_refused: bool = False
     senses: tuple[float, ...] = ()  # SENSE_COLUMNS' values (empty: ideal senses)
 
     @staticmethod
@@ -174,6 +180,8 @@ class RunRecord:
             result.time_offset_end.true_s * 1000.0,
             result.seated_offset_mm,
             result.stop_after_contact_s,
+            result.seat_drops,
+            result.leans_refused,
             sense_values(result.senses, setup),
         )
 
@@ -221,6 +229,8 @@ class RunRecord:
             f"{self.time_offset_end_true_ms:.3f}",
             f"{self.seated_offset_mm:.3f}",
             f"{self.stop_after_contact_s:.3f}",
+            str(self.seat_drops),
+            str(int(self.leans_refused)),
             *(f"{v:.6g}" for v in (self.senses or (math.nan,) * len(SENSE_COLUMNS))),
         ]
 
@@ -258,6 +268,8 @@ class RunRecord:
                 float(row["time_offset_end_true_ms"]),
                 float(row.get("seated_offset_mm", "nan")),
                 float(row.get("stop_after_contact_s", "nan")),
+                int(row.get("seat_drops", "0")),
+                row.get("leans_refused", "0") == "1",
                 tuple(float(row[name]) for name in SENSE_COLUMNS),
             )
         except (KeyError, ValueError, TypeError) as exc:
@@ -590,6 +602,9 @@ def _summary_dict(s: CampaignSummary, records: list[RunRecord]) -> dict[str, obj
         "contact_first": dict(Counter(r.contact_first or "none" for r in records)),
         "seated_offset_mm": _clean(_percentiles(r.seated_offset_mm for r in records)),
         "stop_after_contact_s": _clean(_percentiles(r.stop_after_contact_s for r in records)),
+        "seat_drops": sum(r.seat_drops for r in records),
+        "runs_with_seat_drops": sum(r.seat_drops > 0 for r in records),
+        "leans_refused": sum(r.leans_refused for r in records),
         "time_offset": time_offset_summary(records),
     }
 

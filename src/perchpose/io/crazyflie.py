@@ -30,6 +30,9 @@ GRAVITY_MPS2 = 9.81  # the firmware's g: its ``acc`` log group is in g
 VELOCITY_GAINS = ("velCtlPid.vxKp", "velCtlPid.vyKp")  # the firmware's, deg per m/s
 ESTIMATOR_PARAM = "stabilizer.estimator"  # 0 the firmware's choice, 1 complementary, 2 Kalman
 COMPLEMENTARY_ESTIMATOR, KALMAN_ESTIMATOR = 1, 2
+# the thrust the firmware's PID hovers on before its integral (``posCtlPid.thrustBase``), in
+# the motors' units: the hover a level-thrust setpoint's fraction is of
+HOVER_THRUST = 36000
 log = logging.getLogger(__name__)
 
 
@@ -46,7 +49,9 @@ class CflibCommander:
     position the firmware's position loop holds on its own estimate), or an attitude
     (``send_zdistance_setpoint``: a roll, a pitch, the yaw rate and the height); a stop cuts
     the motors and hands the setpoint priority back to the high-level commander
-    (``send_stop_setpoint``, ``send_notify_setpoint_stop``).
+    (``send_stop_setpoint``, ``send_notify_setpoint_stop``). A level thrust (cflib's legacy
+    ``send_setpoint``: level, no yaw rate, a fraction of ``hover_thrust``) tries the magnet's
+    hold before a stop (``control.seat_check``).
     With cflib's ``Extpos`` (``extpos``) it hands the Kalman filter the camera's fixes as an
     external position.
 
@@ -60,8 +65,11 @@ class CflibCommander:
         param: Any = None,
         own_gains: dict[str, str] | None = None,
         extpos: Any = None,
+        hover_thrust: int = HOVER_THRUST,
     ) -> None:
         self.commander = commander
+        self.hover_thrust = hover_thrust
+        self._thrust_unlocked = False
         self.extpos = extpos
         self.param = param
         self.own_gains = own_gains or {}  # the vehicle's velocity gains, read at connection
@@ -118,6 +126,18 @@ class CflibCommander:
         self.commander.send_zdistance_setpoint(
             math.degrees(roll_rad), -math.degrees(pitch_rad), math.degrees(yaw_rate_rad_s), z_m
         )
+
+    def send_level_thrust(self, hover_fraction: float) -> None:
+        """``send_setpoint``: level, no yaw rate, ``hover_fraction`` of ``hover_thrust`` (the
+        motors' units; the firmware's PID passes it on with its height loop off). The
+        firmware takes no thrust on this packet until one with none unlocks it: the first call
+        sends that one first (the motors ease for the moment between the two packets, which
+        is what the call asks of them anyway)."""
+        if not self._thrust_unlocked:
+            self.commander.send_setpoint(0.0, 0.0, 0.0, 0)
+            self._thrust_unlocked = True
+        thrust = round(min(1.0, max(0.0, hover_fraction)) * self.hover_thrust)
+        self.commander.send_setpoint(0.0, 0.0, 0.0, min(thrust, 0xFFFF))
 
     def send_stop(self) -> None:
         self.commander.send_stop_setpoint()

@@ -69,6 +69,7 @@ FLIGHT_CONTROLLERS = (
 )
 MAIN_LOOP_HZ = 1000  # the firmware's stabilizer loop
 FULL_COMMAND = 65535  # a motor command at full
+THRUST_BASE = 36000.0  # the PID's hover thrust (``posCtlPid.thrustBase``), motor units
 FULL_THRUST_N = 0.060 * GRAVITY_MPS2 / 4  # per motor at FULL_COMMAND (60 g for the four)
 SETTLE_S = 10.0  # hovering before a run, for the firmware's integrators to find the hover
 # motors-off ticks before a vehicle's first step: the PID's filters, which keep their state in
@@ -292,6 +293,13 @@ class FirmwareQuadrotor(Quadrotor):
         sp.mode.z = fw.modeAbs
         sp.position.x = sp.position.y = 0.0
         sp.position.z = hold.z_m
+        sp.thrust = 0.0
+        if hold.thrust_fraction is not None:
+            # cflib's legacy ``send_setpoint`` (``TYPE_LEGACY``): the thrust as it comes, in
+            # the motors' units, with the height loop off (the PID passes it on)
+            sp.mode.z = fw.modeDisable
+            sp.position.z = 0.0
+            sp.thrust = hold.thrust_fraction * THRUST_BASE
         sp.velocity.x = sp.velocity.y = sp.velocity.z = 0.0
         sp.acceleration.x = sp.acceleration.y = sp.acceleration.z = 0.0
         sp.mode.roll = sp.mode.pitch = fw.modeAbs

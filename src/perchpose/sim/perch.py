@@ -308,7 +308,9 @@ class PerchResult:
     without a setpoint while the pilot flew it. ``time_offset`` and ``time_offset_end``: the
     controller's estimate of the camera-to-vehicle time offset after ``OFFSET_AT_S`` of
     flight and at the run's end, each with the truth over the frames it rests on (NaN: no
-    estimate yet)."""
+    estimate yet). ``seat_drops``: checks of the magnet's hold the vehicle came down in
+    (``control.seat_check``); ``leans_refused``: the pilot sent velocities once the vehicle
+    did not fly its leans (``control.lean_follow``)."""
 
     seed: int
     estimator: str
@@ -333,6 +335,19 @@ class PerchResult:
     time_offset_end: OffsetReport = field(default_factory=lambda: NO_OFFSET)
     seated_offset_mm: float = math.nan
     stop_after_contact_s: float = math.nan
+    seat_drops: int = 0
+    leans_refused: bool = False
+
+
+class Lean(NamedTuple):
+    """An attitude setpoint as the commander holds it: roll and pitch (rad, as
+    ``AttitudeHold``), the height its loop holds (world z of the vehicle's estimate, m), or
+    instead a collective thrust as a fraction of the hover's (cflib's legacy setpoint)."""
+
+    roll_rad: float
+    pitch_rad: float
+    z_m: float
+    thrust_fraction: float | None = None
 
 
 class HeldSetpoint:
@@ -365,7 +380,7 @@ class HeldSetpoint:
         self.yaw_rad = 0.0
         # an attitude setpoint's roll, pitch (rad) and height (world z of the vehicle's
         # estimate, m); None while the last setpoint is not one
-        self.lean: tuple[float, float, float] | None = None
+        self.lean: Lean | None = None
         self.clock = clock
         self.link_up = link_up
         self.delay_s = delay_s
@@ -381,7 +396,7 @@ class HeldSetpoint:
                 float,
                 bool,
                 tuple[Array, float] | None,
-                tuple[float, float, float] | None,
+                Lean | None,
             ]
         ] = deque()
 
@@ -391,7 +406,7 @@ class HeldSetpoint:
         yaw_rate_rad_s: float,
         stop: bool,
         full_state: tuple[Array, float] | None = None,
-        lean: tuple[float, float, float] | None = None,
+        lean: Lean | None = None,
     ) -> None:
         now = self.clock()
         self.sent_s.append(now)
@@ -446,8 +461,14 @@ class HeldSetpoint:
         self, roll_rad: float, pitch_rad: float, yaw_rate_rad_s: float, z_m: float
     ) -> None:
         """An attitude setpoint: the vehicle leans so and holds the height with its own loop."""
-        lean = (float(roll_rad), float(pitch_rad), float(z_m))
+        lean = Lean(float(roll_rad), float(pitch_rad), float(z_m))
         self._send(np.zeros(3), yaw_rate_rad_s, False, None, lean)
+
+    def send_level_thrust(self, hover_fraction: float) -> None:
+        """Level, no yaw rate, and this fraction of the hover's thrust (cflib's legacy
+        ``send_setpoint``): no height loop."""
+        lean = Lean(0.0, 0.0, math.nan, float(hover_fraction))
+        self._send(np.zeros(3), 0.0, False, None, lean)
 
     def send_stop(self) -> None:
         self._send(np.zeros(3), 0.0, True)
@@ -952,9 +973,10 @@ class _Flight:
             v_sp = c.position_m - np.array(p_est)
         elif c.lean is not None and silent_s < LEVEL_AFTER_S:
             p_est = vec3(self._odometry_now()[0])
-            roll, pitch, z_m = c.lean
-            hold = AttitudeHold(roll, pitch, c.yaw_rate_rad_s, z_m, p_est)
-            v_sp = np.array([0.0, 0.0, z_m - p_est[2]])
+            roll, pitch, z_m, thrust = c.lean
+            hold = AttitudeHold(roll, pitch, c.yaw_rate_rad_s, z_m, p_est, thrust)
+            # a thrust under the hover's (a check of the magnet's hold) asks down
+            v_sp = np.array([0.0, 0.0, -1.0 if thrust is not None else z_m - p_est[2]])
         if self.resting and (self.stop.motors_stopped or v_sp[2] <= 0.0):
             self._follow(dt_s * steps)  # on the floor, still
             if self.kalman is not None:
@@ -1177,6 +1199,8 @@ class _Trace:
             flight.offset_report(),
             flight.stop.seated_offset_mm,
             flight.stop.stopped_at_s - flight.stop.touched_at_s,
+            pilot.seat_drops,
+            pilot.leans_refused,
         )
 
 

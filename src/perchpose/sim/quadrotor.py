@@ -184,6 +184,9 @@ class AttitudeHold:
     yaw_rate_rad_s: float
     z_m: float
     p_estimate_m: Vec3
+    # cflib's legacy ``send_setpoint`` instead: the collective thrust as a fraction of the
+    # hover's, and no height loop (``z_m`` unused)
+    thrust_fraction: float | None = None
 
 
 Hold = PositionHold | AttitudeHold
@@ -540,6 +543,8 @@ class Quadrotor:
         yaw = math.atan2(r10, r00)
         hold = self.hold
         if isinstance(hold, AttitudeHold):
+            if hold.thrust_fraction is not None:
+                fz = hold.thrust_fraction * p.weight_n
             tx, ty = leaned(hold.roll_rad, hold.pitch_rad, yaw)
             fx, fy = fz * tx, fz * ty
         # limit the tilt of the thrust vector
