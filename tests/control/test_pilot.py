@@ -514,17 +514,21 @@ def test_on_a_drag_free_estimate_the_pilot_holds_the_gyros_word_over_seconds() -
 
 
 def _under_the_plate(
-    frames: int, held: bool, target: Callable[[list[str]], tuple[float, float]]
+    frames: int,
+    held: bool,
+    target: Callable[[list[str]], tuple[float, float]],
+    commander: Recorder | None = None,
+    settings: PilotSettings | None = None,
 ) -> tuple[PerchingPilot, Vehicle, list[str], list[str]]:
     """A vehicle under a plate 1 m up (``held``: the magnet holds it there, it does not
     descend), whose camera sees the target ``target(phases so far)`` = (to the side, above
     the magnet) in metres; ``frames`` frames at 30 Hz. The vehicle (what was sent: its
-    commander's), the controller's phases and what the pilot said."""
+    commander's, a ``Recorder`` by default), the controller's phases and what the pilot
+    said."""
     s = ControllerSettings(observer_rate=0.0)
-    commander = Recorder()
-    vehicle = Vehicle(commander, 1.0, stuck=held)
+    vehicle = Vehicle(commander or Recorder(), 1.0, stuck=held)
     reports: list[str] = []
-    pilot = _pilot(vehicle, controller=s, reports=reports)
+    pilot = _pilot(vehicle, settings=settings, controller=s, reports=reports)
     magnet_z = s.p_body_magnet_m[2]
     phases: list[str] = []
     for _ in range(frames):
@@ -581,17 +585,12 @@ def test_a_vehicle_the_magnet_does_not_hold_comes_down_and_backs_off_without_a_s
 
 
 def test_without_a_check_the_motors_stop_on_the_contact_evidence_alone() -> None:
-    s = ControllerSettings(observer_rate=0.0)
-    commander = Recorder()
-    vehicle = Vehicle(commander, 1.0)
-    pilot = _pilot(vehicle, settings=PilotSettings(seat_check_s=0.0), controller=s)
-    magnet_z = s.p_body_magnet_m[2]
-    for _ in range(30):
-        pilot.update(_seen(s, [0.0, 0.0, magnet_z + 0.07], vehicle.t_s), vehicle.t_s)
-        vehicle.fly(1 / 30)
-        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)
+    """``seat_check_s`` 0, on a vehicle that would come down if asked: the stop comes on the
+    contact evidence, with no descent asked before it."""
+    no_check = PilotSettings(seat_check_s=0.0)
+    pilot, vehicle, _, _ = _under_the_plate(30, False, lambda _: (0.0, 0.07), settings=no_check)
     assert pilot.state == "perched"
-    assert (0.0, 0.0, -pilot.settings.seat_check_mps, 0.0) not in commander.sent
+    assert (0.0, 0.0, -pilot.settings.seat_check_mps, 0.0) not in vehicle.commander.sent
 
 
 class ThrustRecorder(Recorder):
@@ -604,15 +603,8 @@ class ThrustRecorder(Recorder):
 def test_the_check_sends_a_level_thrust_where_the_link_takes_one() -> None:
     """A link that takes a thrust is sent one under the hover's (a descent asked of the
     vehicle's own loop takes off only what its floor lets it); the stop follows it."""
-    s = ControllerSettings(observer_rate=0.0)
     commander = ThrustRecorder()
-    vehicle = Vehicle(commander, 1.0, stuck=True)
-    pilot = _pilot(vehicle, controller=s)
-    magnet_z = s.p_body_magnet_m[2]
-    for _ in range(45):
-        pilot.update(_seen(s, [0.0, 0.0, magnet_z + 0.07], vehicle.t_s), vehicle.t_s)
-        vehicle.fly(1 / 30)
-        vehicle.p_m[2] = min(vehicle.p_m[2], 1.0)
+    pilot, _, _, _ = _under_the_plate(45, True, lambda _: (0.0, 0.07), commander=commander)
     assert pilot.state == "perched"
     thrusts = [i for i, c in enumerate(commander.sent) if c and c[0] == "thrust"]
     assert thrusts

@@ -538,7 +538,7 @@ def test_a_vehicle_that_takes_the_pitch_with_the_other_sign_perches_on_velocitie
 
 
 def test_a_magnet_too_weak_to_hold_the_vehicle_never_gets_its_motors_stopped_at_the_plate(
-    caplog: pytest.LogCaptureFixture,
+    setup: PerchSetup, caplog: pytest.LogCaptureFixture
 ) -> None:
     """A magnet a tenth as strong (0.1 N seated, under the 39 g vehicle's weight), still air:
     the vehicle climbs into the plate, the pilot tries the hold with a level thrust under the
@@ -548,21 +548,14 @@ def test_a_magnet_too_weak_to_hold_the_vehicle_never_gets_its_motors_stopped_at_
     weak = Magnet(remanence_t=0.1)
     assert weak.pull_n(0.0, 0.0) < QuadrotorParams().weight_n
 
-    def setup(check_s: float) -> PerchSetup:
-        return PerchSetup(
-            CameraModel.preset("fpv"),
-            TargetSpec.paper(),
-            estimator="truth",
-            wind="none",
-            magnet=weak,
-            pilot=PilotSettings(seat_check_s=check_s),
-        )
+    def checked_for(check_s: float) -> PerchSetup:
+        return replace(setup, wind="none", magnet=weak, pilot=PilotSettings(seat_check_s=check_s))
 
-    checked = run_perch(setup(0.4), 0)
+    checked = run_perch(checked_for(0.4), 0)
     assert not checked.success
     assert checked.reason in ("gave-up", "timeout"), checked.reason
     assert any("the magnet did not hold the vehicle" in m for m in caplog.messages)
     assert checked.seat_drops >= 1
     assert not checked.motor_stop_height_m > 0.05  # never stopped in the air (NaN: not at all)
-    unchecked = run_perch(setup(0.0), 0)
+    unchecked = run_perch(checked_for(0.0), 0)
     assert unchecked.reason == "fell"
