@@ -90,3 +90,23 @@ def test_a_runs_length_is_asked_for_and_recorded(tmp_path: Path) -> None:
     )
     assert default.setups[0].duration_s == 20.0
     assert faulty.setups[0].duration_s == 40.0
+
+
+def test_the_table_says_where_the_magnet_did_not_hold_and_leans_were_refused() -> None:
+    """A cell with checks of the magnet's hold the vehicle came down in gets its own line
+    under the table; a cell without gets none."""
+    from dataclasses import replace
+
+    from perchpose import CameraModel, TargetSpec
+    from perchpose.app.perch import summary_table
+    from perchpose.evaluation.perching import RunRecord, summary_json
+    from perchpose.sim.perch import PerchSetup
+
+    setup = PerchSetup(CameraModel.preset("fpv"), TargetSpec.paper(), estimator="truth")
+    base = RunRecord("truth", "light", 1.5, 0.5, 0, True, "perched", 3.0, 0.2, 5.0, 0, 90.0, "33")
+    quiet = summary_table(summary_json([base, replace(base, seed=1)], setup))
+    assert "did not hold" not in quiet
+    records = [replace(base, seat_drops=2), replace(base, seed=1, leans_refused=True)]
+    table = summary_table(summary_json(records, setup))
+    assert "the magnet did not hold the vehicle in 2 checks before a stop, in 1 runs" in table
+    assert "did not fly the leans sent in 1 runs" in table

@@ -481,6 +481,15 @@ def summary_table(content: dict[str, object]) -> str:
             f"{low:6.1%} - {high:6.1%} {num(off['p50']):>9}/{num(off['p95']):<10} "
             f"{num(clock):>14}  {fails or 'none'}"
         )
+    for name, c in cells.items():
+        checks = c.get("runs_with_seat_drops", 0)
+        refused = c.get("leans_refused", 0)
+        if checks or refused:
+            lines.append(
+                f"{name}: the magnet did not hold the vehicle in {c['seat_drops']} checks before "
+                f"a stop, in {checks} runs (flown on); the vehicle did not fly the leans sent "
+                f"in {refused} runs (velocities sent instead)"
+            )
     outcomes = content.get("fault_outcomes") or {}
     assert isinstance(outcomes, dict)
     for kind, o in outcomes.items():
