@@ -556,7 +556,7 @@ def test_a_climb_stopped_by_the_plate_before_the_final_climb_is_contact() -> Non
     assert pilot.controller.phase == "climb"
     assert pilot.state == "perched"
     assert sent[-1] == ()
-    assert any("held against a descent" in r for r in reports)
+    assert any("the magnet held it" in r for r in reports)
 
 
 def test_the_motors_stop_only_once_the_magnet_held_the_vehicle_against_a_descent() -> None:

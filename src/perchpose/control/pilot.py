@@ -38,11 +38,12 @@ the watchdogs, so a camera that stalls, senses that stop and a landing all go on
   alone does not stop the motors: the pilot first tries the magnet's hold
   (``control.seat_check``: a level thrust under the hover's, ``seat_check_thrust``, where the
   link takes one, else a descent at ``seat_check_mps``, for ``seat_check_s``). A vehicle whose
-  height stayed within ``seat_drop_m`` is held: a stop setpoint cuts the motors. One that came
-  down is not (its gear against the plate beyond the magnet's hold, or beside the plate): the
-  pilot says so and the controller backs off for another final climb (or gives up: landing).
-  Time alone never stops the motors; without a height source there is no contact evidence,
-  and a final climb that does not end backs off;
+  accelerometer read no fall (``seat_fall_mps2``) and whose height stayed within
+  ``seat_drop_m`` is held: a stop setpoint cuts the motors. One that came down is not (its
+  gear against the plate beyond the magnet's hold, or beside the plate): the pilot says so
+  and the controller backs off for another final climb (or gives up: landing). Time alone
+  never stops the motors; without a height source there is no contact evidence, and a final
+  climb that does not end backs off;
 - ``landed``, ``link_lost``, ``released``: nothing more is sent. After a link loss the
   Crazyflie's own commander watchdog levels the vehicle and stops the motors (firmware: 0.5 s
   and 2 s without setpoints); ``released`` is an autopilot taking control back (it left the
@@ -595,9 +596,10 @@ class PerchingPilot:
         return None if self._height() is None else self._height_at(t_s)
 
     def _seat_step(self, t_s: float) -> PilotStep:
-        """One step of the check: the motors stop once the magnet held the vehicle against
-        the descent asked; a vehicle that came down is flown on (the controller backs off,
-        or the landing goes on); else the descent is asked again."""
+        """One step of the check: the motors stop once the magnet held the vehicle through
+        it; a vehicle that came down is flown on (the controller backs off, or the landing
+        goes on); else the check's setpoint goes out again (the level thrust, reported in the
+        step as the descent it amounts to, or the descent)."""
         seat, s = self._seats.now, self.settings
         assert seat is not None
         f_body = None if self.specific_force is None else self.specific_force()
@@ -606,7 +608,7 @@ class PerchingPilot:
         verdict = seat.verdict(t_s, self._seat_height(t_s), f_z, limits)
         if verdict == SeatVerdict.HELD:
             self._seats.now = None
-            return self._stop(t_s, PilotState.PERCHED, f"{seat.why}; held against a descent")
+            return self._stop(t_s, PilotState.PERCHED, f"{seat.why}; the magnet held it")
         if verdict == SeatVerdict.DROPPED:
             return self._seat_dropped(t_s, seat)
         if not isinstance(self.commander, ThrustSender):
