@@ -103,15 +103,15 @@ class PilotSettings:
     height (fitted over the last tenths of a second) stayed within seat_drop_m of where the
     check began. A vehicle that came down is not held by the magnet (its gear against the plate
     beyond the magnet's hold, or beside the plate): the controller backs off for another final
-    climb. The thrust is the test: a gear pressed 23 mm off the magnet's centre in a traced
-    run (a pull of 0.44 N against the 39 g vehicle's 0.38 N) stayed on a quarter of the hover
-    thrust and fell from the plate 20 ms after the motors stopped, sliding off in the wind. A
-    descent asked of the vehicle's own loop takes off only what its loop's floor lets it (the
-    firmware's PID: ``thrustMin`` 20000 of a 42600 hover for 39 g), so a gear beyond the hold
-    still reads held. seat_drop_m sits above the wander of a Flow deck's filtered height 2 m
-    from the floor while the plate holds the vehicle (3 cm in 0.4 s traced) and under what a
-    vehicle let go on a descent falls in the window. seat_check_s 0 stops the motors on the
-    contact evidence alone.
+    climb. A descent asked of the vehicle's own loop takes off only what its loop's floor
+    lets it (the firmware's PID: ``thrustMin`` 20000 of a 42600 hover for 39 g), so a gear
+    beyond the hold still reads held: hence the thrust. A knife-edge hold passes even so: a
+    gear pressed 23 mm off the magnet's centre in a traced run (a pull of 0.44 N against the
+    39 g vehicle's 0.38 N) stayed on a quarter of the hover thrust and fell from the plate
+    within 0.3 s of the motors' stop, sliding off in the wind. seat_drop_m sits above the
+    wander of a Flow deck's filtered height 2 m from the floor while the plate holds the
+    vehicle (3 cm in 0.4 s traced) and under what a vehicle let go on a descent falls in the
+    window. seat_check_s 0 stops the motors on the contact evidence alone.
     limits : the largest setpoint sent.
 
     The vehicle's loop: velocity_gain_per_s : the horizontal velocity-loop gain (1/s) the pilot
