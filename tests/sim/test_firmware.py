@@ -183,6 +183,7 @@ def test_a_level_thrust_is_flown_as_the_thrust_asked(controller: str) -> None:
     at full), whatever the vehicle weighs. 0.2 s in, the vehicle falls at the acceleration
     that thrust leaves it, within 10 %, and stays level within a degree."""
     from perchpose.geometry import lean_deg
+    from perchpose.io.crazyflie import HOVER_THRUST
     from perchpose.sim.quadrotor import AttitudeHold, Quadrotor
 
     params = QuadrotorParams()
@@ -194,7 +195,7 @@ def test_a_level_thrust_is_flown_as_the_thrust_asked(controller: str) -> None:
         pytest.importorskip("cffirmware")
         q = firmware.FirmwareQuadrotor.hovering_on_firmware(controller, 500.0, params, start, 0.3)
         q.settle()
-        thrust_n = 0.25 * firmware.THRUST_BASE / firmware.FULL_COMMAND * 0.060 * 9.81
+        thrust_n = 0.25 * HOVER_THRUST / firmware.FULL_COMMAND * 0.060 * 9.81
     for _ in range(20):
         p = (float(q.p_m[0]), float(q.p_m[1]), float(q.p_m[2]))
         q.hold = AttitudeHold(0.0, 0.0, 0.0, math.nan, p, 0.25)

@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 
 from perchpose.errors import VehicleConfigError
 from perchpose.geometry import quaternion_xyzw, roll_pitch_rad, rot_z, yaw_rad
-from perchpose.io.crazyflie import velocity_kp_deg
+from perchpose.io.crazyflie import HOVER_THRUST, velocity_kp_deg
 from perchpose.sim.firmware_params import VelocityGains
 from perchpose.sim.quadrotor import (
     GRAVITY_MPS2,
@@ -69,7 +69,6 @@ FLIGHT_CONTROLLERS = (
 )
 MAIN_LOOP_HZ = 1000  # the firmware's stabilizer loop
 FULL_COMMAND = 65535  # a motor command at full
-THRUST_BASE = 36000.0  # the PID's hover thrust (``posCtlPid.thrustBase``), motor units
 FULL_THRUST_N = 0.060 * GRAVITY_MPS2 / 4  # per motor at FULL_COMMAND (60 g for the four)
 SETTLE_S = 10.0  # hovering before a run, for the firmware's integrators to find the hover
 # motors-off ticks before a vehicle's first step: the PID's filters, which keep their state in
@@ -296,10 +295,11 @@ class FirmwareQuadrotor(Quadrotor):
         sp.thrust = 0.0
         if hold.thrust_fraction is not None:
             # cflib's legacy ``send_setpoint`` (``TYPE_LEGACY``): the thrust as it comes, in
-            # the motors' units, with the height loop off (the PID passes it on)
+            # the motors' units as the link makes it, with the height loop off (the PID
+            # passes it on)
             sp.mode.z = fw.modeDisable
             sp.position.z = 0.0
-            sp.thrust = hold.thrust_fraction * THRUST_BASE
+            sp.thrust = hold.thrust_fraction * HOVER_THRUST
         sp.velocity.x = sp.velocity.y = sp.velocity.z = 0.0
         sp.acceleration.x = sp.acceleration.y = sp.acceleration.z = 0.0
         sp.mode.roll = sp.mode.pitch = fw.modeAbs
