@@ -462,9 +462,15 @@ class PerchingPilot:
         if not sent:
             self._lean_watch.restart()  # the vehicle's own loop sets its lean meanwhile
             self.commander.send_velocity(sp.v_mps, sp.yaw_rate_rad_s)
+        return self._sent(t_s, (v, yaw_rate_rad_s, phase), sp)
+
+    def _sent(self, t_s: float, asked: tuple[Array, float, str | None], sp: Setpoint) -> PilotStep:
+        """A setpoint went out at ``t_s``: when (on ``clock``), and what was asked (velocity,
+        yaw rate, phase), to send again; the step reports ``sp`` (as sent, or as what was sent
+        amounts to)."""
         self.last_sent_clock_s = self.clock()
-        self._last_setpoint = (t_s, v, yaw_rate_rad_s, phase)
-        return PilotStep(t_s, self.state, sp.v_mps, sp.yaw_rate_rad_s, phase)
+        self._last_setpoint = (t_s, *asked)
+        return PilotStep(t_s, self.state, sp.v_mps, sp.yaw_rate_rad_s, asked[2])
 
     def _send_full_state(self, sp: Setpoint) -> bool:
         """``sp`` as a full-state setpoint (``PilotSettings.command``): the position and yaw
@@ -617,10 +623,8 @@ class PerchingPilot:
         # takes off only what its loop's floor lets it (the firmware's PID: half the hover)
         self._lean_watch.restart()
         self.commander.send_level_thrust(s.seat_check_thrust)
-        self.last_sent_clock_s = self.clock()
         down = np.array([0.0, 0.0, -s.seat_check_mps])
-        self._last_setpoint = (t_s, down, 0.0, SEAT_CHECK)
-        return PilotStep(t_s, self.state, (0.0, 0.0, -s.seat_check_mps), 0.0, SEAT_CHECK)
+        return self._sent(t_s, (down, 0.0, SEAT_CHECK), safe_setpoint(down, 0.0, s.limits))
 
     def _seat_dropped(self, t_s: float, seat: SeatCheck) -> PilotStep:
         """The vehicle came down when asked: the magnet does not hold it. Perching, the
