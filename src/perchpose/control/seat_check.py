@@ -1,11 +1,12 @@
 """The magnet's hold, tried before the motors stop.
 
 Contact evidence (``perchpose.control.pilot``) says the vehicle is against the plate; it does
-not say that the magnet holds it. A gear pressed against the plate 25 mm off the magnet's
-centre reads as still as a seated one while the motors push it there, and falls once they
-stop. So before the stop the pilot asks a descent (``PilotSettings.seat_check_mps``) for
-``seat_check_s``: the vehicle's own loop takes thrust off, a vehicle the magnet holds stays at
-the plate, and one it does not hold comes away from it.
+not say that the magnet holds it. A gear pressed against the plate beyond the magnet's hold
+(about 23 mm off its centre) reads as still as a seated one while the motors push it there,
+and falls once they stop. So for ``PilotSettings.seat_check_s`` before the stop the pilot
+sends a level thrust under the hover's (``seat_check_thrust``), or, on a link without one, a
+descent (``seat_check_mps``): a vehicle the magnet holds stays at the plate, and one it does
+not hold comes away from it.
 
 ``SeatCheck`` judges on what the pilot hands it: ``DROPPED`` once the accelerometer's vertical
 specific force (body z) read under ``fall_mps2`` twice running (a vehicle the plate holds
