@@ -10,7 +10,8 @@ from perchpose.errors import PerchposeError
 
 def test_a_campaign_as_a_library_call(tmp_path: Path) -> None:
     """``run`` flies the runs asked for and writes the reports and the summary JSON; the
-    JSON returned is the one written."""
+    JSON returned is the one written. Unless asked otherwise the pilot sends attitude
+    setpoints, what perches best with the Crazyflie firmware in the loop."""
     out = tmp_path / "perch"
     said: list[str] = []
     options = PerchOptions(
@@ -25,6 +26,7 @@ def test_a_campaign_as_a_library_call(tmp_path: Path) -> None:
     content = run(options, say=said.append)
     assert content["runs"] == 2
     assert content["estimator"] == "truth"
+    assert content["command"] == "attitude"
     assert json.loads((tmp_path / "summary.json").read_text())["runs"] == 2
     rows = (out / "runs.csv").read_text().splitlines()
     assert len(rows) == 3  # header and two runs

@@ -32,6 +32,7 @@ from perchpose.io.samples import SampleGate
 from perchpose.values import Estimate
 
 PROTOCOL_VERSION = 10
+VELOCITIES = PilotSettings(command="velocity")  # the tests that read velocity packets
 
 
 class FakeRadioLink:
@@ -458,7 +459,7 @@ def test_each_state_estimate_sample_ticks_the_pilot(
     connection = bare_connection(cf)
     connection._state(0, state_sample(1.0), None)
     connection._moved(0, STILL, None)
-    pilot = connection.pilot()
+    pilot = connection.pilot(VELOCITIES)
     settings = pilot.controller.settings
     seen = Estimate.of_pose(0.0, (0.0, 0.0, 0.5), 0.0)  # upward camera: target straight above
     pilot.update(seen, 0.0)
@@ -483,7 +484,7 @@ def test_a_nan_state_sample_is_dropped_and_the_pilot_keeps_steering(
     connection = bare_connection(cf, report=reports.append)
     connection._state(0, state_sample(1.0), None)
     connection._moved(0, STILL, None)
-    pilot = connection.pilot()
+    pilot = connection.pilot(VELOCITIES)
     ahead = Estimate.of_pose(0.0, (0.10, 0.0, 0.5), 0.0)  # upward camera: x is the body's front
     for i in range(10):
         pilot.update(replace(ahead, t_s=i / 30), i / 30)
@@ -518,7 +519,7 @@ def test_a_height_that_stops_updating_is_never_contact(
     now = [0.0]
     reports: list[str] = []
     connection = bare_connection(cf, clock=lambda: now[0], report=reports.append)
-    pilot = connection.pilot(clock=lambda: now[0])
+    pilot = connection.pilot(VELOCITIES, clock=lambda: now[0])
     height = 1.80
     near = Estimate.of_pose(0.0, (-0.015, 0.0, 0.01), 0.0, stage=3)
     for i in range(60):
@@ -639,7 +640,7 @@ def test_the_accelerometer_is_logged_with_the_odometry_and_leant_against(
     yawed["stateEstimate.qz"] = math.sin(math.pi / 4)
     connection._state(0, yawed, None)
     connection._moved(0, STILL, None)
-    pilot = connection.pilot(clock=lambda: now["s"])
+    pilot = connection.pilot(VELOCITIES, clock=lambda: now["s"])
     pilot.update(Estimate.of_pose(0.0, (0.0, 0.0, 0.5), 0.0), 0.0)
     for k in range(1, 11):  # 50 Hz
         now["s"] += 0.02

@@ -158,11 +158,16 @@ def _magnet_wander_mm(setup: PerchSetup, seed: int) -> tuple[str, float]:
 
 @pytest.mark.parametrize("seed", [600020, 600021])
 def test_the_inertial_filter_holds_the_magnet_on_a_flow_decks_odometry(seed: int) -> None:
-    """Moderate wind, the true pose: on its own odometry the vehicle wanders 3 cm around the
-    target's axis under the plate and never commits; with the inertial filter correcting the
-    setpoints it holds within about a centimetre and perches."""
+    """Moderate wind, the true pose, velocity setpoints: on its own odometry the vehicle
+    wanders 3 cm around the target's axis under the plate and never commits; with the
+    inertial filter correcting the setpoints it holds within about a centimetre and perches."""
     campaign = PerchCampaign.from_options(
-        load_camera("preset:fpv"), estimators="truth", runs=1, wind="moderate", odometry="flow-deck"
+        load_camera("preset:fpv"),
+        estimators="truth",
+        runs=1,
+        wind="moderate",
+        odometry="flow-deck",
+        command="velocity",
     )
     setup = campaign.setups[0]
     controller = setup.controller

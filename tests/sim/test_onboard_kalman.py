@@ -121,14 +121,18 @@ def test_a_campaign_on_the_firmware_kalman_says_so(tmp_path: Path) -> None:
 
 
 def test_the_fixes_fused_by_the_filter_are_what_lets_it_perch() -> None:
-    """Still air, the true pose, realistic senses: on the firmware's filter the pilot perches
-    when its fixes reach the filter and, the same run without them, flying the filter's
-    odometry as it comes, never meets the capture cone (the filter's drift, which only the
-    camera sees). (The pilot's inertial filter, which corrects that drift itself, is left out
-    of the second run.)"""
+    """Still air, the true pose, realistic senses, velocity setpoints: on the firmware's
+    filter the pilot perches when its fixes reach the filter and, the same run without them,
+    flying the filter's odometry as it comes, never meets the capture cone (the filter's
+    drift, which only the camera sees). (The pilot's inertial filter, which corrects that
+    drift itself, is left out of the second run.)"""
     pytest.importorskip("cffirmware")
     campaign = PerchCampaign.from_options(
-        load_camera("preset:fpv"), estimators="truth", runs=1, onboard_estimator="crazyflie-kalman"
+        load_camera("preset:fpv"),
+        estimators="truth",
+        runs=1,
+        onboard_estimator="crazyflie-kalman",
+        command="velocity",
     )
     # scored at the first touch: the magnet's pull forgives a touch 14 mm off-centre, which
     # the run without fixes makes once the magnet catches it; the cone is what this is about
@@ -143,11 +147,12 @@ def test_the_fixes_fused_by_the_filter_are_what_lets_it_perch() -> None:
 
 
 def test_in_moderate_wind_the_pilot_perches_once_it_takes_out_the_lean_the_filter_misses() -> None:
-    """Moderate wind, the firmware's PID on its Kalman filter, the true pose: the filter
-    reads the lean into the wind as acceleration and corrects its attitude toward level, so
-    the pilot, turning the camera's view into the world with that attitude, puts the target
-    centimetres off and never meets the capture cone. With the lean the push needs taken out
-    (``PilotSettings.lean_lag_s``, which the campaign sets for this filter) the run perches."""
+    """Moderate wind, the firmware's PID on its Kalman filter, the true pose, velocity
+    setpoints: the filter reads the lean into the wind as acceleration and corrects its
+    attitude toward level, so the pilot, turning the camera's view into the world with that
+    attitude, puts the target centimetres off and never meets the capture cone. With the lean
+    the push needs taken out (``PilotSettings.lean_lag_s``, which the campaign sets for this
+    filter) the run perches."""
     pytest.importorskip("cffirmware")
     campaign = PerchCampaign.from_options(
         load_camera("preset:fpv"),
@@ -156,6 +161,7 @@ def test_in_moderate_wind_the_pilot_perches_once_it_takes_out_the_lean_the_filte
         wind="moderate",
         flight_controller="crazyflie-pid",
         onboard_estimator="crazyflie-kalman",
+        command="velocity",
     )
     setup = campaign.setups[0]
     assert setup.pilot.lean_lag_s == CRAZYFLIE_KALMAN_LAG_S

@@ -34,8 +34,9 @@ class LinkOptions:
     URI (None: no Crazyflie). mount : ``up``, ``down`` or a mount YAML (None: upward).
     position_fixes : the flying pilot hands each fix to the vehicle's estimator where its link
     can (the Crazyflie's Kalman filter, as an external position). command : what the flying
-    pilot sends (``PilotSettings.command``: ``velocity``, ``full-state`` or ``attitude``; a MAVLink
-    autopilot is sent velocities)."""
+    pilot sends (``PilotSettings.command``: ``velocity``, ``full-state`` or ``attitude``; None:
+    each link's own, attitude setpoints to a Crazyflie and velocities to a MAVLink autopilot,
+    which is sent velocities whatever is asked)."""
 
     mavlink_url: str | None = None
     mavlink_frame: str = "body_frd"
@@ -46,7 +47,7 @@ class LinkOptions:
     crazyflie_uri: str | None = None
     mount: str | None = None
     position_fixes: bool = True
-    command: str = "velocity"
+    command: str | None = None
 
     @property
     def flies(self) -> str | None:
@@ -126,6 +127,7 @@ def vehicle_links(
     from perchpose.control import PerchingController, PilotSettings
     from perchpose.control.pilot import PilotState
     from perchpose.control.pilot_clock import PilotClock
+    from perchpose.control.pilot_settings import DEFAULT_COMMAND
 
     o = options
     T_body_camera, settings = _flying_settings(o)
@@ -140,7 +142,7 @@ def vehicle_links(
             autopilot = MavlinkPilot(
                 o.mavlink_url,
                 controller=links.controllers[-1],
-                settings=PilotSettings(on_senses_lost="release", command=o.command),
+                settings=PilotSettings(on_senses_lost="release", command=o.command or "velocity"),
                 target_system=o.target_system,
                 report=report,
             )
@@ -171,7 +173,8 @@ def vehicle_links(
             closers.append(link.close)
             links.controllers.append(PerchingController(settings))
             pilot = link.pilot(
-                controller=links.controllers[-1], settings=PilotSettings(command=o.command)
+                controller=links.controllers[-1],
+                settings=PilotSettings(command=o.command or DEFAULT_COMMAND),
             )
             links.hooks.append(pilot)
             clock = PilotClock(pilot).start()  # the pilot's watchdogs tick without frames

@@ -12,7 +12,7 @@ from pathlib import Path
 from perchpose.app.inputs import load_camera
 from perchpose.camera import CameraModel
 from perchpose.control.lean import CRAZYFLIE_KALMAN_LAG_S
-from perchpose.control.pilot_settings import COMMANDS, PilotSettings
+from perchpose.control.pilot_settings import COMMANDS, DEFAULT_COMMAND, PilotSettings
 from perchpose.errors import PerchposeError
 from perchpose.evaluation.perching import CampaignLog, RunRecord, run_key, write_reports
 from perchpose.sim.campaign import campaign_jobs, execute
@@ -60,7 +60,7 @@ class PerchCampaign:
         time_offset: str = "correct",
         onboard_estimator: str = "model",
         position_fixes: str = "send",
-        command: str = "velocity",
+        command: str = DEFAULT_COMMAND,
         contact: str = "hold",
         duration_s: float | None = None,
         hover_s: float = PerchSetup.hover_s,
@@ -258,7 +258,7 @@ class PerchOptions:
     time_offset: str = "correct"
     onboard_estimator: str = "model"
     position_fixes: str = "send"
-    command: str = "velocity"
+    command: str = DEFAULT_COMMAND
     contact: str = "hold"
     duration_s: float | None = None
     hover_s: float = PerchSetup.hover_s

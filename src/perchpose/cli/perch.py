@@ -6,7 +6,7 @@ import click
 
 from perchpose.cli.common import camera_option_fpv, quiet_option, show_progress
 from perchpose.cli.group import group
-from perchpose.control.pilot_settings import COMMANDS
+from perchpose.control.pilot_settings import COMMANDS, DEFAULT_COMMAND
 from perchpose.sim.firmware import FLIGHT_CONTROLLERS
 from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
 
@@ -92,7 +92,7 @@ from perchpose.sim.onboard_kalman import ONBOARD_ESTIMATORS
 @click.option(
     "--command",
     type=click.Choice(list(COMMANDS)),
-    default="velocity",
+    default=DEFAULT_COMMAND,
     show_default=True,
     help="What the pilot sends the vehicle: velocity (cflib's send_velocity_world_setpoint), "
     "full-state (send_full_state_setpoint: a position and yaw its own position loop holds "

@@ -118,13 +118,13 @@ if TYPE_CHECKING:
     "--command",
     "pilot_command",
     type=click.Choice(list(COMMANDS)),
-    default="velocity",
-    show_default=True,
-    help="What the flying pilot sends: velocity setpoints, full-state ones (a position and "
-    "yaw the Crazyflie's own position loop holds on its estimate: cflib's "
-    "send_full_state_setpoint), or attitude ones (a roll, a pitch and a height, "
-    "send_zdistance_setpoint: the pilot flies the horizontal velocity loop itself on the "
-    "camera's fixes and the accelerometer). A MAVLink autopilot is sent velocities.",
+    default=None,
+    help="What the flying pilot sends a Crazyflie: attitude setpoints (the default: a roll, a "
+    "pitch and a height, send_zdistance_setpoint; the pilot flies the horizontal velocity "
+    "loop itself on the camera's fixes and the accelerometer), velocity ones "
+    "(send_velocity_world_setpoint), or full-state ones (a position and yaw its own position "
+    "loop holds on its estimate: send_full_state_setpoint). A MAVLink autopilot is sent "
+    "velocities.",
 )
 @click.option(
     "--position-fixes/--no-position-fixes",
@@ -218,7 +218,7 @@ def track(
     target_system: int | None,
     crazyflie_uri: str | None,
     mount_file: str | None,
-    pilot_command: str,
+    pilot_command: str | None,
     position_fixes: bool,
     sigmas_file: str | None,
     budget_ms: float | None,
@@ -296,7 +296,7 @@ def _link_options(
     crazyflie_uri: str | None,
     mount_file: str | None,
     position_fixes: bool = True,
-    command: str = "velocity",
+    command: str | None = None,
 ) -> LinkOptions:
     """The vehicle links asked for; a MAVLink flag without ``--mavlink`` is a usage error."""
     from perchpose.app.links import LinkOptions

@@ -11,6 +11,9 @@ from perchpose.errors import ControllerConfigError, require_positive
 
 ON_SENSES_LOST = ("land", "release")
 COMMANDS = ("velocity", "full-state", "attitude")
+# what perches best with the Crazyflie firmware's PID and Kalman filter in the loop
+# (docs/simulation.md); a MAVLink autopilot is sent velocities whatever is asked
+DEFAULT_COMMAND = "attitude"
 
 
 @dataclass(frozen=True)
@@ -125,7 +128,9 @@ class PilotSettings:
     the gusts' push, and a stiffer (or softer) loop perched less often on the Crazyflie's
     Kalman filter.
 
-    command : what the pilot sends: ``velocity`` (a world velocity and a yaw rate: cflib's
+    command : what the pilot sends (``attitude`` unless set: it perches best with the
+    Crazyflie firmware's own loops and Kalman filter in the loop): ``velocity`` (a world
+    velocity and a yaw rate: cflib's
     ``send_velocity_world_setpoint``, the vehicle's velocity loop flies it) or ``full-state``
     (a position and a yaw in the frame of the vehicle's own estimate, with the velocity:
     cflib's ``send_full_state_setpoint``; the vehicle's position loop then holds it between
@@ -191,7 +196,7 @@ class PilotSettings:
     on_senses_lost: str = "land"
     limits: SetpointLimits = field(default_factory=SetpointLimits)
     velocity_gain_per_s: float | None = 6.0
-    command: str = "velocity"
+    command: str = DEFAULT_COMMAND
     position_gain_per_s: float = 2.0
     yaw_gain_per_s: float = 6.0
     lean_gain_per_s: float = 8.0

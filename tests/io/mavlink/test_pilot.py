@@ -208,6 +208,7 @@ def test_ardupilot_gets_setpoints_only_in_guided_and_the_pilot_stops_when_it_lea
     assert any("waiting for the vehicle to be armed in GUIDED" in r for r in reports)
     assert any("left GUIDED" in r for r in reports)
     assert not any("hover setpoint" in r for r in reports)  # already released, not twice
+    assert not any("velocity setpoints only" in r for r in reports)  # asked velocities
 
 
 def test_px4_gets_a_proof_of_life_stream_then_offboard_setpoints_until_its_heartbeat_stops(

@@ -269,7 +269,7 @@ class MavlinkPilot:
             self.commander,
             self.attitude,
             controller=controller,
-            settings=settings or PilotSettings(on_senses_lost="release"),
+            settings=settings or PilotSettings(on_senses_lost="release", command="velocity"),
             height_m=self.height_m,
             odometry=self.odometry,
             ages=self.ages,
