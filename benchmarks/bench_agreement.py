@@ -1,5 +1,5 @@
-"""The model's onboard loops against the Crazyflie firmware's, side by side: a velocity step
-and a gust.
+"""The model's onboard loops against the Crazyflie firmware's, side by side: a velocity step,
+a gust and a lean.
 
     .venv/bin/python benchmarks/bench_agreement.py [--out docs/agreement.png]
 
@@ -9,10 +9,12 @@ controller (``sim.quadrotor``, stock velocity gain 4.3 /s), the firmware's PID
 attitude, and the firmware's PID flying its own Kalman filter on a simulated IMU, Flow deck
 and range sensor (``sim.onboard_kalman``). Each is asked for 0.3 m/s along x (cflib's world
 velocity setpoint) for 2 s; then, hovering afresh, a 3 m/s wind along x starts at once and
-blows for 3 s (the moderate level's mean, with no turbulence). The figure shows the velocity
-in the step and the drift in the gust; the lines say the step's time to 63 % and its
-overshoot, and the gust's largest drift and where it settles. Needs ``cffirmware``
-(``../shared/firmware/install-cffirmware``).
+blows for 3 s (the moderate level's mean, with no turbulence); then, hovering afresh, a 5 deg
+nose-down pitch is asked for 1 s (cflib's ``send_zdistance_setpoint``, the height held where
+the vehicle is). The figure shows the velocity in the step, the drift in the gust and the
+pitch in the lean; the lines say the step's time to 63 % and its overshoot, the gust's
+largest drift and where it settles, and the lean's time to 63 % and its largest pitch.
+Needs ``cffirmware`` (``../shared/firmware/install-cffirmware``).
 """
 
 from __future__ import annotations
@@ -26,10 +28,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from perchpose.geometry import roll_pitch_rad
 from perchpose.sim.firmware import FirmwareQuadrotor, load_firmware
 from perchpose.sim.flow_deck import FlowDeck
 from perchpose.sim.onboard_kalman import CrazyflieKalman, KalmanSenses
-from perchpose.sim.quadrotor import Quadrotor, QuadrotorParams
+from perchpose.sim.quadrotor import AttitudeHold, Quadrotor, QuadrotorParams
 
 DT = 1 / 500
 START = np.array([0.0, 0.0, 1.9])
@@ -37,6 +40,8 @@ STEP_MPS = 0.3
 STEP_S = 2.0
 WIND_MPS = 3.0
 GUST_S = 3.0
+LEAN_DEG = 5.0
+LEAN_S = 1.0
 
 
 def model() -> Quadrotor:
@@ -77,11 +82,24 @@ def fly(q: Quadrotor, seconds: float, v_sp: tuple[float, float, float]) -> np.nd
     return np.array(rows)
 
 
+def lean(q: Quadrotor) -> np.ndarray:
+    """(t, pitch in deg) at each step of a lean asked from a hover, the height held where the
+    vehicle's estimate puts it."""
+    rows = []
+    for i in range(round(LEAN_S / DT)):
+        p_est = q.estimator.position if q.estimator is not None else q.p_m
+        p = (float(p_est[0]), float(p_est[1]), float(p_est[2]))
+        q.hold = AttitudeHold(0.0, np.radians(LEAN_DEG), 0.0, p[2], p)
+        q.fly(DT, 1, np.zeros(3), 0.0, q.v_mps)
+        rows.append((i * DT, np.degrees(roll_pitch_rad(q.R_world_body)[1])))
+    return np.array(rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="docs/agreement.png")
     args = parser.parse_args()
-    fig, (ax_step, ax_gust) = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, (ax_step, ax_gust, ax_lean) = plt.subplots(1, 3, figsize=(14, 3.8))
     for name, make in VEHICLES.items():
         step = fly(make(), STEP_S, (STEP_MPS, 0.0, 0.0))
         t, vx = step[:, 0], step[:, 2]
@@ -91,13 +109,17 @@ def main() -> None:
         q.wind_mps = (WIND_MPS, 0.0, 0.0)
         gust = fly(q, GUST_S, (0.0, 0.0, 0.0))
         drift_mm = 1000.0 * (gust[:, 1] - START[0])
+        leant = lean(make())
+        lean_s = float(leant[np.argmax(leant[:, 1] >= 0.63 * LEAN_DEG), 0])
         print(
             f"{name}: step 63 % in {rise_s:.3f} s, overshoot {100 * overshoot:.0f} %; "
             f"gust drift max {np.abs(drift_mm).max():.0f} mm, after {GUST_S:g} s "
-            f"{drift_mm[-1]:.0f} mm"
+            f"{drift_mm[-1]:.0f} mm; lean 63 % in {lean_s:.3f} s, "
+            f"largest {leant[:, 1].max():.2f} deg"
         )
         ax_step.plot(t, vx, label=name)
         ax_gust.plot(gust[:, 0], drift_mm, label=name)
+        ax_lean.plot(leant[:, 0], leant[:, 1], label=name)
     ax_step.axhline(STEP_MPS, color="grey", lw=0.8, ls="--")
     ax_step.set(xlabel="time (s)", ylabel="velocity x (m/s)", title=f"{STEP_MPS} m/s asked along x")
     ax_gust.set(
@@ -105,6 +127,8 @@ def main() -> None:
         ylabel="drift x (mm)",
         title=f"a {WIND_MPS:g} m/s wind starts, hover asked",
     )
+    ax_lean.axhline(LEAN_DEG, color="grey", lw=0.8, ls="--")
+    ax_lean.set(xlabel="time (s)", ylabel="pitch (deg)", title=f"a {LEAN_DEG:g} deg lean asked")
     ax_step.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(args.out, dpi=110)

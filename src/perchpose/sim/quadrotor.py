@@ -117,7 +117,12 @@ class OnboardGains:
     (``position_controller_pid.c``: kp 25 deg of tilt per m/s, ki 1 deg per m), in SI: a tilt
     of theta gives g tan(theta) of acceleration, so 25 deg per m/s is about 4.3 /s and 1 deg
     per m about 0.17 /s^2. The same proportional gain is used vertically, with a stronger
-    integral that trims out the battery's sag.
+    integral that trims out the battery's sag. The attitude loop is the firmware's attitude
+    PID (``attitude_pid_controller.c``, ``platform_defaults_cf2.h``: ``pidRoll`` and
+    ``pidPitch`` kp 6, ki 3, the integral within 20 deg s), on the rotation's error instead of
+    Euler angles: it leans as the firmware's PID does within 0.1 deg over the first second of a
+    5 deg step, and the velocity step's rise and overshoot follow
+    (``benchmarks/bench_agreement.py``).
     """
 
     k_velocity: float = 4.3  # 1/s
@@ -126,7 +131,10 @@ class OnboardGains:
     k_velocity_i: tuple[float, float] = (0.17, 2.0)
     max_velocity_i_mps2: float = 3.0
     max_tilt_rad: float = math.radians(20.0)
-    k_attitude: float = 8.0  # 1/s
+    k_attitude: float = 6.0  # 1/s
+    # the attitude error's integral, 1/s^2, and its clamp (0: none)
+    k_attitude_i: float = 3.0
+    attitude_i_limit: float = math.radians(20.0)  # rad s
     k_rate: float = 0.004  # N m / (rad/s) per unit inertia scale
     k_yaw_rate: float = 0.0008
     max_rate_rad_s: float = 6.0
@@ -256,6 +264,9 @@ class Quadrotor:
         # velocity estimate ``fly`` is given)
         self.estimator: OnboardEstimate | None = None
         self._vi: Vec3 = (0.0, 0.0, 0.0)  # the onboard velocity integral, m/s^2
+        # the attitude error about body x and y (rad) at the last step, and its integral
+        self._attitude_error: tuple[float, float] = (0.0, 0.0)
+        self._attitude_i: tuple[float, float] = (0.0, 0.0)
         # a full-state or attitude setpoint the vehicle holds (None: it flies the velocity
         # ``fly`` is given), and its position estimate at this step
         self.hold: Hold | None = None
@@ -529,6 +540,13 @@ class Quadrotor:
             min(top, max(-top, iy + dt_s * k_xy * (v_sp[1] - v_est[1]))),
             min(top, max(-top, iz + dt_s * k_z * (v_sp[2] - v_est[2]))),
         )
+        if g.k_attitude_i > 0.0:
+            cap = g.attitude_i_limit
+            (ax, ay), (ex, ey) = self._attitude_i, self._attitude_error
+            self._attitude_i = (
+                min(cap, max(-cap, ax + dt_s * ex)),
+                min(cap, max(-cap, ay + dt_s * ey)),
+            )
 
     def _motor_commands(
         self, v_sp: Vec3, yaw_rate_sp: float, v_est: Vec3
@@ -569,9 +587,11 @@ class Quadrotor:
         a20 = zx * r00 + zy * r10 + zz * r20
         e_x = 0.5 * (a21 - a12)
         e_y = 0.5 * (a02 - a20)
+        self._attitude_error = (e_x, e_y)
         lim = g.max_rate_rad_s
-        rate_x = min(lim, max(-lim, -g.k_attitude * e_x))
-        rate_y = min(lim, max(-lim, -g.k_attitude * e_y))
+        ai_x, ai_y = self._attitude_i
+        rate_x = min(lim, max(-lim, -g.k_attitude * e_x - g.k_attitude_i * ai_x))
+        rate_y = min(lim, max(-lim, -g.k_attitude * e_y - g.k_attitude_i * ai_y))
         ix, iy, iz = p.inertia_kg_m2
         wx, wy, wz = self._w
         hx, hy, hz = ix * wx, iy * wy, iz * wz  # angular momentum
