@@ -237,8 +237,8 @@ class FirmwareQuadrotor(Quadrotor):
             self._velocity_gains.set(velocity_kp_deg(gain_per_s))
         return True
 
-    def _integrate_velocity_error(self, dt_s: float, v_sp: Any, v_est: Any) -> None:
-        """The firmware's own PIDs integrate; the model's integral stays unused."""
+    def _integrate_errors(self, dt_s: float, v_sp: Any, v_est: Any) -> None:
+        """The firmware's own PIDs integrate; the model's integrals stay unused."""
 
     def _motor_commands(
         self, v_sp: tuple[float, float, float], yaw_rate_sp: float, v_est: Any

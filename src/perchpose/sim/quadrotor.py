@@ -487,7 +487,7 @@ class Quadrotor:
                     else _carried(hold.p_estimate_m, v_est, i * dt_s)
                 )
                 v_sp, yaw_rate = self._position_loop(hold, v_est)
-            self._integrate_velocity_error(dt_s, v_sp, v_est)
+            self._integrate_errors(dt_s, v_sp, v_est)
             self._advance(dt_s, self._motor_commands(v_sp, yaw_rate, v_est))
             if estimator is not None:
                 estimator.advance(dt_s, self)
@@ -530,7 +530,9 @@ class Quadrotor:
         """The rotor hubs' (x, y) on the body, metres."""
         return self._hubs
 
-    def _integrate_velocity_error(self, dt_s: float, v_sp: Vec3, v_est: Vec3) -> None:
+    def _integrate_errors(self, dt_s: float, v_sp: Vec3, v_est: Vec3) -> None:
+        """The onboard loops' integrals over ``dt_s``: the velocity error's, and the attitude
+        error's as the last step left it."""
         g = self.gains
         k_xy, k_z = g.k_velocity_i
         top = g.max_velocity_i_mps2
