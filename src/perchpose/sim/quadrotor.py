@@ -116,19 +116,27 @@ class OnboardGains:
     The horizontal velocity gains are the Crazyflie firmware's velocity PID
     (``position_controller_pid.c``: kp 25 deg of tilt per m/s, ki 1 deg per m), in SI: a tilt
     of theta gives g tan(theta) of acceleration, so 25 deg per m/s is about 4.3 /s and 1 deg
-    per m about 0.17 /s^2. The same proportional gain is used vertically, with a stronger
-    integral that trims out the battery's sag. The attitude loop is the firmware's attitude
-    PID (``attitude_pid_controller.c``, ``platform_defaults_cf2.h``: ``pidRoll`` and
-    ``pidPitch`` kp 6, ki 3, the integral within 20 deg s), on the rotation's error instead of
-    Euler angles: it leans as the firmware's PID does within 0.1 deg over the first second of a
-    5 deg step, and the velocity step's rise and overshoot follow
-    (``benchmarks/bench_agreement.py``).
+    per m about 0.17 /s^2. Vertically, the firmware's ``pidVZ`` (kp 25 and ki 15 of the motors'
+    units per m/s, 1000 to the unit) near the hover is about 6 /s and 4 /s^2; as there, its
+    thrust is the collective, not divided by the tilt's cosine (a lean sinks the vehicle until
+    the integral makes up the lift lost), and it is added to ``thrust_base_n``, the PID's
+    ``thrustBase`` (36000 of 65535, 60 g at full): the integral holds the rest of the weight.
+    A setpoint of another kind than the last (velocity, height and lean, level thrust,
+    position) zeroes the integrals, as the firmware's PID reinitialises on a mode change
+    (``controller_pid.c``): the vehicle sinks until the integral has made up the weight again,
+    within 10 mm of the firmware's sink at a take-over and of its height through a 20 deg lean.
+    The attitude loop is the firmware's attitude PID (``attitude_pid_controller.c``,
+    ``platform_defaults_cf2.h``: ``pidRoll`` and ``pidPitch`` kp 6, ki 3, the integral within
+    20 deg s), on the rotation's error instead of Euler angles: it leans as the firmware's PID
+    does within 0.1 deg over the first second of a 5 deg step, and the velocity step's rise and
+    overshoot follow (``benchmarks/bench_agreement.py``).
     """
 
     k_velocity: float = 4.3  # 1/s
+    k_velocity_z: float = 6.0  # 1/s
     # integral of the velocity error, 1/s^2 (horizontal, vertical), and its clamp in m/s^2: as
     # the Crazyflie's and PX4's velocity PIDs, it trims out a steady push and the battery
-    k_velocity_i: tuple[float, float] = (0.17, 2.0)
+    k_velocity_i: tuple[float, float] = (0.17, 4.0)
     max_velocity_i_mps2: float = 3.0
     max_tilt_rad: float = math.radians(20.0)
     k_attitude: float = 6.0  # 1/s
@@ -142,8 +150,12 @@ class OnboardGains:
     # (``posCtlPid.xKp`` 2 /s, its output capped at 1.1 x 1 m/s; the yaw held with the attitude
     # loop's ``pidYaw.kp`` 6 /s)
     k_position: float = 2.0  # 1/s
+    k_height_i: float = 0.5  # 1/s^2: the height's integral (``posCtlPid.zKi``)
     max_position_speed_mps: float = 1.1
     k_yaw: float = 6.0  # 1/s
+    # the height loop's thrust divided by the tilt's cosine (False: as the firmware's PID)
+    tilt_compensated: bool = False
+    thrust_base_n: float = 36000 / 65535 * 0.060 * GRAVITY_MPS2
 
 
 def mixer(params: QuadrotorParams) -> Array:
@@ -198,6 +210,15 @@ class AttitudeHold:
 
 
 Hold = PositionHold | AttitudeHold
+
+
+def setpoint_mode(hold: Hold | None) -> str:
+    """The kind of setpoint a vehicle holding ``hold`` flies (None: a velocity)."""
+    if hold is None:
+        return "velocity"
+    if isinstance(hold, PositionHold):
+        return "position"
+    return "height" if hold.thrust_fraction is None else "thrust"
 
 
 class OnboardEstimate(Protocol):
@@ -263,13 +284,19 @@ class Quadrotor:
         # the flight controller's own estimator (None: the truth, ``attitude_bias`` and the
         # velocity estimate ``fly`` is given)
         self.estimator: OnboardEstimate | None = None
-        self._vi: Vec3 = (0.0, 0.0, 0.0)  # the onboard velocity integral, m/s^2
+        # the onboard velocity integral, m/s^2 (the vertical one as the trim of a hover: none
+        # where the vehicle holds its weight with it)
+        self._vi: Vec3 = (0.0, 0.0, 0.0)
         # the attitude error about body x and y (rad) at the last step, and its integral
         self._attitude_error: tuple[float, float] = (0.0, 0.0)
         self._attitude_i: tuple[float, float] = (0.0, 0.0)
         # a full-state or attitude setpoint the vehicle holds (None: it flies the velocity
         # ``fly`` is given), and its position estimate at this step
         self.hold: Hold | None = None
+        self._mode = setpoint_mode(None)  # the kind of setpoint flown at the last step
+        # the height error (m) the position loop saw at the last step, and its integral
+        self._height_error = 0.0
+        self._height_i = 0.0
         self._p_estimate: Vec3 = (0.0, 0.0, 0.0)
         # the plate's forces (its face, friction and magnet) where it can reach (None: free
         # flight; the contact is then only watched, ``perchpose.sim.contact.PlateContact``)
@@ -477,6 +504,10 @@ class Quadrotor:
         and returns that step's index; otherwise returns None."""
         v_sp, v_est, yaw_rate = vec3(v_sp_mps), vec3(v_estimate_mps), float(yaw_rate_sp)
         estimator, hold = self.estimator, self.hold
+        mode = setpoint_mode(hold)
+        if mode != self._mode:
+            self._mode = mode
+            self._reset_integrals()
         for i in range(n_steps):
             if estimator is not None:
                 v_est = estimator.velocity
@@ -497,15 +528,19 @@ class Quadrotor:
 
     def _position_loop(self, hold: Hold, v_est: Vec3) -> tuple[Vec3, float]:
         """The velocity and yaw rate that hold ``hold``'s position and yaw from the position
-        estimate: the firmware's PID position loop (proportional, capped). An attitude hold
-        has its height held so, and its lean and yaw rate flown as they are (its horizontal
-        velocity error is none: the velocity loop's integral stays as it is)."""
+        estimate: the firmware's PID position loop (proportional, capped; the height with its
+        integral too). An attitude hold has its height held so, and its lean and yaw rate
+        flown as they are (its horizontal velocity error is none: the velocity loop's integral
+        stays as it is)."""
         g = self.gains
         top = g.max_position_speed_mps
+        z_m = hold.z_m if isinstance(hold, AttitudeHold) else hold.p_m[2]
+        self._height_error = z_m - self._p_estimate[2]
+        ez = self._height_error + g.k_height_i / g.k_position * self._height_i
         if isinstance(hold, AttitudeHold):
-            climb = max(-top, min(top, g.k_position * (hold.z_m - self._p_estimate[2])))
+            climb = max(-top, min(top, g.k_position * ez))
             return (v_est[0], v_est[1], climb), hold.yaw_rate_rad_s
-        ex, ey, ez = (s - e for s, e in zip(hold.p_m, self._p_estimate, strict=True))
+        ex, ey = (s - e for s, e in zip(hold.p_m[:2], self._p_estimate[:2], strict=True))
         v_sp = (
             max(-top, min(top, g.k_position * ex)),
             max(-top, min(top, g.k_position * ey)),
@@ -530,6 +565,14 @@ class Quadrotor:
         """The rotor hubs' (x, y) on the body, metres."""
         return self._hubs
 
+    def _reset_integrals(self) -> None:
+        """The onboard loops' integrals zeroed, as on a change of setpoint mode: the vertical
+        one then holds nothing of the weight beyond ``thrust_base_n``."""
+        g, m = self.gains, self.params.mass_kg
+        self._vi = (0.0, 0.0, g.thrust_base_n / m - GRAVITY_MPS2)
+        self._attitude_i = (0.0, 0.0)
+        self._height_i = 0.0
+
     def _integrate_errors(self, dt_s: float, v_sp: Vec3, v_est: Vec3) -> None:
         """The onboard loops' integrals over ``dt_s``: the velocity error's, and the attitude
         error's as the last step left it."""
@@ -542,6 +585,8 @@ class Quadrotor:
             min(top, max(-top, iy + dt_s * k_xy * (v_sp[1] - v_est[1]))),
             min(top, max(-top, iz + dt_s * k_z * (v_sp[2] - v_est[2]))),
         )
+        if self._mode in ("height", "position"):
+            self._height_i += dt_s * self._height_error
         if g.k_attitude_i > 0.0:
             cap = g.attitude_i_limit
             (ax, ay), (ex, ey) = self._attitude_i, self._attitude_error
@@ -558,13 +603,13 @@ class Quadrotor:
         ix, iy, iz = self._vi
         fx = m * (self._k_xy * (v_sp[0] - v_est[0]) + ix)
         fy = m * (self._k_xy * (v_sp[1] - v_est[1]) + iy)
-        fz = m * (g.k_velocity * (v_sp[2] - v_est[2]) + iz + GRAVITY_MPS2)
+        fz = m * (g.k_velocity_z * (v_sp[2] - v_est[2]) + iz + GRAVITY_MPS2)
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._attitude_estimate()
         yaw = math.atan2(r10, r00)
         hold = self.hold
         if isinstance(hold, AttitudeHold):
             if hold.thrust_fraction is not None:
-                fz = hold.thrust_fraction * p.weight_n
+                fz = hold.thrust_fraction * g.thrust_base_n
             tx, ty = leaned(hold.roll_rad, hold.pitch_rad, yaw)
             fx, fy = fz * tx, fz * ty
         # limit the tilt of the thrust vector
@@ -581,7 +626,7 @@ class Quadrotor:
         n = math.sqrt(yx * yx + yy * yy + yz * yz)
         yx, yy, yz = yx / n, yy / n, yz / n
         xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
-        thrust = fx * r02 + fy * r12 + fz * r22
+        thrust = fx * r02 + fy * r12 + fz * r22 if g.tilt_compensated else fz
         # attitude error: vee of the skew part of R_des^T R, body frame
         a21 = zx * r01 + zy * r11 + zz * r21
         a12 = yx * r02 + yy * r12 + yz * r22
