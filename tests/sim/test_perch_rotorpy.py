@@ -31,7 +31,8 @@ def test_perching_on_rotorpy_agrees_with_our_vehicle_model() -> None:
     at 8 /s without the firmware's integral. On today's defaults (attitude setpoints, the
     firmware's attitude gains) seed 0's paths were 5.5 mm apart; on velocity setpoints with
     the firmware's attitude gains and this first-order observer, seed 0 on this package's
-    plant timed out."""
+    plant timed out. The height loop is today's (the firmware PID's, with its integrals and
+    ``thrustBase``): the figures held on it."""
     ours, rp = rotorpy_crazyflie()
     setup = PerchSetup(
         CameraModel.preset("fpv"),
