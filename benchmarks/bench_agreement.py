@@ -162,7 +162,7 @@ def main() -> None:
     ax_height.set(
         xlabel="time (s)",
         ylabel="height (mm)",
-        title=f"height held from a take-over; {HEIGHT_PLAN[1][1]:g} deg lean (shaded)",
+        title=f"take-over, then a {HEIGHT_PLAN[1][1]:g} deg lean (shaded)",
     )
     ax_step.legend(fontsize=8)
     fig.tight_layout()
