@@ -40,16 +40,25 @@ def test_controllers_that_need_position_setpoints_are_refused(tmp_path: Path) ->
         run(options)
 
 
+def _settled_firmware(
+    start: np.ndarray, yaw_rad: float = 0.0, controller: str = "crazyflie-pid"
+) -> Quadrotor:
+    """A vehicle hovering at ``start`` on the firmware's ``controller``, its integrators
+    settled as after a take-off (``FirmwareQuadrotor.settle``)."""
+    q = firmware.FirmwareQuadrotor.hovering_on_firmware(
+        controller, 500.0, QuadrotorParams(), start, yaw_rad
+    )
+    q.settle()
+    return q
+
+
 def test_the_firmware_flies_the_velocity_and_yaw_rate_cflib_sends() -> None:
     """Settled in a hover, the firmware's controller holds height, follows a 0.3 m/s world
     velocity along x and then y, and turns counter-clockwise for a positive yaw rate, as
     cflib's send_velocity_world_setpoint asks of it."""
     pytest.importorskip("cffirmware")
     start = np.array([0.2, -0.1, 1.0])
-    q = firmware.FirmwareQuadrotor.hovering_on_firmware(
-        "crazyflie-pid", 500.0, QuadrotorParams(), start, 0.4
-    )
-    q.settle()
+    q = _settled_firmware(start, 0.4)
     np.testing.assert_allclose(q.p_m, start)
 
     def fly(seconds: float, v_sp: tuple[float, float, float], yaw_rate: float = 0.0) -> None:
@@ -106,10 +115,7 @@ def test_a_full_state_setpoint_is_held_on_the_vehicles_own_estimate(controller: 
         q = Quadrotor.hovering(QuadrotorParams(), start, 0.0)
     else:
         pytest.importorskip("cffirmware")
-        q = firmware.FirmwareQuadrotor.hovering_on_firmware(
-            controller, 500.0, QuadrotorParams(), start, 0.0
-        )
-        q.settle()
+        q = _settled_firmware(start, 0.0, controller)
     offset = np.array([0.05, 0.0, 0.0])
     target = (0.2, -0.1, 1.1)
     for _ in range(round(5.0 / 0.01)):  # the estimate comes at 100 Hz
@@ -144,10 +150,7 @@ def test_an_attitude_setpoint_is_flown_as_a_lean_at_the_height_asked(controller:
         q = Quadrotor.hovering(QuadrotorParams(), start, yaw0)
     else:
         pytest.importorskip("cffirmware")
-        q = firmware.FirmwareQuadrotor.hovering_on_firmware(
-            controller, 500.0, QuadrotorParams(), start, yaw0
-        )
-        q.settle()
+        q = _settled_firmware(start, yaw0, controller)
     offset = np.array([0.0, 0.0, 0.05])
 
     def hold(roll: float, pitch: float, yaw_rate: float) -> None:
@@ -199,11 +202,7 @@ def test_the_models_attitude_loop_leans_as_the_firmwares_pid() -> None:
     pytest.importorskip("cffirmware")
     start = np.array([0.0, 0.0, 1.0])
     at_s = (0.1, 0.2, 0.4, 1.0)
-    fw = firmware.FirmwareQuadrotor.hovering_on_firmware(
-        "crazyflie-pid", 500.0, QuadrotorParams(), start, 0.0
-    )
-    fw.settle()
-    by_firmware = _lean_step_deg(fw, at_s)
+    by_firmware = _lean_step_deg(_settled_firmware(start), at_s)
     by_model = _lean_step_deg(Quadrotor.hovering(QuadrotorParams(), start, 0.0), at_s)
     np.testing.assert_allclose(by_model, by_firmware, atol=0.2)
     assert by_firmware[-1] > 5.1  # the firmware's integral overshoots, and so does the model's
@@ -222,14 +221,6 @@ def _heights_mm(q: Quadrotor, plan: tuple[tuple[float, float], ...]) -> np.ndarr
             q.fly(DT, 1, np.zeros(3), 0.0, q.v_mps)
             z_m.append(float(q.p_m[2]))
     return 1000.0 * (np.array(z_m) - z0_m)
-
-
-def _settled_firmware(start: np.ndarray) -> Quadrotor:
-    fw = firmware.FirmwareQuadrotor.hovering_on_firmware(
-        "crazyflie-pid", 500.0, QuadrotorParams(), start, 0.0
-    )
-    fw.settle()
-    return fw
 
 
 def _model_as_before(start: np.ndarray) -> Quadrotor:
@@ -309,8 +300,7 @@ def test_a_level_thrust_is_flown_as_the_thrust_asked(controller: str) -> None:
         q = Quadrotor.hovering(params, start, 0.3)
     else:
         pytest.importorskip("cffirmware")
-        q = firmware.FirmwareQuadrotor.hovering_on_firmware(controller, 500.0, params, start, 0.3)
-        q.settle()
+        q = _settled_firmware(start, 0.3, controller)
     thrust_n = 0.25 * HOVER_THRUST / firmware.FULL_COMMAND * 0.060 * 9.81
     for _ in range(20):
         p = (float(q.p_m[0]), float(q.p_m[1]), float(q.p_m[2]))
@@ -331,10 +321,7 @@ def test_a_vehicle_flies_as_the_first_in_its_process_whatever_flew_before_it() -
     pytest.importorskip("cffirmware")
 
     def flown(heading_rad: float, steps: int, v_sp: tuple[float, float, float]) -> np.ndarray:
-        q = firmware.FirmwareQuadrotor.hovering_on_firmware(
-            "crazyflie-pid", 500.0, QuadrotorParams(), np.array([0.0, 0.0, 1.0]), heading_rad
-        )
-        q.settle()
+        q = _settled_firmware(np.array([0.0, 0.0, 1.0]), heading_rad)
         for _ in range(steps):
             q.fly(DT, 1, np.array(v_sp), 0.8, q.v_mps)
         return np.concatenate([q.p_m, q.v_mps, q.R_world_body.ravel()])

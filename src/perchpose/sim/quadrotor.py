@@ -574,8 +574,9 @@ class Quadrotor:
         self._height_i = 0.0
 
     def _integrate_errors(self, dt_s: float, v_sp: Vec3, v_est: Vec3) -> None:
-        """The onboard loops' integrals over ``dt_s``: the velocity error's, and the attitude
-        error's as the last step left it."""
+        """The onboard loops' integrals over ``dt_s``: the velocity error's, and the height's
+        and the attitude's errors as the last step left them (the height's only where the
+        setpoint holds a height)."""
         g = self.gains
         k_xy, k_z = g.k_velocity_i
         top = g.max_velocity_i_mps2
